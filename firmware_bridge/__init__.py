@@ -1,0 +1,1 @@
+"""MAVLink to the flight controller (telemetry in, setpoints out) and a vehicle simulator."""

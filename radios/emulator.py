@@ -1,0 +1,437 @@
+"""A network of emulated SiK radios on real pseudo terminals.
+
+Theory of operation
+-------------------
+One process owns N pseudo terminals. ``DIR/radio<i>`` is a symbolic link to the
+slave end of pty *i*: any program opens it as the serial port of a SiK radio
+(pyserial, pymavlink, MAVProxy, ``swarm radio-config``). The emulator holds the
+master ends and drives one :class:`radios.air.AirModel` in real time
+(``time.monotonic``), in a single thread with ``poll``:
+
+* host -> radio: a master is read only while the model's serial line for that
+  radio is nearly idle (less than ``READ_AHEAD_S`` of bytes in flight), and at
+  most what the serial rate carries in that time. Bytes therefore enter the radio
+  at the configured serial speed, and a host writing faster blocks in its
+  ``write`` exactly as on a real UART (the pty's kernel buffer fills);
+* radio -> host: what the model's serial output has delivered is written to the
+  master; a host that does not read loses bytes in the radio's output buffer;
+* a pty nobody has open reports POLLHUP: its radio's output is discarded (bytes
+  sent down an unplugged cable are lost) and stale input is flushed;
+* each radio has its own SiK parameters and AT command interpreter, so ``+++``,
+  ``ATI5``, ``ATS3=..``, ``AT&W``, ``ATZ`` and ``RT..`` behave as on hardware;
+* every MAVLink frame put on air is captured to a ``.tlog`` when asked, and the
+  model's counters can be written to a JSON file (at exit and every 2 s).
+
+:class:`Emulator` is usable in-process (tests) or through ``swarm radio-emu``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import select
+import stat
+import threading
+import time
+import tty
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from radios.air import AirModel, LossModel, RadioConfig
+from radios.errors import CaptureError, ConfigError
+from radios.loss import GilbertElliott, PositionFile, RangeLoss, UniformLoss
+from radios.mavlink import FrameParser
+from radios.sik.at import ATEngine
+from radios.sik.params import SikParams, spec_for, validate_user_value
+
+SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600,
+               115: 115200, 230: 230400}
+BAUD_CODE = {v: k for k, v in SERIAL_BAUD.items()}
+READ_AHEAD_S = 0.02
+STATS_EVERY_S = 2.0
+MAX_PENDING = 65536
+
+
+@dataclass
+class EmulatorConfig:
+    nodes: int
+    directory: str
+    air_speed: int = 64
+    serial_speed: int = 57600
+    netids: list[int] = field(default_factory=lambda: [25])
+    firmware: str | None = None  # None: standard for 2 radios or fewer, else multipoint
+    loss: float = 0.0
+    burst_loss: str | None = None
+    positions: str | None = None
+    params: dict[str, int] = field(default_factory=dict)
+    flow_control: bool = False
+    capture: str | None = None
+    stats_json: str | None = None
+    seed: int = 0
+
+    def resolved_firmware(self) -> str:
+        if self.firmware is not None:
+            return self.firmware
+        return "standard" if self.nodes <= 2 else "multipoint"
+
+    def validate(self) -> None:
+        """Raises ConfigError with a clear message for any bad value."""
+        if not 1 <= self.nodes <= 250:
+            raise ConfigError(f"--nodes {self.nodes}: between 1 and 250 radios")
+        if self.resolved_firmware() not in ("standard", "multipoint"):
+            raise ConfigError(f"--firmware {self.firmware}: standard or multipoint")
+        if self.serial_speed not in BAUD_CODE:
+            raise ConfigError(f"--serial-speed {self.serial_speed}: one of "
+                              + ", ".join(str(b) for b in sorted(BAUD_CODE)))
+        validate_user_value(self.resolved_firmware(), "AIR_SPEED", self.air_speed)
+        if len(self.netids) not in (1, self.nodes):
+            raise ConfigError(f"--netid: give one NETID for all radios or one per radio "
+                              f"({self.nodes}), not {len(self.netids)}")
+        for n in self.netids:
+            validate_user_value(self.resolved_firmware(), "NETID", n)
+        if not 0.0 <= self.loss <= 1.0:
+            raise ConfigError(f"--loss {self.loss}: a probability between 0 and 1")
+        for name, value in self.params.items():
+            validate_user_value(self.resolved_firmware(), name, value)
+
+
+def parse_param(text: str) -> tuple[str, int]:
+    """``NAME=VALUE`` as given to ``--param``. Raises ConfigError."""
+    name, sep, value = text.partition("=")
+    if not sep:
+        raise ConfigError(f"--param {text!r}: expected NAME=VALUE")
+    try:
+        return name.strip().upper(), int(value)
+    except ValueError:
+        raise ConfigError(f"--param {text!r}: the value must be an integer") from None
+
+
+class Emulator:
+    """See the module docstring. ``open()`` creates the ptys, ``run(stop)`` drives
+    them until ``stop`` is set, ``close()`` removes everything (safe twice)."""
+
+    def __init__(self, cfg: EmulatorConfig, *, clock: Callable[[], float] = time.monotonic) -> None:
+        cfg.validate()
+        self.cfg = cfg
+        self.clock = clock
+        self.firmware = cfg.resolved_firmware()
+        self.params: list[SikParams] = []
+        self.masters: list[int] = []
+        self.links: list[Path] = []
+        self.slave_names: list[str] = []
+        self.connected: list[bool] = []
+        self._pending: list[bytearray] = []
+        self._capture: Any = None
+        self._parsers: list[FrameParser] = []
+        self._epoch_offset = time.time() - clock()
+        self.model: AirModel | None = None
+        self.frames_captured = 0
+        self.dropped_output = 0
+        self._closed = False
+        self._last_stats = 0.0
+        self.started = clock()
+
+    # -- set-up -------------------------------------------------------------
+    def _stored(self, i: int) -> dict[str, int]:
+        cfg = self.cfg
+        stored = {
+            "AIR_SPEED": cfg.air_speed,
+            "SERIAL_SPEED": BAUD_CODE[cfg.serial_speed],
+            "NETID": cfg.netids[i] if len(cfg.netids) > 1 else cfg.netids[0],
+        }
+        if self.firmware == "multipoint":
+            stored["NODECOUNT"] = max(cfg.nodes, 2)
+            stored["NODEID"] = i
+            stored["MAVLINK"] = 1  # the swarm runs MAVLink framing; multipoint defaults to raw
+        stored.update(cfg.params)
+        # order matters for the multipoint cross-checks (NODEID < NODECOUNT)
+        order = ["NODECOUNT"] + [k for k in stored if k != "NODECOUNT"]
+        return {k: stored[k] for k in order if k in stored}
+
+    def radio_config(self, i: int) -> RadioConfig:
+        """The model's view of radio ``i``'s active parameters."""
+        p = self.params[i]
+
+        def a(name: str) -> int:
+            return p.active[spec_for(self.firmware, name).index]
+
+        mp = self.firmware == "multipoint"
+        return RadioConfig(
+            netid=a("NETID"),
+            air_kbps=a("AIR_SPEED"),
+            serial_baud=SERIAL_BAUD.get(a("SERIAL_SPEED"), 57600),
+            ecc=bool(a("ECC")),
+            mavlink=a("MAVLINK"),
+            max_window_ms=131 if mp else a("MAX_WINDOW"),
+            num_channels=a("NUM_CHANNELS"),
+            min_freq=a("MIN_FREQ"),
+            max_freq=a("MAX_FREQ"),
+            txpower_dbm=a("TXPOWER"),
+            firmware=self.firmware,
+            node_id=a("NODEID") if mp else 0,
+            node_destination=a("NODEDESTINATION") if mp else 0xFFFF,
+            node_count=a("NODECOUNT") if mp else 2,
+        )
+
+    def _losses(self) -> list[LossModel]:
+        out: list[LossModel] = []
+        if self.cfg.loss > 0:
+            out.append(UniformLoss(self.cfg.loss))
+        if self.cfg.burst_loss:
+            out.append(GilbertElliott.parse(self.cfg.burst_loss))
+        if self.cfg.positions:
+            out.append(RangeLoss(PositionFile(self.cfg.positions)))
+        return out
+
+    def open(self) -> list[tuple[Path, str]]:
+        """Create the ptys, links, capture file and model.
+
+        Raises:
+            ConfigError: the directory is missing or a link path is taken.
+            CaptureError: the capture file cannot be created.
+        """
+        d = Path(self.cfg.directory)
+        if not d.is_dir():
+            raise ConfigError(f"--dir {d}: no such directory (create it first: mkdir -p {d})")
+        if not os.access(d, os.W_OK):
+            raise ConfigError(f"--dir {d}: not writable")
+        for i in range(self.cfg.nodes):
+            link = d / f"radio{i}"
+            if link.is_symlink():
+                link.unlink()  # a stale link left by an emulator that was killed
+            elif link.exists():
+                raise ConfigError(f"{link} exists and is not a link: choose another --dir")
+        losses = self._losses()
+        if self.cfg.capture:
+            from radios.tlog import TlogWriter
+
+            self._capture = TlogWriter(self.cfg.capture)
+        try:
+            for i in range(self.cfg.nodes):
+                self.params.append(SikParams(self.firmware, stored=self._stored(i)))
+            for i in range(self.cfg.nodes):
+                master, slave = os.openpty()
+                tty.setraw(slave)
+                name = os.ttyname(slave)
+                os.close(slave)
+                os.set_blocking(master, False)
+                self.masters.append(master)
+                self.slave_names.append(name)
+                self.connected.append(False)
+                self._pending.append(bytearray())
+                self._parsers.append(FrameParser())
+                link = d / f"radio{i}"
+                os.symlink(name, link)
+                self.links.append(link)
+            now = self.clock()
+            self.started = now
+            self.model = AirModel(
+                [self.radio_config(i) for i in range(self.cfg.nodes)],
+                seed=self.cfg.seed, losses=losses, start=now,
+                at_factory=self._make_at, on_reboot=self._on_reboot,
+                on_air=self._on_air if self._capture is not None else None,
+                flow_control=self.cfg.flow_control,
+            )
+        except BaseException:
+            self.close()
+            raise
+        return list(zip(self.links, self.slave_names, strict=True))
+
+    def _make_at(self, i: int, _cfg: RadioConfig) -> ATEngine:
+        return ATEngine(
+            self.params[i], flavour=self.firmware,
+            ati6=lambda: self.model.ati6(i) if self.model else "",
+            ati7=lambda: self.model.ati7(i) if self.model else "",
+            node_id=i if self.firmware == "multipoint" else None,
+        )
+
+    def _on_reboot(self, i: int) -> RadioConfig:
+        return self.radio_config(i)
+
+    def _on_air(self, sender: int, payload: bytes, t0: float, t1: float, kind: str) -> None:
+        if kind != "data" or self._capture is None:
+            return
+        for frame in self._parsers[sender].feed(payload):
+            try:
+                self._capture.write(frame.raw, self._epoch_offset + t1)
+                self.frames_captured += 1
+            except (CaptureError, OSError, ValueError):
+                pass
+
+    # -- running --------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        """Drive the ptys until ``stop`` is set."""
+        model = self.model
+        assert model is not None, "open() first"
+        poller = select.poll()
+        n = self.cfg.nodes
+        registered = [-1] * n
+        next_hup_check = 0.0
+        while not stop.is_set():
+            now = self.clock()
+            model.advance(now)
+            for i in range(n):
+                out = model.take_output(i, now)
+                if out:
+                    if self.connected[i]:
+                        pend = self._pending[i]
+                        pend += out
+                        if len(pend) > MAX_PENDING:
+                            self.dropped_output += len(pend) - MAX_PENDING
+                            del pend[: len(pend) - MAX_PENDING]
+                    else:
+                        self.dropped_output += len(out)
+                if self._pending[i]:
+                    self._flush(i)
+            if now >= next_hup_check:
+                next_hup_check = now + 0.1
+                self._check_connections()
+            # decide what to wait for
+            timeout = 0.1
+            dl = model.next_deadline()
+            if dl is not None:
+                timeout = min(timeout, dl - now)
+            for i in range(n):
+                mask = 0
+                if self.connected[i]:
+                    backlog = model.serial_backlog_s(i, now)
+                    if backlog < READ_AHEAD_S / 2:
+                        mask |= select.POLLIN
+                    elif backlog != float("inf"):
+                        timeout = min(timeout, backlog - READ_AHEAD_S / 2)
+                    if self._pending[i]:
+                        mask |= select.POLLOUT
+                if mask != registered[i]:
+                    if mask:
+                        if registered[i] > 0:
+                            poller.modify(self.masters[i], mask)
+                        else:
+                            poller.register(self.masters[i], mask)
+                    elif registered[i] > 0:
+                        poller.unregister(self.masters[i])
+                    registered[i] = mask
+            if self.cfg.stats_json and now - self._last_stats >= STATS_EVERY_S:
+                self._last_stats = now
+                self.write_stats()
+            events = poller.poll(max(0.0, timeout) * 1000.0)
+            if not events:
+                continue
+            t = self.clock()
+            for fd, ev in events:
+                i = self.masters.index(fd)
+                if ev & (select.POLLHUP | select.POLLERR):
+                    self._disconnect(i)
+                    poller.unregister(fd)
+                    registered[i] = 0
+                    continue
+                if ev & select.POLLIN:
+                    cfg = model.radios[i].cfg
+                    budget = max(1, int(READ_AHEAD_S * cfg.serial_baud / 10))
+                    try:
+                        data = os.read(fd, budget)
+                    except (BlockingIOError, InterruptedError):
+                        data = b""
+                    except OSError:
+                        self._disconnect(i)
+                        continue
+                    if data:
+                        model.host_write(i, data, t)
+
+    def _flush(self, i: int) -> None:
+        pend = self._pending[i]
+        try:
+            k = os.write(self.masters[i], pend)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self._disconnect(i)
+            return
+        del pend[:k]
+
+    def _check_connections(self) -> None:
+        for i, fd in enumerate(self.masters):
+            if self.connected[i]:
+                continue
+            p = select.poll()
+            p.register(fd, select.POLLIN)
+            ev = p.poll(0)
+            if ev and ev[0][1] & select.POLLHUP:
+                continue
+            # a host opened the port: forget what piled up while nobody listened
+            with contextlib.suppress(OSError):
+                while os.read(fd, 4096):
+                    pass
+            self.connected[i] = True
+
+    def _disconnect(self, i: int) -> None:
+        self.connected[i] = False
+        self._pending[i].clear()
+
+    # -- reporting ------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        model = self.model
+        assert model is not None
+        now = self.clock()
+        return {
+            "nodes": self.cfg.nodes,
+            "firmware": self.firmware,
+            "air_speed_kbps": model.radios[0].cfg.air_kbps,
+            "serial_speed": model.radios[0].cfg.serial_baud,
+            "round_s": model.round_s(0),
+            "elapsed_s": now - self.started,
+            "utilisation": model.utilisation(now),
+            "frames_captured": self.frames_captured,
+            "dropped_output_bytes": self.dropped_output,
+            "radios": [
+                {"radio": i, "link": str(self.links[i]), "pty": self.slave_names[i],
+                 "connected": self.connected[i], **model.status(i)}
+                for i in range(self.cfg.nodes)
+            ],
+        }
+
+    def write_stats(self) -> None:
+        path = self.cfg.stats_json
+        if not path or self.model is None:
+            return
+        tmp = f"{path}.tmp"
+        try:
+            with open(tmp, "w", encoding="utf-8") as fh:
+                json.dump(self.stats(), fh, indent=1)
+            os.replace(tmp, path)
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        """Remove the links, close the ptys and the capture (safe twice)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.model is not None:
+            self.write_stats()
+        for link in self.links:
+            with contextlib.suppress(OSError):
+                if link.is_symlink():
+                    link.unlink()
+        for fd in self.masters:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        if self._capture is not None:
+            self._capture.close()
+
+    def __enter__(self) -> Emulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def check_capture_path(path: str) -> None:
+    """Fail early (ConfigError) if a capture file cannot be created at ``path``."""
+    parent = Path(path).parent
+    if not parent.is_dir():
+        raise ConfigError(f"--capture {path}: directory {parent} does not exist")
+    if Path(path).exists() and not stat.S_ISREG(os.stat(path).st_mode):
+        raise ConfigError(f"--capture {path}: not a regular file")

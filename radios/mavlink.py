@@ -1,0 +1,312 @@
+"""MAVLink framing: whole frames out of a byte stream, and frames built with pymavlink.
+
+Theory of operation
+-------------------
+Every byte on the air is a MAVLink frame (DESIGN.md section 3). :class:`FrameParser`
+turns an arbitrary byte stream into whole :class:`Frame` objects:
+
+* it looks for a start byte (0xFD for MAVLink 2, 0xFE for MAVLink 1, which old
+  SiK firmware still uses for RADIO_STATUS), reads the header to learn the frame
+  length (plus 13 signature bytes when the MAVLink 2 "signed" flag is set), and
+  waits until the whole frame has arrived: frames may be split at any byte;
+* it checks the CRC-16/MCRF4XX with the message's CRC_EXTRA from the pymavlink
+  dialect. A frame whose CRC fails, or whose message id is unknown (so its CRC
+  cannot be checked), is not trusted: the parser skips only its start byte and
+  scans again, so a false start byte inside garbage never swallows the real
+  frames that follow;
+* every byte it discards is counted (``bytes_skipped``), as is every CRC failure.
+
+Frames are built with pymavlink (:class:`FrameBuilder`) and decoded into pymavlink
+message objects with :func:`decode`. The CRC uses crcmod's C implementation; the
+parser never raises on input: it only returns frames and counts.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+import crcmod
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from radios.errors import FrameError
+
+STX_V2 = 0xFD
+STX_V1 = 0xFE
+HEADER_V2 = 10  # STX, len, incompat, compat, seq, sysid, compid, msgid(3)
+HEADER_V1 = 6  # STX, len, seq, sysid, compid, msgid
+CRC_LEN = 2
+SIGNATURE_LEN = 13
+IFLAG_SIGNED = 0x01
+MAX_FRAME_LEN = HEADER_V2 + 255 + CRC_LEN + SIGNATURE_LEN  # 280
+
+MSG_HEARTBEAT = 0
+MSG_RADIO_STATUS = 109
+MSG_TUNNEL = 385
+
+_crc16 = crcmod.mkCrcFun(0x11021, initCrc=0xFFFF, rev=True, xorOut=0x0000)
+
+#: msgid -> CRC_EXTRA for every message of the dialect (common + ardupilotmega).
+CRC_EXTRA: dict[int, int] = {mid: cls.crc_extra for mid, cls in dialect.mavlink_map.items()}
+
+
+def x25_crc(data: bytes, crc_extra: int | None = None) -> int:
+    """MAVLink's CRC-16/MCRF4XX over ``data``, then over ``crc_extra`` if given."""
+    crc = _crc16(data)
+    if crc_extra is not None:
+        crc = _crc16(bytes((crc_extra,)), crc)
+    return int(crc)
+
+
+def frame_length(buf: bytes | bytearray, start: int = 0) -> int | None:
+    """Total length of the frame starting at ``buf[start]`` from its header alone.
+
+    Returns None if ``buf[start]`` is not a start byte or the header is incomplete.
+    This is all a SiK radio knows about a frame (it never checks the CRC).
+    """
+    if len(buf) - start < 3:
+        return None
+    stx = buf[start]
+    if stx == STX_V2:
+        n = HEADER_V2 + buf[start + 1] + CRC_LEN
+        if buf[start + 2] & IFLAG_SIGNED:
+            n += SIGNATURE_LEN
+        return n
+    if stx == STX_V1:
+        return HEADER_V1 + buf[start + 1] + CRC_LEN
+    return None
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One whole, CRC-checked MAVLink frame as it was on the wire."""
+
+    raw: bytes
+
+    @property
+    def version(self) -> int:
+        return 2 if self.raw[0] == STX_V2 else 1
+
+    @property
+    def payload_len(self) -> int:
+        return self.raw[1]
+
+    @property
+    def signed(self) -> bool:
+        return self.version == 2 and bool(self.raw[2] & IFLAG_SIGNED)
+
+    @property
+    def seq(self) -> int:
+        return self.raw[4] if self.version == 2 else self.raw[2]
+
+    @property
+    def sysid(self) -> int:
+        return self.raw[5] if self.version == 2 else self.raw[3]
+
+    @property
+    def compid(self) -> int:
+        return self.raw[6] if self.version == 2 else self.raw[4]
+
+    @property
+    def msgid(self) -> int:
+        if self.version == 2:
+            r = self.raw
+            return r[7] | (r[8] << 8) | (r[9] << 16)
+        return self.raw[5]
+
+    @property
+    def payload(self) -> bytes:
+        h = HEADER_V2 if self.version == 2 else HEADER_V1
+        return self.raw[h : h + self.payload_len]
+
+    @property
+    def name(self) -> str:
+        cls = dialect.mavlink_map.get(self.msgid)
+        return cls.msgname if cls is not None else f"UNKNOWN_{self.msgid}"
+
+    def __len__(self) -> int:
+        return len(self.raw)
+
+
+@dataclass
+class ParserStats:
+    frames: int = 0
+    bytes: int = 0
+    crc_errors: int = 0
+    unknown_msgid: int = 0
+    bytes_skipped: int = 0
+
+
+@dataclass
+class FrameParser:
+    """Incremental MAVLink stream parser that resynchronises after garbage.
+
+    Feed it any bytes with :meth:`feed`; it returns the whole frames completed by
+    them. Never raises on input.
+    """
+
+    accept_v1: bool = True
+    stats: ParserStats = field(default_factory=ParserStats)
+    _buf: bytearray = field(default_factory=bytearray)
+
+    def feed(self, data: bytes | bytearray) -> list[Frame]:
+        buf = self._buf
+        buf += data
+        self.stats.bytes += len(data)
+        out: list[Frame] = []
+        i = 0
+        n = len(buf)
+        while i < n:
+            b = buf[i]
+            if b != STX_V2 and not (b == STX_V1 and self.accept_v1):
+                j = self._next_stx(buf, i + 1)
+                self.stats.bytes_skipped += j - i
+                i = j
+                continue
+            total = frame_length(buf, i)
+            if total is None or n - i < total:
+                break  # wait for more bytes
+            raw = bytes(buf[i : i + total])
+            if self._check(raw):
+                out.append(Frame(raw))
+                self.stats.frames += 1
+                i += total
+            else:
+                self.stats.bytes_skipped += 1
+                i += 1
+        del buf[:i]
+        return out
+
+    def _next_stx(self, buf: bytearray, start: int) -> int:
+        j = buf.find(STX_V2, start)
+        if self.accept_v1:
+            k = buf.find(STX_V1, start)
+            if k != -1 and (j == -1 or k < j):
+                j = k
+        return len(buf) if j == -1 else j
+
+    def _check(self, raw: bytes) -> bool:
+        if raw[0] == STX_V2:
+            msgid = raw[7] | (raw[8] << 8) | (raw[9] << 16)
+            end = HEADER_V2 + raw[1]
+        else:
+            msgid = raw[5]
+            end = HEADER_V1 + raw[1]
+        extra = CRC_EXTRA.get(msgid)
+        if extra is None:
+            self.stats.unknown_msgid += 1
+            return False
+        crc = x25_crc(raw[1:end], extra)
+        if crc != (raw[end] | (raw[end + 1] << 8)):
+            self.stats.crc_errors += 1
+            return False
+        return True
+
+    @property
+    def pending(self) -> int:
+        """Bytes held while waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def reset(self) -> None:
+        self._buf.clear()
+
+
+def parse_one(data: bytes) -> Frame:
+    """Parse ``data`` as exactly one whole, valid MAVLink frame.
+
+    Raises:
+        FrameError: if ``data`` is not exactly one frame with a valid CRC.
+    """
+    if len(data) > MAX_FRAME_LEN:
+        raise FrameError(f"{len(data)} bytes is larger than any MAVLink frame ({MAX_FRAME_LEN})")
+    total = frame_length(data)
+    if total is None or total != len(data):
+        raise FrameError("not exactly one MAVLink frame (bad start byte or length)")
+    parser = FrameParser()
+    frames = parser.feed(data)
+    if len(frames) != 1:
+        raise FrameError("MAVLink frame has a bad CRC or an unknown message id")
+    return frames[0]
+
+
+class FrameBuilder:
+    """Builds MAVLink 2 frames for one (sysid, compid) with its own sequence counter."""
+
+    def __init__(self, sysid: int, compid: int = 0) -> None:
+        if not 1 <= sysid <= 255:
+            raise FrameError(f"system id {sysid} is outside 1..255")
+        if not 0 <= compid <= 255:
+            raise FrameError(f"component id {compid} is outside 0..255")
+        self.mav = dialect.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self.mav.robust_parsing = True
+
+    def build(self, msg: Any) -> bytes:
+        """Pack a pymavlink message object and advance the sequence number."""
+        raw = bytes(msg.pack(self.mav))
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return raw
+
+    def heartbeat(self, type_: int = 18, autopilot: int = 8) -> bytes:
+        """A HEARTBEAT (default: onboard controller, no autopilot)."""
+        return self.build(dialect.MAVLink_heartbeat_message(type_, autopilot, 0, 0, 4, 3))
+
+    def tunnel(self, payload: bytes, *, target_system: int = 0, payload_type: int = 32768) -> bytes:
+        if len(payload) > 128:
+            raise FrameError(f"TUNNEL payload of {len(payload)} bytes exceeds 128")
+        data = payload.ljust(128, b"\0")
+        return self.build(
+            dialect.MAVLink_tunnel_message(target_system, 0, payload_type, len(payload), data)
+        )
+
+
+_decoder = dialect.MAVLink(None)
+_decoder.robust_parsing = False
+
+
+def decode(frame: Frame | bytes) -> Any:
+    """Decode a frame into a pymavlink message object.
+
+    Raises:
+        FrameError: if pymavlink cannot decode it.
+    """
+    raw = frame.raw if isinstance(frame, Frame) else frame
+    try:
+        return _decoder.decode(bytearray(raw))
+    except Exception as exc:  # pymavlink raises its own MAVError and struct errors
+        raise FrameError(f"cannot decode frame: {exc}") from exc
+
+
+def radio_status_fields(frame: Frame) -> dict[str, int]:
+    """The fields of a RADIO_STATUS frame (v1 or v2, zero-extended payload)."""
+    p = frame.payload.ljust(9, b"\0")
+    rxerrors, fixed, rssi, remrssi, txbuf, noise, remnoise = struct.unpack("<HHBBBBB", p[:9])
+    return {
+        "rxerrors": rxerrors,
+        "fixed": fixed,
+        "rssi": rssi,
+        "remrssi": remrssi,
+        "txbuf": txbuf,
+        "noise": noise,
+        "remnoise": remnoise,
+    }
+
+
+def pack_frame(
+    msgid: int, payload: bytes, *, sysid: int, compid: int, seq: int, version: int = 2
+) -> bytes:
+    """Pack an unsigned frame from raw payload bytes (used where pymavlink objects are
+    overkill, e.g. the emulator's RADIO_STATUS). MAVLink 2 payloads are truncated of
+    trailing zeros as the spec requires."""
+    extra = CRC_EXTRA[msgid]
+    if version == 2:
+        body = payload.rstrip(b"\0") or payload[:1]
+        hdr = struct.pack(
+            "<BBBBBBBHB", STX_V2, len(body), 0, 0, seq & 0xFF, sysid, compid,
+            msgid & 0xFFFF, msgid >> 16,
+        )
+    else:
+        body = payload
+        hdr = struct.pack("<BBBBBB", STX_V1, len(body), seq & 0xFF, sysid, compid, msgid)
+    crc = x25_crc(hdr[1:] + body, extra)
+    return hdr + body + struct.pack("<H", crc)

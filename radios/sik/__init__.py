@@ -1,0 +1,1 @@
+"""SiK telemetry radios: parameter table, radio-side AT interpreter, host-side configurator."""

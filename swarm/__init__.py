@@ -1,0 +1,1 @@
+"""Swarm messages, transport, protocol, formation, agent runtime, GCS and the `swarm` command."""

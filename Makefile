@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: setup
-	$(BIN)/swarm demo
+	$(BIN)/python -m swarm.radio_demo
 
 test: setup
 	$(BIN)/ruff check radios firmware_bridge swarm tests

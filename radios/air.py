@@ -62,6 +62,7 @@ from radios.sik.timing import STATS_LEN, TICK_S, TRAILER_LEN, TdmTiming, max_xmi
 TX, SILENCE1, RX, SILENCE2 = 0, 1, 2, 3
 BROADCAST = 0xFFFF
 PREAMBLE_BYTES = 8  # preamble_length 16 nibbles
+INJECT_MAX = 32  # remote AT replies travel in packets of at most 32 bytes
 RADIO_STATUS_SYSID = 51  # '3'
 RADIO_STATUS_COMPID = 68  # 'D'
 
@@ -180,6 +181,7 @@ class _Radio:
         self.injected = bytearray()  # remote AT reply waiting to be sent
         self.remote_cmd: str | None = None
         self.rs_seq = 0
+        self.rs_pending = False
         # link state
         self.locked = False
         self.last_rx = -math.inf
@@ -301,6 +303,9 @@ class AirModel:
             self.now = max(self.now, t)
             _HANDLERS[kind](self, self.radios[node], t, data)
         self.now = max(self.now, now)
+        for r in self.radios:
+            # serial output keeps flowing whether or not the host reads it
+            self._drain(r, now)
 
     def take_output(self, node: int, now: float) -> bytes:
         """Bytes the radio has written to its serial output by ``now``."""
@@ -478,8 +483,9 @@ class AirModel:
     # packetiser (packet.c) ----------------------------------------------------
     def _packet_get_next(self, r: _Radio, mx: int, t: float) -> tuple[bytes, bool]:
         if r.injected:
-            chunk = bytes(r.injected[:mx])
-            del r.injected[:mx]
+            n = min(mx, INJECT_MAX)
+            chunk = bytes(r.injected[:n])
+            del r.injected[:n]
             return chunk, True
         buf = r.inbuf
         if not buf or mx <= 0:
@@ -564,12 +570,18 @@ class AirModel:
         return chunk
 
     def _check_heartbeat(self, r: _Radio, buf: bytearray, i: int) -> None:
+        """packet.c's check_heartbeat: one flag, so one report per main-loop pass
+        however many heartbeats a packet carried."""
+        version = 0
         if buf[i] == STX_V2:
             if len(buf) - i >= 10 and buf[i + 1] <= 9 and buf[i + 7] == 0 and buf[i + 8] == 0 \
                     and buf[i + 9] == 0:
-                self._push(self.now, _RADIO_STATUS, r.index, 2)
+                version = 2
         elif buf[i] == STX_V1 and len(buf) - i >= 6 and buf[i + 1] == 9 and buf[i + 5] == 0:
-            self._push(self.now, _RADIO_STATUS, r.index, 1)
+            version = 1
+        if version and not r.rs_pending:
+            r.rs_pending = True
+            self._push(self.now, _RADIO_STATUS, r.index, version)
 
     # TDM ---------------------------------------------------------------------
     def _audible_busy_until(self, r: _Radio, t: float) -> float | None:
@@ -653,17 +665,18 @@ class AirModel:
                 self._pull_serial(r, t)
         window = remaining - r.t.flight_ticks(len(payload) + TRAILER_LEN)
         if not payload:
-            if mp:
+            if not in_rx and r.send_statistics and mx >= STATS_LEN:
+                r.send_statistics = False
+                payload = struct.pack("<BBH", r.avg_rssi, r.avg_noise, r.receive_count & 0xFFFF)
+                window = 0
+                kind = "stats"
+            elif mp:
+                # multipoint: only the base speaks when idle, once per own window
                 if r.cfg.node_id != 0 or r.mp_synced_until >= end:
                     self._wake_at(r, next_start)
                     return
                 r.mp_synced_until = end
                 kind = "sync"
-            elif not in_rx and r.send_statistics and mx >= STATS_LEN:
-                r.send_statistics = False
-                payload = struct.pack("<BBH", r.avg_rssi, r.avg_noise, r.receive_count & 0xFFFF)
-                window = 0
-                kind = "stats"
             else:
                 r.yielded = True
                 kind = "yield"
@@ -720,9 +733,13 @@ class AirModel:
                 r.stats.rx_errors += 1
                 return
         if not r.locked:
-            if self.rng.random() >= 1.0 / max(r.cfg.num_channels, 1):
+            # the multipoint base sends its sync on a fixed channel: heard at once
+            base = r.cfg.firmware == "multipoint" and sender.cfg.node_id == 0
+            if not base and self.rng.random() >= 1.0 / max(r.cfg.num_channels, 1):
                 return
+            # r now follows the sender's TDM and hop sequence: they are in step
             r.locked = True
+            sender.locked = True
         for model in self.losses:
             if model.lost(pkt.sender, r.index, t, self.rng):
                 r.stats.lost += 1
@@ -825,6 +842,7 @@ class AirModel:
         self._at_output(r, r.at.poll(t), t)
 
     def _on_radio_status(self, r: _Radio, t: float, version: Any) -> None:
+        r.rs_pending = False
         if r.cfg.mavlink == 0 or (r.at is not None and r.at.in_command_mode):
             return
         self._pull_serial(r, t)

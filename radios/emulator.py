@@ -42,7 +42,7 @@ from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
 from radios.errors import CaptureError, ConfigError
-from radios.loss import GilbertElliott, PositionFile, RangeLoss, UniformLoss
+from radios.loss import GilbertElliott, PositionFile, RangeLoss, UniformLoss, sensitivity_dbm
 from radios.mavlink import FrameParser
 from radios.sik.at import ATEngine
 from radios.sik.params import SikParams, spec_for, validate_user_value
@@ -183,7 +183,8 @@ class Emulator:
         if self.cfg.burst_loss:
             out.append(GilbertElliott.parse(self.cfg.burst_loss))
         if self.cfg.positions:
-            out.append(RangeLoss(PositionFile(self.cfg.positions)))
+            out.append(RangeLoss(PositionFile(self.cfg.positions),
+                                 sensitivity_dbm=sensitivity_dbm(self.cfg.air_speed)))
         return out
 
     def open(self) -> list[tuple[Path, str]]:

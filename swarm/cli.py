@@ -15,6 +15,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "radio-emu": ("swarm.commands.radio_emu", "emulate a network of SiK radios on pseudo terminals"),
     "radio-config": ("swarm.commands.radio_config", "read and write a SiK radio's parameters (AT commands)"),
     "replay": ("swarm.commands.replay", "decode, re-feed and summarise a radio capture (.tlog)"),
+    "sim": ("swarm.commands.sim", "simulate N multicopters that speak MAVLink like PX4 or ArduPilot SITL"),
     "bench": ("swarm.commands.bench", "run a benchmark and print its figures"),
 }
 

@@ -163,14 +163,35 @@ def model_goodput(t: TdmTiming, frame_len: int, serial_baud: int) -> float:
     return min(air, serial_bytes_per_s(serial_baud))
 
 
-def model_latency_s(t: TdmTiming, frame_len: int, serial_baud: int, slots: int = 2) -> dict[str, float]:
-    """Predicted one-way latency of a small frame on an idle channel.
+def model_latency_s(t: TdmTiming, frame_len: int, serial_baud: int, slots: int = 2,
+                    *, peer_idle: bool = True, multipoint: bool = False) -> dict[str, float]:
+    """Predicted one-way latency of a small frame on an otherwise quiet channel.
 
-    serial in + wait for the sender's next window (uniform over one round: an idle
-    radio yields its window at once, so data that arrives later waits for the
-    next one) + flight + serial out. Returns p50, p99 and mean in seconds.
+    serial in + wait for a chance to transmit + flight + serial out, with the frame
+    arriving at a uniformly random moment:
+
+    * standard pair: an idle radio yields its window at once with a zero-length
+      packet (tdm.c), so data that arrives later waits for the next window start.
+      When the peer is idle (``peer_idle``) its yield hands the sender bonus ticks
+      at the start of the peer's window too: a chance every half round. With
+      traffic both ways, once per round. The wait is uniform over that interval;
+    * multipoint (no bonus): a node sends at once inside its own window and
+      otherwise waits for the next one: with round R and window W the wait is 0
+      with probability W/R and uniform over R-W otherwise.
+
+    Returns p50, p99 and mean in seconds.
     """
     byte_s = 1.0 / serial_bytes_per_s(serial_baud)
     fixed = 2 * frame_len * byte_s + t.flight_s(frame_len + TRAILER_LEN)
     rnd = t.round_s(slots)
-    return {"p50": fixed + 0.5 * rnd, "p99": fixed + 0.99 * rnd, "mean": fixed + 0.5 * rnd}
+    if multipoint:
+        w = t.window_s
+
+        def q(p: float) -> float:
+            return fixed + max(0.0, p * rnd - w)
+
+        return {"p50": q(0.5), "p99": q(0.99), "mean": fixed + (rnd - w) ** 2 / (2 * rnd),
+                "wait_max": rnd - w}
+    interval = rnd / 2 if peer_idle else rnd
+    return {"p50": fixed + 0.5 * interval, "p99": fixed + 0.99 * interval,
+            "mean": fixed + 0.5 * interval, "wait_max": interval}

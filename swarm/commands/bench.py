@@ -1,0 +1,30 @@
+"""``swarm bench <area> [--json] [--quick]``: run a benchmark and print its figures."""
+
+from __future__ import annotations
+
+import importlib
+
+from swarm.cliutil import guarded, parser, print_json
+
+PROG = "swarm bench"
+AREAS = {
+    "radio": ("swarm.bench.radio", "emulator goodput, latency, TDM round and CPU vs the SiK model"),
+    "sim": ("swarm.bench.sim", "vehicle simulator real-time factor and CPU, driver setpoint timing"),
+}
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    p = parser(PROG, "Run a benchmark; figures are printed as a table or one JSON object.")
+    p.add_argument("area", choices=sorted(AREAS), help="; ".join(f"{k}: {v[1]}" for k, v in AREAS.items()))
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--quick", action="store_true", help="shorter runs (CI): same fields, wider noise")
+    args = p.parse_args(argv)
+    result = importlib.import_module(AREAS[args.area][0]).run(quick=args.quick)
+    if args.json:
+        print_json(result)
+    else:
+        width = max(len(k) for k in result)
+        for k, v in result.items():
+            print(f"{k:<{width}}  {v}")
+    return 0

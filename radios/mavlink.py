@@ -233,13 +233,24 @@ def parse_one(data: bytes) -> Frame:
 class FrameBuilder:
     """Builds MAVLink 2 frames for one (sysid, compid) with its own sequence counter."""
 
-    def __init__(self, sysid: int, compid: int = 0) -> None:
+    def __init__(self, sysid: int, compid: int = 0, *, signing_key: bytes | None = None,
+                 link_id: int = 0) -> None:
         if not 1 <= sysid <= 255:
             raise FrameError(f"system id {sysid} is outside 1..255")
         if not 0 <= compid <= 255:
             raise FrameError(f"component id {compid} is outside 0..255")
         self.mav = dialect.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self.mav.robust_parsing = True
+        if signing_key is not None:
+            if len(signing_key) != 32:
+                raise FrameError("a MAVLink signing key is 32 bytes")
+            import time
+
+            self.mav.signing.secret_key = signing_key
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.link_id = link_id & 0xFF
+            # 10 µs units since 2015-01-01; pymavlink increments it per frame
+            self.mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
 
     def build(self, msg: Any) -> bytes:
         """Pack a pymavlink message object and advance the sequence number."""

@@ -1,0 +1,525 @@
+"""The radio bridge: the swarm's Zenoh key space carried over a SiK radio.
+
+Theory of operation
+-------------------
+Zenoh has no serial transport, so each node bridges its local Zenoh session to its
+radio link. Samples published locally under ``swarm/**`` cross the air as MAVLink 2
+``TUNNEL`` frames; frames received are published into the local session under
+the same key. Nothing else about the key travels: the key is rebuilt from the
+frame's sender id, its ``target_system`` and its ``payload_type``
+(32768 + kind: advertize, GSAdvertize, P2P, pose, state, multicast P2P):
+
+=====================  ==========  ===========================================
+local key              air target  key on the receiving node
+=====================  ==========  ===========================================
+swarm/advertize        0           swarm/advertize
+swarm/GSAdvertize      0           swarm/GSAdvertize
+swarm/<peer>           peer id     swarm/<own name> (only the addressee keeps it)
+swarm/<own>/pose       0           swarm/<sender name>/pose
+swarm/<own>/state      0           swarm/<sender name>/state
+=====================  ==========  ===========================================
+
+* **No loops**: samples the bridge publishes carry an attachment marker and are
+  never sent back to the air; a node never forwards what it did not publish.
+* **Names and ids** are learnt from Advertize; a name or id claimed by two agents
+  is counted, logged once and reported to both with NameConflict.
+* **Multicast**: the same P2P payload queued for several peers (a leader's
+  heartbeat to its members) goes on air once, listing the addressees.
+* **Priorities and budgets**: three queues (protocol > pose > telemetry), each
+  with a token bucket of air bytes per second, so one agent cannot flood the
+  channel. RADIO_STATUS from the local radio throttles: below 50% free transmit
+  buffer only protocol and pose go, below 20% only protocol (reports older than
+  5 s are ignored), as ArduPilot and PX4 do with txbuf.
+* **HEARTBEAT** into the local radio once a second (that makes a SiK radio report
+  RADIO_STATUS), and the vehicle's HEARTBEAT and GLOBAL_POSITION_INT forwarded at
+  1 Hz under the agent's system id so MAVProxy or QGroundControl list vehicles.
+* **Signing** (optional): every frame signed with the swarm key and this radio's
+  link id; unsigned (but the local RADIO_STATUS), badly signed and replayed frames
+  are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from enum import IntEnum
+from typing import Any
+
+from radios.errors import RadioError
+from radios.link import Link
+from radios.mavlink import MSG_RADIO_STATUS, MSG_TUNNEL, Frame, FrameBuilder, radio_status_fields
+from radios.signing import Verifier
+from swarm.errors import DecodeError, VersionMismatch
+from swarm.messages import (
+    GCS_ID,
+    Advertize,
+    Message,
+    NameConflict,
+    Telemetry,
+    decode,
+    encode,
+)
+from swarm.transport import KEY_ADVERTIZE, KEY_GS_ADVERTIZE, PREFIX, inbox_key, pose_key, state_key
+
+log = logging.getLogger(__name__)
+
+PAYLOAD_TYPE_BASE = 32768
+TUNNEL_MAX = 128
+ATTACHMENT = b"radio-bridge"
+COMP_ID = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
+
+
+class Kind(IntEnum):
+    ADVERTIZE = 0
+    GS_ADVERTIZE = 1
+    P2P = 2
+    POSE = 3
+    STATE = 4
+    MULTI = 5  # P2P to several peers: [n][ids...][message]
+
+
+class Klass(IntEnum):
+    PROTOCOL = 0
+    POSE = 1
+    TELEMETRY = 2
+
+
+@dataclass
+class BridgeConfig:
+    heartbeat_hz: float = 1.0
+    telemetry_hz: float = 1.0  # forwarded vehicle HEARTBEAT / GLOBAL_POSITION_INT
+    #: air bytes per second and burst (bytes) per class: protocol, pose, telemetry
+    rates: tuple[float, float, float] = (600.0, 300.0, 160.0)
+    bursts: tuple[float, float, float] = (1500.0, 300.0, 320.0)
+    queue_sizes: tuple[int, int, int] = (64, 4, 16)
+    signing_key: bytes | None = None
+    link_id: int = 0
+    radio_status_stale_s: float = 5.0
+
+
+@dataclass
+class BridgeStats:
+    frames_out: int = 0
+    frames_in: int = 0
+    bytes_out: int = 0
+    published: int = 0
+    multicast_merged: int = 0
+    queue_drops: int = 0
+    oversize: int = 0
+    unroutable: int = 0
+    unknown_sender: int = 0
+    not_for_us: int = 0
+    decode_errors: int = 0
+    version_mismatch: int = 0
+    conflicts: int = 0
+    send_errors: int = 0
+    throttled: int = 0
+    heartbeats: int = 0
+    vehicle_forwarded: int = 0
+    unsigned: int = 0
+    bad_signature: int = 0
+    replayed: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+@dataclass
+class _Item:
+    klass: Klass
+    kind: Kind
+    targets: list[int]
+    payload: bytes
+    raw_frame: bytes | None = None
+
+
+@dataclass
+class _Bucket:
+    rate: float
+    burst: float
+    tokens: float
+    t: float
+
+    def refill(self, now: float) -> None:
+        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
+        self.t = now
+
+    def wait_for(self, n: int) -> float:
+        return max(0.0, (min(n, self.burst) - self.tokens) / self.rate) if self.rate > 0 else 1.0
+
+
+@dataclass
+class RadioState:
+    """The last RADIO_STATUS of the local radio."""
+
+    rssi: int = 0
+    remrssi: int = 0
+    txbuf: int = 100
+    noise: int = 0
+    remnoise: int = 0
+    rxerrors: int = 0
+    t: float = -1e9
+
+
+@dataclass
+class _Peer:
+    id: int
+    name: str
+    seen: float
+
+
+class RadioBridge:
+    """Bridges one Zenoh session and one radio link (see the module docstring)."""
+
+    def __init__(self, session: Any, link: Link, *, name: str, agent_id: int,
+                 config: BridgeConfig | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.session = session
+        self.link = link
+        self.name = name
+        self.id = agent_id
+        self.cfg = config or BridgeConfig()
+        self.clock = clock
+        self.stats = BridgeStats()
+        self.radio = RadioState()
+        self._builder = FrameBuilder(agent_id, COMP_ID, signing_key=self.cfg.signing_key,
+                                     link_id=self.cfg.link_id)
+        self._vehicle_builder = FrameBuilder(agent_id, 1, signing_key=self.cfg.signing_key,
+                                             link_id=self.cfg.link_id)
+        self._verifier = Verifier(self.cfg.signing_key) if self.cfg.signing_key else None
+        now = clock()
+        self._queues: list[deque[_Item]] = [deque() for _ in Klass]
+        self._buckets = [_Bucket(r, b, b, now) for r, b in zip(self.cfg.rates, self.cfg.bursts, strict=True)]
+        self._cond = threading.Condition()
+        self._by_name: dict[str, _Peer] = {name: _Peer(agent_id, name, float("inf"))}
+        self._by_id: dict[int, _Peer] = {agent_id: self._by_name[name]}
+        self._conflicts_logged: set[tuple[str, int]] = set()
+        self._vehicle_last: dict[int, float] = {}
+        self._closed = False
+        self._sub: Any = None
+        self._threads: list[threading.Thread] = []
+
+    # -- life cycle -------------------------------------------------------------
+    def start(self) -> RadioBridge:
+        self._sub = self.session.declare_subscriber(f"{PREFIX}/**", self._on_local)
+        for target, nm in ((self._tx_loop, "tx"), (self._rx_loop, "rx")):
+            t = threading.Thread(target=target, name=f"bridge-{self.name}-{nm}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def close(self) -> None:
+        """Stop both threads and undeclare the subscriber (the link is the caller's)."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._cond.notify_all()
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except Exception:
+                pass
+        for t in self._threads:
+            t.join(2.0)
+
+    def peers(self) -> dict[str, int]:
+        return {n: p.id for n, p in self._by_name.items()}
+
+    # -- local samples -> air -----------------------------------------------------
+    def _on_local(self, sample: Any) -> None:
+        att = sample.attachment
+        if att is not None and att.to_bytes() == ATTACHMENT:
+            return  # came from the radio: never back to the air
+        key = str(sample.key_expr)
+        data = sample.payload.to_bytes()
+        parts = key.split("/")
+        if len(parts) < 2 or parts[0] != PREFIX:
+            return
+        if key == KEY_ADVERTIZE:
+            self._enqueue(_Item(Klass.PROTOCOL, Kind.ADVERTIZE, [0], data))
+        elif key == KEY_GS_ADVERTIZE:
+            self._enqueue(_Item(Klass.PROTOCOL, Kind.GS_ADVERTIZE, [0], data))
+        elif len(parts) == 2:
+            peer = self._by_name.get(parts[1])
+            if parts[1] == self.name:
+                return  # our own inbox: local delivery only
+            if peer is None:
+                self.stats.unroutable += 1
+                return
+            klass = Klass.TELEMETRY if data[:1] and (data[0] & 0x1F) == Telemetry.TYPE else Klass.PROTOCOL
+            self._enqueue(_Item(klass, Kind.P2P, [peer.id], data))
+        elif len(parts) == 3 and parts[1] == self.name:
+            if parts[2] == "pose":
+                self._enqueue(_Item(Klass.POSE, Kind.POSE, [0], data))
+            elif parts[2] == "state":
+                self._enqueue(_Item(Klass.TELEMETRY, Kind.STATE, [0], data))
+
+    def forward_vehicle(self, msg: Any) -> None:
+        """Forward a vehicle HEARTBEAT or GLOBAL_POSITION_INT (a pymavlink message)
+        under this agent's system id, at most ``telemetry_hz`` per message type."""
+        mid = msg.get_msgId()
+        if mid not in (0, 33):
+            return
+        now = self.clock()
+        if now - self._vehicle_last.get(mid, -1e9) < 1.0 / self.cfg.telemetry_hz:
+            return
+        self._vehicle_last[mid] = now
+        self._enqueue(_Item(Klass.TELEMETRY, Kind.P2P, [0], b"", raw_frame=self._pack_vehicle(msg)))
+
+    def _pack_vehicle(self, msg: Any) -> bytes:
+        with self._cond:
+            return self._vehicle_builder.build(msg)
+
+    def _enqueue(self, item: _Item) -> None:
+        if item.raw_frame is None and len(item.payload) > TUNNEL_MAX - 1:
+            self.stats.oversize += 1
+            return
+        q = self._queues[item.klass]
+        limit = self.cfg.queue_sizes[item.klass]
+        with self._cond:
+            if self._closed:
+                return
+            if len(q) >= limit:
+                q.popleft()  # the oldest is the stalest
+                self.stats.queue_drops += 1
+            q.append(item)
+            self._cond.notify()
+
+    def _allowed_classes(self, now: float) -> tuple[Klass, ...]:
+        if now - self.radio.t > self.cfg.radio_status_stale_s:
+            return tuple(Klass)
+        if self.radio.txbuf < 20:
+            return (Klass.PROTOCOL,)
+        if self.radio.txbuf < 50:
+            return (Klass.PROTOCOL, Klass.POSE)
+        return tuple(Klass)
+
+    def _next_frame(self, now: float) -> tuple[bytes | None, float]:
+        """Pick the next frame to send (under the lock). Returns (frame, wait)."""
+        wait = 0.25
+        allowed = self._allowed_classes(now)
+        for klass in Klass:
+            q = self._queues[klass]
+            if not q:
+                continue
+            if klass not in allowed:
+                self.stats.throttled += 1
+                continue
+            bucket = self._buckets[klass]
+            bucket.refill(now)
+            item = q[0]
+            if item.raw_frame is None and item.kind == Kind.P2P:
+                self._merge_multicast(q, item)
+            size = self._frame_size(item)
+            if bucket.tokens < min(size, bucket.burst):
+                wait = min(wait, bucket.wait_for(size))
+                continue
+            q.popleft()
+            bucket.tokens -= size
+            # packed only now, so sequence numbers and signing timestamps follow air order
+            return (item.raw_frame if item.raw_frame is not None else self._pack(item)), 0.0
+        return None, wait
+
+    def _frame_size(self, item: _Item) -> int:
+        if item.raw_frame is not None:
+            return len(item.raw_frame)
+        extra = 1 + len(set(item.targets)) if item.kind == Kind.MULTI else 0
+        return 12 + 5 + len(item.payload) + extra + (13 if self.cfg.signing_key else 0)
+
+    def _merge_multicast(self, q: deque[_Item], item: _Item) -> None:
+        same = [o for o in q if o is not item and o.kind == Kind.P2P and o.raw_frame is None
+                and o.payload == item.payload]
+        if not same or len(item.payload) + 1 + len(item.targets) + len(same) > TUNNEL_MAX:
+            return
+        for o in same:
+            item.targets.extend(o.targets)
+            q.remove(o)
+        item.kind = Kind.MULTI
+        self.stats.multicast_merged += len(same)
+
+    def _pack(self, item: _Item) -> bytes:
+        if item.kind == Kind.MULTI:
+            targets = sorted(set(item.targets))
+            payload = bytes([len(targets), *targets]) + item.payload
+            target = 0
+        else:
+            payload = item.payload
+            target = item.targets[0]
+        return self._builder.tunnel(payload, target_system=target,
+                                    payload_type=PAYLOAD_TYPE_BASE + int(item.kind))
+
+    def _tx_loop(self) -> None:
+        next_hb = self.clock()
+        while True:
+            with self._cond:
+                if self._closed:
+                    return
+                now = self.clock()
+                if now >= next_hb:
+                    next_hb = now + 1.0 / self.cfg.heartbeat_hz
+                    frame: bytes | None = self._builder.heartbeat()
+                    self.stats.heartbeats += 1
+                    wait = 0.0
+                else:
+                    frame, wait = self._next_frame(now)
+                if frame is None:
+                    self._cond.wait(max(0.001, min(wait, next_hb - now)))
+                    continue
+            try:
+                self.link.send(frame)
+                self.stats.frames_out += 1
+                self.stats.bytes_out += len(frame)
+            except RadioError as exc:
+                self.stats.send_errors += 1
+                if self.link.closed:
+                    log.warning("bridge %s: radio link closed: %s", self.name, exc)
+                    return
+
+    # -- air -> local -------------------------------------------------------------
+    def _rx_loop(self) -> None:
+        while not self._closed:
+            try:
+                frame = self.link.recv(0.2)
+            except RadioError as exc:
+                if not self._closed:
+                    log.warning("bridge %s: radio link lost: %s", self.name, exc)
+                return
+            if frame is None:
+                continue
+            try:
+                self.handle_frame(frame)
+            except Exception:  # a bug here must not kill the bridge
+                log.exception("bridge %s: error handling a frame", self.name)
+
+    def handle_frame(self, frame: Frame) -> None:
+        """Process one frame from the radio (public for tests)."""
+        self.stats.frames_in += 1
+        if self._verifier is not None and not self._verifier.check(frame):
+            vs = self._verifier.stats
+            self.stats.unsigned, self.stats.bad_signature, self.stats.replayed = \
+                vs.unsigned, vs.bad_signature, vs.replayed
+            return
+        if frame.msgid == MSG_RADIO_STATUS:
+            f = radio_status_fields(frame)
+            self.radio = RadioState(f["rssi"], f["remrssi"], f["txbuf"], f["noise"],
+                                    f["remnoise"], f["rxerrors"], self.clock())
+            return
+        if frame.msgid != MSG_TUNNEL:
+            return
+        p = frame.payload.ljust(5 + TUNNEL_MAX, b"\0")
+        ptype = p[0] | (p[1] << 8)
+        target = p[2]
+        n = min(p[4], TUNNEL_MAX)
+        data = p[5 : 5 + n]
+        if not PAYLOAD_TYPE_BASE <= ptype < PAYLOAD_TYPE_BASE + len(Kind):
+            return
+        kind = Kind(ptype - PAYLOAD_TYPE_BASE)
+        sender = frame.sysid
+        if sender == self.id:
+            self._conflict(self.name, sender, reason="a frame from another radio uses our id")
+            return
+        if target not in (0, self.id):
+            self.stats.not_for_us += 1
+            return
+        if kind == Kind.MULTI:
+            if not data or len(data) < 1 + data[0]:
+                self.stats.decode_errors += 1
+                return
+            ids = data[1 : 1 + data[0]]
+            if self.id not in ids:
+                self.stats.not_for_us += 1
+                return
+            data = data[1 + data[0] :]
+            kind = Kind.P2P
+        try:
+            msg = decode(data)
+        except VersionMismatch as exc:
+            self.stats.version_mismatch += 1
+            self._log_once(("version", sender), "bridge %s: agent %d: %s", self.name, sender, exc)
+            return
+        except DecodeError:
+            self.stats.decode_errors += 1
+            return
+        if kind == Kind.ADVERTIZE:
+            if not isinstance(msg, Advertize) or msg.sender != sender:
+                self.stats.decode_errors += 1
+                return
+            if not self._learn(msg.name, msg.sender):
+                return
+            self._publish(KEY_ADVERTIZE, data)
+        elif kind == Kind.GS_ADVERTIZE:
+            self._publish(KEY_GS_ADVERTIZE, data)
+        elif kind == Kind.P2P:
+            if isinstance(msg, NameConflict) and msg.sender == sender:
+                self._log_once(("nc", msg.name), "bridge %s: name/id conflict reported by agent %d "
+                               "for %r (other id %d)", self.name, sender, msg.name, msg.other_id)
+            self._publish(inbox_key(self.name), data)
+        else:
+            peer = self._by_id.get(sender)
+            if peer is None:
+                self.stats.unknown_sender += 1
+                return
+            key = pose_key(peer.name) if kind == Kind.POSE else state_key(peer.name)
+            self._publish(key, data)
+
+    def _publish(self, key: str, data: bytes) -> None:
+        self.session.put(key, data, attachment=ATTACHMENT)
+        self.stats.published += 1
+
+    def _learn(self, name: str, agent_id: int) -> bool:
+        """Record name <-> id; False (and a conflict report) if it clashes."""
+        now = self.clock()
+        by_name, by_id = self._by_name.get(name), self._by_id.get(agent_id)
+        if (by_name is None or by_name.id == agent_id) and (by_id is None or by_id.name == name):
+            peer = by_name or _Peer(agent_id, name, now)
+            peer.seen = now
+            self._by_name[name] = self._by_id[agent_id] = peer
+            return True
+        # a stale mapping (not heard for 30 s) gives way to the new claim
+        stale = [p for p in (by_name, by_id) if p is not None and now - p.seen > 30.0]
+        if stale and len(stale) == len([p for p in (by_name, by_id) if p is not None]):
+            for p in stale:
+                self._by_name.pop(p.name, None)
+                self._by_id.pop(p.id, None)
+            return self._learn(name, agent_id)
+        other = by_name.id if by_name is not None and by_name.id != agent_id else \
+            (by_id.id if by_id is not None else agent_id)
+        self._conflict(name, agent_id, reason=f"also claimed by id {other}", other=other)
+        return False
+
+    def _conflict(self, name: str, agent_id: int, *, reason: str, other: int | None = None) -> None:
+        self.stats.conflicts += 1
+        self._log_once(("conflict", name, agent_id), "bridge %s: name/id conflict: %r id %d %s",
+                       self.name, name, agent_id, reason)
+        if self.id == GCS_ID:
+            return
+        note = NameConflict(self.id, name, other if other is not None and 1 <= other <= 250
+                            else agent_id) if 1 <= agent_id <= 250 else None
+        if note is None:
+            return
+        data = encode(note)
+        targets = {agent_id} | ({other} if other else set())
+        for t in sorted(targets - {self.id}):
+            if 1 <= t <= 250:
+                self._enqueue(_Item(Klass.PROTOCOL, Kind.P2P, [t], data))
+        # tell our own agent too (it may be one of the two)
+        self._publish(inbox_key(self.name), data)
+
+    def _log_once(self, key: tuple[Any, ...], fmt: str, *args: Any) -> None:
+        k = (str(key), 0)
+        if k in self._conflicts_logged:
+            return
+        self._conflicts_logged.add(k)
+        log.warning(fmt, *args)
+
+
+def bridge_message_frame_bytes(msg: Message, *, signed: bool) -> int:
+    """Bytes on air of ``msg`` in a TUNNEL frame (for the messages benchmark)."""
+    key = b"\0" * 32 if signed else None
+    return len(FrameBuilder(1, COMP_ID, signing_key=key).tunnel(
+        encode(msg), target_system=1, payload_type=PAYLOAD_TYPE_BASE + Kind.P2P))

@@ -361,10 +361,8 @@ class Emulator:
             ev = p.poll(0)
             if ev and ev[0][1] & select.POLLHUP:
                 continue
-            # a host opened the port: forget what piled up while nobody listened
-            with contextlib.suppress(OSError):
-                while os.read(fd, 4096):
-                    pass
+            # a host opened the port (nothing can have been written while none was open,
+            # and what it writes right away must not be lost)
             self.connected[i] = True
 
     def _disconnect(self, i: int) -> None:

@@ -10,6 +10,7 @@ PROG = "swarm bench"
 AREAS = {
     "radio": ("swarm.bench.radio", "emulator goodput, latency, TDM round and CPU vs the SiK model"),
     "sim": ("swarm.bench.sim", "vehicle simulator real-time factor and CPU, driver setpoint timing"),
+    "messages": ("swarm.bench.messages", "message and frame sizes, bridge latency, JSON ratio"),
 }
 
 

@@ -1,0 +1,12 @@
+"""Simulated PX4 / ArduCopter multicopters speaking MAVLink 2 (``swarm sim``).
+
+``VehicleSim(SimConfig(...)).start()`` returns one pymavlink connection string per
+vehicle; :mod:`firmware_bridge.sim.autopilot` is the I/O-free vehicle core,
+:mod:`firmware_bridge.sim.dynamics` its point-mass physics and
+:mod:`firmware_bridge.sim.runner` the sockets and the thread.
+"""
+
+from firmware_bridge.sim.autopilot import Autopilot, VehicleState
+from firmware_bridge.sim.runner import SimConfig, Vehicle, VehicleSim
+
+__all__ = ["Autopilot", "SimConfig", "Vehicle", "VehicleSim", "VehicleState"]

@@ -1,0 +1,572 @@
+"""Dynamic leader selection and swarm membership: the paper's protocol as a pure core.
+
+Theory of operation
+-------------------
+:class:`Core` is one agent's protocol state machine. It does no I/O and reads no
+clock: the driver feeds it messages with :meth:`Core.handle` and the passage of
+time with :meth:`Core.tick`, sends what they return (:class:`Out`: a message and
+its destination) and wakes it again at :meth:`Core.next_deadline`. The same core
+runs in the agent (threads, Zenoh, real time) and in ``swarm simulate`` (virtual
+time over the radio air model).
+
+Phases and the paper's steps (section 2.3):
+
+* IDLE: advertise on ``swarm/advertize``. Hearing an Advertize, send StartPool
+  (retried until answered). A StartPool makes a free agent answer Success and
+  open a pool with the sender; an agent whose pool is open answers
+  AlreadyInPool (with its members) and adds the sender; any other agent ignores
+  it.
+* POOLING: StartPool to new advertisers, SyncPool (CRC-32 digest, members when the
+  pool changed since the last sync) to every member at ``sync_interval``;
+  differing pools merge; every change restamps ``changed_at``. A pool unchanged
+  for ``lock_window`` locks; SyncPool/SyncPoolAck carry the lock flag and an agent
+  with the same pool as a locked peer locks too.
+* LOCKED: merges still happen (and restamp the time). Unchanged for another
+  ``lock_window``, or on the first vote from a pool member, the agent votes.
+* ELECTING: vote for itself with a weight from the vote policy; exchange votes
+  at ``vote_interval``; adopt any heavier vote (weight, then candidate id: ties
+  break deterministically towards the higher id). A vote unchanged for
+  ``vote_window`` ends the election: the candidate leads, the others follow.
+* LEADER: Heartbeat (members, task) every ``heartbeat_interval``; members answer
+  HeartbeatAck with their pose; a member silent for ``ack_timeout`` is expelled.
+* MEMBER: a member that hears no Heartbeat for ``leader_timeout``, or one that no
+  longer lists it, leaves: back to IDLE, to join another swarm or start a pool.
+
+Beyond the paper (each rule stated once, here):
+
+* **Late joiner**: a leader answers StartPool from a free agent with
+  AlreadyInPool(locked) and adds it to its members; the newcomer becomes a
+  member when a Heartbeat lists it. Leaders keep advertising for that reason.
+* **Swarms that meet merge**: a leader hearing another leader's Heartbeat
+  compares (swarm size, leader id): the larger swarm (ties: higher id) absorbs
+  the smaller: its leader adds the other leader and all its members; the smaller
+  leader becomes a member of the larger. A member follows whichever leader lists
+  it in a Heartbeat (conflicting claims are settled by the leaders' rule).
+* **Alone**: an agent that found nobody for ``alone_timeout`` forms a swarm of one
+  (and absorbs others later by the rules above).
+* **Votes** come from a pluggable :class:`VotePolicy`: random (the paper),
+  battery, or link quality, each in the high byte with random low bits.
+* **Elections are named** by ``epoch`` = the pool digest's low 16 bits: votes
+  from another pool (an older election) are ignored and counted.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Protocol
+
+from swarm.messages import (
+    Advertize,
+    AgentState,
+    Heartbeat,
+    HeartbeatAck,
+    Message,
+    Phase,
+    PoolStatus,
+    Pose,
+    Selection,
+    StartPool,
+    StartPoolAck,
+    SyncPool,
+    SyncPoolAck,
+    Task,
+    pool_digest,
+)
+
+ADVERTIZE = 0  # Out.to for the advertize broadcast
+FLAG_HAS_FC = 0x01
+FLAG_LEADER = 0x02
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Windows, rates and timeouts (seconds)."""
+
+    name: str = "paper"
+    advertize_interval: float = 1.0
+    startpool_retry: float = 1.0
+    sync_interval: float = 0.5
+    lock_window: float = 2.0
+    vote_interval: float = 0.5
+    vote_window: float = 2.0
+    heartbeat_interval: float = 0.5
+    ack_timeout: float = 3.0
+    leader_timeout: float = 3.0
+    alone_timeout: float = 8.0
+    state_interval: float = 1.0
+
+
+PAPER = Profile()
+
+
+def fast_profile(round_s: float) -> Profile:
+    """Windows derived from the link's TDM round: a message needs about one round to
+    reach everyone, so every interval is one round and every window a few rounds
+    (never below the paper's ratios' meaning: several exchanges per window)."""
+    r = max(round_s, 0.05)
+    return Profile(
+        name="fast", advertize_interval=r, startpool_retry=r, sync_interval=r,
+        lock_window=2 * r, vote_interval=r, vote_window=2 * r, heartbeat_interval=r,
+        ack_timeout=max(6 * r, 1.0), leader_timeout=max(6 * r, 1.0), alone_timeout=8 * r,
+        state_interval=max(r, 0.5),
+    )
+
+
+def profile_by_name(name: str, round_s: float) -> Profile:
+    if name == "paper":
+        return PAPER
+    if name == "fast":
+        return fast_profile(round_s)
+    raise ValueError(f"unknown profile {name!r}: paper or fast")
+
+
+class VotePolicy(Protocol):
+    def weight(self, rng: random.Random) -> int: ...
+
+
+@dataclass
+class RandomVote:
+    """The paper: a random weight."""
+
+    def weight(self, rng: random.Random) -> int:
+        return rng.getrandbits(32)
+
+
+@dataclass
+class BatteryVote:
+    """The fullest battery leads (percent in the high byte, random below)."""
+
+    battery: Callable[[], int]
+
+    def weight(self, rng: random.Random) -> int:
+        return (max(0, min(255, self.battery())) << 24) | rng.getrandbits(24)
+
+
+@dataclass
+class LinkQualityVote:
+    """The best-heard radio leads (RSSI in the high byte, random below)."""
+
+    rssi: Callable[[], int]
+
+    def weight(self, rng: random.Random) -> int:
+        return (max(0, min(255, self.rssi())) << 24) | rng.getrandbits(24)
+
+
+@dataclass(frozen=True)
+class Out:
+    """A message to send: ``to`` is an agent id, or ADVERTIZE for the broadcast."""
+
+    to: int
+    msg: Message
+
+
+@dataclass
+class Counters:
+    handled: int = 0
+    ignored_foreign: int = 0  # from agents not in our pool/swarm
+    ignored_stale: int = 0  # older election, duplicate or out-of-order
+    ignored_phase: int = 0  # not meaningful in our phase
+    impossible: int = 0  # contents that cannot be right
+    expelled: int = 0
+    left: int = 0
+    elections: int = 0
+    merges: int = 0
+
+
+@dataclass
+class Core:
+    """One agent's protocol core. See the module docstring."""
+
+    me: int
+    name: str = ""
+    profile: Profile = PAPER
+    policy: VotePolicy = field(default_factory=RandomVote)
+    rng: random.Random = field(default_factory=random.Random)
+    has_fc: bool = False
+
+    phase: Phase = Phase.IDLE
+    pool: set[int] = field(default_factory=set)
+    locked: bool = False
+    changed_at: float = 0.0
+    vote: tuple[int, int] = (0, 0)  # (weight, candidate)
+    vote_changed_at: float = 0.0
+    epoch: int = 0
+    leader: int = 0
+    members: dict[int, float] = field(default_factory=dict)  # member -> last ack
+    poses: dict[int, Pose] = field(default_factory=dict)
+    task: Task = field(default_factory=Task)
+    pose: Pose | None = None
+    last_hb: float = 0.0
+    hb_seq: int = 0
+    counters: Counters = field(default_factory=Counters)
+    _idle_since: float = 0.0
+    _started: bool = False
+    _next: dict[str, float] = field(default_factory=dict)
+    _asked: dict[int, float] = field(default_factory=dict)  # StartPool sent at
+    _synced_digest: dict[int, int] = field(default_factory=dict)
+    _state_dirty: bool = True
+
+    # -- driver API --------------------------------------------------------------
+    def start(self, now: float) -> list[Out]:
+        self._started = True
+        self._idle_since = now
+        self._next = {"advertize": now}
+        return self.tick(now)
+
+    def handle(self, msg: Message, now: float) -> list[Out]:
+        """Process one received message. Never raises for peer input."""
+        out: list[Out] = []
+        sender = getattr(msg, "sender", None)
+        if sender == self.me:
+            self.counters.impossible += 1  # our own id from elsewhere: ignore
+            return out
+        self.counters.handled += 1
+        h = _HANDLERS.get(type(msg))
+        if h is None:
+            self.counters.ignored_phase += 1
+            return out
+        h(self, msg, now, out)
+        out += self.tick(now)
+        return out
+
+    def tick(self, now: float) -> list[Out]:
+        """Timers: periodic sends, windows, timeouts."""
+        out: list[Out] = []
+        ph = self.phase
+        if ph in (Phase.IDLE, Phase.POOLING, Phase.LEADER) and self._due("advertize", now,
+                                                                       self.profile.advertize_interval):
+            flags = (FLAG_HAS_FC if self.has_fc else 0) | (FLAG_LEADER if ph == Phase.LEADER else 0)
+            out.append(Out(ADVERTIZE, Advertize(self.me, self.name or f"agent{self.me}", flags)))
+        if ph == Phase.IDLE and now - self._idle_since >= self.profile.alone_timeout:
+            self._become_leader(now, set())  # a swarm of one
+            ph = self.phase
+        if ph in (Phase.POOLING, Phase.LOCKED):
+            self._pool_timers(now, out)
+            ph = self.phase
+        if ph == Phase.ELECTING:
+            self._election_timers(now, out)
+            ph = self.phase
+        if ph == Phase.LEADER:
+            self._leader_timers(now, out)
+        elif ph == Phase.MEMBER and now - self.last_hb > self.profile.leader_timeout:
+            self.counters.left += 1
+            self._go_idle(now)
+            out += self.tick(now)
+        return out
+
+    def next_deadline(self) -> float | None:
+        """When :meth:`tick` next has something to do."""
+        p = self.profile
+        times = list(self._next.values())
+        if self.phase == Phase.IDLE:
+            times.append(self._idle_since + p.alone_timeout)
+        elif self.phase in (Phase.POOLING, Phase.LOCKED):
+            times.append(self.changed_at + p.lock_window)
+        elif self.phase == Phase.ELECTING:
+            times.append(self.vote_changed_at + p.vote_window)
+        elif self.phase == Phase.LEADER:
+            times += [t + p.ack_timeout for t in self.members.values()]
+        elif self.phase == Phase.MEMBER:
+            times.append(self.last_hb + p.leader_timeout)
+        times += [t + p.startpool_retry for t in self._asked.values()]
+        return min(times) if times else None
+
+    def set_pose(self, pose: Pose) -> None:
+        self.pose = pose
+
+    def set_task(self, task: Task) -> None:
+        """The leader's task; it rides on the next Heartbeats."""
+        self.task = task
+
+    def state(self) -> AgentState:
+        return AgentState(
+            self.me, self.phase, self.leader if self.phase in (Phase.LEADER, Phase.MEMBER) else 0,
+            self.vote[1], self.vote[0], self.epoch, self.locked,
+            frozenset(self.pool), frozenset(self.members) if self.phase == Phase.LEADER else frozenset(),
+        )
+
+    # -- helpers ------------------------------------------------------------------
+    def _due(self, timer: str, now: float, interval: float) -> bool:
+        t = self._next.get(timer)
+        if t is None or now + 1e-9 >= t:
+            self._next[timer] = now + interval
+            return True
+        return False
+
+    def _set_phase(self, phase: Phase) -> None:
+        if phase != self.phase:
+            self.phase = phase
+            self._state_dirty = True
+
+    def _change_pool(self, add: set[int] | frozenset[int], now: float) -> bool:
+        new = set(add) - self.pool
+        if not new:
+            return False
+        self.pool |= new
+        self.changed_at = now
+        self.counters.merges += 1
+        return True
+
+    def _open_pool(self, other: set[int] | frozenset[int], now: float) -> None:
+        self.pool = {self.me}
+        self._change_pool(other, now)
+        self.locked = False
+        self._set_phase(Phase.POOLING)
+        self._next.pop("sync", None)
+
+    def _go_idle(self, now: float) -> None:
+        self._set_phase(Phase.IDLE)
+        self.pool = set()
+        self.locked = False
+        self.leader = 0
+        self.members = {}
+        self.vote = (0, 0)
+        self._idle_since = now
+        self._asked.clear()
+        self._synced_digest.clear()
+        self._next = {"advertize": now}
+
+    def _become_leader(self, now: float, members: set[int]) -> None:
+        self._set_phase(Phase.LEADER)
+        self.leader = self.me
+        self.members = {m: now for m in members if m != self.me}
+        self.pool = {self.me} | set(self.members)
+        self.epoch = pool_digest(self.pool) & 0xFFFF
+        self._next = {"advertize": now, "heartbeat": now}
+        self.counters.elections += 1
+
+    def _become_member(self, leader: int, now: float) -> None:
+        self._set_phase(Phase.MEMBER)
+        self.leader = leader
+        self.last_hb = now
+        self.members = {}
+        self._next = {}
+        self._asked.clear()
+
+    def _sync_msg(self, to: int) -> SyncPool:
+        d = pool_digest(self.pool)
+        # members travel only when this peer has not yet seen this pool from us
+        members = None if self._synced_digest.get(to) == d else frozenset(self.pool)
+        self._synced_digest[to] = d
+        return SyncPool(self.me, d, self.locked, members)
+
+    def _pool_timers(self, now: float, out: list[Out]) -> None:
+        p = self.profile
+        if self._due("sync", now, p.sync_interval):
+            for m in sorted(self.pool - {self.me}):
+                out.append(Out(m, self._sync_msg(m)))
+        for a, t in list(self._asked.items()):
+            if a in self.pool:
+                del self._asked[a]
+            elif now - t >= p.startpool_retry and not self.locked:
+                self._asked[a] = now
+                out.append(Out(a, StartPool(self.me)))
+        if now - self.changed_at >= p.lock_window:
+            if not self.locked:
+                self.locked = True
+                self.changed_at = now  # the second window starts now
+                self._set_phase(Phase.LOCKED)
+                self._asked.clear()
+            else:
+                self._start_election(now, out)
+
+    def _start_election(self, now: float, out: list[Out]) -> None:
+        self._set_phase(Phase.ELECTING)
+        self.epoch = pool_digest(self.pool) & 0xFFFF
+        self.vote = (self.policy.weight(self.rng), self.me)
+        self.vote_changed_at = now
+        self._next["vote"] = now
+
+    def _election_timers(self, now: float, out: list[Out]) -> None:
+        p = self.profile
+        if self._due("vote", now, p.vote_interval):
+            sel = Selection(self.me, self.vote[1], self.vote[0], self.epoch)
+            out += [Out(m, sel) for m in sorted(self.pool - {self.me})]
+        if now - self.vote_changed_at >= p.vote_window:
+            if self.vote[1] == self.me:
+                self._become_leader(now, self.pool - {self.me})
+            else:
+                self._become_member(self.vote[1], now)
+
+    def _leader_timers(self, now: float, out: list[Out]) -> None:
+        p = self.profile
+        for m, t in list(self.members.items()):
+            if now - t > p.ack_timeout:
+                del self.members[m]
+                self.poses.pop(m, None)
+                self.pool.discard(m)
+                self.counters.expelled += 1
+                self._state_dirty = True
+        if self._due("heartbeat", now, p.heartbeat_interval) and self.members:
+            self.hb_seq = (self.hb_seq + 1) & 0xFF
+            hb = Heartbeat(self.me, self.epoch, self.hb_seq, frozenset(self.members), self.task)
+            out += [Out(m, hb) for m in sorted(self.members)]
+
+    # -- message handlers ------------------------------------------------------
+    def _on_advertize(self, msg: Advertize, now: float, out: list[Out]) -> None:
+        a = msg.sender
+        if self.phase == Phase.IDLE or (self.phase == Phase.POOLING and a not in self.pool):
+            if a in self._asked:
+                return  # retried by the timer
+            self._asked[a] = now
+            out.append(Out(a, StartPool(self.me)))
+        else:
+            self.counters.ignored_phase += 1
+
+    def _on_start_pool(self, msg: StartPool, now: float, out: list[Out]) -> None:
+        a = msg.sender
+        if self.phase == Phase.IDLE:
+            self._open_pool({a}, now)
+            out.append(Out(a, StartPoolAck(self.me, PoolStatus.SUCCESS, False, frozenset(self.pool))))
+        elif self.phase == Phase.POOLING:
+            self._change_pool({a}, now)
+            out.append(Out(a, StartPoolAck(self.me, PoolStatus.ALREADY_IN_POOL, False,
+                                           frozenset(self.pool))))
+        elif self.phase == Phase.LEADER:
+            # late joiner: adopt it; our Heartbeats will list it
+            if a not in self.members:
+                self.members[a] = now
+                self.pool.add(a)
+                self._state_dirty = True
+            out.append(Out(a, StartPoolAck(self.me, PoolStatus.ALREADY_IN_POOL, True,
+                                           frozenset(self.pool))))
+        else:
+            self.counters.ignored_phase += 1  # the paper: ignored
+
+    def _on_start_pool_ack(self, msg: StartPoolAck, now: float, out: list[Out]) -> None:
+        a = msg.sender
+        self._asked.pop(a, None)
+        if msg.locked:
+            return  # a leader adopted us: its Heartbeat will tell
+        if self.phase == Phase.IDLE:
+            self._open_pool(set(msg.members) | {a}, now)
+        elif self.phase == Phase.POOLING:
+            self._change_pool(set(msg.members) | {a}, now)
+        else:
+            self.counters.ignored_phase += 1
+
+    def _on_sync_pool(self, msg: SyncPool, now: float, out: list[Out]) -> None:
+        a = msg.sender
+        if self.phase not in (Phase.POOLING, Phase.LOCKED, Phase.ELECTING):
+            self.counters.ignored_phase += 1
+            return
+        if a not in self.pool:
+            if self.phase == Phase.POOLING or (msg.members is not None and self.me in msg.members):
+                self._change_pool({a}, now)
+            else:
+                self.counters.ignored_foreign += 1
+                return
+        if self.phase == Phase.ELECTING:
+            # the election runs on a frozen pool; tell the peer ours
+            out.append(Out(a, SyncPoolAck(self.me, msg.digest == pool_digest(self.pool), True,
+                                          frozenset(self.pool))))
+            return
+        if msg.members is not None:
+            self._change_pool(msg.members, now)
+        mine = pool_digest(self.pool)
+        if msg.digest == mine:
+            if msg.locked and not self.locked:
+                self._lock_from_peer(now)
+            out.append(Out(a, SyncPoolAck(self.me, True, self.locked)))
+        else:
+            out.append(Out(a, SyncPoolAck(self.me, False, self.locked, frozenset(self.pool))))
+
+    def _lock_from_peer(self, now: float) -> None:
+        self.locked = True
+        self.changed_at = now
+        self._set_phase(Phase.LOCKED)
+        self._asked.clear()
+
+    def _on_sync_pool_ack(self, msg: SyncPoolAck, now: float, out: list[Out]) -> None:
+        if self.phase not in (Phase.POOLING, Phase.LOCKED):
+            self.counters.ignored_phase += 1
+            return
+        if msg.sender not in self.pool:
+            self.counters.ignored_foreign += 1
+            return
+        if msg.same:
+            if msg.locked and not self.locked:
+                self._lock_from_peer(now)
+            return
+        if self._change_pool(msg.members, now):
+            self._synced_digest.clear()  # everyone must hear the merged pool
+
+    def _on_selection(self, msg: Selection, now: float, out: list[Out]) -> None:
+        if msg.sender not in self.pool:
+            self.counters.ignored_foreign += 1
+            return
+        if self.phase == Phase.LOCKED:
+            self._start_election(now, out)
+        if self.phase != Phase.ELECTING:
+            self.counters.ignored_phase += 1
+            return
+        if msg.epoch != self.epoch:
+            self.counters.ignored_stale += 1
+            return
+        if msg.candidate not in self.pool:
+            self.counters.impossible += 1
+            return
+        theirs = (msg.weight, msg.candidate)
+        if theirs > self.vote:
+            self.vote = theirs
+            self.vote_changed_at = now
+            self._state_dirty = True
+
+    def _on_heartbeat(self, msg: Heartbeat, now: float, out: list[Out]) -> None:
+        lead = msg.sender
+        if self.phase == Phase.LEADER:
+            mine, theirs = (len(self.members) + 1, self.me), (len(msg.members) + 1, lead)
+            if theirs > mine and self.me in msg.members:
+                self._become_member(lead, now)  # absorbed by the larger swarm
+            elif theirs > mine:
+                self.counters.merges += 1  # it will absorb us when it hears our heartbeat
+            else:
+                # absorb the other swarm: its leader and members
+                for m in {lead} | set(msg.members):
+                    if m != self.me and m not in self.members:
+                        self.members[m] = now
+                        self.pool.add(m)
+                self.counters.merges += 1
+                self._state_dirty = True
+                return
+            if self.phase != Phase.MEMBER:
+                return
+        if self.me not in msg.members:
+            if self.phase == Phase.MEMBER and lead == self.leader:
+                self.counters.left += 1  # expelled: leave and start again
+                self._go_idle(now)
+            else:
+                self.counters.ignored_foreign += 1
+            return
+        if self.phase != Phase.MEMBER or self.leader != lead:
+            self._become_member(lead, now)
+        if self.task != msg.task:
+            self.task = msg.task
+        self.last_hb = now
+        self.epoch = msg.epoch
+        if self.pose is not None:
+            out.append(Out(lead, HeartbeatAck(self.me, msg.seq, self.pose)))
+
+    def _on_heartbeat_ack(self, msg: HeartbeatAck, now: float, out: list[Out]) -> None:
+        if self.phase != Phase.LEADER:
+            self.counters.ignored_phase += 1
+            return
+        if msg.sender not in self.members:
+            self.counters.ignored_foreign += 1
+            return
+        self.members[msg.sender] = now
+        self.poses[msg.sender] = replace(msg.pose)
+
+
+_HANDLERS: dict[type, Callable[[Core, Message, float, list[Out]], None]] = {
+    Advertize: Core._on_advertize,  # type: ignore[dict-item]
+    StartPool: Core._on_start_pool,  # type: ignore[dict-item]
+    StartPoolAck: Core._on_start_pool_ack,  # type: ignore[dict-item]
+    SyncPool: Core._on_sync_pool,  # type: ignore[dict-item]
+    SyncPoolAck: Core._on_sync_pool_ack,  # type: ignore[dict-item]
+    Selection: Core._on_selection,  # type: ignore[dict-item]
+    Heartbeat: Core._on_heartbeat,  # type: ignore[dict-item]
+    HeartbeatAck: Core._on_heartbeat_ack,  # type: ignore[dict-item]
+}

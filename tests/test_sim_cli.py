@@ -1,0 +1,75 @@
+"""``swarm sim`` as a user runs it: readiness lines, a plain pymavlink client, signals, bad input."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+from pymavlink import mavutil
+
+
+def run(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "swarm.cli", "sim", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def free_port(kind: int) -> int:
+    s = socket.socket(socket.AF_INET, kind)
+    s.bind(("127.0.0.1", 0))
+    port = int(s.getsockname()[1])
+    s.close()
+    return port
+
+
+def test_ready_lines_client_and_sigterm() -> None:
+    base = free_port(socket.SOCK_STREAM)
+    p = run("--vehicles", "2", "--profile", "ardupilot", "--base-port", str(base), "--speedup", "2")
+    try:
+        assert p.stdout is not None
+        lines = [p.stdout.readline() for _ in range(2)]
+        assert lines[0].startswith("vehicle 1 sysid=1 ardupilot tcp -> tcp:127.0.0.1:")
+        assert "home=" in lines[0]
+        assert f"tcp:127.0.0.1:{base + 10}" in lines[1]
+        c = mavutil.mavlink_connection(f"tcp:127.0.0.1:{base + 10}", source_system=255)
+        hb = c.wait_heartbeat(timeout=10)
+        assert hb is not None and hb.get_srcSystem() == 2 and hb.autopilot == 3
+        c.close()
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=10) == 0
+        assert time.monotonic() - t0 < 5.0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
+def test_sigint_px4() -> None:
+    p = run("--vehicles", "1", "--base-port", str(free_port(socket.SOCK_DGRAM)))
+    assert p.stdout is not None
+    assert "px4 udp -> udpin:127.0.0.1:" in p.stdout.readline()
+    p.send_signal(signal.SIGINT)
+    assert p.wait(timeout=10) == 0
+
+
+def test_bad_input_exit_2_without_traceback() -> None:
+    base = free_port(socket.SOCK_STREAM)
+    held = socket.socket()
+    held.bind(("127.0.0.1", base))
+    held.listen(1)
+    try:
+        for args in (["--vehicles", "2", "--home", "91,8,400"],
+                     ["--vehicles", "2", "--home", "nope"],
+                     ["--vehicles", "0"],
+                     ["--vehicles", "1", "--speedup", "0"],
+                     ["--vehicles", "1", "--profile", "ardupilot", "--base-port", str(base)]):
+            p = run(*args)
+            _, err = p.communicate(timeout=20)
+            assert p.returncode == 2, (args, err)
+            assert "Traceback" not in err and err.startswith("swarm sim: error:"), err
+            assert len(err.strip().splitlines()) == 1
+    finally:
+        held.close()

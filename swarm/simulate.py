@@ -303,9 +303,7 @@ class Sim:
                         break
             else:
                 last_conv_state = False
-            if elect_s is None and ok and all(self.started):
-                leader = lead
-            elif ok:
+            if ok:
                 leader = lead
             self._check_dead_leaders(t)
             t = self._next_time(t)

@@ -186,7 +186,7 @@ def test_digest_ignores_order_and_duplicates() -> None:
 def test_version_mismatch_is_clear() -> None:
     raw = bytearray(encode(StartPool(3)))
     raw[0] = (2 << 5) | (raw[0] & 0x1F)
-    with pytest.raises(VersionMismatch, match="v2.*v1"):
+    with pytest.raises(VersionMismatch, match=r"v2.*v1"):
         decode(bytes(raw))
 
 

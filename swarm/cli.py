@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "radio-config": ("swarm.commands.radio_config", "read and write a SiK radio's parameters (AT commands)"),
     "replay": ("swarm.commands.replay", "decode, re-feed and summarise a radio capture (.tlog)"),
     "sim": ("swarm.commands.sim", "simulate N multicopters that speak MAVLink like PX4 or ArduPilot SITL"),
+    "agent": ("swarm.commands.agent", "run one swarm agent (election, membership) on a radio or Zenoh"),
     "simulate": ("swarm.commands.simulate", "seeded leader-election runs in virtual time, with invariants"),
     "bench": ("swarm.commands.bench", "run a benchmark and print its figures"),
 }

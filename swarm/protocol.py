@@ -37,8 +37,9 @@ Beyond the paper (each rule stated once, here):
 * **Late joiner**: a leader answers StartPool from a free agent with
   AlreadyInPool(locked) and adds it to its members; the newcomer becomes a
   member when a Heartbeat lists it. Leaders keep advertising for that reason.
-* **Swarms that meet merge**: a leader hearing another leader's Heartbeat
-  compares (swarm size, leader id): the larger swarm (ties: higher id) absorbs
+* **Swarms that meet merge**: a leader hearing another leader's Advertize sends
+  it its Heartbeat; a leader hearing another leader's Heartbeat compares
+  (swarm size, leader id): the larger swarm (ties: higher id) absorbs
   the smaller: its leader adds the other leader and all its members; the smaller
   leader becomes a member of the larger. A member follows whichever leader lists
   it in a Heartbeat (conflicting claims are settled by the leaders' rule).
@@ -76,6 +77,8 @@ from swarm.messages import (
 )
 
 ADVERTIZE = 0  # Out.to for the advertize broadcast
+#: the pose an agent without a flight controller acknowledges with ("null island")
+NO_POSE = Pose(0.0, 0.0, 0.0)
 FLAG_HAS_FC = 0x01
 FLAG_LEADER = 0x02
 
@@ -114,9 +117,34 @@ def fast_profile(round_s: float) -> Profile:
     )
 
 
+def paper_profile(round_s: float = 0.0) -> Profile:
+    """The paper's values, stretched only where the radio makes them impossible.
+
+    The paper's 2 s windows and 0.5 s rates assume a network where a message
+    reaches everyone well within a window. On a SiK radio each node speaks once
+    per TDM round (multipoint: N windows per round, 2.37 s for 20 radios at
+    64 kbps); a vote window shorter than a round ends before any other vote can
+    arrive, and every agent elects itself (seen in simulation). So windows are
+    at least 1.5 rounds, send intervals at least one round (sending faster only
+    queues duplicates in the radio), and timeouts, which the paper leaves open,
+    at least five rounds. With up to 8 radios at 64 kbps these are the paper's
+    own values.
+    """
+    r = max(round_s, 0.0)
+    window = max(PAPER.lock_window, 1.5 * r)
+    interval = max(PAPER.sync_interval, r)
+    timeout = max(PAPER.ack_timeout, 5 * r)
+    return replace(PAPER, sync_interval=interval, vote_interval=interval,
+                   heartbeat_interval=interval, lock_window=window, vote_window=window,
+                   advertize_interval=max(PAPER.advertize_interval, r),
+                   startpool_retry=max(PAPER.startpool_retry, r),
+                   ack_timeout=timeout, leader_timeout=timeout,
+                   alone_timeout=max(PAPER.alone_timeout, 2 * timeout))
+
+
 def profile_by_name(name: str, round_s: float) -> Profile:
     if name == "paper":
-        return PAPER
+        return paper_profile(round_s)
     if name == "fast":
         return fast_profile(round_s)
     raise ValueError(f"unknown profile {name!r}: paper or fast")
@@ -216,7 +244,8 @@ class Core:
         return self.tick(now)
 
     def handle(self, msg: Message, now: float) -> list[Out]:
-        """Process one received message. Never raises for peer input."""
+        """Process one received message. Never raises for peer input. The driver
+        calls :meth:`tick` when :meth:`next_deadline` (which may now be ``now``) comes."""
         out: list[Out] = []
         sender = getattr(msg, "sender", None)
         if sender == self.me:
@@ -228,7 +257,6 @@ class Core:
             self.counters.ignored_phase += 1
             return out
         h(self, msg, now, out)
-        out += self.tick(now)
         return out
 
     def tick(self, now: float) -> list[Out]:
@@ -279,6 +307,11 @@ class Core:
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""
         self.task = task
+
+    def take_state_changed(self) -> bool:
+        """True once after the phase, leader, vote or membership changed."""
+        dirty, self._state_dirty = self._state_dirty, False
+        return dirty
 
     def state(self) -> AgentState:
         return AgentState(
@@ -407,6 +440,12 @@ class Core:
     # -- message handlers ------------------------------------------------------
     def _on_advertize(self, msg: Advertize, now: float, out: list[Out]) -> None:
         a = msg.sender
+        if self.phase == Phase.LEADER and msg.flags & FLAG_LEADER and a not in self.members:
+            # another swarm's leader: show it our swarm so the merge rule can apply
+            # (Heartbeats go only to members, so leaders would never hear each other)
+            out.append(Out(a, Heartbeat(self.me, self.epoch, self.hb_seq, frozenset(self.members),
+                                        self.task)))
+            return
         if self.phase == Phase.IDLE or (self.phase == Phase.POOLING and a not in self.pool):
             if a in self._asked:
                 return  # retried by the timer
@@ -546,8 +585,7 @@ class Core:
             self.task = msg.task
         self.last_hb = now
         self.epoch = msg.epoch
-        if self.pose is not None:
-            out.append(Out(lead, HeartbeatAck(self.me, msg.seq, self.pose)))
+        out.append(Out(lead, HeartbeatAck(self.me, msg.seq, self.pose or NO_POSE)))
 
     def _on_heartbeat_ack(self, msg: HeartbeatAck, now: float, out: list[Out]) -> None:
         if self.phase != Phase.LEADER:

@@ -181,6 +181,8 @@ class Sim:
         self.following_dead_since: dict[int, float] = {}
         self._due = [0.0] * n  # each core's next deadline (cached)
         self._split_since: float | None = None
+        # a run goes on at least until its last partition heals and its last agent starts
+        self._last_event = max([p.t1 for p in self.partitions] + self.start_at + [0.0])
 
     # -- wiring -------------------------------------------------------------------
     def _send(self, i: int, outs: list[Out], t: float) -> None:
@@ -319,7 +321,7 @@ class Sim:
                         elect_s = converged_since - max(self.start_at)
                     if crash_time is not None and failover_s is None and converged_since >= crash_time:
                         failover_s = converged_since - crash_time
-                    if not self.crash_at:
+                    if not self.crash_at and t >= self._last_event:
                         break
             else:
                 last_conv_state = False

@@ -1,0 +1,269 @@
+"""Leader selection in virtual time: the pure core alone (manual clock), and N cores
+over the SiK air model (swarm.simulate) in the scenarios the issue names. No test
+sleeps: time is a number the test advances."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from swarm.messages import (
+    Advertize,
+    Heartbeat,
+    HeartbeatAck,
+    Phase,
+    PoolStatus,
+    Pose,
+    Selection,
+    StartPool,
+    StartPoolAck,
+    SyncPool,
+    pool_digest,
+)
+from swarm.protocol import ADVERTIZE, PAPER, Core, fast_profile, paper_profile
+from swarm.simulate import Scenario, Sim, campaign
+
+POSE = Pose(47.4, 8.5, 500.0)
+
+
+class FixedVote:
+    def __init__(self, w: int) -> None:
+        self.w = w
+
+    def weight(self, rng: random.Random) -> int:
+        return self.w
+
+
+# -- the core alone -------------------------------------------------------------
+
+def test_idle_agent_advertises_and_answers_start_pool_with_success() -> None:
+    c = Core(1, "a1")
+    out = c.start(0.0)
+    assert [o.to for o in out] == [ADVERTIZE] and isinstance(out[0].msg, Advertize)
+    out = c.handle(StartPool(2), 0.1)
+    assert c.phase == Phase.POOLING and c.pool == {1, 2}
+    ack = out[0].msg
+    assert isinstance(ack, StartPoolAck) and ack.status == PoolStatus.SUCCESS and out[0].to == 2
+
+
+def test_agent_in_open_pool_answers_already_in_pool_and_adds_sender() -> None:
+    c = Core(1)
+    c.start(0.0)
+    c.handle(StartPool(2), 0.1)
+    out = c.handle(StartPool(3), 0.2)
+    assert c.pool == {1, 2, 3}
+    assert out[0].msg == StartPoolAck(1, PoolStatus.ALREADY_IN_POOL, False, frozenset({1, 2, 3}))
+
+
+def test_locked_agent_ignores_start_pool() -> None:
+    c = Core(1)
+    c.start(0.0)
+    c.handle(StartPool(2), 0.0)
+    c.tick(PAPER.lock_window + 0.01)
+    assert c.locked and c.phase == Phase.LOCKED
+    assert c.handle(StartPool(3), 2.1) == []
+    assert c.counters.ignored_phase >= 1 and 3 not in c.pool
+
+
+def test_pool_locks_after_the_window_and_elects_after_two_more() -> None:
+    a = Core(1, policy=FixedVote(10))
+    a.start(0.0)
+    a.handle(StartPool(2), 0.0)
+    a.tick(1.0)
+    assert a.phase == Phase.POOLING
+    a.tick(2.0)
+    assert a.phase == Phase.LOCKED
+    a.tick(4.0)
+    assert a.phase == Phase.ELECTING and a.vote == (10, 1)
+    # a heavier vote from the pool is adopted
+    a.handle(Selection(2, 2, 99, a.epoch), 4.5)
+    assert a.vote == (99, 2)
+    a.tick(6.4)
+    assert a.phase == Phase.ELECTING  # unchanged for 1.9 s only
+    a.tick(6.6)
+    assert a.phase == Phase.MEMBER and a.leader == 2
+
+
+def test_votes_from_another_election_or_outside_the_pool_are_ignored() -> None:
+    a = Core(1, policy=FixedVote(10))
+    a.start(0.0)
+    a.handle(StartPool(2), 0.0)
+    a.tick(2.0)
+    a.tick(4.0)
+    a.handle(Selection(2, 2, 99, (a.epoch + 1) & 0xFFFF), 4.1)
+    a.handle(Selection(7, 7, 99, a.epoch), 4.2)
+    assert a.vote == (10, 1)
+    assert a.counters.ignored_stale == 1 and a.counters.ignored_foreign == 1
+
+
+def test_identical_weights_break_ties_towards_the_higher_id() -> None:
+    a = Core(1, policy=FixedVote(5))
+    a.start(0.0)
+    a.handle(StartPool(2), 0.0)
+    a.tick(2.0)
+    a.tick(4.0)
+    a.handle(Selection(2, 2, 5, a.epoch), 4.1)
+    assert a.vote == (5, 2)
+
+
+def test_leader_expels_a_silent_member_and_member_leaves_a_silent_leader() -> None:
+    lead = Core(1, policy=FixedVote(99))
+    lead.start(0.0)
+    lead.handle(StartPool(2), 0.0)
+    lead.handle(StartPool(3), 0.0)
+    out = []
+    for t in (2.0, 4.0, 6.1, 6.2):
+        out += lead.tick(t)
+    assert lead.phase == Phase.LEADER and set(lead.members) == {2, 3}
+    assert {o.to for o in out if isinstance(o.msg, Heartbeat)} == {2, 3}
+    lead.handle(HeartbeatAck(2, 1, POSE), 7.0)
+    lead.tick(6.1 + PAPER.ack_timeout + 0.5)
+    assert set(lead.members) == {2} and lead.counters.expelled == 1
+
+    m = Core(2)
+    m.start(0.0)
+    out = m.handle(Heartbeat(1, 0, 1, frozenset({2})), 1.0)
+    assert m.phase == Phase.MEMBER and m.leader == 1
+    assert any(isinstance(o.msg, HeartbeatAck) and o.to == 1 for o in out)
+    m.tick(1.0 + PAPER.leader_timeout + 0.1)
+    assert m.phase == Phase.IDLE and m.counters.left == 1
+
+
+def test_member_not_listed_by_its_leader_leaves() -> None:
+    m = Core(2)
+    m.start(0.0)
+    m.handle(Heartbeat(1, 0, 1, frozenset({2, 3})), 1.0)
+    m.handle(Heartbeat(1, 0, 2, frozenset({3})), 1.5)
+    assert m.phase == Phase.IDLE
+
+
+def test_leader_adopts_a_late_joiner() -> None:
+    lead = Core(1)
+    lead.start(0.0)
+    lead.tick(PAPER.alone_timeout + 0.1)  # alone: a swarm of one
+    assert lead.phase == Phase.LEADER
+    out = lead.handle(StartPool(5), 20.0)
+    assert 5 in lead.members
+    assert out[0].msg == StartPoolAck(1, PoolStatus.ALREADY_IN_POOL, True, frozenset({1, 5}))
+
+
+def test_larger_swarm_absorbs_smaller_when_leaders_meet() -> None:
+    big = Core(9)
+    big.start(0.0)
+    big.tick(PAPER.alone_timeout + 0.1)
+    big.handle(StartPool(5), 10.0)
+    big.handle(StartPool(6), 10.0)
+    small = Core(3)
+    small.start(0.0)
+    small.tick(PAPER.alone_timeout + 0.1)
+    small.handle(StartPool(4), 10.0)
+    # each hears the other's advertize -> sends its heartbeat
+    out = big.handle(Advertize(3, "agent3", 0x02), 11.0)
+    hb_big = next(o.msg for o in out if isinstance(o.msg, Heartbeat))
+    out = small.handle(Advertize(9, "agent9", 0x02), 11.0)
+    hb_small = next(o.msg for o in out if isinstance(o.msg, Heartbeat))
+    big.handle(hb_small, 11.1)  # the bigger absorbs the smaller leader and its member
+    assert {3, 4} <= set(big.members)
+    small.handle(Heartbeat(9, big.epoch, 1, frozenset(big.members)), 11.6)
+    assert small.phase == Phase.MEMBER and small.leader == 9
+    assert hb_big.sender == 9
+
+
+def test_sync_pool_merges_and_spreads_the_lock() -> None:
+    a = Core(1)
+    a.start(0.0)
+    a.handle(StartPool(2), 0.0)
+    out = a.handle(SyncPool(2, pool_digest({1, 2, 3}), False, frozenset({1, 2, 3})), 0.5)
+    assert a.pool == {1, 2, 3}
+    assert out
+    a.handle(SyncPool(2, pool_digest({1, 2, 3}), True), 1.0)
+    assert a.locked
+
+
+def test_garbage_and_out_of_order_messages_never_raise() -> None:
+    rng = random.Random(7)
+    c = Core(1)
+    c.start(0.0)
+    msgs = [StartPool(2), StartPoolAck(3, PoolStatus.SUCCESS, True, frozenset({3, 9})),
+            SyncPool(4, 123, True, None), Selection(5, 77, 3, 9), Heartbeat(6, 1, 2, frozenset()),
+            HeartbeatAck(7, 3, POSE), Advertize(1, "me")]
+    t = 0.0
+    for _ in range(500):
+        t += rng.random()
+        c.handle(rng.choice(msgs), t)
+        c.tick(t)
+    assert c.phase in set(Phase)
+
+
+def test_profiles_stretch_with_the_radio_round() -> None:
+    assert paper_profile(0.24) == paper_profile(0.0)  # fast radios: the paper's values
+    slow = paper_profile(2.4)
+    assert slow.vote_window == pytest.approx(3.6) and slow.ack_timeout == pytest.approx(12.0)
+    f = fast_profile(0.24)
+    assert f.vote_window < PAPER.vote_window
+
+
+# -- N cores over the air model --------------------------------------------------
+
+@pytest.mark.parametrize("n", [2, 3, 5, 10, 20])
+def test_swarm_converges_for_n_agents(n: int) -> None:
+    seeds = 2 if n >= 10 else 3
+    r = campaign(Scenario(agents=n, loss=0.1 if n > 2 else 0.0), seeds, 100)
+    assert r["violations"] == 0, r["failing"]
+    assert r["converged"] == seeds
+
+
+def test_heavy_loss_with_bursts_still_converges() -> None:
+    r = campaign(Scenario(agents=5, loss=0.3, burst_loss="0.02,0.5"), 3, 200)
+    assert r["violations"] == 0, r["failing"]
+    assert r["converged"] == 3
+
+
+def test_late_joiner_joins_the_existing_swarm() -> None:
+    s = Sim(Scenario(agents=5, late=["5@25"]), 1)
+    r = s.run()
+    assert not r.violations and r.stable_at_end
+    lead = s.cores[r.leader - 1]
+    assert 5 in lead.members and s.cores[4].leader == r.leader
+
+
+def test_leader_crash_survivors_agree_on_a_new_leader() -> None:
+    s = Sim(Scenario(agents=5, crashes=["leader@15"], duration=80), 2)
+    r = s.run()
+    assert not r.violations
+    assert r.failover_s is not None
+    p = s.cores[0].profile
+    # within the leader timeout plus one election (pool, lock, vote windows) and a margin
+    assert r.failover_s < p.leader_timeout + 3 * p.lock_window + 6
+    dead = [i + 1 for i in range(5) if not s.alive[i]]
+    assert r.leader not in dead
+
+
+def test_member_crash_is_expelled() -> None:
+    s = Sim(Scenario(agents=5, crashes=["2@15"], duration=40), 3)
+    r = s.run()
+    assert not r.violations
+    lead = s.cores[r.leader - 1]
+    assert 2 not in lead.members
+
+
+def test_partition_then_heal_merges_into_one_swarm() -> None:
+    s = Sim(Scenario(agents=6, partitions=["0-25:1,2,3|4,5,6"], duration=90), 4)
+    r = s.run()
+    assert not r.violations
+    assert r.stable_at_end
+    leaders = [c for c in s.cores if c.phase == Phase.LEADER]
+    assert len(leaders) == 1 and len(leaders[0].members) == 5
+
+
+def test_a_seed_replays_exactly() -> None:
+    a = Sim(Scenario(agents=5, loss=0.2), 42).run()
+    b = Sim(Scenario(agents=5, loss=0.2), 42).run()
+    assert a == b
+
+
+@pytest.mark.slow
+def test_campaign_paper_n10_loss10_all_seeds_converge() -> None:
+    r = campaign(Scenario(agents=10, loss=0.1), 100)
+    assert r["converged"] == 100 and r["violations"] == 0

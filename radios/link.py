@@ -146,12 +146,16 @@ class Link:
                     if wait < 0:
                         wait = 0.0
                 data = self._read(wait)
+                now = time.monotonic()
                 if data:
                     self._stats.bytes_in += len(data)
                     frames = self._parser.feed(data)
                     self._stats.frames_in += len(frames)
                     self._pending.extend(frames)
-                elif deadline is not None and time.monotonic() >= deadline:
+                # the deadline holds even while bytes that make no frame keep coming;
+                # a partial frame waits for its rest however long it takes (SiK splits
+                # frames across air packets in raw mode and for frames too large to fit)
+                if not self._pending and deadline is not None and now >= deadline:
                     return None
 
     def close(self) -> None:

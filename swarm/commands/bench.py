@@ -11,6 +11,8 @@ AREAS = {
     "radio": ("swarm.bench.radio", "emulator goodput, latency, TDM round and CPU vs the SiK model"),
     "sim": ("swarm.bench.sim", "vehicle simulator real-time factor and CPU, driver setpoint timing"),
     "messages": ("swarm.bench.messages", "message and frame sizes, bridge latency, JSON ratio"),
+    "simulate": ("swarm.bench.simulate", "simulator campaigns for the election targets (virtual time)"),
+    "election": ("swarm.bench.election", "real agent processes vs the simulator: election times"),
 }
 
 

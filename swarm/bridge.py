@@ -99,6 +99,9 @@ class BridgeConfig:
     signing_key: bytes | None = None
     link_id: int = 0
     radio_status_stale_s: float = 5.0
+    #: a new P2P protocol item waits this long for identical payloads to other peers
+    #: (a leader's heartbeat to N members) so they leave as one multicast frame
+    coalesce_s: float = 0.02
 
 
 @dataclass
@@ -117,7 +120,7 @@ class BridgeStats:
     version_mismatch: int = 0
     conflicts: int = 0
     send_errors: int = 0
-    throttled: int = 0
+    throttled: int = 0  # send-loop passes that held a class back (txbuf back-off)
     heartbeats: int = 0
     vehicle_forwarded: int = 0
     unsigned: int = 0
@@ -135,6 +138,7 @@ class _Item:
     targets: list[int]
     payload: bytes
     raw_frame: bytes | None = None
+    t: float = 0.0  # when queued
 
 
 @dataclass
@@ -200,6 +204,7 @@ class RadioBridge:
         self._conflicts_logged: set[tuple[str, int]] = set()
         self._vehicle_last: dict[int, float] = {}
         self._closed = False
+        self.link_lost = False  # the radio link died (device gone, emulator stopped)
         self._sub: Any = None
         self._threads: list[threading.Thread] = []
 
@@ -287,6 +292,7 @@ class RadioBridge:
             if len(q) >= limit:
                 q.popleft()  # the oldest is the stalest
                 self.stats.queue_drops += 1
+            item.t = self.clock()
             q.append(item)
             self._cond.notify()
 
@@ -314,6 +320,10 @@ class RadioBridge:
             bucket.refill(now)
             item = q[0]
             if item.raw_frame is None and item.kind == Kind.P2P:
+                hold = item.t + self.cfg.coalesce_s - now
+                if hold > 0:
+                    wait = min(wait, hold)
+                    continue
                 self._merge_multicast(q, item)
             size = self._frame_size(item)
             if bucket.tokens < min(size, bucket.burst):
@@ -378,6 +388,7 @@ class RadioBridge:
                 self.stats.send_errors += 1
                 if self.link.closed:
                     log.warning("bridge %s: radio link closed: %s", self.name, exc)
+                    self.link_lost = True
                     return
 
     # -- air -> local -------------------------------------------------------------
@@ -388,6 +399,7 @@ class RadioBridge:
             except RadioError as exc:
                 if not self._closed:
                     log.warning("bridge %s: radio link lost: %s", self.name, exc)
+                    self.link_lost = True
                 return
             if frame is None:
                 continue

@@ -1,0 +1,155 @@
+"""``swarm agent``: run one swarm agent (leader election and membership) until stopped.
+
+The agent meets others either through a radio (``--radio URL``: a SiK radio or an
+emulator pty; the Zenoh session then has no endpoints) or over IP with Zenoh
+endpoints (``--zenoh-listen`` / ``--zenoh-connect``). It prints one line when ready,
+then one line per change of its protocol state; with ``--json`` each of those is
+one JSON object: the ready line ``{"event": "ready", "name", "id", "link"}``, then
+``{"event": "state", "name", "id", "phase", "leader", "pool", "locked", "members",
+"candidate", "weight", "epoch", "t"}`` (``t``: seconds since the agent started).
+SIGINT or SIGTERM stops it cleanly (exit 0).
+
+The ``fast`` profile derives its windows from the radio network's TDM round, which
+the agent does not read from the radio: give ``--round-s``, or ``--slots N`` (the
+number of radios of a multipoint network; 2 for a standard pair) and
+``--air-speed`` and the round is computed as the SiK firmware does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+
+from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
+from swarm.agent import PROFILES, VOTES, Agent, default_round_s, state_dict
+from swarm.cliutil import EXIT_FAILURE, EXIT_USAGE, StopFlag, UsageError, guarded, parser, print_json
+from swarm.errors import MessageError, TransportError
+from swarm.messages import AgentState
+
+PROG = "swarm agent"
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = parser(PROG, "Run one swarm agent: dynamic leader selection and membership over a "
+                     "radio or Zenoh, until SIGINT/SIGTERM.")
+    p.add_argument("--name", required=True, help="agent name (1-16 of A-Z a-z 0-9 _ -)")
+    p.add_argument("--id", required=True, type=int, help="MAVLink system id, 1..250, unique in the swarm")
+    p.add_argument("--radio", metavar="URL", help="radio link: serial device or emulator pty (DIR/radioK)")
+    p.add_argument("--zenoh-listen", nargs="+", default=[], metavar="EP",
+                   help="Zenoh endpoints to listen on (tcp/127.0.0.1:7447), instead of a radio")
+    p.add_argument("--zenoh-connect", nargs="+", default=[], metavar="EP",
+                   help="Zenoh endpoints to connect to, instead of a radio")
+    p.add_argument("--fc", metavar="URL", help="flight controller (udpin:0.0.0.0:14540, "
+                                              "tcp:host:port, /dev/ttyACM0...): optional")
+    p.add_argument("--profile", choices=PROFILES, default="paper",
+                   help="timing profile: the paper's windows, or fast (from the TDM round)")
+    p.add_argument("--round-s", type=float, metavar="S",
+                   help="TDM round of the radio network in seconds, for --profile fast "
+                        "(default: computed from --slots and --air-speed)")
+    p.add_argument("--slots", type=int, default=2, metavar="N",
+                   help="radios in the network (multipoint slots; 2 for a standard pair; default 2)")
+    p.add_argument("--air-speed", type=int, default=64, metavar="KBPS",
+                   help="radio air rate for the round (default 64)")
+    p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
+    p.add_argument("--vote", choices=VOTES, default="random",
+                   help="vote weight: random (the paper), battery, or link (RSSI)")
+    p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
+    p.add_argument("--json", action="store_true", help="JSON lines instead of text")
+    return p
+
+
+def _text(name: str, st: AgentState) -> str:
+    d = state_dict(name, st)
+    parts = [f"agent {name} id={d['id']} {d['phase']}"]
+    if d["leader"]:
+        parts.append(f"leader={d['leader']}")
+    parts.append("pool=" + ",".join(map(str, d["pool"])) + (" locked" if d["locked"] else ""))
+    if d["members"]:
+        parts.append("members=" + ",".join(map(str, d["members"])))
+    if d["candidate"]:
+        parts.append(f"vote={d['candidate']}:{d['weight']:#010x}")
+    return " ".join(parts)
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    a = _build_parser().parse_args(argv)
+    if not 1 <= a.id <= 250:
+        raise UsageError(f"--id {a.id}: agent ids are 1..250 (255 is the ground station)")
+    if a.radio is None and not (a.zenoh_listen or a.zenoh_connect):
+        raise UsageError("give --radio URL, or --zenoh-listen / --zenoh-connect endpoints")
+    if a.radio is not None and (a.zenoh_listen or a.zenoh_connect):
+        raise UsageError("--radio and Zenoh endpoints exclude each other")
+    if a.round_s is None:
+        if not 2 <= a.slots <= 32:
+            raise UsageError("--slots: 2..32")
+        try:
+            a.round_s = default_round_s(a.slots, a.air_speed)
+        except ValueError as exc:
+            raise UsageError(f"--air-speed: {exc}") from None
+    lock = threading.Lock()
+    t0 = time.monotonic()
+
+    def on_state(st: AgentState) -> None:
+        with lock:
+            try:
+                if a.json:
+                    print_json({"event": "state", **state_dict(a.name, st),
+                                "t": round(time.monotonic() - t0, 3)})
+                else:
+                    print(_text(a.name, st), flush=True)
+            except (BrokenPipeError, ValueError):  # stdout gone: keep running quietly
+                pass
+
+    try:
+        agent = Agent(a.name, a.id, radio=a.radio, zenoh_listen=a.zenoh_listen,
+                      zenoh_connect=a.zenoh_connect, fc=a.fc, profile=a.profile, round_s=a.round_s,
+                      key_file=a.key, vote=a.vote, pose_hz=a.pose_hz, on_state=on_state)
+    except (MessageError, ValueError) as exc:
+        raise UsageError(str(exc)) from None
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run(a, agent, StopFlag().install(), lock)
+    finally:
+        for sig, handler in previous.items():  # main() may run inside another program
+            signal.signal(sig, handler)
+
+
+def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lock) -> int:
+    try:
+        agent.start()
+    except TransportError as exc:
+        agent.stop()
+        raise UsageError(str(exc)) from None
+    except HeartbeatTimeout as exc:
+        agent.stop()
+        print(f"{PROG}: error: flight controller: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except ConnectError as exc:
+        agent.stop()
+        print(f"{PROG}: error: flight controller: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except BridgeError as exc:
+        agent.stop()
+        print(f"{PROG}: error: flight controller: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    try:
+        with lock:
+            if a.json:
+                print_json({"event": "ready", "name": a.name, "id": a.id, "link": agent.describe(),
+                            "profile": agent.profile.name, "round_s": round(agent.round_s, 4)})
+            else:
+                print(f"agent {a.name} id={a.id} {agent.describe()} profile={agent.profile.name} ready",
+                      flush=True)
+        while not stop.wait(0.5):
+            if not agent.running:
+                why = "radio link lost" if agent.bridge is not None and agent.bridge.link_lost \
+                    else "the agent's protocol thread stopped"
+                print(f"{PROG}: error: {why}", file=sys.stderr)
+                return EXIT_FAILURE
+    finally:
+        agent.stop()
+    return 0

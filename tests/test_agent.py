@@ -1,0 +1,256 @@
+"""The agent runtime in one process over real Zenoh on loopback TCP (no radio):
+three agents elect one leader and agree on it; their state is seen on
+``swarm/<name>/state`` by an observer; stop() is clean and safe twice; bad
+arguments are refused before anything opens.
+
+Nothing sleeps to hope: every wait polls for an outcome until a generous deadline.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from functools import partial
+from typing import Any
+
+import pytest
+
+from swarm.agent import Agent, default_round_s, pose_from_state, state_dict, vehicle_messages
+from swarm.messages import AgentState, Phase
+from swarm.transport import Transport
+
+DEADLINE = 40.0  # paper profile: three 2 s windows plus discovery, with lots of margin
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def agreed(states: dict[str, AgentState], names: list[str]) -> int | None:
+    """The leader every agent in ``names`` reports (LEADER or MEMBER), else None."""
+    if any(n not in states for n in names):
+        return None
+    leaders = {states[n].leader for n in names}
+    phases = {states[n].phase for n in names}
+    if len(leaders) != 1 or not phases <= {Phase.LEADER, Phase.MEMBER} or 0 in leaders:
+        return None
+    return leaders.pop()
+
+
+@pytest.fixture
+def trio() -> Iterator[tuple[list[Agent], dict[str, AgentState], dict[str, AgentState], float]]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    lock = threading.Lock()
+    own: dict[str, AgentState] = {}  # from the on_state hook
+    seen: dict[str, AgentState] = {}  # from swarm/<name>/state, by an observer
+
+    def hook(name: str) -> Callable[[AgentState], None]:
+        def f(st: AgentState) -> None:
+            with lock:
+                own[name] = st
+        return f
+
+    def observe(name: str, st: AgentState) -> None:
+        with lock:
+            seen[name] = st
+
+    agents: list[Agent] = []
+    observer: Transport | None = None
+    try:
+        agents.append(Agent("agent1", 1, zenoh_listen=[ep], on_state=hook("agent1")).start())
+        observer = Transport.open("observer", connect=[ep])
+        observer.on_state("*", observe)
+        t0 = time.monotonic()
+        for i in (2, 3):
+            agents.append(Agent(f"agent{i}", i, zenoh_connect=[ep], on_state=hook(f"agent{i}")).start())
+        yield agents, own, seen, t0
+    finally:
+        for a in agents:
+            a.stop()
+        if observer is not None:
+            observer.close()
+
+
+def test_three_agents_elect_one_leader(trio: Any) -> None:
+    agents, own, seen, t0 = trio
+    names = [a.name for a in agents]
+    leader = wait_until(lambda: agreed(dict(own), names), "three agents to agree on a leader")
+    elect_s = time.monotonic() - t0
+    assert leader in (1, 2, 3)
+    st = {n: own[n] for n in names}
+    leaders = [n for n in names if st[n].phase == Phase.LEADER]
+    assert leaders == [f"agent{leader}"]
+    assert st[f"agent{leader}"].members == frozenset({1, 2, 3} - {leader})
+    # the same picture on the key space, seen by a fourth session
+    wait_until(lambda: agreed(dict(seen), names) == leader, "the observer to see the same leader")
+    for a in agents:
+        assert a.stats["errors"] == 0
+        assert a.running
+    # the paper profile cannot elect faster than its windows (lock + vote)
+    assert elect_s >= 2.0
+    print(f"elect_s={elect_s:.2f}")
+
+
+def test_leader_stops_and_the_others_elect_again(trio: Any) -> None:
+    agents, own, _seen, _t0 = trio
+    names = [a.name for a in agents]
+    leader = wait_until(lambda: agreed(dict(own), names), "a first leader")
+    gone = agents[leader - 1]
+    gone.stop()
+    rest = [n for n in names if n != gone.name]
+
+    def new_leader() -> int | None:
+        lead = agreed(dict(own), rest)
+        return lead if lead not in (None, leader) else None
+
+    t = time.monotonic()
+    lead2 = wait_until(new_leader, "the survivors to agree on a new leader")
+    print(f"failover_s={time.monotonic() - t:.2f}")
+    assert lead2 in {1, 2, 3} - {leader}
+
+
+def test_stop_is_clean_and_safe_twice() -> None:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    before = {t.ident for t in threading.enumerate()}
+    with Agent("solo", 7, zenoh_listen=[ep]) as a:
+        wait_until(lambda: a.state() is not None, "the first state")
+        assert a.running
+    a.stop()
+    assert not a.running
+    t = time.monotonic()
+    wait_until(lambda: not [x for x in threading.enumerate()
+                            if x.ident not in before and x.name.startswith("agent-solo")],
+               "the agent's threads to end", timeout=5)
+    assert time.monotonic() - t < 5
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"name": "bad name", "agent_id": 1, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "name"),
+    ({"name": "a", "agent_id": 0, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "id"),
+    ({"name": "a", "agent_id": 251, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "id"),
+    ({"name": "a", "agent_id": 1}, "radio or at least one Zenoh endpoint"),
+    ({"name": "a", "agent_id": 1, "radio": "x", "zenoh_listen": ["tcp/127.0.0.1:1"]}, "either"),
+    ({"name": "a", "agent_id": 1, "radio": "x", "vote": "loudest"}, "vote"),
+    ({"name": "a", "agent_id": 1, "radio": "x", "profile": "slow"}, "profile"),
+    ({"name": "a", "agent_id": 1, "radio": "x", "round_s": 0.0}, "round_s"),
+])
+def test_bad_arguments(kwargs: dict[str, Any], match: str) -> None:
+    name, agent_id = kwargs.pop("name"), kwargs.pop("agent_id")
+    with pytest.raises(ValueError, match=match):
+        Agent(name, agent_id, **kwargs)
+
+
+def test_missing_radio_raises_and_leaves_nothing_open() -> None:
+    from radios.errors import LinkOpenError
+
+    a = Agent("a1", 1, radio="/nonexistent/radio0")
+    with pytest.raises(LinkOpenError):
+        a.start()
+    a.stop()
+    assert not a.running
+
+
+def test_round_and_helpers() -> None:
+    assert default_round_s() == pytest.approx(0.2368)
+    assert default_round_s(5) == pytest.approx(0.592)
+    a = Agent("a1", 1, radio="x", profile="fast", round_s=0.3)
+    assert a.profile.name == "fast" and a.profile.vote_interval == pytest.approx(0.3)
+
+    class S:  # the driver's VehicleState fields the agent reads
+        autopilot = "px4"
+        lat, lon, alt_amsl, rel_alt = 47.4, 8.5, 500.0, 10.0
+        velocity = (1.0, -2.0, 0.5)
+        yaw = -1.5707963
+        base_mode, custom_mode, system_status, time_boot_ms = 0x81, 0x04040000, 4, 1234
+        battery_remaining = 80
+
+    p = pose_from_state(S(), 3.0)
+    assert p is not None and p.heading == pytest.approx(270.0) and (p.vn, p.ve) == (1.0, -2.0)
+    hb, gpi = vehicle_messages(S())
+    assert hb.get_msgId() == 0 and hb.autopilot == 12
+    assert gpi.get_msgId() == 33 and gpi.lat == 474_000_000 and gpi.hdg == 27000 and gpi.vy == -200
+    S.lat = None  # type: ignore[assignment]
+    assert pose_from_state(S(), 3.0) is None and len(vehicle_messages(S())) == 1
+    d = state_dict("a1", AgentState(1, Phase.LEADER, 1, 1, 5, 9, True, frozenset({1, 2}), frozenset({2})))
+    assert d == {"name": "a1", "id": 1, "phase": "LEADER", "leader": 1, "pool": [1, 2], "locked": True,
+                 "members": [2], "candidate": 1, "weight": 5, "epoch": 9}
+
+
+def test_two_agents_over_signed_radios_with_the_fast_profile(tmp_path: Any) -> None:
+    from swarm.procs import start_emulator
+
+    key = tmp_path / "swarm.key"
+    key.write_text("correct horse battery staple\n")
+    emu, paths = start_emulator(2, tmp_path, "--seed", "16")  # a pair that hop-locks quickly
+    own: dict[str, AgentState] = {}
+    agents: list[Agent] = []
+    try:
+        t0 = time.monotonic()
+        for i in (1, 2):
+            agents.append(Agent(f"agent{i}", i, radio=paths[i - 1], key_file=str(key), profile="fast",
+                                vote="link", on_state=partial(own.__setitem__, f"agent{i}")).start())
+        assert agents[0].profile.vote_window == pytest.approx(2 * default_round_s(2))
+        leader = wait_until(lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the radios")
+        print(f"fast profile, signed pair: leader agent{leader} after {time.monotonic() - t0:.2f} s")
+        for a in agents:
+            assert a.bridge is not None and a.bridge.stats.bad_signature == 0
+            assert a.bridge.stats.frames_in > 0
+    finally:
+        for a in agents:
+            a.stop()
+        emu.stop()
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--name", "a b", "--id", "1", "--radio", "x"], "invalid agent name"),
+    (["--name", "a1", "--id", "251", "--radio", "x"], "1..250"),
+    (["--name", "a1", "--id", "1", "--radio", "/nonexistent/radio0"], "/nonexistent/radio0"),
+    (["--name", "a1", "--id", "1", "--radio", "/nonexistent/radio0", "--key", "/nonexistent/key"],
+     "signing key"),
+    (["--name", "a1", "--id", "1"], "--radio"),
+])
+def test_cli_bad_input_exits_2_with_one_line(argv: list[str], match: str,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    from swarm.commands.agent import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0] and err[0].startswith("swarm agent: error:")
+
+
+def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
+    from swarm.messages import PoseReport
+    from swarm.procs import Child
+
+    base = free_port()
+    sim = Child(["sim", "--vehicles", "1", "--profile", "ardupilot", "--base-port", str(base)], name="sim")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    poses: list[PoseReport] = []
+    try:
+        url = sim.wait_lines(1, 30)[0].split(" -> ")[1].split()[0]
+        with Agent("flyer", 3, zenoh_listen=[ep], fc=url, vote="battery", pose_hz=10) as a, \
+                Transport.open("observer", connect=[ep]) as obs:
+            obs.on_pose("flyer", lambda _n, p: poses.append(p))
+            wait_until(lambda: poses, "a pose on swarm/flyer/pose")
+            assert a.core is not None and a.core.has_fc
+            wait_until(lambda: a.core is not None and a.core.pose is not None, "the pose in the core")
+            p = poses[-1].pose
+            assert 47.0 < p.lat < 48.0 and 8.0 < p.lon < 9.0  # the simulator's default home
+            assert 0 <= a._battery() <= 255
+    finally:
+        sim.stop()

@@ -18,7 +18,10 @@ Phases and the paper's steps (section 2.3):
   it.
 * POOLING: StartPool to new advertisers, SyncPool (CRC-32 digest, members when the
   pool changed since the last sync) to every member at ``sync_interval``;
-  differing pools merge; every change restamps ``changed_at``. A pool unchanged
+  differing pools merge (SyncPoolAck Different carries the receiver's members);
+  an agreeing SyncPool is answered only when the lock states differ (silence
+  means agreement: saves N^2 acks per interval); every change restamps
+  ``changed_at``. A pool unchanged
   for ``lock_window`` locks; SyncPool/SyncPoolAck carry the lock flag and an agent
   with the same pool as a locked peer locks too.
 * LOCKED: merges still happen (and restamp the time). Unchanged for another
@@ -508,7 +511,10 @@ class Core:
         if msg.digest == mine:
             if msg.locked and not self.locked:
                 self._lock_from_peer(now)
-            out.append(Out(a, SyncPoolAck(self.me, True, self.locked)))
+            if msg.locked != self.locked:
+                # only a lock state worth spreading earns an ack: with N agents an ack
+                # for every agreeing SyncPool would be N^2 frames per interval
+                out.append(Out(a, SyncPoolAck(self.me, True, self.locked)))
         else:
             out.append(Out(a, SyncPoolAck(self.me, False, self.locked, frozenset(self.pool))))
 

@@ -176,7 +176,9 @@ def test_sync_pool_merges_and_spreads_the_lock() -> None:
     a.handle(StartPool(2), 0.0)
     out = a.handle(SyncPool(2, pool_digest({1, 2, 3}), False, frozenset({1, 2, 3})), 0.5)
     assert a.pool == {1, 2, 3}
-    assert out
+    assert out == []  # same pool, same lock state: silence means agreement
+    out = a.handle(SyncPool(2, pool_digest({1, 9}), False), 0.6)
+    assert [type(o.msg).__name__ for o in out] == ["SyncPoolAck"] and out[0].msg.members == {1, 2, 3}
     a.handle(SyncPool(2, pool_digest({1, 2, 3}), True), 1.0)
     assert a.locked
 

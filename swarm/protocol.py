@@ -109,12 +109,13 @@ PAPER = Profile()
 
 def fast_profile(round_s: float) -> Profile:
     """Windows derived from the link's TDM round: a message needs about one round to
-    reach everyone, so every interval is one round and every window a few rounds
-    (never below the paper's ratios' meaning: several exchanges per window)."""
+    reach everyone, so every interval is one round and every window 1.5 rounds
+    (2 rounds measured 20% slower with no gain in agreement; 1 round leaves no
+    margin for a lost packet). Timeouts: six rounds, at least 1 s."""
     r = max(round_s, 0.05)
     return Profile(
         name="fast", advertize_interval=r, startpool_retry=r, sync_interval=r,
-        lock_window=2 * r, vote_interval=r, vote_window=2 * r, heartbeat_interval=r,
+        lock_window=1.5 * r, vote_interval=r, vote_window=1.5 * r, heartbeat_interval=r,
         ack_timeout=max(6 * r, 1.0), leader_timeout=max(6 * r, 1.0), alone_timeout=8 * r,
         state_interval=max(r, 0.5),
     )

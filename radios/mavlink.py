@@ -78,6 +78,23 @@ def frame_length(buf: bytes | bytearray, start: int = 0) -> int | None:
     return None
 
 
+def frame_problem(raw: bytes) -> str | None:
+    """Why the whole frame ``raw`` cannot be trusted, or None if its CRC checks out.
+    A frame of an unknown message id cannot have its CRC checked."""
+    if raw[0] == STX_V2:
+        msgid = raw[7] | (raw[8] << 8) | (raw[9] << 16)
+        end = HEADER_V2 + raw[1]
+    else:
+        msgid = raw[5]
+        end = HEADER_V1 + raw[1]
+    extra = CRC_EXTRA.get(msgid)
+    if extra is None:
+        return f"unknown message id {msgid}, its CRC cannot be checked"
+    if x25_crc(raw[1:end], extra) != raw[end] | (raw[end + 1] << 8):
+        return "bad frame CRC"
+    return None
+
+
 @dataclass(frozen=True, slots=True)
 class Frame:
     """One whole, CRC-checked MAVLink frame as it was on the wire."""
@@ -187,21 +204,14 @@ class FrameParser:
         return len(buf) if j == -1 else j
 
     def _check(self, raw: bytes) -> bool:
-        if raw[0] == STX_V2:
-            msgid = raw[7] | (raw[8] << 8) | (raw[9] << 16)
-            end = HEADER_V2 + raw[1]
-        else:
-            msgid = raw[5]
-            end = HEADER_V1 + raw[1]
-        extra = CRC_EXTRA.get(msgid)
-        if extra is None:
+        problem = frame_problem(raw)
+        if problem is None:
+            return True
+        if problem.startswith("unknown"):
             self.stats.unknown_msgid += 1
-            return False
-        crc = x25_crc(raw[1:end], extra)
-        if crc != (raw[end] | (raw[end + 1] << 8)):
+        else:
             self.stats.crc_errors += 1
-            return False
-        return True
+        return False
 
     @property
     def pending(self) -> int:

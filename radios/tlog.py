@@ -40,16 +40,7 @@ from dataclasses import dataclass
 from typing import BinaryIO
 
 from radios.errors import CaptureDamagedError, CaptureError, FrameError
-from radios.mavlink import (
-    CRC_EXTRA,
-    HEADER_V1,
-    HEADER_V2,
-    STX_V1,
-    STX_V2,
-    Frame,
-    frame_length,
-    x25_crc,
-)
+from radios.mavlink import STX_V1, STX_V2, Frame, frame_length, frame_problem
 
 TIMESTAMP = struct.Struct(">Q")
 TIMESTAMP_LEN = TIMESTAMP.size  # 8
@@ -266,7 +257,7 @@ class TlogReader:
         if len(rest) < total - 3:
             self._damaged("truncated frame")
         raw = hdr + rest
-        problem = _check_frame(raw)
+        problem = frame_problem(raw)
         if problem:
             self._damaged(problem)
         self._last_t = t
@@ -299,22 +290,6 @@ class TlogReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _check_frame(raw: bytes) -> str | None:
-    """Why the whole frame ``raw`` cannot be trusted, or None if it is good."""
-    if raw[0] == STX_V2:
-        msgid = raw[7] | (raw[8] << 8) | (raw[9] << 16)
-        end = HEADER_V2 + raw[1]
-    else:
-        msgid = raw[5]
-        end = HEADER_V1 + raw[1]
-    extra = CRC_EXTRA.get(msgid)
-    if extra is None:
-        return f"unknown message id {msgid}, its CRC cannot be checked"
-    if x25_crc(raw[1:end], extra) != raw[end] | (raw[end + 1] << 8):
-        return "bad frame CRC"
-    return None
 
 
 def _fmt_time(t: float) -> str:

@@ -8,7 +8,6 @@ Nothing sleeps to hope: every wait polls for an outcome until a generous deadlin
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -16,6 +15,8 @@ from functools import partial
 from typing import Any
 
 import pytest
+from net_helpers import free_port
+from net_helpers import wait_until as _wait_until
 
 from swarm.agent import Agent, default_round_s, pose_from_state, state_dict, vehicle_messages
 from swarm.messages import AgentState, Phase
@@ -24,21 +25,10 @@ from swarm.transport import Transport
 DEADLINE = 40.0  # paper profile: three 2 s windows plus discovery, with lots of margin
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.05)
+    return _wait_until(pred, what, timeout, 0.05)
 
 
 def agreed(states: dict[str, AgentState], names: list[str]) -> int | None:

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from net_helpers import wait_until as _wait_until
 
 from radios.link import Link, open_link
 from radios.mavlink import MSG_TUNNEL, Frame, FrameBuilder, pack_frame, parse_one
@@ -62,15 +63,9 @@ NAMES = ("a1", "a2", "a3")
 POSE = Pose(48.8566, 2.3522, 135.0, heading=90.0, vn=1.0, ve=-0.5, t=1.0)
 
 
+
 def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
+    return _wait_until(pred, what, timeout, 0.02)
 
 
 class Recorder:

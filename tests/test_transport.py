@@ -7,7 +7,6 @@ Nothing sleeps to hope: every wait polls for an outcome until a generous deadlin
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -15,6 +14,8 @@ from functools import partial
 from typing import Any
 
 import pytest
+from net_helpers import free_port
+from net_helpers import wait_until as _wait_until
 
 from swarm.errors import MessageError, TransportError
 from swarm.messages import (
@@ -34,21 +35,10 @@ DEADLINE = 20.0
 QUIET = 0.5  # how long "nothing else arrives" is watched after the expected did
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.02)
+    return _wait_until(pred, what, timeout, 0.02)
 
 
 def prime(put: Callable[[], None], seen: Callable[[], Any], what: str) -> None:

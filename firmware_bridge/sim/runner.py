@@ -32,6 +32,7 @@ import socket
 import threading
 import time
 import tty
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
@@ -84,7 +85,7 @@ class SimConfig:
             raise ConnectError(f"ports {base}..{last} out of range")
 
 
-class _Transport:
+class _Transport(ABC):
     """One vehicle's link: bytes in, bytes out, selectable file objects."""
 
     endpoint = ""
@@ -96,11 +97,13 @@ class _Transport:
     def on_readable(self, fileobj: Any, sel: selectors.BaseSelector) -> list[bytes]:
         return []
 
+    @abstractmethod
     def send(self, data: bytes) -> None:
-        raise NotImplementedError
+        """Send one packet of MAVLink bytes to the client (dropped if none yet)."""
 
+    @abstractmethod
     def close(self, sel: selectors.BaseSelector) -> None:
-        raise NotImplementedError
+        """Unregister from ``sel`` and close the sockets."""
 
 
 class _UdpTransport(_Transport):

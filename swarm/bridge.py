@@ -101,7 +101,7 @@ class BridgeConfig:
     radio_status_stale_s: float = 5.0
     #: a new P2P protocol item waits this long for identical payloads to other peers
     #: (a leader's heartbeat to N members) so they leave as one multicast frame
-    coalesce_s: float = 0.02
+    coalesce_s: float = 0.005
 
 
 @dataclass

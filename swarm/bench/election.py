@@ -31,7 +31,9 @@ def real_election(n: int, loss: float, profile: str, timeout: float = 120.0) -> 
         try:
             for i in range(n):
                 agents.append(Child(["agent", "--name", f"agent{i + 1}", "--id", str(i + 1),
-                                     "--radio", links[i], "--profile", profile, "--json"],
+                                     "--radio", links[i], "--profile", profile, "--json",
+                                     # the agent cannot read the TDM round from the radio
+                                     "--slots", str(n)],
                                     name=f"agent{i + 1}"))
             for a in agents:
                 a.wait_lines(1, 30.0)

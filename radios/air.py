@@ -305,12 +305,14 @@ class AirModel:
         self.now = max(self.now, now)
         for r in self.radios:
             # serial output keeps flowing whether or not the host reads it
-            self._drain(r, now)
+            if r.outbuf:
+                self._drain(r, now)
 
     def take_output(self, node: int, now: float) -> bytes:
         """Bytes the radio has written to its serial output by ``now``."""
         r = self.radios[node]
-        self._drain(r, now)
+        if r.outbuf:
+            self._drain(r, now)
         if not r.host_ready:
             return b""
         out = bytes(r.host_ready)

@@ -214,6 +214,9 @@ class Sim:
         self.air.host_write(i, frame, t)
 
     def _receive(self, i: int, t: float) -> None:
+        radio = self.air.radios[i]
+        if not radio.host_ready and not radio.outbuf:
+            return
         data = self.air.take_output(i, t)
         if not data:
             return

@@ -194,7 +194,7 @@ def test_two_agents_over_signed_radios_with_the_fast_profile(tmp_path: Any) -> N
         for i in (1, 2):
             agents.append(Agent(f"agent{i}", i, radio=paths[i - 1], key_file=str(key), profile="fast",
                                 vote="link", on_state=partial(own.__setitem__, f"agent{i}")).start())
-        assert agents[0].profile.vote_window == pytest.approx(2 * default_round_s(2))
+        assert agents[0].profile.vote_window == pytest.approx(1.5 * default_round_s(2))
         leader = wait_until(lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the radios")
         print(f"fast profile, signed pair: leader agent{leader} after {time.monotonic() - t0:.2f} s")
         for a in agents:

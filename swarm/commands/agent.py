@@ -22,6 +22,8 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
 from swarm.agent import PROFILES, VOTES, Agent, default_round_s, state_dict
@@ -93,16 +95,26 @@ def main(argv: list[str] | None = None) -> int:
     lock = threading.Lock()
     t0 = time.monotonic()
 
+    # state changes that happen before the ready line is out wait for it, so that
+    # readers always see "ready" first
+    gate: dict[str, Any] = {"ready": False, "pending": []}
+
     def on_state(st: AgentState) -> None:
         with lock:
-            try:
-                if a.json:
-                    print_json({"event": "state", **state_dict(a.name, st),
-                                "t": round(time.monotonic() - t0, 3)})
-                else:
-                    print(_text(a.name, st), flush=True)
-            except (BrokenPipeError, ValueError):  # stdout gone: keep running quietly
-                pass
+            if not gate["ready"]:
+                gate["pending"].append(st)
+                return
+            emit(st)
+
+    def emit(st: AgentState) -> None:  # called with ``lock`` held
+        try:
+            if a.json:
+                print_json({"event": "state", **state_dict(a.name, st),
+                            "t": round(time.monotonic() - t0, 3)})
+            else:
+                print(_text(a.name, st), flush=True)
+        except (BrokenPipeError, ValueError):  # stdout gone: keep running quietly
+            pass
 
     try:
         agent = Agent(a.name, a.id, radio=a.radio, zenoh_listen=a.zenoh_listen,
@@ -112,13 +124,14 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError(str(exc)) from None
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return _run(a, agent, StopFlag().install(), lock)
+        return _run(a, agent, StopFlag().install(), lock, gate, emit)
     finally:
         for sig, handler in previous.items():  # main() may run inside another program
             signal.signal(sig, handler)
 
 
-def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lock) -> int:
+def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lock,
+         gate: dict[str, Any], emit: Callable[[AgentState], None]) -> int:
     try:
         agent.start()
     except TransportError as exc:
@@ -144,6 +157,10 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lo
             else:
                 print(f"agent {a.name} id={a.id} {agent.describe()} profile={agent.profile.name} ready",
                       flush=True)
+            gate["ready"] = True
+            for st in gate["pending"]:
+                emit(st)
+            gate["pending"].clear()
         while not stop.wait(0.5):
             if not agent.running:
                 why = "radio link lost" if agent.bridge is not None and agent.bridge.link_lost \

@@ -11,6 +11,7 @@ import socket
 import time
 from collections.abc import Callable, Iterator
 
+import mav_helpers
 import pytest
 from pymavlink import mavutil
 
@@ -60,30 +61,15 @@ def conn(sim: VehicleSim) -> Iterator[mavutil.mavfile]:
     c.close()
 
 
-def wait_msg(c: mavutil.mavfile, types: str | list[str], cond: Callable[[object], bool] = lambda m: True,
-             timeout: float = DEADLINE) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        m = c.recv_match(type=types, blocking=True, timeout=0.1)
-        if m is not None and cond(m):
-            return m
-    raise AssertionError(f"no {types} matching in {timeout} s")
+def wait_msg(conn: mavutil.mavfile, types: str | list[str],
+             cond: Callable[[object], bool] = lambda m: True, timeout: float = DEADLINE,
+             tick: Callable[[], None] | None = None) -> object:
+    return mav_helpers.wait_msg(conn, types, cond, timeout, tick)
 
 
-def command(c: mavutil.mavfile, cmd: int, *params: float, texts: list[str] | None = None) -> int:
-    p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
-    c.mav.command_long_send(c.target_system, 1, cmd, 0, *p)
-    deadline = time.monotonic() + DEADLINE
-    while time.monotonic() < deadline:
-        m = c.recv_match(type=["COMMAND_ACK", "STATUSTEXT"], blocking=True, timeout=0.1)
-        if m is None:
-            continue
-        if m.get_type() == "STATUSTEXT":
-            if texts is not None:
-                texts.append(m.text)
-        elif m.command == cmd:
-            return int(m.result)
-    raise AssertionError(f"no COMMAND_ACK for {cmd}")
+def command(conn: mavutil.mavfile, cmd: int, *params: float, tick: Callable[[], None] | None = None,
+            texts: list[str] | None = None) -> int:
+    return mav_helpers.command(conn, cmd, *params, timeout=DEADLINE, tick=tick, texts=texts)
 
 
 def wait_state(sim: VehicleSim, pred: Callable[[object], bool], what: str, timeout: float = DEADLINE) -> None:

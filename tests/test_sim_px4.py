@@ -13,6 +13,7 @@ import socket
 import time
 from collections.abc import Callable, Iterator
 
+import mav_helpers
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -75,33 +76,12 @@ def connect(endpoint: str) -> mavutil.mavfile:
 def wait_msg(conn: mavutil.mavfile, types: str | list[str],
              cond: Callable[[object], bool] = lambda m: True, timeout: float = DEADLINE,
              tick: Callable[[], None] | None = None) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if tick is not None:
-            tick()
-        m = conn.recv_match(type=types, blocking=True, timeout=0.05)
-        if m is not None and cond(m):
-            return m
-    raise AssertionError(f"no {types} matching in {timeout} s")
+    return mav_helpers.wait_msg(conn, types, cond, timeout, tick)
 
 
 def command(conn: mavutil.mavfile, cmd: int, *params: float, tick: Callable[[], None] | None = None,
             texts: list[str] | None = None) -> int:
-    p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
-    conn.mav.command_long_send(conn.target_system, 1, cmd, 0, *p)
-    deadline = time.monotonic() + DEADLINE
-    while time.monotonic() < deadline:
-        if tick is not None:
-            tick()
-        m = conn.recv_match(type=["COMMAND_ACK", "STATUSTEXT"], blocking=True, timeout=0.05)
-        if m is None:
-            continue
-        if m.get_type() == "STATUSTEXT":
-            if texts is not None:
-                texts.append(m.text)
-        elif m.command == cmd:
-            return int(m.result)
-    raise AssertionError(f"no COMMAND_ACK for {cmd}")
+    return mav_helpers.command(conn, cmd, *params, timeout=DEADLINE, tick=tick, texts=texts)
 
 
 class Streamer:

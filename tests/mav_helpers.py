@@ -1,0 +1,44 @@
+"""pymavlink client helpers shared by the simulator tests (plain scripts of the kind
+PX4's and ArduPilot's documentation show)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from pymavlink import mavutil
+
+
+def wait_msg(conn: mavutil.mavfile, types: str | list[str], cond: Callable[[object], bool],
+             timeout: float, tick: Callable[[], None] | None = None) -> object:
+    """The first message of ``types`` satisfying ``cond`` within ``timeout`` s; ``tick``
+    runs between reads (e.g. to keep a setpoint stream going)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if tick is not None:
+            tick()
+        m = conn.recv_match(type=types, blocking=True, timeout=0.05)
+        if m is not None and cond(m):
+            return m
+    raise AssertionError(f"no {types} matching in {timeout} s")
+
+
+def command(conn: mavutil.mavfile, cmd: int, *params: float, timeout: float,
+            tick: Callable[[], None] | None = None, texts: list[str] | None = None) -> int:
+    """Send COMMAND_LONG ``cmd`` and return the COMMAND_ACK result; STATUSTEXTs seen
+    meanwhile are appended to ``texts``."""
+    p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
+    conn.mav.command_long_send(conn.target_system, 1, cmd, 0, *p)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if tick is not None:
+            tick()
+        m = conn.recv_match(type=["COMMAND_ACK", "STATUSTEXT"], blocking=True, timeout=0.05)
+        if m is None:
+            continue
+        if m.get_type() == "STATUSTEXT":
+            if texts is not None:
+                texts.append(m.text)
+        elif m.command == cmd:
+            return int(m.result)
+    raise AssertionError(f"no COMMAND_ACK for {cmd}")

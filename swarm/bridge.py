@@ -21,7 +21,7 @@ swarm/<own>/state      0           swarm/<sender name>/state
 
 * **No loops**: samples the bridge publishes carry an attachment marker and are
   never sent back to the air; a node never forwards what it did not publish.
-* **Names and ids** are learnt from Advertize; a name or id claimed by two agents
+* **Names and ids** are learnt from Advertize and GSAdvertize; a name or id claimed by two agents
   is counted, logged once and reported to both with NameConflict.
 * **Multicast**: the same P2P payload queued for several peers (a leader's
   heartbeat to its members) goes on air once, listing the addressees.
@@ -57,6 +57,7 @@ from swarm.errors import DecodeError, VersionMismatch
 from swarm.messages import (
     GCS_ID,
     Advertize,
+    GSAdvertize,
     Message,
     NameConflict,
     Telemetry,
@@ -465,6 +466,13 @@ class RadioBridge:
                 return
             self._publish(KEY_ADVERTIZE, data)
         elif kind == Kind.GS_ADVERTIZE:
+            # agents announce themselves to ground stations here, and a station (id 255)
+            # announces itself the same way: both teach the bridge a name for replies
+            if not isinstance(msg, GSAdvertize) or msg.sender != sender:
+                self.stats.decode_errors += 1
+                return
+            if not self._learn(msg.name, msg.sender):
+                return
             self._publish(KEY_GS_ADVERTIZE, data)
         elif kind == Kind.P2P:
             if isinstance(msg, NameConflict) and msg.sender == sender:

@@ -178,7 +178,9 @@ class Advertize(Message):
 
 @dataclass(frozen=True)
 class GSAdvertize(Message):
-    """The ground station announces itself on ``swarm/GSAdvertize``."""
+    """On ``swarm/GSAdvertize``: an agent announces itself to ground stations (the
+    paper, section 3), and a station (id 255) announces its name, so that agents can
+    answer it."""
 
     TYPE: ClassVar[int] = 2
     sender: int

@@ -25,6 +25,10 @@ protocol or link, queues between them):
   agent advertises while it looks for a swarm and leaders keep advertising, so
   names arrive before anyone needs them). The state is published whenever it
   changed and at least every ``profile.state_interval``.
+* **Ground stations** (:mod:`swarm.gslink`, the paper's section 3): the agent
+  announces itself on ``swarm/GSAdvertize``, answers a station's GSConnect, sends
+  it Telemetry every ``hb_interval`` (the connection's heartbeat) and drops it when
+  its GSHeartbeats stop. This runs on the protocol thread beside the core.
 * **Pose thread** (only with a flight controller): at ``pose_hz`` reads the
   driver's :class:`~firmware_bridge.driver.VehicleState` snapshot, hands the pose
   to the core (through the queue), publishes it on ``swarm/<name>/pose`` and, with
@@ -58,18 +62,32 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from swarm.gslink import (
+    FLAG_AIRBORNE,
+    FLAG_ARMED,
+    FLAG_FC_OK,
+    GsLink,
+    GsOut,
+    mode_code,
+)
 from swarm.messages import (
     Advertize,
     AgentState,
+    GSAdvertize,
+    GSConnect,
+    GSHeartbeat,
     Message,
+    Phase,
     Pose,
     PoseReport,
     Task,
+    Telemetry,
     check_id,
     check_name,
 )
 from swarm.protocol import (
     ADVERTIZE,
+    NO_POSE,
     BatteryVote,
     Core,
     LinkQualityVote,
@@ -157,10 +175,11 @@ class Agent:
         self.stats: dict[str, int] = {
             "received": 0, "sent": 0, "advertized": 0, "unknown_destination": 0,
             "send_errors": 0, "state_published": 0, "own_echo": 0, "id_conflicts": 0,
-            "errors": 0, "poses": 0, "vehicle_forwarded": 0,
+            "errors": 0, "poses": 0, "vehicle_forwarded": 0, "gs_sent": 0,
         }
         self.names: dict[int, str] = {}  # agent id -> name, from Advertize
         self.core: Core | None = None
+        self.gs = GsLink(agent_id, name)
         self.session: Any = None
         self.transport: Any = None
         self.link: Any = None
@@ -219,6 +238,7 @@ class Agent:
         self.transport = Transport(self.name, self.session)
         self.transport.on_inbox(self._q.put)
         self.transport.on_advertize(self._q.put)
+        self.transport.on_gs_advertize(self._q.put)
         self.started_at = self.clock()
         self._spawn(self._protocol_loop, "protocol")
         if self.vehicle is not None:
@@ -310,7 +330,9 @@ class Agent:
                 self._publish_state(core.state())
                 next_publish = now + self.profile.state_interval
             deadline = core.next_deadline()
-            wake = next_publish if deadline is None else min(deadline, next_publish)
+            wake = min(next_publish, self.gs.next_deadline())
+            if deadline is not None:
+                wake = min(wake, deadline)
             try:
                 item = self._q.get(timeout=max(0.0, wake - now))
             except queue.Empty:
@@ -330,6 +352,7 @@ class Agent:
                         item = None
                 outs += core.tick(self.clock())
                 self._send(outs)
+                self._send_gs(self.gs.tick(self.clock(), self._telemetry))
             except Exception:  # a bug must not silence the agent: log, count, go on
                 self.stats["errors"] += 1
                 log.exception("agent %s: protocol error", self.name)
@@ -344,6 +367,9 @@ class Agent:
         if not isinstance(item, Message):
             return []
         self.stats["received"] += 1
+        if isinstance(item, (GSAdvertize, GSConnect, GSHeartbeat)):
+            self._send_gs(self.gs.handle(item, now))
+            return []
         if isinstance(item, Advertize):
             if item.sender == self.id:
                 if item.name == self.name:
@@ -379,6 +405,48 @@ class Agent:
             except Exception:  # the session closing under us, or a bad peer name
                 self.stats["send_errors"] += 1
                 log.debug("agent %s: send failed", self.name, exc_info=True)
+
+    def _send_gs(self, outs: list[GsOut]) -> None:
+        tr = self.transport
+        for o in outs:
+            try:
+                if o.to == 0:
+                    if isinstance(o.msg, GSAdvertize):
+                        tr.gs_advertise(o.msg)
+                    continue
+                name = self.gs.station_name(o.to)
+                if name is None:
+                    self.stats["unknown_destination"] += 1
+                    continue
+                tr.send(name, o.msg)
+                self.stats["gs_sent"] += 1
+            except Exception:
+                self.stats["send_errors"] += 1
+                log.debug("agent %s: send to station failed", self.name, exc_info=True)
+
+    def _telemetry(self) -> Telemetry:
+        """This agent's Telemetry for connected ground stations (its connection heartbeat)."""
+        core = self.core
+        assert core is not None
+        pose = core.pose or NO_POSE
+        mode = flags = 0
+        battery, groundspeed = 255, 0.0
+        v = self.vehicle
+        if v is not None:
+            s = v.state
+            mode = mode_code(s.mode)
+            flags |= (FLAG_ARMED if s.armed else 0) | (FLAG_AIRBORNE if s.in_air else 0)
+            flags |= FLAG_FC_OK if getattr(v, "link_ok", True) else 0
+            if 0 <= s.battery_remaining <= 100:
+                battery = s.battery_remaining
+            if s.velocity is not None and all(map(math.isfinite, s.velocity[:2])):
+                groundspeed = min(63.75, math.hypot(s.velocity[0], s.velocity[1]))
+        rssi = remrssi = 0
+        if self.bridge is not None:
+            rssi, remrssi = self.bridge.radio.rssi & 0xFF, self.bridge.radio.remrssi & 0xFF
+        leader = core.leader if core.phase in (Phase.LEADER, Phase.MEMBER) else 0
+        return Telemetry(self.id, pose, mode, flags, core.phase, leader, battery, rssi, remrssi,
+                         groundspeed)
 
     def _publish_state(self, st: AgentState) -> None:
         try:

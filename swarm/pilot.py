@@ -197,6 +197,7 @@ class Pilot:
         if call.kind == "takeoff" and self.mode == Mode.TAKEOFF:
             self.airborne = True
             self._hold("took off")
+            self.events.append("took off: holding")
 
     # -- commands -------------------------------------------------------------------
     def command(self, cmd: Command, role: Role, now: float) -> tuple[AckResult, str, list[Call]]:
@@ -389,6 +390,7 @@ class Pilot:
             if math.hypot(p.n - here_n, p.e - here_e) < self.cfg.arrive_m:
                 self.last_setpoint = end
                 self._hold("arrived")
+                self.events.append("arrived: holding")
             return end
         return Setpoint(lat, lon, self._route_alt, p.heading_deg, v * math.cos(h), v * math.sin(h))
 

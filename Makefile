@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: setup
-	$(BIN)/python -m swarm.radio_demo
+	$(BIN)/swarm demo
 
 test: setup
 	$(BIN)/ruff check radios firmware_bridge swarm tests

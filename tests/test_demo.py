@@ -88,7 +88,8 @@ def test_sigterm_stops_the_demo_and_everything_it_started(tmp_path: Path) -> Non
     import signal
     import time
 
-    p = subprocess.Popen([sys.executable, "-m", "swarm.cli", "demo", "--agents", "2", "--headless", "--no-gcs",
+    p = subprocess.Popen([sys.executable, "-m", "swarm.cli", "demo", "--agents", "2", "--headless",
+                          "--no-gcs",
                           "--dir", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert p.stdout is not None

@@ -406,7 +406,7 @@ class Agent:
             sender = self._ids.get(item.name)
             if sender is not None:
                 self.pilot.on_pose(sender, item.pose, now)
-                core.note_pose(sender, item.pose)
+                core.note_pose(sender, item.pose, now)
                 self.stats["poses_heard"] += 1
             return []
         if isinstance(item, _CallDone):
@@ -518,7 +518,7 @@ class Agent:
     def _pilot_step(self, core: Core, now: float) -> None:
         sp, heading = self.pilot.step(now, self._role(core))
         if heading is not None and core.phase == Phase.LEADER and core.task.kind == TaskKind.FOLLOW:
-            core.set_task(replace(core.task, heading=heading))
+            core.set_task(replace(core.task, heading=heading[0], turn_rate=heading[1]))
         for ev in self.pilot.take_events():
             self._event(ev)
         v = self.vehicle

@@ -103,9 +103,7 @@ class FlightSim(Sim):
         self.bodies = [Body(pos=[0.0, i * fs.spacing_m, -fs.alt_m]) for i in range(n)]
         self.targets: list[Target | None] = [None] * n
         self.pending: list[list[tuple[float, Target]]] = [[] for _ in range(n)]
-        cfg = PilotConfig(speed_mps=fs.speed_mps, turn_radius_m=fs.pilot.turn_radius_m,
-                          max_lead_m=fs.pilot.max_lead_m, arrive_m=fs.pilot.arrive_m,
-                          formation=fs.pilot.formation)
+        cfg = replace(fs.pilot, speed_mps=fs.speed_mps)
         self.pilots = [Pilot(i + 1, cfg) for i in range(n)]
         for p in self.pilots:
             p.airborne = True
@@ -157,7 +155,7 @@ class FlightSim(Sim):
             if kind == Kind.POSE:
                 if isinstance(msg, PoseReport):
                     self.pilots[i].on_pose(f.sysid, msg.pose, t)
-                    self.cores[i].note_pose(f.sysid, msg.pose)
+                    self.cores[i].note_pose(f.sysid, msg.pose, t)
                 continue
             c = self.cores[i]
             before = c.last_hb
@@ -263,7 +261,7 @@ class FlightSim(Sim):
             sp, heading = p.step(t, role)
             c = self.cores[i]
             if heading is not None and c.phase == Phase.LEADER and c.task.kind == TaskKind.FOLLOW:
-                c.set_task(replace(c.task, heading=heading))
+                c.set_task(replace(c.task, heading=heading[0], turn_rate=heading[1]))
             if sp is None:
                 continue
             n_, e_, d_ = pymap3d.geodetic2ned(sp.lat, sp.lon, sp.alt, *HOME)

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import pymap3d
 
@@ -190,7 +190,7 @@ def reconcile(task: Task, leader: int, members: Iterable[int], poses: Mapping[in
 
 
 def _with(task: Task, assignments: tuple[Assignment, ...]) -> Task:
-    return Task(task.kind, task.heading, task.back_m, task.side_m, assignments, task.gen)
+    return replace(task, assignments=assignments)
 
 
 def assignment_of(task: Task, me: int) -> Assignment | None:
@@ -284,6 +284,7 @@ class RoutePoint:
     n: float
     e: float
     heading_deg: float
+    curvature: float = 0.0  # degrees of heading per metre along the route (+: turning right)
 
 
 @dataclass(frozen=True)
@@ -355,7 +356,7 @@ class Route:
                 e = seg.a[1] + seg.r * math.sin(ang)
                 # tangent: derivative of the position along the turn's direction
                 tn, te = -math.sin(ang) * math.copysign(1, turn), math.cos(ang) * math.copysign(1, turn)
-                return RoutePoint(n, e, heading_of(tn, te))
+                return RoutePoint(n, e, heading_of(tn, te), math.copysign(math.degrees(1.0 / seg.r), turn))
             s -= seg.length
         raise AssertionError("unreachable")  # pragma: no cover
 

@@ -130,6 +130,9 @@ class Task:
     #: FOLLOW: which follow command this is (mod 256); a member that left the formation
     #: for an individual command rejoins on a new generation
     gen: int = 0
+    #: FOLLOW: how fast the swarm heading turns, degrees/s (+: clockwise), so members
+    #: turn their slots between Heartbeats; 0.5 deg/s steps, -63.5..63.5
+    turn_rate: float = 0.0
 
 
 class Phase(IntEnum):
@@ -482,8 +485,8 @@ def _r_pose(r: _R) -> Pose:
 def _w_task(w: _W, t: Task) -> None:
     w.u8(int(t.kind))
     if t.kind == TaskKind.FOLLOW:
-        w.pack("HBBB", round((t.heading % 360.0) * 100) % 36000, round(t.back_m * 4), round(t.side_m * 4),
-               t.gen & 0xFF)
+        w.pack("HBBBb", round((t.heading % 360.0) * 100) % 36000, round(t.back_m * 4), round(t.side_m * 4),
+               t.gen & 0xFF, max(-127, min(127, round(t.turn_rate * 2))))
         w.u8(len(t.assignments))
         for a in t.assignments:
             w.pack("BBb", a.member, a.follows, int(a.side))
@@ -496,7 +499,7 @@ def _r_task(r: _R) -> Task:
         raise DecodeError("unknown task kind") from None
     if kind != TaskKind.FOLLOW:
         return Task(kind)
-    hdg, back, side, gen = r.unpack("HBBB")
+    hdg, back, side, gen, rate = r.unpack("HBBBb")
     if hdg >= 36000:
         raise DecodeError("task heading out of range")
     n = r.u8()
@@ -506,7 +509,7 @@ def _r_task(r: _R) -> Task:
         if s not in (-1, 1):
             raise DecodeError("formation side must be -1 or 1")
         out.append(Assignment(m, f, Side(s)))
-    return Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen)
+    return Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen, rate / 2.0)
 
 
 def _enum(cls: type[IntEnum]) -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:

@@ -49,9 +49,9 @@ Rules (each stated once, here):
   again until it has been clear once or 10 s passed.
 * **Stop**: an individual STOP holds this agent; the swarm STOP makes the leader
   hold and send a HOLD task, and every member holds.
-* The swarm heading a member uses is the task's, extrapolated with the rate seen
-  between successive tasks (the leader turns through a rounded corner), so that
-  the slots rotate smoothly between heartbeats.
+* The swarm heading a member uses is the task's, extrapolated with the task's turn
+  rate (the leader's route through a rounded corner: speed / radius) from the
+  Heartbeat it came on, so that the slots rotate smoothly between Heartbeats.
 """
 
 from __future__ import annotations
@@ -113,13 +113,15 @@ class PilotConfig:
     speed_mps: float = 5.0
     accel_mps2: float = 1.0
     turn_radius_m: float = 25.0
+    heading_accel_dps2: float = 3.0
     max_lead_m: float = 8.0
     arrive_m: float = 1.0
     formation: FormationConfig = field(default_factory=FormationConfig)
 
     def __post_init__(self) -> None:
         for k, lo, hi in (("speed_mps", 0.1, 20.0), ("accel_mps2", 0.1, 10.0), ("turn_radius_m", 0.0, 200.0),
-                          ("max_lead_m", 1.0, 100.0), ("arrive_m", 0.1, 20.0)):
+                          ("max_lead_m", 1.0, 100.0), ("arrive_m", 0.1, 20.0),
+                          ("heading_accel_dps2", 0.5, 100.0)):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
                 raise ValueError(f"pilot {k}={v!r}: {lo:g}..{hi:g}")
@@ -159,6 +161,9 @@ class Pilot:
     _route_alt: float = 0.0
     _route_s: float = 0.0
     _route_v: float = 0.0
+    _route_rate: float = 0.0  # the route's heading rate now, deg/s
+    _swarm_h: float | None = None  # the leader's announced swarm heading (smoothed)
+    _swarm_rate: float = 0.0
     _last_step: float | None = None
     _left_gen: int | None = None  # the FOLLOW gen we left for an individual command
     _applied_task: tuple[TaskKind, int] = (TaskKind.NONE, -1)
@@ -177,18 +182,10 @@ class Pilot:
         self._heard[sender] = _Heard(pose, now, self._ages.age(sender, pose.t, now))
 
     def on_task(self, task: Task, now: float) -> None:
-        """The swarm task as a member heard it, on every Heartbeat (an unchanged heading
-        ends a turn's extrapolation)."""
-        if task.kind == TaskKind.FOLLOW and self.task.kind == TaskKind.FOLLOW and self._heading is not None:
-            h0, t0, rate0 = self._heading
-            dt = now - t0
-            if dt >= 0.05:
-                d = (task.heading - h0 + 180.0) % 360.0 - 180.0
-                # the turn rate between two heartbeats (a long gap: no rate, start afresh)
-                rate = (0.5 * rate0 + 0.5 * d / dt) if dt < 3.0 and d != 0.0 else 0.0
-                self._heading = (task.heading, now, rate)
-        elif task.kind == TaskKind.FOLLOW:
-            self._heading = (task.heading, now, 0.0)
+        """The swarm task as a member heard it, on every Heartbeat: the heading and its
+        turn rate, extrapolated from ``now`` until the next one."""
+        if task.kind == TaskKind.FOLLOW:
+            self._heading = (task.heading, now, task.turn_rate)
         self.task = task
 
     def call_done(self, call: Call, ok: bool, error: str = "") -> None:
@@ -292,6 +289,8 @@ class Pilot:
         self._route = Route(self._route_pts, self.cfg.turn_radius_m)
         self._route_s = 0.0
         self._route_v = 0.0
+        self._swarm_h = self.task.heading if self.task.kind == TaskKind.FOLLOW else None
+        self._swarm_rate = 0.0
         self.mode = Mode.GOTO
         return AckResult.ACCEPTED, "", []
 
@@ -318,23 +317,26 @@ class Pilot:
             self.hold_at = None
 
     # -- the 10 Hz step -------------------------------------------------------------------
-    def step(self, now: float, role: Role) -> tuple[Setpoint | None, float | None]:
+    def step(self, now: float, role: Role) -> tuple[Setpoint | None, tuple[float, float] | None]:
         """The setpoint to stream now (None: none), and for a leader flying a route in
-        FOLLOW a new swarm heading for its task when it moved by 0.5 degree (else None)."""
+        FOLLOW a new (heading, turn rate) for its task when the heading moved by 0.5
+        degree or the rate changed (else None)."""
         dt = 0.0 if self._last_step is None else max(0.0, min(now - self._last_step, 1.0))
         self._last_step = now
         self._apply_task(role)
-        new_heading: float | None = None
+        new_heading: tuple[float, float] | None = None
         sp: Setpoint | None = None
         if self.mode == Mode.HOLD:
             sp = self.hold_at
         elif self.mode == Mode.GOTO:
             sp = self._carrot(dt)
             if role.phase == Phase.LEADER and self.task.kind == TaskKind.FOLLOW and sp is not None:
-                d = (sp.yaw_deg - self.task.heading + 180.0) % 360.0 - 180.0
-                if abs(d) >= 0.5:
-                    new_heading = round(sp.yaw_deg % 360.0, 2) % 360.0
-                    self.task = replace(self.task, heading=new_heading)
+                h, rate = self._smooth_heading(sp.yaw_deg, dt)
+                d = (h - self.task.heading + 180.0) % 360.0 - 180.0
+                rate = max(-63.5, min(63.5, round(rate * 2) / 2))
+                if abs(d) >= 0.5 or rate != self.task.turn_rate:
+                    new_heading = (round(h % 360.0, 2) % 360.0, rate)
+                    self.task = replace(self.task, heading=new_heading[0], turn_rate=rate)
         elif self.mode == Mode.FOLLOW:
             sp = self._follow(now, role)
         if sp is not None and self.mode in (Mode.GOTO, Mode.FOLLOW):
@@ -386,6 +388,7 @@ class Pilot:
         self._route_s = min(r.length, self._route_s + self._route_v * dt)
         p = r.at(self._route_s)
         v = self._route_v
+        self._route_rate = p.curvature * v
         lat, lon = offset(o[0], o[1], p.n, p.e)
         h = math.radians(p.heading_deg)
         if self._route_s >= r.length:
@@ -396,6 +399,20 @@ class Pilot:
                 self.events.append("arrived: holding")
             return end
         return Setpoint(lat, lon, self._route_alt, p.heading_deg, v * math.cos(h), v * math.sin(h))
+
+    def _smooth_heading(self, route_deg: float, dt: float) -> tuple[float, float]:
+        """The swarm heading a leader announces: the route's heading, followed with a
+        bounded angular acceleration (``heading_accel_dps2``), so the V's rotation rate
+        ramps in and out of a corner instead of stepping (a step in the rate is a step
+        in every member's feed-forward, worst at the back of the arms)."""
+        if self._swarm_h is None:
+            self._swarm_h, self._swarm_rate = route_deg, 0.0
+        err = (route_deg - self._swarm_h + 180.0) % 360.0 - 180.0
+        want = self._route_rate + 1.0 * err
+        a = self.cfg.heading_accel_dps2 * dt
+        self._swarm_rate = max(self._swarm_rate - a, min(self._swarm_rate + a, want))
+        self._swarm_h = (self._swarm_h + self._swarm_rate * dt) % 360.0
+        return self._swarm_h, self._swarm_rate
 
     def _swarm_heading(self, now: float) -> tuple[float, float]:
         if self._heading is None:

@@ -48,6 +48,12 @@ Beyond the paper (each rule stated once, here):
   the smaller: its leader adds the other leader and all its members; the smaller
   leader becomes a member of the larger. A member follows whichever leader lists
   it in a Heartbeat (conflicting claims are settled by the leaders' rule).
+* **Liveness from pose streams**: a flying swarm's agents publish their pose
+  several times a second. A member's pose heard by its leader counts as a
+  HeartbeatAck, the leader's pose heard by a member as a Heartbeat, for the
+  timeouts only (membership and tasks still come from Heartbeats). At 20% loss a
+  member whose acks alone were counted was expelled every minute or so, and each
+  expulsion re-formed the V.
 * **Alone**: an agent that found nobody for ``alone_timeout`` forms a swarm of one
   (and absorbs others later by the rules above).
 * **Votes** come from a pluggable :class:`VotePolicy`: random (the paper),
@@ -234,6 +240,7 @@ class Core:
     task: Task = field(default_factory=Task)
     pose: Pose | None = None
     last_hb: float = 0.0
+    leader_seen: float = 0.0  # the leader's pose stream last heard
     hb_seq: int = 0
     counters: Counters = field(default_factory=Counters)
     _idle_since: float = 0.0
@@ -285,7 +292,7 @@ class Core:
             ph = self.phase
         if ph == Phase.LEADER:
             self._leader_timers(now, out)
-        elif ph == Phase.MEMBER and now - self.last_hb > self.profile.leader_timeout:
+        elif ph == Phase.MEMBER and now - max(self.last_hb, self.leader_seen) > self.profile.leader_timeout:
             self.counters.left += 1
             self._go_idle(now)
             out += self.tick(now)
@@ -304,18 +311,27 @@ class Core:
         elif self.phase == Phase.LEADER:
             times += [t + p.ack_timeout for t in self.members.values()]
         elif self.phase == Phase.MEMBER:
-            times.append(self.last_hb + p.leader_timeout)
+            times.append(max(self.last_hb, self.leader_seen) + p.leader_timeout)
         times += [t + p.startpool_retry for t in self._asked.values()]
         return min(times) if times else None
 
     def set_pose(self, pose: Pose) -> None:
         self.pose = pose
 
-    def note_pose(self, agent: int, pose: Pose) -> None:
+    def note_pose(self, agent: int, pose: Pose, now: float | None = None) -> None:
         """A pose heard on an agent's pose stream: the formation's assignments use the
-        freshest positions (a new leader has no HeartbeatAck yet)."""
-        if agent != self.me:
-            self.poses[agent] = pose
+        freshest positions (a new leader has no HeartbeatAck yet). With ``now``, the
+        pose also shows the sender alive: a member's pose counts as its ack, the
+        leader's as its heartbeat (see "Liveness" in the module docstring)."""
+        if agent == self.me:
+            return
+        self.poses[agent] = pose
+        if now is None:
+            return
+        if self.phase == Phase.LEADER and agent in self.members:
+            self.members[agent] = max(self.members[agent], now)
+        elif self.phase == Phase.MEMBER and agent == self.leader:
+            self.leader_seen = max(self.leader_seen, now)
 
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""

@@ -66,7 +66,7 @@ tasks = st.one_of(
               side_m=st.integers(0, 255).map(lambda v: v / 4.0),
               assignments=st.lists(st.builds(Assignment, ids, ids, st.sampled_from(Side)),
                                    max_size=20).map(tuple),
-              gen=st.integers(0, 255)),
+              gen=st.integers(0, 255), turn_rate=st.integers(-127, 127).map(lambda v: v / 2.0)),
 )
 headings = st.integers(0, 35999).map(lambda v: v / 100.0)
 commands = st.one_of(

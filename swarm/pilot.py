@@ -339,6 +339,12 @@ class Pilot:
                     self.task = replace(self.task, heading=new_heading[0], turn_rate=rate)
         elif self.mode == Mode.FOLLOW:
             sp = self._follow(now, role)
+        if (self.mode != Mode.GOTO and role.phase == Phase.LEADER and self.task.kind == TaskKind.FOLLOW
+                and self.task.turn_rate != 0.0):
+            # stopped turning (arrived, or held): the V stops turning too
+            new_heading = (self.task.heading, 0.0)
+            self.task = replace(self.task, turn_rate=0.0)
+            self._swarm_rate = 0.0
         if sp is not None and self.mode in (Mode.GOTO, Mode.FOLLOW):
             sp = self._separation(now, sp)
         self.last_setpoint = sp

@@ -24,7 +24,8 @@ protocol or link, queues between them):
   yet heard of is counted in ``stats['unknown_destination']`` and skipped: every
   agent advertises while it looks for a swarm and leaders keep advertising, so
   names arrive before anyone needs them). The state is published whenever it
-  changed and at least every ``profile.state_interval``.
+  changed and at least every ``profile.state_interval`` (every 5 s once the agent
+  leads or follows: the air is shared with the pose streams).
 * **Ground stations** (:mod:`swarm.gslink`, the paper's section 3): the agent
   announces itself on ``swarm/GSAdvertize``, answers a station's GSConnect, sends
   it Telemetry every ``hb_interval`` (the connection's heartbeat) and drops it when
@@ -145,6 +146,7 @@ class _CallDone:
 
 _STOP = object()
 SETPOINT_PERIOD = 0.1  # the pilot's step: setpoints at 10 Hz
+STATE_KEEPALIVE_S = 5.0  # state publication period once leading or following
 
 
 class Agent:
@@ -363,7 +365,10 @@ class Agent:
             now = self.clock()
             if core.take_state_changed() or now >= next_publish:
                 self._publish_state(core.state())
-                next_publish = now + self.profile.state_interval
+                # settled (leading or following): a change is published at once anyway,
+                # so the keep-alive can be slow; the air is shared with poses
+                settled = core.phase in (Phase.LEADER, Phase.MEMBER)
+                next_publish = now + (STATE_KEEPALIVE_S if settled else self.profile.state_interval)
             deadline = core.next_deadline()
             wake = min(next_publish, self.gs.next_deadline(), next_step)
             if deadline is not None:

@@ -19,7 +19,7 @@ from swarm.gcs.station import (
     StOut,
     parse_command,
 )
-from swarm.gslink import FLAG_ARMED, GsConfig, GsLink, mode_code
+from swarm.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
 from swarm.messages import (
     AckResult,
     AgentState,
@@ -348,11 +348,14 @@ def test_view_fields_trail_and_snapshot() -> None:
     connect(core, 3, 0.0)
     a = core.agents[3].as_dict(0.0)
     assert a["lat"] is None and a["battery"] is None and a["trail"] == []
+    core.handle(tm(3), 0.0)  # no flight controller: arming and flight unknown
+    a = core.agents[3].as_dict(0.0)
+    assert (a["armed"], a["airborne"], a["mode"]) == (None, None, "POSCTL")
     t = 0.0
     while t < 100.0:
         p = Pose(47.0 + t * 1e-5, 8.0, 500.0, 10.0)
         if int(t * 10) % 2:
-            core.handle(tm(3, pose=p, flags=FLAG_ARMED, battery=77), t)
+            core.handle(tm(3, pose=p, flags=FLAG_ARMED | FLAG_FC_OK, battery=77), t)
         else:
             core.handle(PoseReport(p), t, "agent3")
         t = round(t + 0.05, 2)

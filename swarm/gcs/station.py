@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from swarm.errors import SwarmError
-from swarm.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_HOLDING, is_station, mode_name
+from swarm.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, FLAG_HOLDING, is_station, mode_name
 from swarm.messages import (
     GCS_ID,
     AckResult,
@@ -653,13 +653,14 @@ class StationCore:
         if _has_position(msg.pose):
             a.pose = msg.pose
             self._trail(a, msg.pose, now)
+        fc = bool(msg.flags & FLAG_FC_OK)  # without a flight controller these are unknown
         a.mode = mode_name(msg.mode)
-        a.armed = bool(msg.flags & FLAG_ARMED)
-        a.airborne = bool(msg.flags & FLAG_AIRBORNE)
+        a.armed = bool(msg.flags & FLAG_ARMED) if fc else None
+        a.airborne = bool(msg.flags & FLAG_AIRBORNE) if fc else None
         a.holding = bool(msg.flags & FLAG_HOLDING)
         a.battery = None if msg.battery > 100 else msg.battery
         a.rssi, a.remrssi = msg.rssi, msg.remrssi
-        a.groundspeed = msg.groundspeed
+        a.groundspeed = msg.groundspeed if fc else a.groundspeed
         self._set_election(a, msg.phase, msg.leader)
         return out
 

@@ -95,6 +95,7 @@ def measure_frames(url: str, seconds: float, *, ready_timeout: float = 30.0) -> 
     Returns:
         ``page_frame_ms_p50``, ``page_frame_ms_p95``, ``page_frame_ms_p99``,
         ``page_frame_ms_max``, ``frames``, ``long_frames`` (deltas over 50 ms),
+        ``render_ms_p50`` and ``render_ms_p95`` (time the page spent drawing one snapshot),
         ``states`` (snapshots received while measuring), ``markers`` and
         ``seconds``.
 
@@ -116,6 +117,7 @@ def measure_frames(url: str, seconds: float, *, ready_timeout: float = 30.0) -> 
         page.evaluate("window.gcs.frameProbe.start()")
         time.sleep(seconds)
         deltas: list[float] = page.evaluate("window.gcs.frameProbe.stop()")
+        renders: list[float] = page.evaluate("window.gcs.renderTimes()")
         states1 = page.evaluate("window.gcs.stateCount")
         markers = page.evaluate("window.gcs.markers")
     return {
@@ -126,6 +128,8 @@ def measure_frames(url: str, seconds: float, *, ready_timeout: float = 30.0) -> 
         "page_frame_ms_mean": round(statistics.fmean(deltas), 2) if deltas else 0.0,
         "frames": len(deltas),
         "long_frames": sum(1 for d in deltas if d > 50.0),
+        "render_ms_p50": round(percentile(renders, 0.50), 2),
+        "render_ms_p95": round(percentile(renders, 0.95), 2),
         "states": states1 - states0,
         "markers": markers,
         "seconds": seconds,

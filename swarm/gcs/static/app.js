@@ -32,6 +32,7 @@
     state: null,          // newest snapshot
     drawn: null,          // snapshot last drawn
     renderQueued: false,
+    renderMs: [],         // how long drawing each snapshot took (for the benchmark)
     stateCount: 0,
     lastStateTime: null,  // station time of the newest snapshot
     lastStateAt: 0,       // performance.now() when it arrived
@@ -202,6 +203,13 @@
     S.renderQueued = false;
     const st = S.state;
     if (!st || st === S.drawn) return;
+    const t0 = performance.now();
+    drawState(st);
+    S.renderMs.push(performance.now() - t0);
+    if (S.renderMs.length > 1000) S.renderMs.splice(0, S.renderMs.length - 500);
+  }
+
+  function drawState(st) {
     S.drawn = st;
     const agents = Array.isArray(st.agents) ? st.agents : [];
     const leader = st.leader || 0;
@@ -618,8 +626,9 @@
       const ll = r.marker.getLatLng();
       return [ll.lat, ll.lng];
     },
+    renderTimes() { return S.renderMs.slice(); },
     frameProbe: Object.freeze({
-      start() { probe.deltas = []; probe.last = 0; if (!probe.running) { probe.running = true; requestAnimationFrame(probeTick); } },
+      start() { S.renderMs = []; probe.deltas = []; probe.last = 0; if (!probe.running) { probe.running = true; requestAnimationFrame(probeTick); } },
       stop() { probe.running = false; return probe.deltas.slice(); },
     }),
   });

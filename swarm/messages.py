@@ -117,10 +117,13 @@ class Task:
     """What the leader asks of the swarm, riding on its Heartbeats."""
 
     kind: TaskKind = TaskKind.NONE
-    heading: float = 0.0  # degrees, FOLLOW
+    heading: float = 0.0  # degrees, FOLLOW: the swarm's heading (the leader's course)
     back_m: float = 10.0
     side_m: float = 5.0
     assignments: tuple[Assignment, ...] = ()
+    #: FOLLOW: which follow command this is (mod 256); a member that left the formation
+    #: for an individual command rejoins on a new generation
+    gen: int = 0
 
 
 class Phase(IntEnum):
@@ -141,6 +144,7 @@ class CommandKind(IntEnum):
     GOTO = 6  # lat, lon, alt (AMSL)
     FOLLOW = 7  # heading degrees
     STOP = 8
+    WAYPOINT = 9  # lat, lon, alt (AMSL): append to the route being flown (GOTO replaces it)
 
 
 class AckResult(IntEnum):
@@ -472,7 +476,8 @@ def _r_pose(r: _R) -> Pose:
 def _w_task(w: _W, t: Task) -> None:
     w.u8(int(t.kind))
     if t.kind == TaskKind.FOLLOW:
-        w.pack("HBB", round((t.heading % 360.0) * 100) % 36000, round(t.back_m * 4), round(t.side_m * 4))
+        w.pack("HBBB", round((t.heading % 360.0) * 100) % 36000, round(t.back_m * 4), round(t.side_m * 4),
+               t.gen & 0xFF)
         w.u8(len(t.assignments))
         for a in t.assignments:
             w.pack("BBb", a.member, a.follows, int(a.side))
@@ -485,7 +490,7 @@ def _r_task(r: _R) -> Task:
         raise DecodeError("unknown task kind") from None
     if kind != TaskKind.FOLLOW:
         return Task(kind)
-    hdg, back, side = r.unpack("HBB")
+    hdg, back, side, gen = r.unpack("HBBB")
     if hdg >= 36000:
         raise DecodeError("task heading out of range")
     n = r.u8()
@@ -495,7 +500,7 @@ def _r_task(r: _R) -> Task:
         if s not in (-1, 1):
             raise DecodeError("formation side must be -1 or 1")
         out.append(Assignment(m, f, Side(s)))
-    return Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out))
+    return Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen)
 
 
 def _enum(cls: type[IntEnum]) -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:
@@ -620,6 +625,8 @@ _CMD_ARGS: dict[CommandKind, list[tuple[str, tuple[Callable[[_W, Any], None], Ca
     CommandKind.GOTO: [("lat", _scaled("i", 1e7)), ("lon", _scaled("i", 1e7)),
                        ("alt", _scaled("H", 10, 1000.0))],
     CommandKind.FOLLOW: [("heading", _heading())],
+    CommandKind.WAYPOINT: [("lat", _scaled("i", 1e7)), ("lon", _scaled("i", 1e7)),
+                           ("alt", _scaled("H", 10, 1000.0))],
 }
 
 BY_TYPE: dict[int, type[Message]] = {cls.TYPE: cls for cls in _LAYOUT}

@@ -32,6 +32,8 @@ Phases and the paper's steps (section 2.3):
   ``vote_window`` ends the election: the candidate leads, the others follow.
 * LEADER: Heartbeat (members, task) every ``heartbeat_interval``; members answer
   HeartbeatAck with their pose; a member silent for ``ack_timeout`` is expelled.
+  A FOLLOW task's assignments are reconciled with the members before each
+  Heartbeat (:func:`swarm.formation.reconcile`), so the V re-forms by itself.
 * MEMBER: a member that hears no Heartbeat for ``leader_timeout``, or one that no
   longer lists it, leaves: back to IDLE, to join another swarm or start a pool.
 
@@ -61,6 +63,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
+from swarm.formation import reconcile
 from swarm.messages import (
     Advertize,
     AgentState,
@@ -437,6 +440,9 @@ class Core:
                 self.counters.expelled += 1
                 self._state_dirty = True
         if self._due("heartbeat", now, p.heartbeat_interval) and self.members:
+            # the formation follows membership: departed members close up, newcomers
+            # join an arm, a new leader assigns afresh (swarm.formation.reconcile)
+            self.task = reconcile(self.task, self.me, self.members, self.poses, self.pose)
             self.hb_seq = (self.hb_seq + 1) & 0xFF
             hb = Heartbeat(self.me, self.epoch, self.hb_seq, frozenset(self.members), self.task)
             out += [Out(m, hb) for m in sorted(self.members)]

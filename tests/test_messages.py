@@ -65,7 +65,8 @@ tasks = st.one_of(
               back_m=st.integers(0, 255).map(lambda v: v / 4.0),
               side_m=st.integers(0, 255).map(lambda v: v / 4.0),
               assignments=st.lists(st.builds(Assignment, ids, ids, st.sampled_from(Side)),
-                                   max_size=20).map(tuple)),
+                                   max_size=20).map(tuple),
+              gen=st.integers(0, 255)),
 )
 headings = st.integers(0, 35999).map(lambda v: v / 100.0)
 commands = st.one_of(

@@ -5,7 +5,7 @@ step ``dt`` (simulated seconds) toward a :class:`Target`. The law is the one of
 reference/autopilot.md section 5::
 
     v_cmd = v_ff + Kp * (p_sp - p)         per axis, Kp = MPC_XY_P / MPC_Z_P
-    |v_cmd_xy| <= min(v_max_xy, sqrt(2 a_xy |e_xy|))   (braking-distance limit)
+    |v_cmd_xy| <= min(v_max_xy, |v_ff| + sqrt(2 a_xy |e_xy|))   (braking-distance limit)
     -v_up <= v_cmd_z <= v_down
     dv/dt = (v_cmd - v) / tau,  |dv_xy/dt| <= a_xy (g tan 45 deg), |dv_z/dt| <= a_z
 
@@ -101,9 +101,10 @@ class Body:
         h = math.hypot(vc[0], vc[1])
         cap = lim.v_xy
         if math.isfinite(ex) and math.isfinite(ey):
-            cap = min(cap, max(math.sqrt(2.0 * lim.a_xy * 0.8 * math.hypot(ex, ey)),
-                               math.hypot(*(target.vel[k] if math.isfinite(target.vel[k]) else 0.0
-                                            for k in (0, 1)))))
+            # braking distance: the correction term may not exceed what the tilt limit
+            # can stop; a velocity feed-forward adds on top (PX4 offboard: v_ff + Kp e)
+            vff = math.hypot(*(target.vel[k] if math.isfinite(target.vel[k]) else 0.0 for k in (0, 1)))
+            cap = min(cap, vff + math.sqrt(2.0 * lim.a_xy * 0.8 * math.hypot(ex, ey)))
         if h > cap > 0.0:
             vc[0] *= cap / h
             vc[1] *= cap / h

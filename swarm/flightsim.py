@@ -1,0 +1,328 @@
+"""The demo's flight in virtual time: protocol cores, pilots and vehicle dynamics over
+the SiK air model. Used by ``swarm bench formation`` and the formation tests.
+
+Theory of operation
+-------------------
+A :class:`FlightSim` is a :class:`swarm.simulate.Sim` (N protocol cores behind the
+air model, frames encoded exactly as the radio bridge does) with, for each agent,
+a :class:`swarm.pilot.Pilot` and a point-mass multicopter
+(:class:`firmware_bridge.sim.dynamics.Body`, the vehicle simulator's own dynamics
+with PX4's position-loop gains and limits, taking the setpoints' velocity
+feed-forward as PX4 offboard does). On the air besides the protocol: every
+agent's pose stream at ``pose_hz`` (PoseReport, broadcast) and its vehicle's
+HEARTBEAT and GLOBAL_POSITION_INT at 1 Hz (the forwarded telemetry).
+
+The flight: vehicles start hovering at ``alt_m`` in a line east of home,
+``spacing_m`` apart; once the election has converged the leader gets a follow
+command (heading north); ``settle_s`` later the route (north ``leg_m``, then
+east ``leg_m``: a 90 degree right turn, rounded with the pilot's turn radius).
+The run ends ``tail_s`` after the leader arrives (or at ``duration``).
+
+Metrics, sampled every 0.1 s from the true positions (not from what the radio
+delivered): each member's distance from its slot (the followed agent's true
+position plus the offset for the leader's current task heading). A sample is in
+a *turn* while the task heading differs from its value ``turn_margin_s`` earlier
+or later; *straight* samples are the others once the route has started (the V had
+``settle_s`` to form). Air utilisation is the share of air time used between the
+follow command and the end.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import pymap3d
+
+from firmware_bridge.sim.dynamics import Body, Limits, Target
+from radios.mavlink import MSG_TUNNEL, FrameBuilder, dialect
+from swarm.bridge import PAYLOAD_TYPE_BASE, TUNNEL_MAX, Kind
+from swarm.errors import DecodeError
+from swarm.formation import slot_error
+from swarm.messages import AckResult, Command, CommandKind, Phase, Pose, PoseReport, TaskKind, decode, encode
+from swarm.pilot import Pilot, PilotConfig, Role
+from swarm.simulate import Scenario, Sim, pct
+
+HOME = (47.397742, 8.545594, 488.0)
+DT = 0.02  # dynamics step, s
+
+
+@dataclass
+class FlightScenario:
+    agents: int = 5
+    loss: float = 0.1
+    pose_hz: float = 4.0
+    speed_mps: float = 5.0
+    profile: str = "paper"
+    alt_m: float = 20.0
+    spacing_m: float = 8.0
+    leg_m: float = 150.0
+    settle_s: float = 20.0
+    tail_s: float = 10.0
+    duration: float = 240.0
+    turn_margin_s: float = 8.0
+    pilot: PilotConfig = field(default_factory=PilotConfig)
+
+
+@dataclass
+class FlightResult:
+    seed: int
+    ok: bool
+    leader: int
+    elect_s: float | None
+    rms_straight_m: float | None
+    max_straight_m: float | None
+    max_turn_m: float | None
+    per_member: dict[int, dict[str, float | None]]
+    air_utilisation: float
+    end_s: float
+    why: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"seed": self.seed, "ok": self.ok, "leader": self.leader, "elect_s": self.elect_s,
+                "rms_straight_m": self.rms_straight_m, "max_straight_m": self.max_straight_m,
+                "max_turn_m": self.max_turn_m, "air_utilisation": round(self.air_utilisation, 3),
+                "end_s": round(self.end_s, 1), "per_member": self.per_member, "why": self.why}
+
+
+class FlightSim(Sim):
+    def __init__(self, fs: FlightScenario, seed: int) -> None:
+        super().__init__(Scenario(agents=fs.agents, loss=fs.loss, profile=fs.profile, duration=fs.duration),
+                         seed)
+        self.fs = fs
+        n = fs.agents
+        self.lim = Limits()
+        self.bodies = [Body(pos=[0.0, i * fs.spacing_m, -fs.alt_m]) for i in range(n)]
+        self.targets: list[Target | None] = [None] * n
+        cfg = PilotConfig(speed_mps=fs.speed_mps, turn_radius_m=fs.pilot.turn_radius_m,
+                          max_lead_m=fs.pilot.max_lead_m, arrive_m=fs.pilot.arrive_m,
+                          formation=fs.pilot.formation)
+        self.pilots = [Pilot(i + 1, cfg) for i in range(n)]
+        for p in self.pilots:
+            p.airborne = True
+        self.vbuilders = [FrameBuilder(i + 1, 1) for i in range(n)]
+        self.rng = random.Random(seed ^ 0x5EED)
+        self.samples: list[tuple[float, int, float, float]] = []  # t, member, error, heading
+        self.heading_log: list[tuple[float, float]] = []
+        self.follow_at: float | None = None
+        self.route_at: float | None = None
+        self.arrived_at: float | None = None
+        self.leader = 0
+        self.elect_s: float | None = None
+        self.busy_at_follow = 0.0
+
+    # -- poses --------------------------------------------------------------------
+    def pose_of(self, i: int, t: float) -> Pose:
+        b = self.bodies[i]
+        lat, lon, alt = pymap3d.ned2geodetic(b.pos[0], b.pos[1], b.pos[2], *HOME)
+        return Pose(float(lat), float(lon), float(alt), math.degrees(b.yaw) % 360.0, b.vel[0], b.vel[1],
+                    t % 2.56)
+
+    def _receive(self, i: int, t: float) -> None:
+        radio = self.air.radios[i]
+        if not radio.host_ready and not radio.outbuf:
+            return
+        data = self.air.take_output(i, t)
+        if not data:
+            return
+        for f in self.parsers[i].feed(data):
+            if f.msgid != MSG_TUNNEL:
+                continue
+            p = f.payload.ljust(5 + TUNNEL_MAX, b"\0")
+            ptype, target, n = p[0] | (p[1] << 8), p[2], p[4]
+            body = p[5 : 5 + n]
+            kind = ptype - PAYLOAD_TYPE_BASE
+            me = i + 1
+            if target not in (0, me):
+                continue
+            if kind == Kind.MULTI:
+                if not body or me not in body[1 : 1 + body[0]]:
+                    continue
+                body = body[1 + body[0] :]
+            try:
+                msg = decode(body)
+            except DecodeError:
+                continue
+            if kind == Kind.POSE:
+                if isinstance(msg, PoseReport):
+                    self.pilots[i].on_pose(f.sysid, msg.pose, t)
+                continue
+            c = self.cores[i]
+            before = c.last_hb
+            self._send(i, c.handle(msg, t), t)
+            self._due[i] = t
+            if c.last_hb != before and c.phase == Phase.MEMBER:
+                self.pilots[i].on_task(c.task, t)  # every heartbeat: the heading's rate
+
+    def _role(self, i: int) -> Role:
+        c = self.cores[i]
+        return Role(c.phase, c.leader, frozenset(c.members), dict(c.poses))
+
+    # -- the flight ----------------------------------------------------------------
+    def run_flight(self) -> FlightResult:
+        fs = self.fs
+        n = fs.agents
+        t = 0.0
+        next_pilot = 0.0
+        next_pose = [self.rng.uniform(0, 1.0 / fs.pose_hz) for _ in range(n)]
+        next_vehicle = [self.rng.uniform(0, 1.0) for _ in range(n)]
+        conv_since: float | None = None
+        end = fs.duration
+        for i in range(n):
+            self.started[i] = True
+            self._send(i, self.cores[i].start(0.0), 0.0)
+            self.cores[i].set_pose(self.pose_of(i, 0.0))
+            self.pilots[i].set_own(self.pose_of(i, 0.0), True)
+            self.pilots[i]._hold("hovering")
+        while t <= end:
+            self.air.advance(t)
+            for i in range(n):
+                self._receive(i, t)
+            for i in range(n):
+                if self._due[i] <= t + 1e-9:
+                    c = self.cores[i]
+                    self._send(i, c.tick(t), t)
+                    d = c.next_deadline()
+                    self._due[i] = d if d is not None else float("inf")
+                if t + 1e-9 >= next_pose[i]:
+                    next_pose[i] += 1.0 / fs.pose_hz
+                    pose = self.pose_of(i, t)
+                    self.cores[i].set_pose(pose)
+                    self._write(i, Kind.POSE, 0, encode(PoseReport(pose)), t)
+                if t + 1e-9 >= next_vehicle[i]:
+                    next_vehicle[i] += 1.0
+                    self._forward_vehicle(i, t)
+            if t + 1e-9 >= next_pilot:
+                next_pilot += 0.1
+                self._pilots(t)
+                if self.follow_at is None:
+                    ok, lead = self._agreement()
+                    conv_since = (conv_since if conv_since is not None else t) if ok else None
+                    if ok and conv_since is not None and t - conv_since >= 1.0:
+                        self._follow(lead, t)
+                        self.elect_s = conv_since
+                elif self.route_at is None and t - self.follow_at >= fs.settle_s:
+                    self._route(t)
+                elif self.route_at is not None and self.arrived_at is None:
+                    lp = self.pilots[self.leader - 1]
+                    if lp.mode.value == "HOLD" and lp.hold_reason == "arrived":
+                        self.arrived_at = t
+                        end = min(end, t + fs.tail_s)
+                if self.follow_at is not None:
+                    self._sample(t)
+            for i in range(n):
+                self.bodies[i].step(self.targets[i], self.lim, DT, True)
+            t = round(t + DT, 6)
+        return self._result(t)
+
+    def _pilots(self, t: float) -> None:
+        for i, p in enumerate(self.pilots):
+            pose = self.pose_of(i, t)
+            p.set_own(pose, True)
+            role = self._role(i)
+            sp, heading = p.step(t, role)
+            c = self.cores[i]
+            if heading is not None and c.phase == Phase.LEADER and c.task.kind == TaskKind.FOLLOW:
+                c.set_task(replace(c.task, heading=heading))
+            if sp is None:
+                continue
+            n_, e_, d_ = pymap3d.geodetic2ned(sp.lat, sp.lon, sp.alt, *HOME)
+            self.targets[i] = Target(pos=(float(n_), float(e_), float(d_)), vel=(sp.vn, sp.ve, math.nan),
+                                     yaw=math.radians(sp.yaw_deg))
+
+    def _follow(self, lead: int, t: float) -> None:
+        self.leader = lead
+        i = lead - 1
+        res, why, _ = self.pilots[i].command(Command(255, 1, 0, CommandKind.FOLLOW, heading=0.0),
+                                             self._role(i), t)
+        if res != AckResult.ACCEPTED:
+            raise RuntimeError(f"follow refused: {why}")
+        self.cores[i].set_task(self.pilots[i].task)
+        self.follow_at = t
+        self.busy_at_follow = self.air.busy_s
+
+    def _route(self, t: float) -> None:
+        i = self.leader - 1
+        o = self.pose_of(i, t)
+        leg = self.fs.leg_m
+        a = pymap3d.ned2geodetic(leg, 0.0, 0.0, o.lat, o.lon, o.alt)
+        b = pymap3d.ned2geodetic(leg, leg, 0.0, o.lat, o.lon, o.alt)
+        for k, (kind, p) in enumerate(((CommandKind.GOTO, a), (CommandKind.WAYPOINT, b))):
+            res, why, _ = self.pilots[i].command(
+                Command(255, 2 + k, i + 1, kind, float(p[0]), float(p[1]), o.alt), self._role(i), t)
+            if res != AckResult.ACCEPTED:
+                raise RuntimeError(f"route refused: {why}")
+        self.route_at = t
+
+    def _forward_vehicle(self, i: int, t: float) -> None:
+        p = self.pose_of(i, t)
+        b = self.vbuilders[i]
+        hb = dialect.MAVLink_heartbeat_message(2, 12, 217, 6 << 16, 4, 3)
+        gpi = dialect.MAVLink_global_position_int_message(
+            int(t * 1000) & 0xFFFFFFFF, round(p.lat * 1e7), round(p.lon * 1e7), round(p.alt * 1000),
+            round(self.fs.alt_m * 1000), round(p.vn * 100), round(p.ve * 100), 0,
+            round(p.heading * 100) % 36000)
+        for m in (hb, gpi):
+            self.air.host_write(i, b.build(m), t)
+
+    def _sample(self, t: float) -> None:
+        lead = self.cores[self.leader - 1]
+        if lead.phase != Phase.LEADER or lead.task.kind != TaskKind.FOLLOW:
+            return
+        task = lead.task
+        self.heading_log.append((t, task.heading))
+        poses = {i + 1: self.pose_of(i, t) for i in range(self.fs.agents)}
+        for a in task.assignments:
+            if a.member in poses and a.follows in poses:
+                err = slot_error(poses[a.member], poses[a.follows], task.heading, a.side, task.back_m,
+                                 task.side_m)
+                self.samples.append((t, a.member, err, task.heading))
+
+    def _result(self, t: float) -> FlightResult:
+        fs = self.fs
+        heads = self.heading_log
+        turning = set()
+        # a sample is "in a turn" within turn_margin_s of any heading change
+        changes = [heads[k][0] for k in range(1, len(heads)) if abs(heads[k][1] - heads[k - 1][1]) > 1e-6]
+        for tt, _ in heads:
+            if any(abs(tt - c) <= fs.turn_margin_s for c in changes):
+                turning.add(round(tt, 3))
+        straight: list[float] = []
+        turn: list[float] = []
+        per: dict[int, list[float]] = {}
+        per_turn: dict[int, list[float]] = {}
+        for tt, m, err, _h in self.samples:
+            if self.route_at is None or tt < self.route_at:
+                continue
+            if round(tt, 3) in turning:
+                turn.append(err)
+                per_turn.setdefault(m, []).append(err)
+            else:
+                straight.append(err)
+                per.setdefault(m, []).append(err)
+        ok = self.arrived_at is not None and bool(straight)
+        why = "" if ok else ("the election never converged" if self.follow_at is None else
+                             "the leader did not finish the route")
+        span = max(t - (self.follow_at or 0.0), 1e-9)
+        util = (self.air.busy_s - self.busy_at_follow) / span if self.follow_at is not None else 0.0
+        members = sorted(set(per) | set(per_turn))
+        return FlightResult(
+            seed=self.seed, ok=ok, leader=self.leader, elect_s=self.elect_s,
+            rms_straight_m=_rms(straight), max_straight_m=round(max(straight), 2) if straight else None,
+            max_turn_m=round(max(turn), 2) if turn else None,
+            per_member={m: {"rms_straight_m": _rms(per.get(m, [])),
+                            "max_m": round(max(per.get(m, []) + per_turn.get(m, [])), 2)} for m in members},
+            air_utilisation=util, end_s=t, why=why)
+
+
+def _rms(v: list[float]) -> float | None:
+    return round(math.sqrt(sum(x * x for x in v) / len(v)), 3) if v else None
+
+
+def run(fs: FlightScenario, seed: int = 0) -> FlightResult:
+    return FlightSim(fs, seed).run_flight()
+
+
+__all__ = ["FlightResult", "FlightScenario", "FlightSim", "pct", "run"]

@@ -109,6 +109,7 @@ def load_capture(path: str) -> Capture:
                 cap.decode_errors += 1
                 continue
             _vehicle(cap, names, rec.t, sysid, m)
+    cap.items.sort(key=lambda it: it.t)  # stable: records stamped out of order play in time order
     return cap
 
 

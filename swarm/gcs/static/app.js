@@ -47,6 +47,7 @@
     pending: new Map(),   // command id -> {cmd, resolve, timer}
     seenEvents: new Set(),
     target: null,         // the go-to target marker
+    altTyped: false,      // the operator typed a go-to altitude
     replay: null,
   };
 
@@ -334,8 +335,10 @@
     }
     const rec = id !== null ? S.agents.get(id) : null;
     if (rec && pan && rec.marker && S.map) S.map.panTo(rec.marker.getLatLng());
-    if (rec && hasPosition(rec.data) && !$("#goto-lat").value) {
-      $("#goto-alt").value = Math.max(5, Math.round(Number(rec.data.alt) || 10));
+    // the go-to altitude (AMSL) follows the selected agent until the operator types one:
+    // its own altitude when flying, 10 m above it on the ground
+    if (rec && !S.altTyped && typeof rec.data.alt === "number") {
+      $("#goto-alt").value = String(Math.round(rec.data.alt + (rec.data.airborne ? 0 : 10)));
     }
     drawTelemetry();
     if (S.drawn) drawElection(S.drawn.agents || [], S.drawn.leader || 0);
@@ -522,6 +525,7 @@
       placeTarget(lat, lon);
       command({ target: S.selected, kind: "goto", lat, lon, alt });
     });
+    $("#goto-alt").addEventListener("input", () => { S.altTyped = true; });
     for (const input of [$("#goto-lat"), $("#goto-lon")]) {
       input.addEventListener("change", () => {
         const lat = parseFloat($("#goto-lat").value);

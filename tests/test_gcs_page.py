@@ -33,6 +33,8 @@ from gcs_browser import (
     write_tiles,
 )
 
+from radios.errors import CaptureDamagedError
+from radios.tlog import TlogWriter, read_tlog
 from swarm.procs import Child, start_emulator
 
 N = 3
@@ -68,6 +70,7 @@ def free_udp_base(count: int) -> int:
 @dataclass
 class Bench:
     url: str
+    capture: Path
     station: Child
     agents: list[Child]
     children: list[Child]
@@ -80,7 +83,8 @@ def bench(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Bench]:
     write_tiles(tiles, *HOME)
     radios = root / "radios"
     radios.mkdir()
-    emu, paths = start_emulator(N + 1, radios)
+    capture = root / "air.tlog"
+    emu, paths = start_emulator(N + 1, radios, "--capture", str(capture))
     children: list[Child] = []
     try:
         sim = Child(["sim", "--vehicles", str(N), "--spacing", str(SPACING_M),
@@ -97,7 +101,7 @@ def bench(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Bench]:
         station, url = start_station(["--radio", paths[N], "--http", f"127.0.0.1:{free_port()}",
                                       "--tiles-dir", str(tiles)])
         children.append(station)
-        yield Bench(url, station, agents, children)
+        yield Bench(url, capture, station, agents, children)
     finally:
         for c in reversed(children):
             c.stop(grace=3)
@@ -214,6 +218,53 @@ def test_goto_from_the_page_moves_the_agent_on_the_map(bench: Bench, page: Any) 
     poll(moved, "agent1 to cover half the way to the target on the map", MOVE_DEADLINE, bench.children)
     screenshot(page, "gcs_page_goto.png")
     assert page.errors == []
+
+
+def whole_records(src: Path, dst: Path) -> int:
+    """Copy the whole records of a capture still being written (its end may be cut)."""
+    n = 0
+    with TlogWriter(dst) as out:
+        try:
+            for rec in read_tlog(src):
+                out.write(rec.raw, rec.t)
+                n += 1
+        except CaptureDamagedError:
+            pass
+    return n
+
+
+def test_replay_of_the_bench_capture_with_pause_and_speed(bench: Bench, page: Any, tmp_path: Path) -> None:
+    # the air so far: agents electing, connecting to the station, flying
+    poll(lambda: bench.capture.exists() and bench.capture.stat().st_size > 10_000, "a capture",
+         SHOW_DEADLINE, bench.children)
+    capture = tmp_path / "flight.tlog"
+    assert whole_records(bench.capture, capture) > 0
+    station, url = start_station(["--replay", str(capture), "--http", f"127.0.0.1:{free_port()}",
+                                  "--tiles", "none", "--speed", "4"])
+    try:
+        open_page(page, url)
+        assert gcs(page, "config")["replay"] is True
+        assert page.locator("#replay").is_visible()
+        poll(lambda: gcs(page, "markers") >= 1, "agents of the capture on the map", UI_DEADLINE, [station])
+        poll(lambda: page.get_attribute("#replay-play", "data-playing") in ("0", "1"), "the replay status",
+             UI_DEADLINE, [station])
+        if page.get_attribute("#replay-play", "data-playing") == "1":
+            page.click("#replay-play")  # pause
+            poll(lambda: page.get_attribute("#replay-play", "data-playing") == "0", "paused", UI_DEADLINE,
+                 [station])
+        page.select_option("#replay-speed", "2")
+        poll(lambda: page.evaluate("fetch('/api/replay').then(r => r.json())")["speed"] == 2,
+             "speed 2 at the station", UI_DEADLINE, [station])
+        page.click("#replay-play")  # play
+        poll(lambda: page.evaluate("fetch('/api/replay').then(r => r.json())")["playing"] is True,
+             "playing at the station", UI_DEADLINE, [station])
+        # nothing to command in a replay
+        assert page.locator('#commands [data-kind="land"]').is_disabled()
+        assert page.locator("#goto-go").is_disabled()
+        screenshot(page, "gcs_page_replay.png")
+        assert page.errors == []
+    finally:
+        station.stop()
 
 
 def test_disconnected_agent_is_greyed_and_a_command_to_it_refused(bench: Bench, page: Any) -> None:

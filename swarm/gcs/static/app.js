@@ -591,6 +591,12 @@
   }
   function initReplay() {
     $("#replay").hidden = false;
+    document.body.classList.add("replay");
+    // a capture plays: nothing to command
+    for (const el of document.querySelectorAll("#commands button, #goto-go")) {
+      el.disabled = true;
+      el.title = "replay: commands are disabled while a capture plays";
+    }
     $("#replay-play").addEventListener("click", () => replayAction(S.replay && S.replay.playing ? "pause" : "play"));
     $("#replay-speed").addEventListener("change", (ev) => replayAction("speed", parseFloat(ev.target.value)));
     $("#replay-seek").addEventListener("change", (ev) => replayAction("seek", parseFloat(ev.target.value)));

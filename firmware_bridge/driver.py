@@ -76,6 +76,8 @@ MAV_STATE_ACTIVE = 4
 FRAME_LOCAL_NED = 1
 FRAME_GLOBAL_RELATIVE_ALT_INT = 6
 MASK_POS_YAW = 2552  # ignore velocity, acceleration, force and yaw rate
+MASK_POS_VEL_YAW = 2496  # position + velocity feed-forward + yaw
+MAX_VELOCITY_MS = 30.0
 MASK_POS = 3576
 
 MAV_CMD_NAV_TAKEOFF = 22
@@ -337,6 +339,7 @@ class LocalTarget:
     east: float
     down: float
     yaw: float
+    velocity: tuple[float, float, float] | None = None  # NED m/s feed-forward
 
 
 @dataclass(frozen=True)
@@ -347,6 +350,7 @@ class GlobalTarget:
     lon: float
     rel_alt: float
     yaw: float
+    velocity: tuple[float, float, float] | None = None  # NED m/s feed-forward
 
 
 def _wrap(yaw: float) -> float:
@@ -363,7 +367,19 @@ def _finite(name: str, value: float) -> float:
     return v
 
 
-def validate_local(north: float, east: float, down: float, yaw: float) -> LocalTarget:
+def _velocity(v: Sequence[float] | None) -> tuple[float, float, float] | None:
+    if v is None:
+        return None
+    if len(v) != 3:
+        raise SetpointError(f"velocity {v!r}: three components (north, east, down) in m/s")
+    out = (_finite("velocity north", v[0]), _finite("velocity east", v[1]), _finite("velocity down", v[2]))
+    if any(abs(x) > MAX_VELOCITY_MS for x in out):
+        raise SetpointError(f"velocity {out} above {MAX_VELOCITY_MS:g} m/s")
+    return out
+
+
+def validate_local(north: float, east: float, down: float, yaw: float,
+                   velocity: Sequence[float] | None = None) -> LocalTarget:
     """Check a local NED setpoint.
 
     Raises:
@@ -376,10 +392,11 @@ def validate_local(north: float, east: float, down: float, yaw: float) -> LocalT
             raise SetpointError(f"{name} {v:g} m is more than {MAX_LOCAL_M:g} m from the origin")
     if not MIN_ALT_M <= -d <= MAX_ALT_M:
         raise SetpointError(f"down {d:g} m is outside {-MAX_ALT_M:g}..{-MIN_ALT_M:g} m")
-    return LocalTarget(n, e, d, _wrap(y))
+    return LocalTarget(n, e, d, _wrap(y), _velocity(velocity))
 
 
-def validate_global(lat: float, lon: float, rel_alt: float, yaw: float) -> GlobalTarget:
+def validate_global(lat: float, lon: float, rel_alt: float, yaw: float,
+                    velocity: Sequence[float] | None = None) -> GlobalTarget:
     """Check a global setpoint (altitude relative to home).
 
     Raises:
@@ -393,22 +410,26 @@ def validate_global(lat: float, lon: float, rel_alt: float, yaw: float) -> Globa
         raise SetpointError(f"longitude {lo:g} outside -180..180")
     if not MIN_ALT_M <= a <= MAX_ALT_M:
         raise SetpointError(f"relative altitude {a:g} m outside {MIN_ALT_M:g}..{MAX_ALT_M:g} m")
-    return GlobalTarget(la, lo, a, _wrap(y))
+    return GlobalTarget(la, lo, a, _wrap(y), _velocity(velocity))
 
 
 def setpoint_message(target: LocalTarget | GlobalTarget, *, time_boot_ms: int,
                      target_system: int, target_component: int) -> Any:
     """The SET_POSITION_TARGET_* message for ``target``: LOCAL_NED (frame 1) or
-    GLOBAL_INT (frame 6, relative altitude), type mask position + yaw (2552)."""
+    GLOBAL_INT (frame 6, relative altitude), type mask position + yaw (2552), or
+    position + velocity feed-forward + yaw (2496) when the target has a velocity."""
     t = time_boot_ms & 0xFFFFFFFF
+    vel = target.velocity
+    mask = MASK_POS_YAW if vel is None else MASK_POS_VEL_YAW
+    vn, ve, vd = vel if vel is not None else (0.0, 0.0, 0.0)
     if isinstance(target, LocalTarget):
         return mavlink.MAVLink_set_position_target_local_ned_message(
-            t, target_system, target_component, FRAME_LOCAL_NED, MASK_POS_YAW,
-            target.north, target.east, target.down, 0, 0, 0, 0, 0, 0, target.yaw, 0)
+            t, target_system, target_component, FRAME_LOCAL_NED, mask,
+            target.north, target.east, target.down, vn, ve, vd, 0, 0, 0, target.yaw, 0)
     return mavlink.MAVLink_set_position_target_global_int_message(
-        t, target_system, target_component, FRAME_GLOBAL_RELATIVE_ALT_INT, MASK_POS_YAW,
+        t, target_system, target_component, FRAME_GLOBAL_RELATIVE_ALT_INT, mask,
         round(target.lat * 1e7), round(target.lon * 1e7), target.rel_alt,
-        0, 0, 0, 0, 0, 0, target.yaw, 0)
+        vn, ve, vd, 0, 0, 0, target.yaw, 0)
 
 
 @dataclass
@@ -759,23 +780,26 @@ class Vehicle:
         self.set_mode("AUTO.LOITER")
 
     # -- position control
-    def set_target_ned(self, north: float, east: float, down: float, yaw: float | None = None) -> None:
+    def set_target_ned(self, north: float, east: float, down: float, yaw: float | None = None,
+                       velocity: Sequence[float] | None = None) -> None:
         """Stream SET_POSITION_TARGET_LOCAL_NED to this point (z down, EKF origin);
         yaw defaults to the current heading. Starts the streamer if needed.
 
         Raises:
             SetpointError: NaN, inf or out of range; nothing is sent.
         """
-        target = validate_local(north, east, down, self.state.yaw if yaw is None else yaw)
+        target = validate_local(north, east, down, self.state.yaw if yaw is None else yaw, velocity)
         self._set_target(target)
 
-    def set_target_global(self, lat: float, lon: float, rel_alt: float, yaw: float | None = None) -> None:
-        """Stream SET_POSITION_TARGET_GLOBAL_INT (altitude above home) to this point.
+    def set_target_global(self, lat: float, lon: float, rel_alt: float, yaw: float | None = None,
+                          velocity: Sequence[float] | None = None) -> None:
+        """Stream SET_POSITION_TARGET_GLOBAL_INT (altitude above home) to this point,
+        with an optional NED velocity feed-forward (m/s) for a moving target.
 
         Raises:
             SetpointError: NaN, inf or out of range; nothing is sent.
         """
-        target = validate_global(lat, lon, rel_alt, self.state.yaw if yaw is None else yaw)
+        target = validate_global(lat, lon, rel_alt, self.state.yaw if yaw is None else yaw, velocity)
         self._set_target(target)
 
     @property

@@ -59,20 +59,25 @@ import random
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from swarm.gslink import (
     FLAG_AIRBORNE,
     FLAG_ARMED,
     FLAG_FC_OK,
+    FLAG_HOLDING,
+    CommandLog,
     GsLink,
     GsOut,
     mode_code,
 )
 from swarm.messages import (
+    AckResult,
     Advertize,
     AgentState,
+    Command,
+    CommandAck,
     GSAdvertize,
     GSConnect,
     GSHeartbeat,
@@ -81,10 +86,12 @@ from swarm.messages import (
     Pose,
     PoseReport,
     Task,
+    TaskKind,
     Telemetry,
     check_id,
     check_name,
 )
+from swarm.pilot import Call, Mode, Pilot, PilotConfig, Role
 from swarm.protocol import (
     ADVERTIZE,
     NO_POSE,
@@ -122,7 +129,21 @@ class _Task:
     task: Task
 
 
+@dataclass(frozen=True)
+class _PoseIn:
+    name: str
+    pose: Pose
+
+
+@dataclass(frozen=True)
+class _CallDone:
+    call: Call
+    ok: bool
+    error: str
+
+
 _STOP = object()
+SETPOINT_PERIOD = 0.1  # the pilot's step: setpoints at 10 Hz
 
 
 class Agent:
@@ -141,7 +162,9 @@ class Agent:
                  fc: str | None = None, profile: str = "paper", round_s: float | None = None,
                  key_file: str | None = None, vote: str = "random", pose_hz: float = 4.0,
                  fc_timeout: float = 10.0, seed: int | None = None,
+                 pilot: PilotConfig | None = None,
                  on_state: Callable[[AgentState], None] | None = None,
+                 on_event: Callable[[str], None] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         check_name(name)
         check_id(agent_id)
@@ -170,14 +193,20 @@ class Agent:
         self.pose_hz = pose_hz
         self.fc_timeout = fc_timeout
         self.on_state = on_state
+        self.on_event = on_event
         self.clock = clock
+        self.pilot = Pilot(agent_id, pilot or PilotConfig())
+        self.commands = CommandLog()
+        self._calls: queue.Queue[object] = queue.Queue()
         self._rng = random.Random(seed)
         self.stats: dict[str, int] = {
             "received": 0, "sent": 0, "advertized": 0, "unknown_destination": 0,
             "send_errors": 0, "state_published": 0, "own_echo": 0, "id_conflicts": 0,
             "errors": 0, "poses": 0, "vehicle_forwarded": 0, "gs_sent": 0,
+            "commands": 0, "command_replays": 0, "setpoints": 0, "setpoint_errors": 0, "poses_heard": 0,
         }
         self.names: dict[int, str] = {}  # agent id -> name, from Advertize
+        self._ids: dict[str, int] = {}  # name -> agent id
         self.core: Core | None = None
         self.gs = GsLink(agent_id, name)
         self.session: Any = None
@@ -239,10 +268,13 @@ class Agent:
         self.transport.on_inbox(self._q.put)
         self.transport.on_advertize(self._q.put)
         self.transport.on_gs_advertize(self._q.put)
+        self.transport.on_pose("*", lambda name, rep: self._q.put(_PoseIn(name, rep.pose))
+                               if name != self.name else None)
         self.started_at = self.clock()
         self._spawn(self._protocol_loop, "protocol")
         if self.vehicle is not None:
             self._spawn(self._pose_loop, "pose")
+            self._spawn(self._vehicle_loop, "vehicle")
 
     def _spawn(self, target: Callable[[], None], what: str) -> None:
         t = threading.Thread(target=target, name=f"agent-{self.name}-{what}", daemon=True)
@@ -271,6 +303,7 @@ class Agent:
             self._stopped = True
         self._stop.set()
         self._q.put(_STOP)
+        self._calls.put(_STOP)
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(2.0)
@@ -324,13 +357,14 @@ class Agent:
         now = self.clock()
         self._send(core.start(now))
         next_publish = now
+        next_step = now
         while not self._stop.is_set():
             now = self.clock()
             if core.take_state_changed() or now >= next_publish:
                 self._publish_state(core.state())
                 next_publish = now + self.profile.state_interval
             deadline = core.next_deadline()
-            wake = min(next_publish, self.gs.next_deadline())
+            wake = min(next_publish, self.gs.next_deadline(), next_step)
             if deadline is not None:
                 wake = min(wake, deadline)
             try:
@@ -353,6 +387,10 @@ class Agent:
                 outs += core.tick(self.clock())
                 self._send(outs)
                 self._send_gs(self.gs.tick(self.clock(), self._telemetry))
+                now = self.clock()
+                if now >= next_step:
+                    next_step = max(next_step + SETPOINT_PERIOD, now - SETPOINT_PERIOD)
+                    self._pilot_step(core, now)
             except Exception:  # a bug must not silence the agent: log, count, go on
                 self.stats["errors"] += 1
                 log.exception("agent %s: protocol error", self.name)
@@ -360,6 +398,17 @@ class Agent:
     def _feed(self, core: Core, item: object, now: float) -> list[Out]:
         if isinstance(item, _Pose):
             core.set_pose(item.pose)
+            v = self.vehicle
+            self.pilot.set_own(item.pose, bool(v is not None and v.state.in_air))
+            return []
+        if isinstance(item, _PoseIn):
+            sender = self._ids.get(item.name)
+            if sender is not None:
+                self.pilot.on_pose(sender, item.pose, now)
+                self.stats["poses_heard"] += 1
+            return []
+        if isinstance(item, _CallDone):
+            self.pilot.call_done(item.call, item.ok, item.error)
             return []
         if isinstance(item, _Task):
             core.set_task(item.task)
@@ -370,6 +419,9 @@ class Agent:
         if isinstance(item, (GSAdvertize, GSConnect, GSHeartbeat)):
             self._send_gs(self.gs.handle(item, now))
             return []
+        if isinstance(item, Command):
+            self._command(core, item, now)
+            return []
         if isinstance(item, Advertize):
             if item.sender == self.id:
                 if item.name == self.name:
@@ -378,7 +430,12 @@ class Agent:
                     self._id_conflict(item)
                 return []
             self.names[item.sender] = item.name
-        return core.handle(item, now)
+            self._ids[item.name] = item.sender
+        hb = core.last_hb
+        outs = core.handle(item, now)
+        if core.last_hb != hb and core.phase == Phase.MEMBER:
+            self.pilot.on_task(core.task, now)  # every heartbeat (the heading's rate)
+        return outs
 
     def _id_conflict(self, msg: Advertize) -> None:
         self.stats["id_conflicts"] += 1
@@ -405,6 +462,108 @@ class Agent:
             except Exception:  # the session closing under us, or a bad peer name
                 self.stats["send_errors"] += 1
                 log.debug("agent %s: send failed", self.name, exc_info=True)
+
+    # -- commands and the pilot ---------------------------------------------------------
+    def _role(self, core: Core) -> Role:
+        return Role(core.phase, core.leader if core.phase in (Phase.LEADER, Phase.MEMBER) else 0,
+                    frozenset(core.members) if core.phase == Phase.LEADER else frozenset(),
+                    dict(core.poses))
+
+    def _command(self, core: Core, cmd: Command, now: float) -> None:
+        """Answer a Command (once per station and sequence number) and act on it."""
+        self.stats["commands"] += 1
+        ack = self.commands.seen(cmd.sender, cmd.seq)
+        if ack is not None:
+            self.stats["command_replays"] += 1
+            self._reply(cmd.sender, ack)
+            return
+        calls: list[Call] = []
+        if cmd.target not in (0, self.id):
+            result, why = AckResult.UNKNOWN_AGENT, f"this is agent {self.id}, not {cmd.target}"
+        elif self.vehicle is None and cmd.target != 0:
+            result, why = AckResult.FAILED, "no flight controller on this agent"
+        else:
+            result, why, calls = self.pilot.command(cmd, self._role(core), now)
+        if result == AckResult.ACCEPTED and cmd.target == 0 and core.phase == Phase.LEADER:
+            core.set_task(self.pilot.task)  # FOLLOW or HOLD rides on the next heartbeats
+        ack = CommandAck(self.id, cmd.seq, result, why[:100])
+        self.commands.record(cmd.sender, cmd.seq, ack)
+        self._reply(cmd.sender, ack)
+        self._event(f"command {cmd.kind.name} from {cmd.sender}: {result.name}"
+                    + (f" ({why})" if why else ""))
+        for c in calls:
+            self._calls.put(c)
+
+    def _reply(self, to: int, ack: CommandAck) -> None:
+        name = self.gs.station_name(to) or self.names.get(to)
+        if name is None:
+            self.stats["unknown_destination"] += 1
+            return
+        try:
+            self.transport.send(name, ack)
+            self.stats["sent"] += 1
+        except Exception:
+            self.stats["send_errors"] += 1
+
+    def _event(self, text: str) -> None:
+        log.info("agent %s: %s", self.name, text)
+        if self.on_event is not None:
+            try:
+                self.on_event(text)
+            except Exception:
+                log.exception("agent %s: on_event callback failed", self.name)
+
+    def _pilot_step(self, core: Core, now: float) -> None:
+        sp, heading = self.pilot.step(now, self._role(core))
+        if heading is not None and core.phase == Phase.LEADER and core.task.kind == TaskKind.FOLLOW:
+            core.set_task(replace(core.task, heading=heading))
+        for ev in self.pilot.take_events():
+            self._event(ev)
+        v = self.vehicle
+        if sp is None or v is None or self.pilot.mode in (Mode.IDLE, Mode.TAKEOFF, Mode.LAND, Mode.RETURN):
+            return
+        s = v.state
+        if s.home is not None:
+            home_amsl = s.home[2]
+        elif s.alt_amsl is not None and s.rel_alt is not None:
+            home_amsl = s.alt_amsl - s.rel_alt
+        else:
+            return
+        try:
+            v.set_target_global(sp.lat, sp.lon, sp.alt - home_amsl, math.radians(sp.yaw_deg),
+                                velocity=(sp.vn, sp.ve, 0.0))
+            self.stats["setpoints"] += 1
+        except Exception as exc:  # a bad setpoint is refused by the driver: count, hold on
+            self.stats["setpoint_errors"] += 1
+            log.debug("agent %s: setpoint refused: %s", self.name, exc)
+
+    def _vehicle_loop(self) -> None:
+        """Runs the pilot's one-shot calls (they block: take-off waits for altitude)."""
+        while not self._stop.is_set():
+            item = self._calls.get()
+            if item is _STOP or not isinstance(item, Call):
+                break
+            try:
+                self._do_call(item)
+                self._q.put(_CallDone(item, True, ""))
+            except Exception as exc:
+                self._q.put(_CallDone(item, False, str(exc)))
+
+    def _do_call(self, c: Call) -> None:
+        v = self.vehicle
+        if c.kind == "arm":
+            v.arm()
+        elif c.kind == "disarm":
+            v.disarm()
+        elif c.kind == "takeoff":
+            v.takeoff(c.alt, wait=True, timeout=60.0)
+            v.start_offboard()  # hold here under setpoint control
+        elif c.kind == "land":
+            v.land()
+        elif c.kind == "return":
+            v.return_to_launch()
+        else:
+            raise ValueError(f"unknown vehicle call {c.kind!r}")
 
     def _send_gs(self, outs: list[GsOut]) -> None:
         tr = self.transport
@@ -437,6 +596,7 @@ class Agent:
             mode = mode_code(s.mode)
             flags |= (FLAG_ARMED if s.armed else 0) | (FLAG_AIRBORNE if s.in_air else 0)
             flags |= FLAG_FC_OK if getattr(v, "link_ok", True) else 0
+            flags |= FLAG_HOLDING if self.pilot.holding else 0
             if 0 <= s.battery_remaining <= 100:
                 battery = s.battery_remaining
             if s.velocity is not None and all(map(math.isfinite, s.velocity[:2])):

@@ -7,6 +7,8 @@ then one line per change of its protocol state; with ``--json`` each of those is
 one JSON object: the ready line ``{"event": "ready", "name", "id", "link"}``, then
 ``{"event": "state", "name", "id", "phase", "leader", "pool", "locked", "members",
 "candidate", "weight", "epoch", "t"}`` (``t``: seconds since the agent started).
+With ``--json``, what the pilot does (commands answered, following, holds and
+why) comes as ``{"event": "pilot", "name", "id", "text", "t"}`` lines.
 SIGINT or SIGTERM stops it cleanly (exit 0).
 
 The ``fast`` profile derives its windows from the radio network's TDM round, which
@@ -29,7 +31,9 @@ from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
 from swarm.agent import PROFILES, VOTES, Agent, default_round_s, state_dict
 from swarm.cliutil import EXIT_FAILURE, EXIT_USAGE, StopFlag, UsageError, guarded, parser, print_json
 from swarm.errors import MessageError, TransportError
+from swarm.formation import FormationConfig
 from swarm.messages import AgentState
+from swarm.pilot import PilotConfig
 
 PROG = "swarm agent"
 
@@ -59,6 +63,18 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vote", choices=VOTES, default="random",
                    help="vote weight: random (the paper), battery, or link (RSSI)")
     p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
+    f = p.add_argument_group("formation and flight (with --fc)")
+    f.add_argument("--speed", type=float, default=5.0, metavar="M/S",
+                   help="route speed of a leader (default 5)")
+    f.add_argument("--back", type=float, default=10.0, metavar="M", help="slot distance behind (default 10)")
+    f.add_argument("--side", type=float, default=5.0, metavar="M",
+                   help="slot distance to the side (default 5)")
+    f.add_argument("--stagger", type=float, default=0.0, metavar="M",
+                   help="altitude step per chain position (default 0: one altitude)")
+    f.add_argument("--min-separation", type=float, default=3.0, metavar="M",
+                   help="hold when another agent is closer than this (default 3)")
+    f.add_argument("--turn-radius", type=float, default=25.0, metavar="M",
+                   help="corner radius of a leader's route (default 25)")
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
     return p
 
@@ -116,10 +132,27 @@ def main(argv: list[str] | None = None) -> int:
         except (BrokenPipeError, ValueError):  # stdout gone: keep running quietly
             pass
 
+    def on_event(text: str) -> None:
+        with lock:
+            if not gate["ready"]:
+                return
+            try:
+                if a.json:
+                    print_json({"event": "pilot", "name": a.name, "id": a.id, "text": text,
+                                "t": round(time.monotonic() - t0, 3)})
+                else:
+                    print(f"agent {a.name}: {text}", flush=True)
+            except (BrokenPipeError, ValueError):
+                pass
+
     try:
+        pilot = PilotConfig(speed_mps=a.speed, turn_radius_m=a.turn_radius,
+                            formation=FormationConfig(back_m=a.back, side_m=a.side, stagger_m=a.stagger,
+                                                      min_separation_m=a.min_separation))
         agent = Agent(a.name, a.id, radio=a.radio, zenoh_listen=a.zenoh_listen,
                       zenoh_connect=a.zenoh_connect, fc=a.fc, profile=a.profile, round_s=a.round_s,
-                      key_file=a.key, vote=a.vote, pose_hz=a.pose_hz, on_state=on_state)
+                      key_file=a.key, vote=a.vote, pose_hz=a.pose_hz, pilot=pilot, on_state=on_state,
+                      on_event=on_event)
     except (MessageError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -198,7 +198,9 @@ def test_goto_from_the_page_moves_the_agent_on_the_map(bench: Bench, page: Any) 
     page.fill("#takeoff-alt", "10")
     page.click('#commands [data-kind="takeoff"]')
     poll(lambda: accepted("takeoff"), "takeoff accepted", MOVE_DEADLINE, bench.children)
-    poll(lambda: "airborne" in field(page, "alt"), "agent1 airborne", MOVE_DEADLINE, bench.children)
+    # take-off done: the agent holds its position under setpoint control (PX4 OFFBOARD)
+    poll(lambda: "airborne" in field(page, "alt") and field(page, "mode") == "OFFBOARD",
+         "agent1 airborne in OFFBOARD", MOVE_DEADLINE, bench.children)
 
     # click on the map 80 px north of the agent: the go-to fields fill in
     start = gcs(page, "markerLatLng(1)")

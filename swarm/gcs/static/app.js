@@ -490,11 +490,13 @@
     for (const x of results) {
       const res = String(x.result || "");
       const good = /^(ok|accepted|done|sent|in_progress|success)$/i.test(res);
-      const line = what + ": " + agentName(x.agent) + " " + res + (x.reason ? ": " + x.reason : "");
-      log(good ? "result" : "refused", line, good ? "result" : "refused");
-      if (!good) bad.push(agentName(x.agent) + " " + res + (x.reason ? ": " + x.reason : ""));
+      // the station logs every answer as an event; the page adds the refusals in red
+      if (!good) {
+        log("refused", what + ": " + agentName(x.agent) + " " + res + (x.reason ? ": " + x.reason : ""), "refused");
+        bad.push(agentName(x.agent) + " " + res + (x.reason ? ": " + x.reason : ""));
+      }
     }
-    if (!results.length) log("result", what + ": " + (r.ok === false ? "not done" : "sent"), r.ok === false ? "refused" : "result");
+    if (!results.length && r.ok === false) log("refused", what + ": not done", "refused");
     if (bad.length) status(what + ": refused: " + bad.join("; "), false);
     else if (r.ok === false) status(what + ": not done", false);
     else status(what + ": accepted", true);

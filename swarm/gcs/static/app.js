@@ -156,7 +156,14 @@
     li.dataset.agentId = String(a.id);
     li.innerHTML = '<span class="dot"></span><span class="name"></span><span class="lead" hidden>L</span>' +
       '<span class="badge"></span>';
+    li.tabIndex = 0;
     li.addEventListener("click", () => select(a.id, true));
+    li.addEventListener("keydown", (ev) => {
+      if (ev.key === "Enter" || ev.key === " ") {
+        ev.preventDefault();
+        select(a.id, true);
+      }
+    });
     rec.row = li;
     S.agents.set(a.id, rec);
     return rec;
@@ -527,6 +534,7 @@
       placeTarget(lat, lon);
       command({ target: S.selected, kind: "goto", lat, lon, alt });
     });
+    $("#fit-swarm").addEventListener("click", fitToAgents);
     $("#goto-alt").addEventListener("input", () => { S.altTyped = true; });
     for (const input of [$("#goto-lat"), $("#goto-lon")]) {
       input.addEventListener("change", () => {

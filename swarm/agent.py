@@ -405,6 +405,7 @@ class Agent:
             sender = self._ids.get(item.name)
             if sender is not None:
                 self.pilot.on_pose(sender, item.pose, now)
+                core.note_pose(sender, item.pose)
                 self.stats["poses_heard"] += 1
             return []
         if isinstance(item, _CallDone):

@@ -63,6 +63,9 @@ class FlightScenario:
     tail_s: float = 10.0
     duration: float = 240.0
     turn_margin_s: float = 8.0
+    #: ("leader", "member" (the lowest id that is not the leader) or an agent id, seconds after
+    #: the follow command)
+    crash: tuple[str, float] | None = None
     pilot: PilotConfig = field(default_factory=PilotConfig)
 
 
@@ -112,6 +115,8 @@ class FlightSim(Sim):
         self.leader = 0
         self.elect_s: float | None = None
         self.busy_at_follow = 0.0
+        self.crashed_at: float | None = None
+        self.crashed = 0
 
     # -- poses --------------------------------------------------------------------
     def pose_of(self, i: int, t: float) -> Pose:
@@ -148,6 +153,7 @@ class FlightSim(Sim):
             if kind == Kind.POSE:
                 if isinstance(msg, PoseReport):
                     self.pilots[i].on_pose(f.sysid, msg.pose, t)
+                    self.cores[i].note_pose(f.sysid, msg.pose)
                 continue
             c = self.cores[i]
             before = c.last_hb
@@ -177,10 +183,14 @@ class FlightSim(Sim):
             self.pilots[i].set_own(self.pose_of(i, 0.0), True)
             self.pilots[i]._hold("hovering")
         while t <= end:
+            self._maybe_crash(t)
             self.air.advance(t)
             for i in range(n):
-                self._receive(i, t)
+                if self.alive[i]:
+                    self._receive(i, t)
             for i in range(n):
+                if not self.alive[i]:
+                    continue
                 if self._due[i] <= t + 1e-9:
                     c = self.cores[i]
                     self._send(i, c.tick(t), t)
@@ -217,8 +227,29 @@ class FlightSim(Sim):
             t = round(t + DT, 6)
         return self._result(t)
 
+    def _maybe_crash(self, t: float) -> None:
+        c = self.fs.crash
+        if c is None or self.follow_at is None or t < self.follow_at + c[1] or self.crashed_at is not None:
+            return
+        if c[0] == "leader":
+            victim = self.leader
+        elif c[0] == "member":
+            victim = min(k for k in range(1, self.fs.agents + 1) if k != self.leader)
+        else:
+            victim = int(c[0])
+        self.alive[victim - 1] = False
+        self.dead_at[victim] = t
+        self.crashed_at = t
+        self.crashed = victim
+
     def _pilots(self, t: float) -> None:
+        if self.crashed_at is not None and not self.alive[self.leader - 1]:
+            ok, lead = self._agreement()
+            if ok and lead:
+                self.leader = lead  # the survivors' new leader carries on
         for i, p in enumerate(self.pilots):
+            if not self.alive[i]:
+                continue
             pose = self.pose_of(i, t)
             p.set_own(pose, True)
             role = self._role(i)
@@ -269,11 +300,11 @@ class FlightSim(Sim):
 
     def _sample(self, t: float) -> None:
         lead = self.cores[self.leader - 1]
-        if lead.phase != Phase.LEADER or lead.task.kind != TaskKind.FOLLOW:
+        if not self.alive[self.leader - 1] or lead.phase != Phase.LEADER or lead.task.kind != TaskKind.FOLLOW:
             return
         task = lead.task
         self.heading_log.append((t, task.heading))
-        poses = {i + 1: self.pose_of(i, t) for i in range(self.fs.agents)}
+        poses = {i + 1: self.pose_of(i, t) for i in range(self.fs.agents) if self.alive[i]}
         for a in task.assignments:
             if a.member in poses and a.follows in poses:
                 err = slot_error(poses[a.member], poses[a.follows], task.heading, a.side, task.back_m,

@@ -42,7 +42,9 @@ Rules (each stated once, here):
 * **Stale pose**: a followed pose older than ``stale_s`` (or none yet): hold.
 * **Separation**: in GOTO or FOLLOW, an agent closer than ``min_separation_m``:
   hold, report it, resume when beyond the minimum plus ``separation_clear_m``. Both
-  agents see the same distance, so both hold. An individual GOTO or STOP from the
+  agents see the same distance, so both hold; a setpoint that leads away from
+  every agent too close is still flown (so that two holding agents cannot lock
+  each other for ever while re-forming). An individual GOTO or STOP from the
   operator clears it (the operator is resolving it) and that agent is not checked
   again until it has been clear once or 10 s passed.
 * **Stop**: an individual STOP holds this agent; the swarm STOP makes the leader
@@ -148,6 +150,7 @@ class Pilot:
     too_close: dict[int, float] = field(default_factory=dict)  # agent -> distance, while holding for it
     last_setpoint: Setpoint | None = None
     stale_hold: Setpoint | None = None  # holding in FOLLOW: the followed pose is stale
+    sep_hold: Setpoint | None = None  # holding: another agent too close
     _heard: dict[int, _Heard] = field(default_factory=dict)
     _ages: AgeEstimator = field(default_factory=AgeEstimator)
     _route: Route | None = None
@@ -197,6 +200,7 @@ class Pilot:
         if call.kind == "takeoff" and self.mode == Mode.TAKEOFF:
             self.airborne = True
             self._hold("took off")
+            self.events.append("took off: holding")
 
     # -- commands -------------------------------------------------------------------
     def command(self, cmd: Command, role: Role, now: float) -> tuple[AckResult, str, list[Call]]:
@@ -389,6 +393,7 @@ class Pilot:
             if math.hypot(p.n - here_n, p.e - here_e) < self.cfg.arrive_m:
                 self.last_setpoint = end
                 self._hold("arrived")
+                self.events.append("arrived: holding")
             return end
         return Setpoint(lat, lon, self._route_alt, p.heading_deg, v * math.cos(h), v * math.sin(h))
 
@@ -421,10 +426,14 @@ class Pilot:
                              self.task.back_m, self.task.side_m, rate)
 
     def _separation(self, now: float, sp: Setpoint) -> Setpoint | None:
+        """Hold while another agent is too close, except for a setpoint that takes us
+        away from every agent too close (so two holding agents cannot lock each other
+        for ever: whichever is going away from the other goes on)."""
         if self.own is None or not self.airborne:
             return sp
         f = self.cfg.formation
         close: dict[int, float] = {}
+        near: list[Pose] = []
         for a, h in self._heard.items():
             if h.age_at(now) > f.stale_s:
                 continue
@@ -437,14 +446,22 @@ class Pilot:
             limit = f.min_separation_m + (f.separation_clear_m if a in self.too_close else 0.0)
             if d < limit:
                 close[a] = round(d, 1)
+                near.append(h.pose)
         if close and not self.too_close:
             self.events.append("holding: too close to " + ", ".join(
                 f"agent {a} ({d:.1f} m)" for a, d in sorted(close.items())))
-            self.hold_at = Setpoint(self.own.lat, self.own.lon, self.own.alt, self._yaw())
+            self.sep_hold = Setpoint(self.own.lat, self.own.lon, self.own.alt, self._yaw())
         elif not close and self.too_close:
             self.events.append("separation restored: resuming")
         self.too_close = close
-        return self.hold_at if close else sp
+        if not close:
+            return sp
+        gn, ge = ne_between(self.own.lat, self.own.lon, sp.lat, sp.lon)
+        if math.hypot(gn, ge) > 0.5 and all(
+                gn * -dn + ge * -de > 0 for dn, de in (ne_between(self.own.lat, self.own.lon, q.lat, q.lon)
+                                                        for q in near)):
+            return sp  # moving away from all of them
+        return self.sep_hold
 
     # -- reporting -----------------------------------------------------------------------
     @property

@@ -311,6 +311,12 @@ class Core:
     def set_pose(self, pose: Pose) -> None:
         self.pose = pose
 
+    def note_pose(self, agent: int, pose: Pose) -> None:
+        """A pose heard on an agent's pose stream: the formation's assignments use the
+        freshest positions (a new leader has no HeartbeatAck yet)."""
+        if agent != self.me:
+            self.poses[agent] = pose
+
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""
         self.task = task

@@ -2,13 +2,16 @@
 
 Theory of operation
 -------------------
-One capture file, three modes (each its own function below; only one runs):
+One capture file, four modes (each its own function below; only one runs):
 
 * dump (default): one line per frame, MAVProxy-like text or, with ``--json``, one
   JSON object per line (:func:`radios.replay.decode_record`);
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
   object;
+* ``--plot FILE.png``: the formation: every agent's track from its pose stream,
+  the leader marked, the slots, and the slot-error metrics
+  (:mod:`swarm.tracks`; matplotlib is imported only here);
 * ``--to URL``: the frames are written to a link opened with
   :func:`radios.link.open_link` (a radio, an emulator pty, ``loop://``...) at the
   recorded pace scaled by ``--speed`` with silences capped at ``--max-gap``
@@ -65,6 +68,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="JSON lines / one JSON object")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--stats", action="store_true", help="print statistics, not frames")
+    mode.add_argument("--plot", metavar="PNG",
+                      help="draw the agents' tracks, the leader and the formation slots to PNG "
+                           "and print the formation metrics")
     mode.add_argument(
         "--to", metavar="URL", help="re-feed the frames to this link or port at the recorded pace"
     )
@@ -99,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
             return _feed(reader, args)
         if args.stats:
             return _stats(reader, args.file, as_json=args.json)
+        if args.plot is not None:
+            return _plot(args.file, args.plot, as_json=args.json)
         return _dump(reader, as_json=args.json)
     except BrokenPipeError:  # e.g. `swarm replay x.tlog | head`
         _silence_stdout()
@@ -249,13 +257,38 @@ def _print_summary(st: PlayStats, args: argparse.Namespace, speed: float, max_ga
     print(text, flush=True)
 
 
-# -- plots (reserved) ------------------------------------------------------------
-#
-# Future `--plot FILE.png` (DESIGN.md section 3: replay "computes statistics and
-# plots"). It belongs here as a fourth mode: add the flag to the `mode` group in
-# _build_parser, dispatch to a `_plot(reader, path, out)` from main, feed it with
-# CaptureStats plus per-second bytes per sysid, and import matplotlib lazily inside
-# it so the other modes never pay for (or depend on) it.
+# -- plot ---------------------------------------------------------------------
+
+def _plot(path: str, out: str, *, as_json: bool) -> int:
+    """Tracks, leader, slots (swarm.tracks.plot) and the formation metrics."""
+    from swarm.tracks import analyse, plot
+
+    parent = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(parent):
+        raise UsageError(f"--plot {out}: no such directory {parent}")
+    an = analyse(path)
+    try:
+        plot(an, out)
+    except ValueError as exc:
+        print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except OSError as exc:
+        raise UsageError(f"--plot {out}: {exc.strerror or exc}") from None
+    s = an.summary()
+    s["plot"] = out
+    if as_json:
+        print(json.dumps(s))
+    else:
+        print(f"plot: {out}")
+        print(f"leader: agent {s['leader']}; agents {', '.join(map(str, s['agents']))}")
+        print(f"slot error on straight legs: RMS {s['formation_rms_m']} m, max {s['formation_max_m']} m; "
+              f"in turns: max {s['turn_max_m']} m ({s['samples']} samples)")
+        for m, d in s["per_member"].items():
+            print(f"  agent {m}: RMS {d['rms_m']} m, max {d['max_m']} m")
+    if an.damaged:
+        print(f"{PROG}: error: {an.damaged}", file=sys.stderr)
+        return EXIT_FAILURE
+    return 0
 
 
 if __name__ == "__main__":  # pragma: no cover

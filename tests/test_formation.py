@@ -1,0 +1,252 @@
+"""V-formation geometry, the pilot's rules, and whole flights in virtual time (protocol
+cores, pilots and PX4-like dynamics over the air model): the V forms and holds
+through a route; it re-forms after a member is lost and after the leader is lost."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from swarm.flightsim import FlightScenario, FlightSim
+from swarm.formation import (
+    AgeEstimator,
+    FormationConfig,
+    Route,
+    arms,
+    assign,
+    chain_position,
+    follow_target,
+    ne_between,
+    offset,
+    reconcile,
+    slot_error,
+    slot_offset,
+)
+from swarm.messages import AckResult, Assignment, Command, CommandKind, Phase, Pose, Side, Task, TaskKind
+from swarm.pilot import Mode, Pilot, PilotConfig, Role
+
+HOME = Pose(47.397742, 8.545594, 508.0)
+
+
+def at(n: float, e: float, *, alt: float = 508.0, vn: float = 0.0, ve: float = 0.0, t: float = 0.0) -> Pose:
+    lat, lon = offset(HOME.lat, HOME.lon, n, e)
+    return Pose(lat, lon, alt, 0.0, vn, ve, t % 2.56)
+
+
+# -- geometry -------------------------------------------------------------------------
+
+def test_slot_offsets_are_behind_and_to_the_side() -> None:
+    assert slot_offset(0.0, Side.RIGHT, 10, 5) == pytest.approx((-10.0, 5.0))
+    assert slot_offset(0.0, Side.LEFT, 10, 5) == pytest.approx((-10.0, -5.0))
+    # facing east: behind is west, left is north
+    assert slot_offset(90.0, Side.LEFT, 10, 5) == pytest.approx((5.0, -10.0))
+    assert slot_offset(180.0, Side.RIGHT, 10, 5) == pytest.approx((10.0, -5.0))
+
+
+@pytest.mark.parametrize("n", range(2, 11))
+def test_assignments_make_two_balanced_chains(n: int) -> None:
+    leader = 7
+    members = [m for m in range(1, n + 1) if m != leader] if n >= 7 else list(range(1, n))
+    if leader not in range(1, n + 1):
+        leader = n
+        members = list(range(1, n))
+    a = assign(leader, members, 0.0)
+    assert sorted(x.member for x in a) == sorted(members)  # everyone once, never the leader
+    chains = arms(a, leader)
+    left, right = chains[Side.LEFT], chains[Side.RIGHT]
+    assert abs(len(left) - len(right)) <= 1 and len(right) >= len(left)
+    for chain, side in ((left, Side.LEFT), (right, Side.RIGHT)):
+        prev = leader
+        for m in chain:
+            x = next(y for y in a if y.member == m)
+            assert x.follows == prev and x.side == side
+            prev = m
+    task = Task(TaskKind.FOLLOW, 0.0, 10, 5, a)
+    assert max(chain_position(task, m) for m in members) == math.ceil(len(members) / 2)
+
+
+def test_assignment_follows_where_members_are() -> None:
+    # leader at the origin heading north; 2 and 4 are west of it, 3 and 5 east; 4 and 5 further back
+    poses = {2: at(-5, -8), 4: at(-20, -15), 3: at(-5, 8), 5: at(-20, 15)}
+    a = assign(1, poses, 0.0, poses, at(0, 0))
+    chains = arms(a, 1)
+    assert chains[Side.LEFT] == [2, 4] and chains[Side.RIGHT] == [3, 5]
+    # facing south, the same agents are on the other sides
+    b = arms(assign(1, poses, 180.0, poses, at(0, 0)), 1)
+    assert set(b[Side.LEFT]) == {3, 5} and set(b[Side.RIGHT]) == {2, 4}
+
+
+def test_reconcile_closes_the_chain_adds_newcomers_and_reassigns_for_a_new_leader() -> None:
+    task = Task(TaskKind.FOLLOW, 0.0, 10, 5, assign(1, [2, 3, 4, 5, 6], 0.0))
+    right = arms(task.assignments, 1)[Side.RIGHT]  # [2, 4, 6]
+    gone = right[1]
+    t2 = reconcile(task, 1, {2, 3, 4, 5, 6} - {gone})
+    a = {x.member: x for x in t2.assignments}
+    assert gone not in a and a[right[2]].follows == right[0]  # the chain closed up
+    assert reconcile(t2, 1, {2, 3, 4, 5, 6} - {gone}) is t2  # nothing changed: same task
+    t3 = reconcile(t2, 1, {2, 3, 4, 5, 6, 9} - {gone})
+    assert arms(t3.assignments, 1)[Side.RIGHT][-1] == 9  # the shorter arm got the newcomer
+    t4 = reconcile(t3, 5, {1, 2, 3, 4, 6, 9} - {gone})  # agent 5 leads now
+    heads = {x.follows for x in t4.assignments} - {x.member for x in t4.assignments}
+    assert heads == {5} and 5 not in {x.member for x in t4.assignments}
+    assert reconcile(Task(TaskKind.HOLD), 1, {2}) == Task(TaskKind.HOLD)
+
+
+def test_route_rounds_the_corner_and_is_continuous() -> None:
+    r = Route([(0, 0), (100, 0), (100, 100)], turn_radius_m=20)
+    assert r.length == pytest.approx(200 - 2 * 20 + 20 * math.pi / 2, abs=1e-6)
+    prev = r.at(0)
+    assert prev.heading_deg == pytest.approx(0.0)
+    s = 0.0
+    while s < r.length:
+        s += 0.5
+        p = r.at(s)
+        assert math.hypot(p.n - prev.n, p.e - prev.e) <= 0.5 + 1e-6
+        prev = p
+    assert (prev.n, prev.e) == pytest.approx((100, 100)) and prev.heading_deg == pytest.approx(90.0)
+    mid = r.at(80 + 5 * math.pi)  # half-way round the corner (a quarter circle of 20 m)
+    assert mid.heading_deg == pytest.approx(45.0, abs=0.01)
+    with pytest.raises(ValueError):
+        Route([(0, 0), (0, 0)])
+
+
+def test_follow_law_predicts_and_feeds_forward() -> None:
+    cfg = FormationConfig()
+    lead = at(0, 0, vn=5.0)
+    sp = follow_target(lead, 0.4, 0.0, Side.RIGHT, cfg)
+    n, e = ne_between(HOME.lat, HOME.lon, sp.lat, sp.lon)
+    assert (n, e) == pytest.approx((-10.0 + 2.0, 5.0), abs=0.01)  # 0.4 s at 5 m/s
+    assert (sp.vn, sp.ve) == (5.0, 0.0) and sp.yaw_deg == 0.0
+    # turning right at 10 deg/s: a right-side slot behind swings west-to-north... its velocity
+    turning = follow_target(at(0, 0), 0.0, 0.0, Side.RIGHT, cfg, turn_rate_dps=10.0)
+    w = math.radians(10.0)
+    assert (turning.vn, turning.ve) == pytest.approx((-w * 5.0, w * -10.0))
+    assert slot_error(at(-10, 5), at(0, 0), 0.0, Side.RIGHT, 10, 5) == pytest.approx(0.0, abs=1e-6)
+    assert slot_error(at(-10, 8), at(0, 0), 0.0, Side.RIGHT, 10, 5) == pytest.approx(3.0, abs=1e-3)
+
+
+def test_pose_age_from_wrapped_sample_times() -> None:
+    est = AgeEstimator()
+    clock_offset = 1000.37  # the sender's clock is far from ours
+    for k, delay in enumerate([0.05, 0.30, 0.05, 0.55, 0.12]):
+        sample = 10.0 + k * 0.25
+        age = est.age(4, (sample + clock_offset) % 2.56, sample + delay)
+        assert age == pytest.approx(delay - 0.05 if k else 0.0, abs=1e-6)
+
+
+# -- the pilot's rules -----------------------------------------------------------------
+
+def flying(me: int, n: float = 0.0, e: float = 0.0) -> Pilot:
+    p = Pilot(me, PilotConfig())
+    p.set_own(at(n, e, alt=528.0), True)
+    p._hold("test")
+    return p
+
+
+def test_follow_is_refused_without_a_leader_by_a_member_and_with_a_bad_heading() -> None:
+    p = flying(2)
+    cmd = Command(255, 1, 0, CommandKind.FOLLOW, heading=90.0)
+    assert p.command(cmd, Role(Phase.IDLE), 0.0)[:2] == (AckResult.NO_LEADER, "no leader elected yet")
+    res, why, _ = p.command(cmd, Role(Phase.MEMBER, leader=1), 0.0)
+    assert res == AckResult.REJECTED and "agent 1" in why
+    lead = flying(1)
+    bad = Command(255, 2, 0, CommandKind.FOLLOW, heading=400.0)
+    assert lead.command(bad, Role(Phase.LEADER, 1, frozenset({2})), 0.0)[0] == AckResult.BAD_ARGUMENT
+    res, _, _ = lead.command(cmd, Role(Phase.LEADER, 1, frozenset({2, 3})), 0.0)
+    assert res == AckResult.ACCEPTED and lead.task.kind == TaskKind.FOLLOW and lead.task.heading == 90.0
+    assert {a.member for a in lead.task.assignments} == {2, 3}
+    on_ground = Pilot(3)
+    assert on_ground.command(Command(255, 3, 3, CommandKind.GOTO, 47.4, 8.5, 520.0),
+                             Role(Phase.MEMBER, 1), 0.0)[0] == AckResult.REJECTED
+    assert on_ground.command(Command(255, 4, 3, CommandKind.TAKEOFF, alt=500.0),
+                             Role(Phase.MEMBER, 1), 0.0)[0] == AckResult.BAD_ARGUMENT
+
+
+def member_following(me: int = 2) -> Pilot:
+    p = flying(me, -10, 5)
+    task = Task(TaskKind.FOLLOW, 0.0, 10, 5, (Assignment(me, 1, Side.RIGHT),), gen=1)
+    p.on_task(task, 0.0)
+    p.on_pose(1, at(0, 0, alt=528.0, t=0.0), 0.0)
+    return p
+
+
+def test_member_follows_then_holds_on_a_stale_pose_and_resumes() -> None:
+    p = member_following()
+    role = Role(Phase.MEMBER, 1)
+    sp, _ = p.step(0.1, role)
+    assert p.mode == Mode.FOLLOW and sp is not None
+    assert ne_between(HOME.lat, HOME.lon, sp.lat, sp.lon) == pytest.approx((-10.0, 5.0), abs=0.05)
+    p.set_own(at(-9, 5, alt=528.0), True)
+    sp, _ = p.step(2.5, role)  # the leader's pose is 2.5 s old
+    assert p.holding and "no fresh pose of agent 1" in " ".join(p.take_events())
+    assert sp is not None
+    assert ne_between(HOME.lat, HOME.lon, sp.lat, sp.lon) == pytest.approx((-9, 5), abs=0.05)
+    p.on_pose(1, at(3, 0, alt=528.0, t=2.6), 2.6)
+    sp, _ = p.step(2.7, role)
+    assert not p.holding and sp is not None
+    assert ne_between(HOME.lat, HOME.lon, sp.lat, sp.lon) == pytest.approx((-7.0, 5.0), abs=0.05)
+
+
+def test_too_close_agents_both_hold_and_report_it() -> None:
+    a, b = member_following(2), member_following(3)
+    a.set_own(at(-10, 5, alt=528.0), True)
+    b.set_own(at(-10, 6.5, alt=528.0), True)  # 1.5 m apart
+    a.on_pose(3, b.own, 0.0)  # type: ignore[arg-type]
+    b.on_pose(2, a.own, 0.0)  # type: ignore[arg-type]
+    for p in (a, b):
+        p.step(0.1, Role(Phase.MEMBER, 1))
+        assert p.holding and p.too_close
+        assert any("too close" in e for e in p.take_events())
+    # an individual stop from the operator clears it (the operator is resolving it)
+    stop = Command(255, 9, 2, CommandKind.STOP)
+    assert a.command(stop, Role(Phase.MEMBER, 1), 0.2)[0] == AckResult.ACCEPTED
+    assert not a.too_close and a.mode == Mode.HOLD
+
+
+def test_swarm_stop_holds_everyone_and_a_new_follow_brings_members_back() -> None:
+    lead = flying(1)
+    role = Role(Phase.LEADER, 1, frozenset({2}))
+    lead.command(Command(255, 1, 0, CommandKind.FOLLOW, heading=0.0), role, 0.0)
+    m = member_following()
+    m.on_task(lead.task, 0.5)
+    m.step(0.6, Role(Phase.MEMBER, 1))
+    assert m.mode == Mode.FOLLOW
+    assert lead.command(Command(255, 2, 0, CommandKind.STOP), role, 1.0)[0] == AckResult.ACCEPTED
+    assert lead.task.kind == TaskKind.HOLD and lead.mode == Mode.HOLD
+    m.on_task(lead.task, 1.5)
+    m.step(1.6, Role(Phase.MEMBER, 1))
+    assert m.mode == Mode.HOLD and m.hold_reason == "swarm stop"
+    lead.command(Command(255, 3, 0, CommandKind.FOLLOW, heading=0.0), role, 2.0)
+    m.on_task(lead.task, 2.5)
+    m.step(2.6, Role(Phase.MEMBER, 1))
+    assert m.mode == Mode.FOLLOW
+
+
+# -- flights in virtual time -------------------------------------------------------------
+
+def test_five_agents_form_a_v_and_hold_it_through_the_route() -> None:
+    sim = FlightSim(FlightScenario(agents=5, loss=0.1, pose_hz=4.0, leg_m=100.0), seed=11)
+    r = sim.run_flight()
+    assert r.ok, r.why
+    assert r.rms_straight_m is not None and r.rms_straight_m < 1.5
+    assert r.max_turn_m is not None and r.max_turn_m < 8.0
+    assert len(r.per_member) == 4 and 0.0 < r.air_utilisation < 1.0
+
+
+@pytest.mark.parametrize("victim", ["member", "leader"])
+def test_the_v_re_forms_after_losing_a_member_or_the_leader(victim: str) -> None:
+    fs = FlightScenario(agents=5, loss=0.1, pose_hz=4.0, leg_m=80.0, crash=(victim, 6.0), settle_s=25.0)
+    sim = FlightSim(fs, seed=5)
+    r = sim.run_flight()
+    assert r.ok, r.why
+    dead = sim.crashed
+    lead = sim.cores[sim.leader - 1]
+    assert sim.alive[sim.leader - 1] and lead.phase == Phase.LEADER and sim.leader != dead
+    members = {a.member for a in lead.task.assignments}
+    assert members == {k for k in range(1, 6) if k not in (dead, sim.leader)}
+    heads = {a.follows for a in lead.task.assignments} - members
+    assert heads == {sim.leader}
+    # every survivor ends the flight in its slot
+    tail = [e for t, _m, e, _h in sim.samples if t > r.end_s - 3.0]
+    assert tail and max(tail) < 2.0

@@ -21,6 +21,7 @@
   const COMMAND_TIMEOUT_MS = 20000;
   const POLL_MS = 1000;
   const LOG_MAX = 300;
+  const TRAIL_POINTS = 40;  // a short trail: the newest points the station sends
   const ARROW = '<svg class="arrow" viewBox="-16 -16 32 32" aria-hidden="true">' +
     '<path d="M0,-13 L9,11 L0,6 L-9,11 Z"/></svg><span class="tag"></span>';
 
@@ -151,7 +152,7 @@
   }
 
   function makeAgent(a) {
-    const rec = { data: a, marker: null, el: null, arrow: null, tag: null, trail: null, row: null };
+    const rec = { data: a, marker: null, el: null, arrow: null, tag: null, trail: null, row: null, view: {} };
     const li = document.createElement("li");
     li.dataset.agentId = String(a.id);
     li.innerHTML = '<span class="dot"></span><span class="name"></span><span class="lead" hidden>L</span>' +
@@ -165,6 +166,9 @@
       }
     });
     rec.row = li;
+    rec.rowName = li.querySelector(".name");
+    rec.rowLead = li.querySelector(".lead");
+    rec.rowBadge = li.querySelector(".badge");
     S.agents.set(a.id, rec);
     return rec;
   }
@@ -183,6 +187,7 @@
     rec.el.dataset.agentId = String(a.id);
     rec.arrow = rec.el.querySelector(".arrow");
     rec.tag = rec.el.querySelector(".tag");
+    rec.view = {};  // draw everything on the new marker
   }
   function dropAgent(id) {
     const rec = S.agents.get(id);
@@ -246,36 +251,60 @@
     drawTelemetry();
   }
 
+  // Each agent's last drawn values: only what changed touches the DOM or the map
+  // (50 agents at 2-5 snapshots a second stay well inside a frame).
   function drawAgent(rec, isLeader) {
     const a = rec.data;
     const off = !a.connected;
+    const selected = S.selected === a.id;
+    const v = rec.view;
     if (hasPosition(a)) {
       ensureMarker(rec);
-      rec.marker.setLatLng([a.lat, a.lon]);
-      const h = Number(a.heading) || 0;
-      rec.arrow.style.transform = "rotate(" + h.toFixed(1) + "deg)";
-      setText(rec.tag, (isLeader ? "L " : "") + a.name);
-      rec.el.classList.toggle("leader", isLeader);
-      rec.el.classList.toggle("disconnected", off);
-      rec.el.classList.toggle("selected", S.selected === a.id);
-      rec.el.dataset.leader = isLeader ? "1" : "0";
-      rec.el.dataset.connected = off ? "0" : "1";
-      rec.el.dataset.heading = h.toFixed(1);
-      if (isLeader) rec.marker.setZIndexOffset(500);
-      else rec.marker.setZIndexOffset(0);
-      const trail = Array.isArray(a.trail) ? a.trail : [];
-      rec.trail.setLatLngs(trail);
-      rec.trail.setStyle({ color: off ? "#7d858c" : (isLeader ? "#ffb400" : "#2b8cff") });
+      if (a.lat !== v.lat || a.lon !== v.lon) {
+        rec.marker.setLatLng([a.lat, a.lon]);
+        v.lat = a.lat;
+        v.lon = a.lon;
+      }
+      const h = (Number(a.heading) || 0).toFixed(1);
+      if (h !== v.heading) {
+        rec.arrow.style.transform = "rotate(" + h + "deg)";
+        rec.el.dataset.heading = h;
+        v.heading = h;
+      }
+      if (isLeader !== v.leader || off !== v.off || selected !== v.selected || a.name !== v.name) {
+        setText(rec.tag, (isLeader ? "L " : "") + a.name);
+        rec.el.classList.toggle("leader", isLeader);
+        rec.el.classList.toggle("disconnected", off);
+        rec.el.classList.toggle("selected", selected);
+        rec.el.dataset.leader = isLeader ? "1" : "0";
+        rec.el.dataset.connected = off ? "0" : "1";
+        rec.marker.setZIndexOffset(isLeader ? 500 : 0);
+        rec.trail.setStyle({ color: off ? "#7d858c" : (isLeader ? "#ffb400" : "#2b8cff") });
+      }
+      const trail = Array.isArray(a.trail) ? a.trail.slice(-TRAIL_POINTS) : [];
+      const last = trail.length ? trail[trail.length - 1] : null;
+      const key = trail.length + (last ? ":" + last[0] + "," + last[1] + ":" + trail[0][0] + "," + trail[0][1] : "");
+      if (key !== v.trail) {
+        rec.trail.setLatLngs(trail);
+        v.trail = key;
+      }
     }
-    const row = rec.row;
-    row.classList.toggle("disconnected", off);
-    row.classList.toggle("leader", isLeader);
-    row.classList.toggle("selected", S.selected === a.id);
-    row.dataset.connected = off ? "0" : "1";
-    setText(row.querySelector(".name"), a.name + " (" + a.id + ")");
-    row.querySelector(".lead").hidden = !isLeader;
-    setText(row.querySelector(".badge"), off ? "disconnected" : String(a.phase || "").toLowerCase());
+    if (isLeader !== v.leader || off !== v.off || selected !== v.selected || a.name !== v.name) {
+      const row = rec.row;
+      row.classList.toggle("disconnected", off);
+      row.classList.toggle("leader", isLeader);
+      row.classList.toggle("selected", selected);
+      row.dataset.connected = off ? "0" : "1";
+      setText(rec.rowName, a.name + " (" + a.id + ")");
+      rec.rowLead.hidden = !isLeader;
+    }
+    setText(rec.rowBadge, off ? "disconnected" : String(a.phase || "").toLowerCase());
+    v.leader = isLeader;
+    v.off = off;
+    v.selected = selected;
+    v.name = a.name;
   }
+
 
   function fitToAgents() {
     const pts = [];

@@ -8,6 +8,7 @@ STAMP := $(VENV)/.installed
 NODE_STAMP := node_modules/.installed
 # Debian's chromium drives the page tests and the page benchmark (headless).
 CHROMIUM_PKGS := chromium fonts-dejavu-core
+CHROMIUM_BIN ?= chromium
 
 .PHONY: setup browser demo test lint clean
 
@@ -27,10 +28,13 @@ $(NODE_STAMP): package.json package-lock.json
 # A headless browser for the page tests: Debian's chromium, installed only when
 # missing (root, or sudo). Elsewhere set CHROMIUM=/path/to/chromium instead.
 browser:
-	@if [ -n "$$CHROMIUM" ] || command -v chromium >/dev/null 2>&1; then exit 0; fi; \
+	@if [ -n "$$CHROMIUM" ] || command -v $(CHROMIUM_BIN) >/dev/null 2>&1; then exit 0; fi; \
 	if ! command -v apt-get >/dev/null 2>&1; then \
 	  echo "setup: no chromium and no apt-get: the page tests will skip (set CHROMIUM=/path/to/chromium)" >&2; exit 0; fi; \
-	SUDO=; if [ "$$(id -u)" != 0 ]; then SUDO="sudo -n"; fi; \
+	SUDO=; if [ "$$(id -u)" != 0 ]; then \
+	  if sudo -n true 2>/dev/null; then SUDO="sudo -n"; else \
+	    echo "setup: chromium missing and no root or sudo: apt-get install chromium, or the page tests skip" >&2; \
+	    exit 0; fi; fi; \
 	echo "setup: installing Debian's chromium (headless browser for the page tests)"; \
 	log=$$(mktemp); \
 	if ! { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive \

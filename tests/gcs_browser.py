@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from net_helpers import free_port
+from net_helpers import free_port, wait_until
 
 from swarm.bench.gcs_page import BrowserError, find_browser, launch_browser
 from swarm.procs import Child
@@ -121,18 +121,15 @@ __all__ = ["browser", "distance_m", "free_port", "poll", "screenshot", "start_st
 def poll(pred: Callable[[], Any], what: str, timeout: float, children: Sequence[Child] = ()) -> Any:
     """Call ``pred`` until it returns something true; fail after ``timeout`` seconds
     or as soon as one of ``children`` exits (with its last stderr lines)."""
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
+
+    def check() -> Any:
         for c in children:
             if c.proc.poll() is not None:
                 raise AssertionError(f"{c.name} exited with {c.proc.returncode} while waiting for "
                                      f"{what}: {' | '.join(c.errors[-5:])}")
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.2)
+        return pred()
+
+    return wait_until(check, what, timeout, interval=0.2)
 
 
 def screenshot(page: Any, name: str) -> Path:

@@ -45,7 +45,7 @@ browser:
 setup: $(STAMP) $(NODE_STAMP) browser
 
 demo: setup
-	$(BIN)/python -m swarm.radio_demo
+	$(BIN)/swarm demo
 
 test: setup
 	$(BIN)/ruff check radios firmware_bridge swarm tests

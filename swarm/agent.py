@@ -90,6 +90,7 @@ from swarm.messages import (
     Telemetry,
     check_id,
     check_name,
+    fit_reason,
 )
 from swarm.pilot import Call, Mode, Pilot, PilotConfig, Role
 from swarm.protocol import (
@@ -487,7 +488,7 @@ class Agent:
             result, why, calls = self.pilot.command(cmd, self._role(core), now)
         if result == AckResult.ACCEPTED and cmd.target == 0 and core.phase == Phase.LEADER:
             core.set_task(self.pilot.task)  # FOLLOW or HOLD rides on the next heartbeats
-        ack = CommandAck(self.id, cmd.seq, result, why[:100])
+        ack = CommandAck(self.id, cmd.seq, result, fit_reason(why))
         self.commands.record(cmd.sender, cmd.seq, ack)
         self._reply(cmd.sender, ack)
         self._event(f"command {cmd.kind.name} from {cmd.sender}: {result.name}"

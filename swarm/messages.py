@@ -51,6 +51,12 @@ def pool_digest(members: Iterable[int]) -> int:
     return int(_crc32(bytes(sorted(set(members)))))
 
 
+def fit_reason(text: str) -> str:
+    """``text`` cut to what a CommandAck's reason holds (whole UTF-8 characters)."""
+    raw = text.encode("utf-8")[:REASON_MAX]
+    return raw.decode("utf-8", errors="ignore")
+
+
 def check_name(name: str) -> str:
     """Raise MessageError unless ``name`` is a valid agent name (1-16 of A-Z a-z 0-9 _ -),
     usable as a Zenoh key chunk."""
@@ -428,18 +434,18 @@ def _r_ids(r: _R) -> frozenset[int]:
     return frozenset(ids)
 
 
-def _w_str(w: _W, s: str) -> None:
+def _w_str(w: _W, s: str, limit: int = 32) -> None:
     raw = s.encode("utf-8")
-    if len(raw) > 32:
-        raise MessageError(f"text {s!r} longer than 32 bytes")
+    if len(raw) > limit:
+        raise MessageError(f"text {s!r} longer than {limit} bytes")
     w.u8(len(raw))
     w.b += raw
 
 
-def _r_str(r: _R) -> str:
+def _r_str(r: _R, limit: int = 32) -> str:
     n = r.u8()
-    if n > 32:
-        raise DecodeError(f"text length {n} > 32")
+    if n > limit:
+        raise DecodeError(f"text length {n} > {limit}")
     try:
         return r.take(n).decode("utf-8")
     except UnicodeDecodeError:
@@ -589,7 +595,8 @@ def _id(gcs: bool = False) -> tuple[Callable[[_W, Any], None], Callable[[_R], An
 U8, U16, U32 = _fmt("B"), _fmt("H"), _fmt("I")
 ID, ANY_ID = _id(), _id(gcs=True)
 NAME = ((lambda w, v: _w_str(w, check_name(v))), _r_name)
-TEXT = (_w_str, _r_str)
+REASON_MAX = 96  # a CommandAck's reason, bytes of UTF-8 (the frame holds 128)
+TEXT = ((lambda w, v: _w_str(w, v, REASON_MAX)), (lambda r: _r_str(r, REASON_MAX)))
 IDS = (_w_ids, _r_ids)
 POSE = (_w_pose, _r_pose)
 TASK = (_w_task, _r_task)

@@ -413,3 +413,16 @@ def test_signing_refuses_unsigned_vehicle(fake_factory) -> None:
     fake_factory(port)  # unsigned heartbeats
     with pytest.raises(HeartbeatTimeout):
         drv.connect(f"udpin:127.0.0.1:{port}", timeout=1.0, signing_key=bytes(32 * [7]))
+
+
+def test_setpoint_with_velocity_feed_forward() -> None:
+    t = drv.validate_global(47.397742, 8.545594, 10, 0.0, velocity=(5.0, -1.0, 0.0))
+    got = _roundtrip(drv.setpoint_message(t, time_boot_ms=1, target_system=1, target_component=1))
+    assert got.type_mask == 2496  # position, velocity and yaw used
+    assert (got.vx, got.vy, got.vz) == (5.0, -1.0, 0.0)
+    loc = _roundtrip(drv.setpoint_message(drv.validate_local(1, 2, -3, 0.0, velocity=(0, 1, 0)),
+                                          time_boot_ms=1, target_system=1, target_component=1))
+    assert loc.type_mask == 2496 and loc.vy == 1.0
+    for bad in ((math.nan, 0, 0), (0, 0), (40.0, 0, 0)):
+        with pytest.raises(drv.SetpointError):
+            drv.validate_global(47.0, 8.0, 10, 0.0, velocity=bad)

@@ -169,3 +169,34 @@ def test_real_agent_connects_sends_telemetry_and_drops_a_silent_station(
     n = len(telemetry())
     connect(2)  # the station comes back
     wait_until(lambda: len(telemetry()) > n, "telemetry again after reconnecting", 20)
+
+
+def test_real_agent_answers_commands_with_reasons_once_per_sequence_number(
+        agent_and_station: tuple[Agent, Transport, list[Message]]) -> None:
+    from swarm.messages import Command, CommandKind
+
+    agent, station, got = agent_and_station
+
+    def ask(cmd: Command) -> CommandAck:
+        def answered() -> CommandAck | None:
+            station.gs_advertise(GSAdvertize(255, "gcs"))  # the agent learns whom to answer
+            station.send("agent3", cmd)
+            return next((m for m in list(got) if isinstance(m, CommandAck) and m.seq == cmd.seq), None)
+        ack: CommandAck = wait_until(answered, f"an answer to {cmd.kind.name}", 20, 0.5)
+        return ack
+
+    follow = ask(Command(255, 101, 0, CommandKind.FOLLOW, heading=90.0))
+    # a lone agent leads a swarm of one after its alone timeout; before that there is no leader
+    assert follow.result in (AckResult.NO_LEADER, AckResult.ACCEPTED)
+    if follow.result == AckResult.NO_LEADER:
+        assert follow.reason == "no leader elected yet"
+    wrong = ask(Command(255, 102, 7, CommandKind.LAND))
+    assert wrong.result == AckResult.UNKNOWN_AGENT and "agent 3" in wrong.reason
+    no_fc = ask(Command(255, 103, 3, CommandKind.TAKEOFF, alt=10.0))
+    assert no_fc.result == AckResult.FAILED and "flight controller" in no_fc.reason
+    # the station retries (same sequence number): the same answer, not run again
+    replays = agent.stats["command_replays"]
+    station.send("agent3", Command(255, 103, 3, CommandKind.TAKEOFF, alt=10.0))
+    wait_until(lambda: agent.stats["command_replays"] > replays, "the retry answered from the log", 20)
+    acks = {m for m in list(got) if isinstance(m, CommandAck) and m.seq == 103}
+    assert acks == {no_fc}  # every answer the same

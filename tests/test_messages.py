@@ -199,7 +199,7 @@ def test_version_mismatch_is_clear() -> None:
     lambda: Pose(91.0, 0.0, 0.0),
     lambda: encode(Command(255, 1, 0, CommandKind.FOLLOW, heading=400.0)),
     lambda: encode(Command(255, 1, 0, CommandKind.FOLLOW, heading=math.inf)),
-    lambda: encode(CommandAck(3, 1, AckResult.REJECTED, "x" * 40)),
+    lambda: encode(CommandAck(3, 1, AckResult.REJECTED, "x" * 97)),
 ])
 def test_our_own_bad_messages_raise_message_error(bad: object) -> None:
     with pytest.raises(MessageError):

@@ -725,6 +725,7 @@ def outcome(req: Request) -> tuple[int, dict[str, Any]]:
 # -- runtime ---------------------------------------------------------------------
 
 _STOP = object()
+TICK_S = 0.05
 
 
 class Station:
@@ -907,11 +908,13 @@ class Station:
 
     # -- the station thread -------------------------------------------------------------
     def _loop(self) -> None:
+        # Ticks run at the core's deadlines and at most every TICK_S otherwise: at
+        # hundreds of messages a second, ticking after every batch cost more than
+        # the messages (every timer is a second or more, so 50 ms is invisible).
+        deadline, last_tick = -math.inf, -math.inf
         while not self._stop.is_set():
-            with self._lock:
-                wake = self.core.next_deadline()
             try:
-                item = self._q.get(timeout=min(1.0, max(0.0, wake - self.clock())))
+                item = self._q.get(timeout=min(1.0, max(0.0, deadline - self.clock())))
             except queue.Empty:
                 item = None
             try:
@@ -928,7 +931,10 @@ class Station:
                             item = self._q.get_nowait()
                         except queue.Empty:
                             break
-                    outs += self.core.tick(self.clock())
+                    now = self.clock()
+                    if now >= deadline or now - last_tick >= TICK_S:
+                        outs += self.core.tick(now)
+                        last_tick, deadline = now, self.core.next_deadline()
                     events = self.core.take_events()
                     finished = self.core.take_finished()
                     futures = [self._futures.pop(r.id, None) for r in finished]

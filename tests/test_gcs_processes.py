@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import signal
+import urllib.error
 import urllib.request
 from pathlib import Path
 from typing import Any
@@ -51,8 +52,17 @@ def alive(*children: Child) -> None:
         assert c.proc.poll() is None, f"{c.name} exited {c.proc.returncode}: {c.errors[-5:]}"
 
 
-def test_agents_connect_drop_when_killed_and_reconnect(tmp_path: Path) -> None:
-    ep = f"tcp/127.0.0.1:{free_port()}"
+def post(url: str, body: Any) -> tuple[int, Any]:
+    req = urllib.request.Request(url, data=json.dumps(body).encode(), method="POST")
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read())
+
+
+def test_agents_connect_answer_commands_drop_when_killed_and_reconnect(tmp_path: Path) -> None:
+    ep, ep1 = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
     gcs = Child(["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_port()}", "--tiles", "none",
                  "--json"], name="gcs")
     children = [gcs]
@@ -60,35 +70,47 @@ def test_agents_connect_drop_when_killed_and_reconnect(tmp_path: Path) -> None:
         r = ready(gcs)
         assert r["url"].startswith("http://127.0.0.1:") and r["replay"] is False and r["tiles"] is None
         assert r["name"] == "gcs" and r["id"] == 255 and r["link"] == f"zenoh listen={ep}"
-        a1, a2 = agent("agent1", 1, "--zenoh-connect", ep), agent("agent2", 2, "--zenoh-connect", ep)
+        # agent1 listens too, so the agents meet each other as well as the station
+        a1 = agent("agent1", 1, "--zenoh-listen", ep1, "--zenoh-connect", ep)
+        a2 = agent("agent2", 2, "--zenoh-connect", ep, ep1)
         children += [a1, a2]
 
-        def connected() -> set[int]:
+        def state() -> dict[str, Any]:
             alive(*children)
-            return {a["id"] for a in get(r["url"] + "api/state")["agents"] if a["connected"]}
+            return dict(get(r["url"] + "api/state"))
+
+        def connected() -> set[int]:
+            return {a["id"] for a in state()["agents"] if a["connected"]}
 
         wait_until(lambda: connected() == {1, 2}, "both agents connected", DEADLINE)
         texts = [e["text"] for e in logs(gcs)]
         assert "agent1 (1) connected" in texts and "agent2 (2) connected" in texts
+        leader = wait_until(lambda: state()["leader"], "the station to see a leader", DEADLINE)
+        # real agents answer: the leader takes the swarm's FOLLOW; an agent with no
+        # flight controller fails ARM with its reason
+        st, body = post(r["url"] + "api/command", {"target": "swarm", "kind": "follow", "heading": 90})
+        assert st == 200 and body["results"] == [{"agent": leader, "result": "ACCEPTED", "reason": "",
+                                                  "swarm": True}], body
+        st, body = post(r["url"] + "api/command", {"target": 2, "kind": "arm"})
+        assert st == 200 and body["ok"] is False
+        assert body["results"] == [{"agent": 2, "result": "FAILED",
+                                    "reason": "no flight controller on this agent"}]
         a2.proc.send_signal(signal.SIGKILL)
         a2.proc.wait(10)
         children.remove(a2)
         wait_until(lambda: connected() == {1}, "agent2 disconnected", DEADLINE)
         drop = [e for e in logs(gcs) if e["kind"] == "disconnect"]
         assert [e["text"].split(" (silent")[0] for e in drop] == ["agent2 (2) disconnected"]
-        again = agent("agent2", 2, "--zenoh-connect", ep)
+        st, body = post(r["url"] + "api/command", {"target": 2, "kind": "land"})
+        assert st == 409 and body["error"] == "agent2 (2) is not connected"
+        again = agent("agent2", 2, "--zenoh-connect", ep, ep1)
         children.append(again)
         wait_until(lambda: connected() == {1, 2}, "agent2 connected again", DEADLINE)
         assert any(e["text"] == "agent2 (2) connected again" for e in logs(gcs))
         one = get(r["url"] + "api/agents/2")
         assert one["name"] == "agent2" and one["connected"] is True and one["phase"] is not None
-        # agents without a flight controller do not answer as vehicles would, but the
-        # station refuses what it must before sending anything
-        req = urllib.request.Request(r["url"] + "api/command", data=b'{"target": 7, "kind": "arm"}',
-                                     method="POST")
-        with pytest.raises(urllib.error.HTTPError) as ei:
-            urllib.request.urlopen(req, timeout=10)
-        assert ei.value.code == 404 and json.loads(ei.value.read())["error"] == "unknown agent 7"
+        st, body = post(r["url"] + "api/command", {"target": 7, "kind": "arm"})
+        assert st == 404 and body["error"] == "unknown agent 7"
         gcs.proc.send_signal(signal.SIGTERM)
         assert gcs.proc.wait(10) == 0
         assert not [e for e in gcs.errors if "Traceback" in e], gcs.errors

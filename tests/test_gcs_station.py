@@ -407,9 +407,10 @@ def test_passive_core_sends_nothing_and_counts_anything_heard() -> None:
     ({"target": 0, "kind": "arm"}, "target 0 is not an agent id"),
     ({"target": 251, "kind": "arm"}, "target 251 is not an agent id"),
     ({"target": 3, "kind": "takeoff"}, "takeoff needs 'alt'"),
-    ({"target": 3, "kind": "takeoff", "alt": 0}, "must be above 0"),
+    ({"target": 3, "kind": "takeoff", "alt": 0}, "'alt' 0 outside 1..120"),
     ({"target": 3, "kind": "takeoff", "alt": "10"}, "'alt' must be a number"),
-    ({"target": 3, "kind": "takeoff", "alt": 5000}, "'alt' 5000 outside"),
+    ({"target": 3, "kind": "takeoff", "alt": 121}, "'alt' 121 outside"),
+    ({"target": "swarm", "kind": "waypoint", "lat": 47, "lon": 8, "alt": 5}, "waypoint is for one agent"),
     ({"target": 3, "kind": "goto", "lat": 47.0, "lon": 8.0}, "goto needs 'alt'"),
     ({"target": 3, "kind": "goto", "lat": 91, "lon": 8.0, "alt": 500}, "'lat' 91 outside"),
     ({"target": 3, "kind": "goto", "lat": 47, "lon": 8.0, "alt": float("nan")}, "must be a number"),
@@ -431,3 +432,5 @@ def test_parse_command_accepts() -> None:
                           "id": "x"}) == CommandSpec(7, CommandKind.GOTO, lat=-33.5, lon=151.0, alt=40.5)
     assert parse_command({"target": "swarm", "kind": "takeoff", "alt": 12}).alt == 12.0
     assert parse_command({"target": 1, "kind": "stop"}) == CommandSpec(1, CommandKind.STOP)
+    assert parse_command({"target": 2, "kind": "waypoint", "lat": 1, "lon": 2, "alt": 3}) == \
+        CommandSpec(2, CommandKind.WAYPOINT, lat=1.0, lon=2.0, alt=3.0)

@@ -78,6 +78,7 @@ from swarm.messages import (
     Telemetry,
     check_name,
 )
+from swarm.pilot import MAX_TAKEOFF_M
 
 log = logging.getLogger(__name__)
 
@@ -87,8 +88,7 @@ KINDS: dict[str, CommandKind] = {k.name.lower(): k for k in CommandKind}
 SWARM_KINDS = {CommandKind.ARM, CommandKind.DISARM, CommandKind.TAKEOFF, CommandKind.LAND,
                CommandKind.RETURN, CommandKind.FOLLOW, CommandKind.STOP}
 AGENT_KINDS = {CommandKind.ARM, CommandKind.DISARM, CommandKind.TAKEOFF, CommandKind.LAND,
-               CommandKind.RETURN, CommandKind.GOTO, CommandKind.STOP}
-MAX_TAKEOFF_M = 1000.0
+               CommandKind.RETURN, CommandKind.GOTO, CommandKind.WAYPOINT, CommandKind.STOP}
 ALT_AMSL = (-1000.0, 5553.0)  # what a Command can carry (decimetres, offset 1000 m)
 
 
@@ -205,12 +205,9 @@ def parse_command(body: Any) -> CommandSpec:
     else:
         raise CommandRefused(400, f"target {t!r}: an agent id (1..250) or \"swarm\"")
     what = kind.name.lower()
-    if kind == CommandKind.TAKEOFF:
-        alt = _number(body, "alt", 0.0, MAX_TAKEOFF_M, what)
-        if alt <= 0:
-            raise CommandRefused(400, "'alt' (metres above home) must be above 0")
-        return CommandSpec(target, kind, alt=alt)
-    if kind == CommandKind.GOTO:
+    if kind == CommandKind.TAKEOFF:  # the pilot's range (swarm.pilot): refused here, not in the air
+        return CommandSpec(target, kind, alt=_number(body, "alt", 1.0, MAX_TAKEOFF_M, what))
+    if kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
         return CommandSpec(target, kind, lat=_number(body, "lat", -90.0, 90.0, what),
                            lon=_number(body, "lon", -180.0, 180.0, what),
                            alt=_number(body, "alt", *ALT_AMSL, what))

@@ -5,6 +5,7 @@ refusals, the leader, trails, and the passive (replay) mode."""
 
 from __future__ import annotations
 
+import json
 import random
 from typing import Any
 
@@ -368,6 +369,8 @@ def test_view_fields_trail_and_snapshot() -> None:
     assert d["trail"][-1] == [d["lat"], d["lon"]]
     snap = core.snapshot(t)
     assert snap["time"] == pytest.approx(1100.0) and snap["leader"] == 0
+    station = {"name": "gcs", "id": 255, "link": "x"}
+    assert json.loads(core.snapshot_json(t, station)) == {**snap, "station": station}
     assert snap["events"][0]["t"] == 1000.0 and snap["events"][0]["kind"] == "connect"
     # a pose from an agent with no fix yet (0, 0) is not a position
     core.handle(GSAdvertize(4, "agent4"), t)

@@ -338,6 +338,11 @@ class ReplayStation:
         body["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
         return body
 
+    def snapshot_json(self) -> str:
+        station = {"name": self.name, "id": self.id, "link": self.describe()}
+        with self._lock:
+            return self.core.snapshot_json(self._now(), station)
+
     def agent(self, agent_id: int) -> dict[str, Any] | None:
         with self._lock:
             a = self.core.agents.get(agent_id)

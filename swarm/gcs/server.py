@@ -75,6 +75,8 @@ class StationView(Protocol):
 
     def snapshot(self) -> dict[str, Any]: ...
 
+    def snapshot_json(self) -> str: ...
+
     def agent(self, agent_id: int) -> dict[str, Any] | None: ...
 
     def center(self) -> list[float] | None: ...
@@ -298,15 +300,16 @@ class GcsServer:
             "ws_hz": self.cfg.ws_hz,
         })
 
-    def _snapshot(self) -> dict[str, Any]:
-        body = self.station.snapshot()
+    def _snapshot_text(self) -> str:
+        """The state as JSON text (with the replay status in replay mode)."""
+        text = self.station.snapshot_json()
         rp = self.station.replay
         if rp is not None:
-            body["replay"] = rp.status()
-        return body
+            text = text[:-1] + ', "replay": ' + json.dumps(rp.status()) + "}"
+        return text
 
     async def _state(self, request: web.Request) -> web.Response:
-        return web.json_response(self._snapshot())
+        return web.Response(text=self._snapshot_text(), content_type="application/json")
 
     async def _agent(self, request: web.Request) -> web.Response:
         aid = int(request.match_info["id"])
@@ -424,7 +427,7 @@ class GcsServer:
                                           "status": status, **out})])
 
     def _state_texts(self) -> list[str]:
-        texts = [json.dumps({"type": "state", **self.station.snapshot()})]
+        texts = ['{"type": "state", ' + self.station.snapshot_json()[1:]]
         rp = self.station.replay
         if rp is not None:
             texts.append(json.dumps({"type": "replay", **rp.status()}))

@@ -98,7 +98,7 @@ def test_connect_retries_with_the_same_seq_until_acked_then_heartbeats() -> None
         hbs += [o.msg.seq for o in msgs(out, GSHeartbeat) if o.to == 3]
         core.handle(tm(3), t)  # the agent's Telemetry keeps the connection
         t += 0.1
-    assert hbs == [1, 2, 3, 4]  # one per second
+    assert hbs == [1, 2, 3]  # one per second, in the rounds at 3, 4 and 5 s
 
 
 def test_heartbeat_loss_disconnects_and_advertising_reconnects() -> None:
@@ -437,3 +437,12 @@ def test_parse_command_accepts() -> None:
     assert parse_command({"target": 1, "kind": "stop"}) == CommandSpec(1, CommandKind.STOP)
     assert parse_command({"target": 2, "kind": "waypoint", "lat": 1, "lon": 2, "alt": 3}) == \
         CommandSpec(2, CommandKind.WAYPOINT, lat=1.0, lon=2.0, alt=3.0)
+
+
+def test_a_heartbeat_round_is_one_payload_for_every_agent() -> None:
+    core = station_with(1, 2, 3)
+    core.tick(0.0)
+    out = msgs(core.tick(1.0), GSHeartbeat)
+    assert sorted(o.to for o in out) == [1, 2, 3]
+    assert len({encode(o.msg) for o in out}) == 1  # the radio bridge merges them into one frame
+    assert not msgs(core.tick(1.5), GSHeartbeat)

@@ -14,7 +14,8 @@ station's part:
    connected, with the heartbeat interval the ack names), or until nothing was
    heard from it for ``connect_give_up``. Telemetry from a known agent that is not
    connected starts the same exchange (the station restarted; a drop was brief).
-3. Connected agents get GSHeartbeat every ``heartbeat_interval``; an agent without
+3. Connected agents get GSHeartbeat every ``heartbeat_interval`` (one seq for all
+   agents in a round, so a radio bridge sends one multicast frame); an agent without
    Telemetry for ``max(min_timeout, 3 * hb_interval)`` is disconnected (an event)
    and reconnected when it advertises again.
 4. Telemetry, ``swarm/<name>/state`` (AgentState) and ``swarm/<name>/pose``
@@ -277,8 +278,6 @@ class AgentView:
     last_heard: float = -math.inf
     last_telemetry: float = -math.inf
     hb_interval: float = 1.0
-    hb_seq: int = 0
-    next_hb: float = 0.0
     pose: Pose | None = None
     mode: str = ""
     armed: bool | None = None
@@ -363,6 +362,8 @@ class StationCore:
         self.counters = StationCounters()
         self.leader = 0
         self._next_advertize = -math.inf
+        self._next_hb = -math.inf
+        self._hb_seq = 0
         self._seq = itertools.count(1)
         self._connect_seq = itertools.count(1)
         self._request_ids = itertools.count(1)
@@ -546,16 +547,21 @@ class StationCore:
                                                f"(silent for {now - self._last_alive(a):.1f} s)")
             if self.passive:
                 continue
-            if a.connected and now + 1e-9 >= a.next_hb:
-                a.hb_seq = (a.hb_seq + 1) & 0xFF
-                a.next_hb = now + self.cfg.heartbeat_interval
-                out.append(StOut(a.id, a.name, GSHeartbeat(self.id, a.hb_seq)))
-                self.counters.heartbeats_sent += 1
             if a.connect_seq is not None and now + 1e-9 >= a.next_connect:
                 if now - a.last_heard > self.cfg.connect_give_up:
                     a.connect_seq = None  # gone: the next GSAdvertize starts again
                 else:
                     out += self._connect_out(a, now)
+        if not self.passive and now + 1e-9 >= self._next_hb:
+            # one round, one seq: identical payloads, which the radio bridge sends as
+            # one multicast frame instead of one frame per agent
+            self._next_hb = now + self.cfg.heartbeat_interval
+            round_ = [a for a in self.agents.values() if a.connected]
+            if round_:
+                self._hb_seq = (self._hb_seq + 1) & 0xFF
+                for a in round_:
+                    out.append(StOut(a.id, a.name, GSHeartbeat(self.id, self._hb_seq)))
+                self.counters.heartbeats_sent += len(round_)
         for p in [p for p in self._pending.values() if now + 1e-9 >= p.next_try]:
             if p.tries >= self.cfg.command_tries:
                 self._complete(p, NO_ANSWER, f"no answer after {p.tries} tries", now)
@@ -565,12 +571,10 @@ class StationCore:
         return out
 
     def next_deadline(self) -> float:
-        times = [self._next_advertize] if not self.passive else []
+        times = [self._next_advertize, self._next_hb] if not self.passive else []
         for a in self.agents.values():
             if a.connected:
                 times.append(self._last_alive(a) + self._timeout(a))
-                if not self.passive:
-                    times.append(a.next_hb)
             if a.connect_seq is not None and not self.passive:
                 times.append(a.next_connect)
         times += [p.next_try for p in self._pending.values()]
@@ -631,7 +635,6 @@ class StationCore:
     def _connected(self, a: AgentView, now: float) -> None:
         a.connected = True
         self._leader_dirty = True
-        a.next_hb = now
         again = " again" if a.ever_connected else ""
         a.ever_connected = True
         self._event(now, "connect", f"{self._label(a.id)} connected{again}")

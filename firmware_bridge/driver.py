@@ -320,6 +320,7 @@ class VehicleState:
     gps_ok: bool = False
     time_boot_ms: int = 0
     last_message_time: float = 0.0
+    position_time: float = 0.0  # when the last GLOBAL_POSITION_INT arrived (monotonic)
     last_heartbeat_time: float = 0.0
 
     @property
@@ -1012,7 +1013,8 @@ class Vehicle:
                            system_status=msg.system_status, last_heartbeat_time=now)
             elif mtype == "GLOBAL_POSITION_INT":
                 upd.update(lat=msg.lat * 1e-7, lon=msg.lon * 1e-7, alt_amsl=msg.alt * 1e-3,
-                           rel_alt=msg.relative_alt * 1e-3, time_boot_ms=msg.time_boot_ms)
+                           rel_alt=msg.relative_alt * 1e-3, time_boot_ms=msg.time_boot_ms,
+                           position_time=now)
                 if now - self._local_time > 1.0:
                     upd["velocity"] = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
                 if now - self._attitude_time > 1.0 and msg.hdg != 65535:

@@ -641,7 +641,9 @@ class Agent:
             for msg in vehicle_messages(s):
                 self.bridge.forward_vehicle(msg)
                 self.stats["vehicle_forwarded"] += 1
-        pose = pose_from_state(s, self.clock())
+        # the pose's sample time is when the position arrived, not when we read it
+        t = s.position_time if s.position_time and self.clock is time.monotonic else self.clock()
+        pose = pose_from_state(s, t)
         if pose is None:
             return
         self._q.put(_Pose(pose))

@@ -63,6 +63,9 @@ class FlightScenario:
     tail_s: float = 10.0
     duration: float = 240.0
     turn_margin_s: float = 8.0
+    #: a setpoint reaches the autopilot this much after the pilot computed it (the
+    #: agent's 10 Hz step and the driver's 10 Hz stream: 0.1 s on average)
+    setpoint_delay_s: float = 0.1
     #: ("leader", "member" (the lowest id that is not the leader) or an agent id, seconds after
     #: the follow command)
     crash: tuple[str, float] | None = None
@@ -99,6 +102,7 @@ class FlightSim(Sim):
         self.lim = Limits()
         self.bodies = [Body(pos=[0.0, i * fs.spacing_m, -fs.alt_m]) for i in range(n)]
         self.targets: list[Target | None] = [None] * n
+        self.pending: list[list[tuple[float, Target]]] = [[] for _ in range(n)]
         cfg = PilotConfig(speed_mps=fs.speed_mps, turn_radius_m=fs.pilot.turn_radius_m,
                           max_lead_m=fs.pilot.max_lead_m, arrive_m=fs.pilot.arrive_m,
                           formation=fs.pilot.formation)
@@ -223,6 +227,9 @@ class FlightSim(Sim):
                 if self.follow_at is not None:
                     self._sample(t)
             for i in range(n):
+                q = self.pending[i]
+                while q and q[0][0] <= t + 1e-9:
+                    self.targets[i] = q.pop(0)[1]
                 self.bodies[i].step(self.targets[i], self.lim, DT, True)
             t = round(t + DT, 6)
         return self._result(t)
@@ -260,8 +267,9 @@ class FlightSim(Sim):
             if sp is None:
                 continue
             n_, e_, d_ = pymap3d.geodetic2ned(sp.lat, sp.lon, sp.alt, *HOME)
-            self.targets[i] = Target(pos=(float(n_), float(e_), float(d_)), vel=(sp.vn, sp.ve, math.nan),
-                                     yaw=math.radians(sp.yaw_deg))
+            tg = Target(pos=(float(n_), float(e_), float(d_)), vel=(sp.vn, sp.ve, math.nan),
+                        yaw=math.radians(sp.yaw_deg))
+            self.pending[i].append((t + self.fs.setpoint_delay_s, tg))
 
     def _follow(self, lead: int, t: float) -> None:
         self.leader = lead

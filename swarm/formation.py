@@ -61,13 +61,16 @@ class FormationConfig:
     separation_clear_m: float = 1.0  # resume when this much beyond the minimum
     stale_s: float = 2.0  # a followed pose older than this: hold
     max_predict_s: float = 1.5  # never extrapolate a pose further than this
+    #: how much later the setpoint takes effect: the pilot's step (10 Hz) and the
+    #: driver's stream (10 Hz) hold it 0.1 s on average before the autopilot has it
+    lead_s: float = 0.1
 
     def __post_init__(self) -> None:
         checks = {
             "back_m": 0 <= self.back_m <= 63.75, "side_m": 0 <= self.side_m <= 63.75,
             "stagger_m": -20 <= self.stagger_m <= 20, "min_separation_m": 0 < self.min_separation_m <= 50,
             "separation_clear_m": 0 <= self.separation_clear_m <= 50, "stale_s": 0 < self.stale_s <= 60,
-            "max_predict_s": 0 <= self.max_predict_s <= 10,
+            "max_predict_s": 0 <= self.max_predict_s <= 10, "lead_s": 0 <= self.lead_s <= 2,
         }
         for k, ok in checks.items():
             v = getattr(self, k)
@@ -236,7 +239,8 @@ def follow_target(followed: Pose, age_s: float, heading_deg: float, side: Side, 
     """The member's setpoint: the followed agent predicted to now, plus the slot offset;
     velocity feed-forward: the followed velocity plus the slot's rotation about the
     followed agent when the swarm heading turns (``turn_rate_dps``)."""
-    lat, lon = predict(followed, age_s, cfg.max_predict_s)
+    lat, lon = predict(followed, age_s + cfg.lead_s, cfg.max_predict_s)
+    heading_deg = (heading_deg + turn_rate_dps * cfg.lead_s) % 360.0
     dn, de = slot_offset(heading_deg, side, cfg.back_m if back_m is None else back_m,
                          cfg.side_m if side_m is None else side_m)
     la, lo = offset(lat, lon, dn, de)

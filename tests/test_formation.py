@@ -112,7 +112,7 @@ def test_route_rounds_the_corner_and_is_continuous() -> None:
 
 
 def test_follow_law_predicts_and_feeds_forward() -> None:
-    cfg = FormationConfig()
+    cfg = FormationConfig(lead_s=0.0)
     lead = at(0, 0, vn=5.0)
     sp = follow_target(lead, 0.4, 0.0, Side.RIGHT, cfg)
     n, e = ne_between(HOME.lat, HOME.lon, sp.lat, sp.lon)
@@ -122,6 +122,9 @@ def test_follow_law_predicts_and_feeds_forward() -> None:
     turning = follow_target(at(0, 0), 0.0, 0.0, Side.RIGHT, cfg, turn_rate_dps=10.0)
     w = math.radians(10.0)
     assert (turning.vn, turning.ve) == pytest.approx((-w * 5.0, w * -10.0))
+    # the setpoint's own delay is predicted too
+    later = follow_target(lead, 0.4, 0.0, Side.RIGHT, FormationConfig(lead_s=0.1))
+    assert ne_between(HOME.lat, HOME.lon, later.lat, later.lon)[0] == pytest.approx(-7.5, abs=0.01)
     assert slot_error(at(-10, 5), at(0, 0), 0.0, Side.RIGHT, 10, 5) == pytest.approx(0.0, abs=1e-6)
     assert slot_error(at(-10, 8), at(0, 0), 0.0, Side.RIGHT, 10, 5) == pytest.approx(3.0, abs=1e-3)
 

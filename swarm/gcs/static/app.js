@@ -50,6 +50,7 @@
     target: null,         // the go-to target marker
     altTyped: false,      // the operator typed a go-to altitude
     replay: null,
+    replayAt: -Infinity,  // when the socket last pushed the replay status
   };
 
   // ---------------------------------------------------------------- helpers
@@ -455,6 +456,10 @@
       case "event":
         stationEvent(msg.event);
         break;
+      case "replay":  // replay mode: the status follows each state push
+        S.replayAt = performance.now();
+        drawReplay(msg);
+        break;
       case "command_result": {
         const p = S.pending.get(msg.id);
         if (p) {
@@ -507,7 +512,7 @@
   function describe(cmd) {
     const who = cmd.target === "swarm" ? "swarm" : agentName(cmd.target);
     let what = cmd.kind;
-    if (cmd.kind === "goto") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m";
+    if (cmd.kind === "goto" || cmd.kind === "waypoint") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m";
     if (cmd.kind === "takeoff") what += " to " + cmd.alt + " m";
     if (cmd.kind === "follow") what += " heading " + cmd.heading + "°";
     return what + " → " + who;
@@ -553,15 +558,17 @@
   function initControls() {
     $("#goto").addEventListener("submit", (ev) => {
       ev.preventDefault();
-      if (S.selected === null) return localRefusal("go to: select an agent first");
+      // Go replaces the agent's route; + Waypoint appends to it
+      const kind = ev.submitter && ev.submitter.id === "goto-waypoint" ? "waypoint" : "goto";
+      if (S.selected === null) return localRefusal(kind + ": select an agent first");
       const lat = parseFloat($("#goto-lat").value);
       const lon = parseFloat($("#goto-lon").value);
       const alt = parseFloat($("#goto-alt").value);
       if (![lat, lon, alt].every(Number.isFinite) || Math.abs(lat) > 90 || Math.abs(lon) > 180) {
-        return localRefusal("go to: latitude, longitude and altitude must be numbers");
+        return localRefusal(kind + ": latitude, longitude and altitude must be numbers");
       }
       placeTarget(lat, lon);
-      command({ target: S.selected, kind: "goto", lat, lon, alt });
+      command({ target: S.selected, kind, lat, lon, alt });
     });
     $("#fit-swarm").addEventListener("click", fitToAgents);
     $("#goto-alt").addEventListener("input", () => { S.altTyped = true; });
@@ -632,7 +639,7 @@
     $("#replay").hidden = false;
     document.body.classList.add("replay");
     // a capture plays: nothing to command
-    for (const el of document.querySelectorAll("#commands button, #goto-go")) {
+    for (const el of document.querySelectorAll("#commands button, #goto button")) {
       el.disabled = true;
       el.title = "replay: commands are disabled while a capture plays";
     }
@@ -640,6 +647,7 @@
     $("#replay-speed").addEventListener("change", (ev) => replayAction("speed", parseFloat(ev.target.value)));
     $("#replay-seek").addEventListener("change", (ev) => replayAction("seek", parseFloat(ev.target.value)));
     const poll = async () => {
+      if (performance.now() - S.replayAt < 2 * POLL_MS) return;  // pushed over the socket
       try {
         const r = await fetch("/api/replay", { cache: "no-store" });
         if (r.ok) drawReplay(await r.json());

@@ -83,8 +83,9 @@ def test_agents_connect_answer_commands_drop_when_killed_and_reconnect(tmp_path:
             return {a["id"] for a in state()["agents"] if a["connected"]}
 
         wait_until(lambda: connected() == {1, 2}, "both agents connected", DEADLINE)
-        texts = [e["text"] for e in logs(gcs)]
-        assert "agent1 (1) connected" in texts and "agent2 (2) connected" in texts
+        # the event lines on stdout follow the state the API shows: wait for them too
+        wait_until(lambda: {"agent1 (1) connected", "agent2 (2) connected"} <= {
+            e["text"] for e in logs(gcs)}, "both connect events on stdout", DEADLINE)
         leader = wait_until(lambda: state()["leader"], "the station to see a leader", DEADLINE)
         # real agents answer: the leader takes the swarm's FOLLOW; an agent with no
         # flight controller fails ARM with its reason
@@ -99,14 +100,16 @@ def test_agents_connect_answer_commands_drop_when_killed_and_reconnect(tmp_path:
         a2.proc.wait(10)
         children.remove(a2)
         wait_until(lambda: connected() == {1}, "agent2 disconnected", DEADLINE)
-        drop = [e for e in logs(gcs) if e["kind"] == "disconnect"]
+        drop = wait_until(lambda: [e for e in logs(gcs) if e["kind"] == "disconnect"],
+                          "the disconnect event on stdout", DEADLINE)
         assert [e["text"].split(" (silent")[0] for e in drop] == ["agent2 (2) disconnected"]
         st, body = post(r["url"] + "api/command", {"target": 2, "kind": "land"})
         assert st == 409 and body["error"] == "agent2 (2) is not connected"
         again = agent("agent2", 2, "--zenoh-connect", ep, ep1)
         children.append(again)
         wait_until(lambda: connected() == {1, 2}, "agent2 connected again", DEADLINE)
-        assert any(e["text"] == "agent2 (2) connected again" for e in logs(gcs))
+        wait_until(lambda: any(e["text"] == "agent2 (2) connected again" for e in logs(gcs)),
+                   "the reconnect event on stdout", DEADLINE)
         one = get(r["url"] + "api/agents/2")
         assert one["name"] == "agent2" and one["connected"] is True and one["phase"] is not None
         st, body = post(r["url"] + "api/command", {"target": 7, "kind": "arm"})

@@ -1,10 +1,16 @@
-# Set-up is idempotent: a stamp file records that .venv matches pyproject.toml.
+# Set-up is idempotent: stamp files record that .venv matches pyproject.toml and
+# node_modules matches package-lock.json; the browser step is a quick check once
+# chromium is there.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+NODE_STAMP := node_modules/.installed
+# Debian's chromium drives the page tests and the page benchmark (headless).
+CHROMIUM_PKGS := chromium fonts-dejavu-core
+CHROMIUM_BIN ?= chromium
 
-.PHONY: setup demo test lint clean
+.PHONY: setup browser demo test lint clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -12,7 +18,31 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-setup: $(STAMP)
+# Leaflet for the ground station page, pinned in package-lock.json; served by
+# swarm gcs from node_modules/leaflet/dist (never a CDN).
+$(NODE_STAMP): package.json package-lock.json
+	@command -v npm >/dev/null 2>&1 || { echo "setup: npm not found (install Node.js and npm: apt-get install -y npm)" >&2; exit 1; }
+	npm ci --no-audit --no-fund --loglevel=error
+	touch $(NODE_STAMP)
+
+# A headless browser for the page tests: Debian's chromium, installed only when
+# missing (root, or sudo). Elsewhere set CHROMIUM=/path/to/chromium instead.
+browser:
+	@if [ -n "$$CHROMIUM" ] || command -v $(CHROMIUM_BIN) >/dev/null 2>&1; then exit 0; fi; \
+	if ! command -v apt-get >/dev/null 2>&1; then \
+	  echo "setup: no chromium and no apt-get: the page tests will skip (set CHROMIUM=/path/to/chromium)" >&2; exit 0; fi; \
+	SUDO=; if [ "$$(id -u)" != 0 ]; then \
+	  if sudo -n true 2>/dev/null; then SUDO="sudo -n"; else \
+	    echo "setup: chromium missing and no root or sudo: apt-get install chromium, or the page tests skip" >&2; \
+	    exit 0; fi; fi; \
+	echo "setup: installing Debian's chromium (headless browser for the page tests)"; \
+	log=$$(mktemp); \
+	if ! { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	       $$SUDO apt-get install -y -qq --no-install-recommends $(CHROMIUM_PKGS); } >"$$log" 2>&1; then \
+	  cat "$$log" >&2; rm -f "$$log"; echo "setup: installing chromium failed" >&2; exit 1; fi; \
+	rm -f "$$log"
+
+setup: $(STAMP) $(NODE_STAMP) browser
 
 demo: setup
 	$(BIN)/swarm demo
@@ -23,4 +53,4 @@ test: setup
 	$(BIN)/pytest
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("swarm.commands.sim", "simulate N multicopters that speak MAVLink like PX4 or ArduPilot SITL"),
     "agent": ("swarm.commands.agent", "run one swarm agent (election, membership) on a radio or Zenoh"),
     "simulate": ("swarm.commands.simulate", "seeded leader-election runs in virtual time, with invariants"),
+    "gcs": ("swarm.commands.gcs", "ground control station: web map, JSON API, commands, replay"),
     "demo": ("swarm.commands.demo", "the whole bench on one machine: election, take-off, V formation, route"),
     "bench": ("swarm.commands.bench", "run a benchmark and print its figures"),
 }

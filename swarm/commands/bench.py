@@ -13,6 +13,7 @@ AREAS = {
     "messages": ("swarm.bench.messages", "message and frame sizes, bridge latency, JSON ratio"),
     "simulate": ("swarm.bench.simulate", "simulator campaigns for the election targets (virtual time)"),
     "election": ("swarm.bench.election", "real agent processes vs the simulator: election times"),
+    "gcs": ("swarm.bench.gcs", "ground station: 50 agents at 5 Hz, WebSocket rate, server CPU, page frames"),
     "formation": ("swarm.bench.formation", "V formation slot error and air use vs pose rate and loss"),
 }
 

@@ -1,0 +1,1006 @@
+"""The ground station's side of the connection protocol, and its runtime.
+
+Theory of operation
+-------------------
+The protocol is the one :mod:`swarm.gslink` describes (it is the agent side); the
+station's part:
+
+1. Every ``advertize_interval`` the station publishes GSAdvertize(its id, its name)
+   on ``swarm/GSAdvertize`` so agents (and their radio bridges) learn its name.
+   GSAdvertize whose sender is a station id is ignored.
+2. An agent (id 1..250) announcing itself there while not connected gets
+   GSConnect(station id, seq) in its inbox ``swarm/<agent>``, again every
+   ``connect_retry`` with the same seq until it answers GSConnectAck (then it is
+   connected, with the heartbeat interval the ack names), or until nothing was
+   heard from it for ``connect_give_up``. Telemetry from a known agent that is not
+   connected starts the same exchange (the station restarted; a drop was brief).
+3. Connected agents get GSHeartbeat every ``heartbeat_interval`` (one seq for all
+   agents in a round, so a radio bridge sends one multicast frame); an agent without
+   Telemetry for ``max(min_timeout, 3 * hb_interval)`` is disconnected (an event)
+   and reconnected when it advertises again.
+4. Telemetry, ``swarm/<name>/state`` (AgentState) and ``swarm/<name>/pose``
+   (PoseReport) fill each agent's view: position, a trail (the last ``trail_s``,
+   at most ``trail_points`` points), mode, flags, battery, radio, election state.
+   The swarm's leader is the one most connected agents follow.
+5. Commands: :meth:`StationCore.submit` checks a :class:`CommandSpec` against what
+   the station knows (unknown agent, not connected, no leader: refused with a
+   reason and an HTTP-like status, nothing sent) and returns a :class:`Request`
+   holding one :class:`Command` per addressee. Each is re-sent with the same seq
+   every ``command_retry`` up to ``command_tries`` times; its CommandAck (matched
+   by seq and sender; duplicates and late answers are counted and dropped) or
+   ``NO_ANSWER`` after the last try completes it. Swarm FOLLOW and STOP go to the
+   leader as Command(target=0); swarm STOP also goes to every connected agent;
+   swarm ARM/DISARM/TAKEOFF/LAND/RETURN go to every connected agent.
+
+:class:`StationCore` does no I/O, starts no thread and reads no clock:
+``handle(msg, now)``, ``submit(spec, now)`` and ``tick(now)`` return the
+:class:`StOut` to send; ``next_deadline()`` says when to tick next. ``now`` is any
+monotonic clock in seconds; events carry ``now + wall_offset`` (Unix time).
+
+With ``passive=True`` (replay) the core sends nothing and an agent counts as
+connected while anything from it was heard in the last ``passive_timeout``.
+
+:class:`Station` runs one core on a thread over a Zenoh session, optionally bridged
+to a radio (exactly as :class:`swarm.agent.Agent` does), and gives the server
+thread-safe snapshots, command futures and an event feed.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import math
+import queue
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+from swarm.errors import SwarmError
+from swarm.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, FLAG_HOLDING, is_station, mode_name
+from swarm.messages import (
+    GCS_ID,
+    AckResult,
+    AgentState,
+    Command,
+    CommandAck,
+    CommandKind,
+    GSAdvertize,
+    GSConnect,
+    GSConnectAck,
+    GSHeartbeat,
+    Message,
+    Phase,
+    Pose,
+    PoseReport,
+    Telemetry,
+    check_name,
+)
+from swarm.pilot import MAX_TAKEOFF_M
+
+log = logging.getLogger(__name__)
+
+NO_ANSWER = "NO_ANSWER"
+KINDS: dict[str, CommandKind] = {k.name.lower(): k for k in CommandKind}
+#: kinds a swarm target accepts (FOLLOW and STOP through the leader; the rest fanned out)
+SWARM_KINDS = {CommandKind.ARM, CommandKind.DISARM, CommandKind.TAKEOFF, CommandKind.LAND,
+               CommandKind.RETURN, CommandKind.FOLLOW, CommandKind.STOP}
+AGENT_KINDS = {CommandKind.ARM, CommandKind.DISARM, CommandKind.TAKEOFF, CommandKind.LAND,
+               CommandKind.RETURN, CommandKind.GOTO, CommandKind.WAYPOINT, CommandKind.STOP}
+ALT_AMSL = (-1000.0, 5553.0)  # what a Command can carry (decimetres, offset 1000 m)
+
+
+class CommandRefused(SwarmError):
+    """A command the station will not send; ``status`` is the HTTP-like code
+    (400 bad request, 404 unknown agent, 409 not connected / no leader / replay)."""
+
+    def __init__(self, status: int, reason: str) -> None:
+        super().__init__(reason)
+        self.status = status
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class StationConfig:
+    advertize_interval: float = 1.0
+    connect_retry: float = 1.0
+    connect_give_up: float = 15.0
+    heartbeat_interval: float = 1.0
+    min_timeout: float = 2.0
+    timeout_heartbeats: float = 3.0
+    command_retry: float = 1.0
+    command_tries: int = 3
+    trail_s: float = 60.0
+    trail_points: int = 120
+    events: int = 200
+    passive_timeout: float = 5.0
+
+    def __post_init__(self) -> None:
+        for k in ("advertize_interval", "connect_retry", "connect_give_up", "heartbeat_interval",
+                  "min_timeout", "timeout_heartbeats", "command_retry", "trail_s", "passive_timeout"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{k} {v!r}: a positive number of seconds")
+        for k in ("command_tries", "trail_points", "events"):
+            v = getattr(self, k)
+            if not (isinstance(v, int) and v > 0):
+                raise ValueError(f"{k} {v!r}: a positive integer")
+
+
+@dataclass(frozen=True)
+class StOut:
+    """A message to send: ``to`` an agent id (its inbox ``swarm/<name>``), or 0 for
+    ``swarm/GSAdvertize``."""
+
+    to: int
+    name: str
+    msg: Message
+
+
+@dataclass(frozen=True)
+class Event:
+    t: float  # Unix time
+    kind: str  # connect | disconnect | leader | command | info
+    text: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"t": round(self.t, 3), "kind": self.kind, "text": self.text}
+
+
+# -- commands --------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CommandSpec:
+    """A validated command request: ``target`` an agent id or None for the swarm."""
+
+    target: int | None
+    kind: CommandKind
+    lat: float = 0.0
+    lon: float = 0.0
+    alt: float = 0.0
+    heading: float = 0.0
+
+
+def _number(body: dict[str, Any], key: str, lo: float, hi: float, what: str) -> float:
+    if key not in body:
+        raise CommandRefused(400, f"{what} needs {key!r}")
+    v = body[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise CommandRefused(400, f"{key!r} must be a number, not {v!r}")
+    if not lo <= v <= hi:
+        raise CommandRefused(400, f"{key!r} {v} outside {lo:g}..{hi:g}")
+    return float(v)
+
+
+def parse_command(body: Any) -> CommandSpec:
+    """The API's command object (``{"target": id | "swarm", "kind": ..., args}``) as a
+    :class:`CommandSpec`.
+
+    Raises:
+        CommandRefused: (400) not an object, unknown kind or target form, a kind the
+            target does not take, a missing or out-of-range argument.
+    """
+    if not isinstance(body, dict):
+        raise CommandRefused(400, "a command is a JSON object")
+    kind_s = body.get("kind")
+    if not isinstance(kind_s, str) or kind_s.lower() not in KINDS:
+        raise CommandRefused(400, f"unknown command kind {kind_s!r}: one of {', '.join(KINDS)}")
+    kind = KINDS[kind_s.lower()]
+    if "target" not in body:
+        raise CommandRefused(400, "a command needs a 'target': an agent id or \"swarm\"")
+    t = body["target"]
+    target: int | None
+    if t == "swarm":
+        target = None
+        if kind not in SWARM_KINDS:
+            raise CommandRefused(400, f"{kind.name.lower()} is for one agent, not the swarm")
+    elif isinstance(t, int) and not isinstance(t, bool):
+        if not 1 <= t <= 250:
+            raise CommandRefused(400, f"target {t} is not an agent id (1..250)")
+        target = t
+        if kind not in AGENT_KINDS:
+            raise CommandRefused(400, f"{kind.name.lower()} is a swarm command: target \"swarm\"")
+    else:
+        raise CommandRefused(400, f"target {t!r}: an agent id (1..250) or \"swarm\"")
+    what = kind.name.lower()
+    if kind == CommandKind.TAKEOFF:  # the pilot's range (swarm.pilot): refused here, not in the air
+        return CommandSpec(target, kind, alt=_number(body, "alt", 1.0, MAX_TAKEOFF_M, what))
+    if kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
+        return CommandSpec(target, kind, lat=_number(body, "lat", -90.0, 90.0, what),
+                           lon=_number(body, "lon", -180.0, 180.0, what),
+                           alt=_number(body, "alt", *ALT_AMSL, what))
+    if kind == CommandKind.FOLLOW:
+        return CommandSpec(target, kind, heading=_number(body, "heading", 0.0, 360.0, what) % 360.0)
+    return CommandSpec(target, kind)
+
+
+@dataclass
+class _Pending:
+    request: Request
+    agent: int
+    swarm: bool  # Command(target=0) to the leader
+    msg: Command
+    tries: int = 0
+    next_try: float = 0.0
+    result: str | None = None
+    reason: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"agent": self.agent, "result": self.result, "reason": self.reason}
+        if self.swarm:
+            d["swarm"] = True
+        return d
+
+
+@dataclass
+class Request:
+    """One submitted command and its per-agent outcomes."""
+
+    id: int
+    spec: CommandSpec
+    pending: list[_Pending] = field(default_factory=list)
+
+    @property
+    def done(self) -> bool:
+        return all(p.result is not None for p in self.pending)
+
+    @property
+    def status(self) -> int:
+        """200, or 504 when no addressee answered at all."""
+        if self.pending and all(p.result == NO_ANSWER for p in self.pending):
+            return 504
+        return 200
+
+    def body(self) -> dict[str, Any]:
+        ok = bool(self.pending) and all(p.result == AckResult.ACCEPTED.name for p in self.pending)
+        out: dict[str, Any] = {"ok": ok, "results": [p.as_dict() for p in self.pending]}
+        if self.status == 504:
+            out["error"] = "no answer after retries"
+        return out
+
+
+# -- agents ----------------------------------------------------------------------
+
+@dataclass
+class AgentView:
+    """What the station knows of one agent."""
+
+    id: int
+    name: str
+    connected: bool = False
+    ever_connected: bool = False
+    connect_seq: int | None = None  # a GSConnect awaiting its ack
+    next_connect: float = 0.0
+    last_heard: float = -math.inf
+    last_telemetry: float = -math.inf
+    hb_interval: float = 1.0
+    pose: Pose | None = None
+    mode: str = ""
+    armed: bool | None = None
+    airborne: bool | None = None
+    holding: bool | None = None
+    battery: int | None = None
+    rssi: int | None = None
+    remrssi: int | None = None
+    groundspeed: float | None = None
+    phase: Phase | None = None
+    leader: int = 0
+    pool: frozenset[int] = frozenset()
+    members: frozenset[int] = frozenset()
+    locked: bool = False
+    #: (t, lat, lon, the point as JSON text): formatted once when stored, because
+    #: formatting 50 agents' trails at every push cost more than the messages
+    trail: deque[tuple[float, float, float, str]] = field(default_factory=deque)
+
+    def as_dict(self, now: float) -> dict[str, Any]:
+        d = self._fields(now)
+        d["trail"] = [[p[1], p[2]] for p in self.trail]
+        return d
+
+    def as_json(self, now: float) -> str:
+        """``json.dumps(self.as_dict(now))``, with the trail's cached point texts."""
+        return json.dumps(self._fields(now))[:-1] + ', "trail": [' + ", ".join(
+            p[3] for p in self.trail) + "]}"
+
+    def _fields(self, now: float) -> dict[str, Any]:
+        p = self.pose
+        return {
+            "id": self.id, "name": self.name, "connected": self.connected,
+            "last_seen_s": round(now - self.last_heard, 1) if math.isfinite(self.last_heard) else None,
+            "lat": round(p.lat, 7) if p else None, "lon": round(p.lon, 7) if p else None,
+            "alt": round(p.alt, 1) if p else None, "heading": round(p.heading, 1) if p else None,
+            "groundspeed": None if self.groundspeed is None else round(self.groundspeed, 2),
+            "mode": self.mode or None, "armed": self.armed, "airborne": self.airborne,
+            "holding": self.holding, "battery": self.battery, "rssi": self.rssi,
+            "remrssi": self.remrssi, "phase": self.phase.name if self.phase is not None else None,
+            "leader": self.leader, "pool": sorted(self.pool), "members": sorted(self.members),
+            "locked": self.locked,
+        }
+
+
+def _has_position(p: Pose) -> bool:
+    return not (p.lat == 0.0 and p.lon == 0.0)  # NO_POSE: an agent before its first fix
+
+
+@dataclass
+class StationCounters:
+    received: int = 0
+    ignored: int = 0
+    unknown_agent: int = 0
+    connect_sent: int = 0
+    heartbeats_sent: int = 0
+    stale_connect_acks: int = 0
+    commands_sent: int = 0
+    command_retries: int = 0
+    duplicate_acks: int = 0
+    late_acks: int = 0
+
+
+class StationCore:
+    """The station's protocol and view of the swarm. See the module docstring."""
+
+    def __init__(self, name: str = "gcs", station_id: int = GCS_ID,
+                 config: StationConfig | None = None, *, passive: bool = False,
+                 wall_offset: float = 0.0) -> None:
+        check_name(name)
+        if not is_station(station_id):
+            raise ValueError(f"station id {station_id}: ground stations use 251..255")
+        self.name = name
+        self.id = station_id
+        self.cfg = config or StationConfig()
+        self.passive = passive
+        self.wall_offset = wall_offset
+        self.agents: dict[int, AgentView] = {}
+        self._by_name: dict[str, int] = {}
+        self.events: deque[Event] = deque(maxlen=self.cfg.events)
+        self._new_events: list[Event] = []
+        self._finished: list[Request] = []
+        self.counters = StationCounters()
+        self.leader = 0
+        self._next_advertize = -math.inf
+        self._next_hb = -math.inf
+        self._hb_seq = 0
+        self._seq = itertools.count(1)
+        self._connect_seq = itertools.count(1)
+        self._request_ids = itertools.count(1)
+        self._pending: dict[int, _Pending] = {}  # by seq
+        self._answered: deque[int] = deque(maxlen=256)  # seqs already completed
+        self._leader_dirty = False  # a connection, phase or leader changed
+
+    # -- inputs -----------------------------------------------------------------
+    def handle(self, msg: Message, now: float, name: str = "") -> list[StOut]:
+        """One message heard. ``name`` is the agent name from the key of a pose or
+        state sample (``swarm/<name>/pose``); unused for the other messages."""
+        self.counters.received += 1
+        out: list[StOut] = []
+        if isinstance(msg, GSAdvertize):
+            if is_station(msg.sender) or not 1 <= msg.sender <= 250:
+                return out  # ourselves, or another station
+            a = self._learn(msg.sender, msg.name, now)
+            if not a.connected and a.connect_seq is None:
+                out += self._start_connect(a, now)
+        elif isinstance(msg, GSConnectAck):
+            self._connect_ack(msg, now)
+        elif isinstance(msg, Telemetry):
+            out += self._telemetry(msg, now)
+        elif isinstance(msg, CommandAck):
+            self._ack(msg, now)
+        elif isinstance(msg, AgentState):
+            self._state(msg, name, now)
+        elif isinstance(msg, PoseReport):
+            aid = self._by_name.get(name)
+            if aid is None:
+                self.counters.unknown_agent += 1
+            else:
+                self.observe_pose(aid, msg.pose, now)
+        elif isinstance(msg, Command) and self.passive and is_station(msg.sender):
+            who = self._label(msg.target) if msg.target else "the swarm (leader)"
+            self._event(now, "command", f"station {msg.sender} sent {msg.kind.name} to {who} "
+                                        f"(seq {msg.seq})")
+        else:
+            self.counters.ignored += 1
+        self._update_leader(now)
+        return out
+
+    def _connect_ack(self, msg: GSConnectAck, now: float) -> None:
+        a = self.agents.get(msg.sender)
+        if a is None:
+            self.counters.unknown_agent += 1
+        elif self.passive or msg.seq == a.connect_seq or a.connected:
+            a.hb_interval = max(0.001, msg.hb_interval_ms / 1000.0)
+            a.connect_seq = None
+            a.last_telemetry = max(a.last_telemetry, now)  # the timeout counts from here
+            self._heard(a, now)
+            if not a.connected:
+                self._connected(a, now)
+        else:
+            self.counters.stale_connect_acks += 1
+
+    def observe_pose(self, agent_id: int, pose: Pose, now: float) -> None:
+        """A position for ``agent_id`` (pose stream, or a vehicle frame in a replay)."""
+        a = self.agents.get(agent_id)
+        if a is None:
+            self.counters.unknown_agent += 1
+            return
+        self._heard(a, now)
+        if _has_position(pose):
+            a.pose = pose
+            if a.groundspeed is None or not math.isfinite(a.last_telemetry):
+                a.groundspeed = math.hypot(pose.vn, pose.ve)
+            self._trail(a, pose, now)
+
+    def observe_vehicle(self, agent_id: int, now: float, *, mode: str | None = None,
+                        armed: bool | None = None) -> None:
+        """Mode and arming from a forwarded vehicle HEARTBEAT (replay)."""
+        a = self.agents.get(agent_id)
+        if a is None:
+            self.counters.unknown_agent += 1
+            return
+        self._heard(a, now)
+        if mode is not None:
+            a.mode = mode
+        if armed is not None:
+            a.armed = armed
+
+    def learn(self, agent_id: int, name: str, now: float) -> AgentView:
+        """Record an agent's name (Advertize seen in a replay)."""
+        return self._learn(agent_id, name, now)
+
+    # -- commands -----------------------------------------------------------------
+    def submit(self, spec: CommandSpec, now: float) -> tuple[Request, list[StOut]]:
+        """Start a command.
+
+        Raises:
+            CommandRefused: 404 unknown agent, 409 agent not connected, no leader
+                (FOLLOW), nothing connected (a swarm fan-out), or a passive core.
+        """
+        if self.passive:
+            raise CommandRefused(409, "replay: this station only plays a capture, it sends no commands")
+        kind = spec.kind
+        args = {"lat": spec.lat, "lon": spec.lon, "alt": spec.alt, "heading": spec.heading}
+        plan: list[tuple[int, int]] = []  # (agent, Command.target)
+        if spec.target is not None:
+            a = self.agents.get(spec.target)
+            if a is None:
+                raise CommandRefused(404, f"unknown agent {spec.target}")
+            if not a.connected:
+                raise CommandRefused(409, f"{self._label(a.id)} is not connected")
+            plan.append((a.id, a.id))
+        else:
+            connected = sorted(i for i, a in self.agents.items() if a.connected)
+            if kind in (CommandKind.FOLLOW, CommandKind.STOP):
+                if self.leader:
+                    plan.append((self.leader, 0))
+                elif kind == CommandKind.FOLLOW:
+                    raise CommandRefused(409, "no leader elected yet")
+            if kind != CommandKind.FOLLOW:
+                plan += [(i, i) for i in connected]
+            if not plan:
+                raise CommandRefused(409, "no connected agents")
+        req = Request(next(self._request_ids), spec)
+        out: list[StOut] = []
+        for agent, target in plan:
+            seq = self._next_seq()
+            p = _Pending(req, agent, target == 0, Command(self.id, seq, target, kind, **args))
+            req.pending.append(p)
+            self._pending[seq] = p
+            out += self._send_command(p, now)
+        return req, out
+
+    def _next_seq(self) -> int:
+        while True:
+            seq = next(self._seq) & 0xFFFF
+            if seq and seq not in self._pending:
+                return seq
+
+    def _send_command(self, p: _Pending, now: float) -> list[StOut]:
+        p.tries += 1
+        p.next_try = now + self.cfg.command_retry
+        if p.tries == 1:
+            self.counters.commands_sent += 1
+        else:
+            self.counters.command_retries += 1
+        return [StOut(p.agent, self.agents[p.agent].name, p.msg)]
+
+    def _ack(self, msg: CommandAck, now: float) -> None:
+        a = self.agents.get(msg.sender)
+        if a is not None:
+            self._heard(a, now)
+        if self.passive:
+            self._event(now, "command", f"{self._label(msg.sender)} answered seq {msg.seq}: "
+                                        f"{msg.result.name}" + (f" ({msg.reason})" if msg.reason else ""))
+            return
+        p = self._pending.get(msg.seq)
+        if p is None or p.agent != msg.sender:
+            if msg.seq in self._answered:
+                self.counters.duplicate_acks += 1
+            else:
+                self.counters.late_acks += 1
+            return
+        self._complete(p, msg.result.name, msg.reason, now)
+
+    def _complete(self, p: _Pending, result: str, reason: str, now: float) -> None:
+        p.result, p.reason = result, reason
+        del self._pending[p.msg.seq]
+        self._answered.append(p.msg.seq)
+        what = p.msg.kind.name + (" (swarm)" if p.swarm else "")
+        text = f"{what} -> {self._label(p.agent)}: {result}" + (f" ({reason})" if reason else "")
+        self._event(now, "command", text)
+        if p.request.done:
+            self._finished.append(p.request)
+
+    # -- time -----------------------------------------------------------------------
+    def tick(self, now: float) -> list[StOut]:
+        out: list[StOut] = []
+        if not self.passive and now + 1e-9 >= self._next_advertize:
+            out.append(StOut(0, "", GSAdvertize(self.id, self.name)))
+            self._next_advertize = now + self.cfg.advertize_interval
+        for a in self.agents.values():
+            if a.connected and now - self._last_alive(a) > self._timeout(a):
+                a.connected = False
+                self._leader_dirty = True
+                self._event(now, "disconnect", f"{self._label(a.id)} disconnected "
+                                               f"(silent for {now - self._last_alive(a):.1f} s)")
+            if self.passive:
+                continue
+            if a.connect_seq is not None and now + 1e-9 >= a.next_connect:
+                if now - a.last_heard > self.cfg.connect_give_up:
+                    a.connect_seq = None  # gone: the next GSAdvertize starts again
+                else:
+                    out += self._connect_out(a, now)
+        if not self.passive and now + 1e-9 >= self._next_hb:
+            # one round, one seq: identical payloads, which the radio bridge sends as
+            # one multicast frame instead of one frame per agent
+            self._next_hb = now + self.cfg.heartbeat_interval
+            round_ = [a for a in self.agents.values() if a.connected]
+            if round_:
+                self._hb_seq = (self._hb_seq + 1) & 0xFF
+                for a in round_:
+                    out.append(StOut(a.id, a.name, GSHeartbeat(self.id, self._hb_seq)))
+                self.counters.heartbeats_sent += len(round_)
+        for p in [p for p in self._pending.values() if now + 1e-9 >= p.next_try]:
+            if p.tries >= self.cfg.command_tries:
+                self._complete(p, NO_ANSWER, f"no answer after {p.tries} tries", now)
+            else:
+                out += self._send_command(p, now)
+        self._update_leader(now)
+        return out
+
+    def next_deadline(self) -> float:
+        times = [self._next_advertize, self._next_hb] if not self.passive else []
+        for a in self.agents.values():
+            if a.connected:
+                times.append(self._last_alive(a) + self._timeout(a))
+            if a.connect_seq is not None and not self.passive:
+                times.append(a.next_connect)
+        times += [p.next_try for p in self._pending.values()]
+        return min(times) if times else math.inf
+
+    # -- outputs for the runtime ---------------------------------------------------------
+    def take_events(self) -> list[Event]:
+        ev, self._new_events = self._new_events, []
+        return ev
+
+    def take_finished(self) -> list[Request]:
+        done, self._finished = self._finished, []
+        return done
+
+    def snapshot(self, now: float) -> dict[str, Any]:
+        """The API's state object (without the station's link description)."""
+        return {
+            "time": round(now + self.wall_offset, 3),
+            "leader": self.leader,
+            "agents": [self.agents[i].as_dict(now) for i in sorted(self.agents)],
+            "events": [e.as_dict() for e in self.events],
+        }
+
+    def snapshot_json(self, now: float, station: dict[str, Any]) -> str:
+        """``json.dumps`` of :meth:`snapshot` with ``station`` added, built faster."""
+        head = json.dumps({"time": round(now + self.wall_offset, 3), "leader": self.leader})
+        agents = ", ".join(self.agents[i].as_json(now) for i in sorted(self.agents))
+        events = json.dumps([e.as_dict() for e in self.events])
+        return (head[:-1] + ', "agents": [' + agents + '], "events": ' + events
+                + ', "station": ' + json.dumps(station) + "}")
+
+    # -- internals ---------------------------------------------------------------------
+    def _label(self, agent_id: int) -> str:
+        a = self.agents.get(agent_id)
+        return f"{a.name} ({agent_id})" if a is not None else f"agent {agent_id}"
+
+    def _event(self, now: float, kind: str, text: str) -> None:
+        ev = Event(now + self.wall_offset, kind, text)
+        self.events.append(ev)
+        self._new_events.append(ev)
+
+    def _learn(self, agent_id: int, name: str, now: float) -> AgentView:
+        a = self.agents.get(agent_id)
+        if a is None:
+            a = self.agents[agent_id] = AgentView(agent_id, name)
+        elif a.name != name:
+            self._by_name.pop(a.name, None)
+            a.name = name
+        self._by_name[name] = agent_id
+        self._heard(a, now)
+        return a
+
+    def _heard(self, a: AgentView, now: float) -> None:
+        a.last_heard = max(a.last_heard, now)
+        if self.passive and not a.connected:
+            self._connected(a, now)
+
+    def _connected(self, a: AgentView, now: float) -> None:
+        a.connected = True
+        self._leader_dirty = True
+        again = " again" if a.ever_connected else ""
+        a.ever_connected = True
+        self._event(now, "connect", f"{self._label(a.id)} connected{again}")
+
+    def _last_alive(self, a: AgentView) -> float:
+        return a.last_heard if self.passive else a.last_telemetry
+
+    def _timeout(self, a: AgentView) -> float:
+        if self.passive:
+            return self.cfg.passive_timeout
+        return max(self.cfg.min_timeout, self.cfg.timeout_heartbeats * a.hb_interval)
+
+    def _start_connect(self, a: AgentView, now: float) -> list[StOut]:
+        a.connect_seq = next(self._connect_seq) & 0xFFFF or next(self._connect_seq)
+        if self.passive:
+            return []
+        return self._connect_out(a, now)
+
+    def _connect_out(self, a: AgentView, now: float) -> list[StOut]:
+        assert a.connect_seq is not None
+        a.next_connect = now + self.cfg.connect_retry
+        self.counters.connect_sent += 1
+        return [StOut(a.id, a.name, GSConnect(self.id, a.connect_seq))]
+
+    def _telemetry(self, msg: Telemetry, now: float) -> list[StOut]:
+        a = self.agents.get(msg.sender)
+        if a is None:
+            self.counters.unknown_agent += 1  # no name yet: its GSAdvertize will come
+            return []
+        self._heard(a, now)
+        if a.connected:
+            a.last_telemetry = now
+        out: list[StOut] = []
+        if not a.connected and a.connect_seq is None and not self.passive:
+            out += self._start_connect(a, now)
+        if _has_position(msg.pose):
+            a.pose = msg.pose
+            self._trail(a, msg.pose, now)
+        fc = bool(msg.flags & FLAG_FC_OK)  # without a flight controller these are unknown
+        a.mode = mode_name(msg.mode)
+        a.armed = bool(msg.flags & FLAG_ARMED) if fc else None
+        a.airborne = bool(msg.flags & FLAG_AIRBORNE) if fc else None
+        a.holding = bool(msg.flags & FLAG_HOLDING)
+        a.battery = None if msg.battery > 100 else msg.battery
+        a.rssi, a.remrssi = msg.rssi, msg.remrssi
+        a.groundspeed = msg.groundspeed if fc else a.groundspeed
+        self._set_election(a, msg.phase, msg.leader)
+        return out
+
+    def _state(self, msg: AgentState, name: str, now: float) -> None:
+        if not 1 <= msg.sender <= 250:
+            self.counters.ignored += 1
+            return
+        a = self.agents.get(msg.sender)
+        if a is None:
+            try:
+                check_name(name)
+            except SwarmError:
+                name = f"agent{msg.sender}"
+            a = self._learn(msg.sender, name, now)
+        else:
+            self._heard(a, now)
+        self._set_election(a, msg.phase, msg.leader)
+        a.locked, a.pool, a.members = msg.locked, msg.pool, msg.members
+
+    def _set_election(self, a: AgentView, phase: Phase, leader: int) -> None:
+        if (phase, leader) != (a.phase, a.leader):
+            a.phase, a.leader = phase, leader
+            self._leader_dirty = True
+
+    def _trail(self, a: AgentView, pose: Pose, now: float) -> None:
+        tr = a.trail
+        spacing = self.cfg.trail_s / self.cfg.trail_points
+        lat, lon = round(pose.lat, 7), round(pose.lon, 7)
+        text = f"[{lat!r}, {lon!r}]"
+        if not tr or now - tr[-1][0] >= spacing:
+            tr.append((now, lat, lon, text))
+        else:
+            tr[-1] = (tr[-1][0], lat, lon, text)  # keep the newest point at the head
+        while tr and (now - tr[0][0] > self.cfg.trail_s or len(tr) > self.cfg.trail_points):
+            tr.popleft()
+
+    def _update_leader(self, now: float) -> None:
+        if not self._leader_dirty:
+            return
+        self._leader_dirty = False
+        votes: Counter[int] = Counter()
+        for a in self.agents.values():
+            if a.connected and a.phase in (Phase.LEADER, Phase.MEMBER) and a.leader:
+                votes[a.leader] += 1
+        leader = 0
+        if votes:
+            best = max(votes.values())
+            top = [i for i, n in votes.items() if n == best and i in self.agents
+                   and self.agents[i].connected]
+            leader = max(top) if top else 0
+        if leader != self.leader:
+            self.leader = leader
+            if leader:
+                self._event(now, "leader", f"{self._label(leader)} is the leader")
+            else:
+                self._event(now, "leader", "no leader")
+
+
+def outcome(req: Request) -> tuple[int, dict[str, Any]]:
+    """(HTTP-like status, body) of a finished request."""
+    return req.status, req.body()
+
+
+# -- runtime ---------------------------------------------------------------------
+
+_STOP = object()
+TICK_S = 0.05
+
+
+class Station:
+    """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.
+
+    Construction checks arguments (ValueError); :meth:`start` opens everything and may
+    raise :class:`radios.errors.ConfigError` (key file),
+    :class:`radios.errors.LinkOpenError` (radio), :class:`radios.errors.CaptureError`
+    (capture file), :class:`swarm.errors.TransportError` (Zenoh endpoints).
+    """
+
+    def __init__(self, name: str = "gcs", station_id: int = GCS_ID, *, radio: str | None = None,
+                 zenoh_listen: Sequence[str] = (), zenoh_connect: Sequence[str] = (),
+                 key_file: str | None = None, capture: str | None = None,
+                 config: StationConfig | None = None,
+                 clock: Callable[[], float] = time.monotonic,
+                 wall: Callable[[], float] = time.time) -> None:
+        if radio is not None and (zenoh_listen or zenoh_connect):
+            raise ValueError("a station joins either through a radio or over Zenoh endpoints")
+        if radio is None and not (zenoh_listen or zenoh_connect):
+            raise ValueError("give a radio or at least one Zenoh endpoint (listen or connect)")
+        if capture is not None and radio is None:
+            raise ValueError("a capture records the radio's traffic: it needs a radio")
+        self.core = StationCore(name, station_id, config, wall_offset=wall() - clock())
+        self.name = name
+        self.id = station_id
+        self.radio_url = radio
+        self.zenoh_listen = list(zenoh_listen)
+        self.zenoh_connect = list(zenoh_connect)
+        self.key_file = key_file
+        self.capture = capture
+        self.clock = clock
+        self.replay = None
+        self.session: Any = None
+        self.transport: Any = None
+        self.link: Any = None
+        self.bridge: Any = None
+        self.stats = {"send_errors": 0, "errors": 0}
+        self._q: queue.Queue[Any] = queue.Queue()
+        self._lock = threading.Lock()
+        self._futures: dict[int, Future[tuple[int, dict[str, Any]]]] = {}
+        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._started = self._stopped = False
+
+    def start(self) -> Station:
+        with self._lock:
+            if self._started:
+                return self
+            self._started = True
+        try:
+            self._open()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _open(self) -> None:
+        from swarm.transport import Transport, open_session
+
+        key = None
+        if self.key_file is not None:
+            from radios.signing import load_key
+
+            key = load_key(self.key_file)
+        if self.radio_url is not None:
+            from radios.link import open_link
+
+            self.link = open_link(self.radio_url, capture=self.capture)
+            self.session = open_session()  # no endpoints, no scouting: only the radio
+            from swarm.bridge import BridgeConfig, RadioBridge
+
+            self.bridge = RadioBridge(self.session, self.link, name=self.name, agent_id=self.id,
+                                      config=BridgeConfig(signing_key=key)).start()
+        else:
+            self.session = open_session(self.zenoh_listen, self.zenoh_connect)
+        self.transport = tr = Transport(self.name, self.session)
+        tr.on_inbox(lambda m: self._q.put((m, "")))
+        tr.on_gs_advertize(lambda m: self._q.put((m, "")))
+        tr.on_pose("*", lambda n, m: self._q.put((m, n)))
+        tr.on_state("*", lambda n, m: self._q.put((m, n)))
+        self._thread = threading.Thread(target=self._loop, name=f"gcs-{self.name}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the thread, then close bridge, link and session. Safe twice."""
+        with self._lock:
+            if self._stopped:
+                return
+            self._stopped = True
+        self._stop.set()
+        self._q.put(_STOP)
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(2.0)
+        for close in (self.transport and self.transport.close, self.bridge and self.bridge.close,
+                      self.link and self.link.close, self.session and self.session.close):
+            if close:
+                try:
+                    close()
+                except Exception:
+                    log.debug("station: error while closing", exc_info=True)
+        with self._lock:
+            futures, self._futures = self._futures, {}
+        for f in futures.values():
+            if not f.done():
+                f.set_result((503, {"error": "the station stopped"}))
+
+    close = stop
+
+    def __enter__(self) -> Station:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        radio_ok = self.bridge is None or not self.bridge.link_lost
+        return (self._started and not self._stopped and radio_ok
+                and self._thread is not None and self._thread.is_alive())
+
+    def describe(self) -> str:
+        if self.radio_url is not None:
+            return f"radio={self.radio_url}"
+        parts = []
+        if self.zenoh_listen:
+            parts.append("listen=" + ",".join(self.zenoh_listen))
+        if self.zenoh_connect:
+            parts.append("connect=" + ",".join(self.zenoh_connect))
+        return "zenoh " + " ".join(parts)
+
+    # -- for the server (any thread) --------------------------------------------------
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            body = self.core.snapshot(self.clock())
+        body["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
+        return body
+
+    def snapshot_json(self) -> str:
+        """:meth:`snapshot` as JSON text (what the server sends)."""
+        station = {"name": self.name, "id": self.id, "link": self.describe()}
+        with self._lock:
+            return self.core.snapshot_json(self.clock(), station)
+
+    def agent(self, agent_id: int) -> dict[str, Any] | None:
+        with self._lock:
+            a = self.core.agents.get(agent_id)
+            return a.as_dict(self.clock()) if a is not None else None
+
+    def center(self) -> list[float] | None:
+        with self._lock:
+            for a in self.core.agents.values():
+                if a.pose is not None:
+                    return [a.pose.lat, a.pose.lon]
+        return None
+
+    def submit(self, spec: CommandSpec) -> Future[tuple[int, dict[str, Any]]]:
+        """Send a command; the future gives (status, body) once every addressee
+        answered or ran out of tries.
+
+        Raises:
+            CommandRefused: see :meth:`StationCore.submit`.
+        """
+        fut: Future[tuple[int, dict[str, Any]]] = Future()
+        with self._lock:
+            if self._stopped:
+                raise CommandRefused(503, "the station is stopping")
+            req, outs = self.core.submit(spec, self.clock())
+            self._futures[req.id] = fut
+            events = self.core.take_events()
+        self._send(outs)
+        self._notify(events)
+        self._q.put(None)  # wake the loop: its next deadline moved
+        return fut
+
+    def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+        """``fn(event_dict)`` for every new event (called on the station's thread)."""
+        with self._lock:
+            self._listeners.append(fn)
+
+    def remove_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+        with self._lock:
+            if fn in self._listeners:
+                self._listeners.remove(fn)
+
+    # -- the station thread -------------------------------------------------------------
+    def _loop(self) -> None:
+        # Ticks run at the core's deadlines and at most every TICK_S otherwise: at
+        # hundreds of messages a second, ticking after every batch cost more than
+        # the messages (every timer is a second or more, so 50 ms is invisible).
+        deadline, last_tick = -math.inf, -math.inf
+        while not self._stop.is_set():
+            try:
+                item = self._q.get(timeout=min(1.0, max(0.0, deadline - self.clock())))
+            except queue.Empty:
+                item = None
+            try:
+                outs: list[StOut] = []
+                with self._lock:
+                    while True:
+                        if item is _STOP:
+                            self._stop.set()
+                            break
+                        if item is not None:
+                            msg, name = item
+                            outs += self.core.handle(msg, self.clock(), name)
+                        try:
+                            item = self._q.get_nowait()
+                        except queue.Empty:
+                            break
+                    now = self.clock()
+                    if now >= deadline or now - last_tick >= TICK_S:
+                        outs += self.core.tick(now)
+                        last_tick, deadline = now, self.core.next_deadline()
+                    events = self.core.take_events()
+                    finished = self.core.take_finished()
+                    futures = [self._futures.pop(r.id, None) for r in finished]
+                self._send(outs)
+                self._notify(events)
+                for r, f in zip(finished, futures, strict=True):
+                    if f is not None and not f.done():
+                        f.set_result(outcome(r))
+            except Exception:  # a bug must not silence the station
+                self.stats["errors"] += 1
+                log.exception("station %s: error", self.name)
+
+    def _send(self, outs: list[StOut]) -> None:
+        tr = self.transport
+        for o in outs:
+            try:
+                if o.to == 0:
+                    if isinstance(o.msg, GSAdvertize):
+                        tr.gs_advertise(o.msg)
+                else:
+                    tr.send(o.name, o.msg)
+            except Exception:
+                self.stats["send_errors"] += 1
+                log.debug("station: send failed", exc_info=True)
+
+    def _notify(self, events: list[Event]) -> None:
+        if not events:
+            return
+        with self._lock:
+            listeners = list(self._listeners)
+        for e in events:
+            d = e.as_dict()
+            for fn in listeners:
+                try:
+                    fn(d)
+                except Exception:
+                    log.exception("station: event listener failed")
+
+
+__all__ = ["KINDS", "NO_ANSWER", "AgentView", "CommandRefused", "CommandSpec", "Event", "Request",
+           "StOut", "Station", "StationConfig", "StationCore", "parse_command"]

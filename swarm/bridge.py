@@ -55,7 +55,6 @@ from radios.mavlink import MSG_RADIO_STATUS, MSG_TUNNEL, Frame, FrameBuilder, ra
 from radios.signing import Verifier
 from swarm.errors import DecodeError, VersionMismatch
 from swarm.messages import (
-    GCS_ID,
     Advertize,
     GSAdvertize,
     Message,
@@ -516,7 +515,7 @@ class RadioBridge:
         self.stats.conflicts += 1
         self._log_once(("conflict", name, agent_id), "bridge %s: name/id conflict: %r id %d %s",
                        self.name, name, agent_id, reason)
-        if self.id == GCS_ID:
+        if self.id > 250:  # a ground station (251..255) reports nothing to agents
             return
         note = NameConflict(self.id, name, other if other is not None and 1 <= other <= 250
                             else agent_id) if 1 <= agent_id <= 250 else None

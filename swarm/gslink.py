@@ -84,7 +84,9 @@ def is_station(agent_id: int) -> bool:
 class GsConfig:
     advertize_interval: float = 1.0
     advertize_connected_interval: float = 10.0
-    hb_interval: float = 0.5  # Telemetry period while connected
+    #: Telemetry period while connected: 1 Hz; positions reach a station at the pose
+    #: stream's rate anyway, and the air is shared with the formation
+    hb_interval: float = 1.0
     station_timeout: float = 5.0
 
     def __post_init__(self) -> None:

@@ -16,7 +16,8 @@ The flight: wait for one leader that every agent agrees on (from the agents'
 ``--json`` state lines); TAKEOFF to each agent; once all report ``took off``,
 FOLLOW (heading north) to the leader; ``settle_s`` later the route: GOTO north
 ``leg_m`` then WAYPOINT east ``leg_m`` (a rounded 90 degree right turn); when
-the leader reports ``arrived``, ``tail_s`` more, then LAND to each agent. Progress
+the leader reports ``arrived``, ``tail_s`` more, then the swarm STOP (the
+FOLLOW task ends, on the air too) and LAND to each agent. Progress
 lines every few seconds show phase, leader and the formation error so far (read
 from the capture as it grows). The summary (leader, election time, formation RMS
 and maximum, air utilisation, capture, plot) comes from
@@ -327,6 +328,10 @@ def run_demo(cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None])
                     - emu_before["utilisation"] * emu_before["elapsed_s"])
             summary["air_utilisation"] = round(busy / (emu_after["elapsed_s"] - emu_before["elapsed_s"]), 3)
         out("== landing")
+        try:  # the swarm stop ends the FOLLOW task on the air: the capture's analysis stops there
+            ground.command(leader, 0, CommandKind.STOP, timeout=8.0)
+        except DemoError as exc:
+            out(f"   {exc}")
         for k in range(1, n + 1):
             try:
                 ground.command(k, k, CommandKind.LAND, timeout=8.0)

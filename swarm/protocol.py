@@ -98,6 +98,7 @@ class Profile:
     startpool_retry: float = 1.0
     sync_interval: float = 0.5
     lock_window: float = 2.0
+    confirm_window: float | None = None  # locked and unchanged this long: vote (None: lock_window)
     vote_interval: float = 0.5
     vote_window: float = 2.0
     heartbeat_interval: float = 0.5
@@ -118,7 +119,7 @@ def fast_profile(round_s: float) -> Profile:
     r = max(round_s, 0.05)
     return Profile(
         name="fast", advertize_interval=r, startpool_retry=r, sync_interval=r,
-        lock_window=1.5 * r, vote_interval=r, vote_window=1.5 * r, heartbeat_interval=r,
+        lock_window=1.5 * r, confirm_window=0.0, vote_interval=r, vote_window=1.5 * r, heartbeat_interval=r,
         ack_timeout=max(6 * r, 1.0), leader_timeout=max(6 * r, 1.0), alone_timeout=8 * r,
         state_interval=max(r, 0.5),
     )
@@ -297,8 +298,11 @@ class Core:
         times = list(self._next.values())
         if self.phase == Phase.IDLE:
             times.append(self._idle_since + p.alone_timeout)
-        elif self.phase in (Phase.POOLING, Phase.LOCKED):
+        elif self.phase == Phase.POOLING:
             times.append(self.changed_at + p.lock_window)
+        elif self.phase == Phase.LOCKED:
+            times.append(self.changed_at + (p.lock_window if p.confirm_window is None
+                                            else p.confirm_window))
         elif self.phase == Phase.ELECTING:
             times.append(self.vote_changed_at + p.vote_window)
         elif self.phase == Phase.LEADER:
@@ -409,7 +413,8 @@ class Core:
             elif now - t >= p.startpool_retry and not self.locked:
                 self._asked[a] = now
                 out.append(Out(a, StartPool(self.me)))
-        if now - self.changed_at >= p.lock_window:
+        window = p.lock_window if not self.locked or p.confirm_window is None else p.confirm_window
+        if now - self.changed_at >= window:
             if not self.locked:
                 self.locked = True
                 self.changed_at = now  # the second window starts now
@@ -514,9 +519,10 @@ class Core:
                 self.counters.ignored_foreign += 1
                 return
         if self.phase == Phase.ELECTING:
-            # the election runs on a frozen pool; tell the peer ours
-            out.append(Out(a, SyncPoolAck(self.me, msg.digest == pool_digest(self.pool), True,
-                                          frozenset(self.pool))))
+            # the election runs on a frozen pool: a peer with another pool is told ours
+            # (one with ours locks on our Selection: silence)
+            if msg.digest != pool_digest(self.pool):
+                out.append(Out(a, SyncPoolAck(self.me, False, True, frozenset(self.pool))))
             return
         if msg.members is not None:
             self._change_pool(msg.members, now)
@@ -555,6 +561,8 @@ class Core:
         if msg.sender not in self.pool:
             self.counters.ignored_foreign += 1
             return
+        if self.phase == Phase.POOLING and msg.epoch == pool_digest(self.pool) & 0xFFFF:
+            self._lock_from_peer(now)  # a vote on our very pool: it is locked
         if self.phase == Phase.LOCKED:
             self._start_election(now, out)
         if self.phase != Phase.ELECTING:

@@ -220,8 +220,15 @@ class Sim:
         data = self.air.take_output(i, t)
         if not data:
             return
+        if not self.alive[i] or not self.started[i]:
+            self.parsers[i].feed(data)
+            return
+        # what the core answers to the frames of one read leaves together, as the
+        # bridge's 5 ms hold sends it: identical payloads merge into one MULTI frame
+        outs: list[Out] = []
+        core = self.cores[i]
         for f in self.parsers[i].feed(data):
-            if not self.alive[i] or not self.started[i] or f.msgid != MSG_TUNNEL:
+            if f.msgid != MSG_TUNNEL:
                 continue
             p = f.payload.ljust(5 + TUNNEL_MAX, b"\0")
             ptype, target, n = p[0] | (p[1] << 8), p[2], p[4]
@@ -238,8 +245,9 @@ class Sim:
                 msg = decode(body)
             except DecodeError:
                 continue
-            self._send(i, self.cores[i].handle(msg, t), t)
+            outs += core.handle(msg, t)
             self._due[i] = t
+        self._send(i, outs, t)
 
     # -- running ------------------------------------------------------------------
     def _agreement(self) -> tuple[bool, int]:

@@ -411,7 +411,7 @@ class Sim:
         """Bytes of ``outbuf`` that complete the frame the parser is waiting for (all
         of it if the frame is cut short), or None if the stream is not at a frame."""
         pend = self.parsers[i]._buf
-        head = pend if pend else outbuf
+        head: bytes | bytearray = pend if pend else outbuf
         if len(head) < 3 and pend:
             head = bytes(pend) + bytes(outbuf[:3])
         flen = frame_length(head, 0)

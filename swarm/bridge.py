@@ -82,6 +82,28 @@ class Kind(IntEnum):
     MULTI = 5  # P2P to several peers: [n][ids...][message]
 
 
+def unpack_tunnel(payload: bytes) -> tuple[Kind, int, bytes, bytes] | None:
+    """A TUNNEL payload as the bridge puts it on the air: (kind, target system,
+    addressees (MULTI only, else empty), the compact message's bytes). None for a
+    payload type that is not the swarm's. MULTI is returned as is: the caller checks
+    whether it is among the addressees.
+
+    Raises:
+        DecodeError: a MULTI payload whose addressee list does not fit.
+    """
+    p = payload.ljust(5 + TUNNEL_MAX, b"\0")
+    ptype = p[0] | (p[1] << 8)
+    if not PAYLOAD_TYPE_BASE <= ptype < PAYLOAD_TYPE_BASE + len(Kind):
+        return None
+    kind = Kind(ptype - PAYLOAD_TYPE_BASE)
+    data = p[5 : 5 + min(p[4], TUNNEL_MAX)]
+    if kind == Kind.MULTI:
+        if not data or len(data) < 1 + data[0]:
+            raise DecodeError("multicast addressee list does not fit its payload")
+        return kind, p[2], data[1 : 1 + data[0]], data[1 + data[0] :]
+    return kind, p[2], b"", data
+
+
 class Klass(IntEnum):
     PROTOCOL = 0
     POSE = 1
@@ -423,14 +445,14 @@ class RadioBridge:
             return
         if frame.msgid != MSG_TUNNEL:
             return
-        p = frame.payload.ljust(5 + TUNNEL_MAX, b"\0")
-        ptype = p[0] | (p[1] << 8)
-        target = p[2]
-        n = min(p[4], TUNNEL_MAX)
-        data = p[5 : 5 + n]
-        if not PAYLOAD_TYPE_BASE <= ptype < PAYLOAD_TYPE_BASE + len(Kind):
+        try:
+            tun = unpack_tunnel(frame.payload)
+        except DecodeError:
+            self.stats.decode_errors += 1
             return
-        kind = Kind(ptype - PAYLOAD_TYPE_BASE)
+        if tun is None:
+            return
+        kind, target, ids, data = tun
         sender = frame.sysid
         if sender == self.id:
             self._conflict(self.name, sender, reason="a frame from another radio uses our id")
@@ -439,14 +461,9 @@ class RadioBridge:
             self.stats.not_for_us += 1
             return
         if kind == Kind.MULTI:
-            if not data or len(data) < 1 + data[0]:
-                self.stats.decode_errors += 1
-                return
-            ids = data[1 : 1 + data[0]]
             if self.id not in ids:
                 self.stats.not_for_us += 1
                 return
-            data = data[1 + data[0] :]
             kind = Kind.P2P
         try:
             msg = decode(data)

@@ -37,12 +37,12 @@ from typing import Any
 import pymap3d
 
 from firmware_bridge.sim.dynamics import Body, Limits, Target
-from radios.mavlink import MSG_TUNNEL, FrameBuilder, dialect
-from swarm.bridge import PAYLOAD_TYPE_BASE, TUNNEL_MAX, Kind
-from swarm.errors import DecodeError
+from radios.mavlink import FrameBuilder, dialect
+from swarm.bridge import Kind
 from swarm.formation import slot_error
-from swarm.messages import AckResult, Command, CommandKind, Phase, Pose, PoseReport, TaskKind, decode, encode
+from swarm.messages import AckResult, Command, CommandKind, Message, Phase, Pose, PoseReport, TaskKind, encode
 from swarm.pilot import Pilot, PilotConfig, Role
+from swarm.protocol import Out
 from swarm.simulate import Scenario, Sim, pct
 
 HOME = (47.397742, 8.545594, 488.0)
@@ -127,42 +127,18 @@ class FlightSim(Sim):
         return Pose(float(lat), float(lon), float(alt), math.degrees(b.yaw) % 360.0, b.vel[0], b.vel[1],
                     t % 2.56)
 
-    def _receive(self, i: int, t: float) -> None:
-        radio = self.air.radios[i]
-        if not radio.host_ready and not radio.outbuf:
-            return
-        data = self.air.take_output(i, t)
-        if not data:
-            return
-        for f in self.parsers[i].feed(data):
-            if f.msgid != MSG_TUNNEL:
-                continue
-            p = f.payload.ljust(5 + TUNNEL_MAX, b"\0")
-            ptype, target, n = p[0] | (p[1] << 8), p[2], p[4]
-            body = p[5 : 5 + n]
-            kind = ptype - PAYLOAD_TYPE_BASE
-            me = i + 1
-            if target not in (0, me):
-                continue
-            if kind == Kind.MULTI:
-                if not body or me not in body[1 : 1 + body[0]]:
-                    continue
-                body = body[1 + body[0] :]
-            try:
-                msg = decode(body)
-            except DecodeError:
-                continue
-            if kind == Kind.POSE:
-                if isinstance(msg, PoseReport):
-                    self.pilots[i].on_pose(f.sysid, msg.pose, t)
-                    self.cores[i].note_pose(f.sysid, msg.pose, t)
-                continue
-            c = self.cores[i]
-            before = c.last_hb
-            self._send(i, c.handle(msg, t), t)
-            self._due[i] = t
-            if c.last_hb != before and c.phase == Phase.MEMBER:
-                self.pilots[i].on_task(c.task, t)  # every heartbeat: the heading's rate
+    def _on_message(self, i: int, sender: int, kind: Kind, msg: Message, t: float) -> list[Out]:
+        if kind == Kind.POSE:
+            if isinstance(msg, PoseReport):
+                self.pilots[i].on_pose(sender, msg.pose, t)
+                self.cores[i].note_pose(sender, msg.pose, t)
+            return []
+        c = self.cores[i]
+        before = c.last_hb
+        outs = super()._on_message(i, sender, kind, msg, t)
+        if c.last_hb != before and c.phase == Phase.MEMBER:
+            self.pilots[i].on_task(c.task, t)  # every heartbeat: heading and turn rate
+        return outs
 
     def _role(self, i: int) -> Role:
         c = self.cores[i]

@@ -41,9 +41,9 @@ from typing import Any
 from radios.air import AirModel, LossModel, RadioConfig
 from radios.loss import GilbertElliott, UniformLoss
 from radios.mavlink import MSG_TUNNEL, FrameBuilder, FrameParser, frame_length
-from swarm.bridge import COMP_ID, PAYLOAD_TYPE_BASE, TUNNEL_MAX, Kind
+from swarm.bridge import COMP_ID, PAYLOAD_TYPE_BASE, TUNNEL_MAX, Kind, unpack_tunnel
 from swarm.errors import DecodeError
-from swarm.messages import Advertize, Phase, Pose, decode, encode
+from swarm.messages import Advertize, Message, Phase, Pose, decode, encode
 from swarm.protocol import ADVERTIZE, Core, Out, profile_by_name
 
 
@@ -226,28 +226,27 @@ class Sim:
         # what the core answers to the frames of one read leaves together, as the
         # bridge's 5 ms hold sends it: identical payloads merge into one MULTI frame
         outs: list[Out] = []
-        core = self.cores[i]
+        me = i + 1
         for f in self.parsers[i].feed(data):
             if f.msgid != MSG_TUNNEL:
                 continue
-            p = f.payload.ljust(5 + TUNNEL_MAX, b"\0")
-            ptype, target, n = p[0] | (p[1] << 8), p[2], p[4]
-            body = p[5 : 5 + n]
-            kind = ptype - PAYLOAD_TYPE_BASE
-            me = i + 1
-            if target not in (0, me):
-                continue
-            if kind == Kind.MULTI:
-                if not body or me not in body[1 : 1 + body[0]]:
-                    continue
-                body = body[1 + body[0] :]
             try:
+                tun = unpack_tunnel(f.payload)
+                if tun is None:
+                    continue
+                kind, target, ids, body = tun
+                if target not in (0, me) or (kind == Kind.MULTI and me not in ids):
+                    continue
                 msg = decode(body)
             except DecodeError:
                 continue
-            outs += core.handle(msg, t)
-            self._due[i] = t
+            outs += self._on_message(i, f.sysid, kind, msg, t)
         self._send(i, outs, t)
+
+    def _on_message(self, i: int, sender: int, kind: Kind, msg: Message, t: float) -> list[Out]:
+        """A message received by agent ``i`` (a subclass adds other streams)."""
+        self._due[i] = t
+        return self.cores[i].handle(msg, t)
 
     # -- running ------------------------------------------------------------------
     def _agreement(self) -> tuple[bool, int]:

@@ -38,7 +38,7 @@ from typing import Any
 from radios.errors import CaptureError
 from radios.mavlink import MSG_TUNNEL
 from radios.tlog import read_tlog
-from swarm.bridge import PAYLOAD_TYPE_BASE, TUNNEL_MAX, Kind
+from swarm.bridge import Kind, unpack_tunnel
 from swarm.errors import DecodeError
 from swarm.formation import POSE_T_WRAP, ne_between, slot_error, slot_offset
 from swarm.messages import Heartbeat, Pose, PoseReport, Task, TaskKind, decode
@@ -95,16 +95,13 @@ def read_capture(path: str) -> Analysis:
             f = rec.frame
             if f.msgid != MSG_TUNNEL:
                 continue
-            p = f.payload.ljust(5 + TUNNEL_MAX, b"\0")
-            kind = (p[0] | (p[1] << 8)) - PAYLOAD_TYPE_BASE
-            body = p[5 : 5 + p[4]]
-            if kind == KIND_MULTI:
-                if not body:
-                    continue
-                body = body[1 + body[0] :]
-            elif kind not in (KIND_POSE, KIND_P2P):
-                continue
             try:
+                tun = unpack_tunnel(f.payload)
+                if tun is None:
+                    continue
+                kind, _target, _ids, body = tun
+                if kind not in (KIND_POSE, KIND_P2P, KIND_MULTI):
+                    continue
                 msg = decode(body)
             except DecodeError:
                 continue

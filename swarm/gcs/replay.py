@@ -37,7 +37,7 @@ from radios.errors import FrameError
 from radios.mavlink import MSG_HEARTBEAT, MSG_TUNNEL
 from radios.mavlink import decode as decode_frame
 from radios.tlog import read_tlog
-from swarm.bridge import COMP_ID, PAYLOAD_TYPE_BASE, TUNNEL_MAX, Kind
+from swarm.bridge import COMP_ID, Kind, unpack_tunnel
 from swarm.errors import DecodeError
 from swarm.gcs.station import CommandRefused, CommandSpec, StationConfig, StationCore
 from swarm.gslink import is_station
@@ -120,17 +120,15 @@ def _ensure(cap: Capture, names: dict[int, str], t: float, agent: int) -> None:
 
 
 def _tunnel(cap: Capture, names: dict[int, str], t: float, sender: int, payload: bytes) -> None:
-    p = payload.ljust(5 + TUNNEL_MAX, b"\0")
-    ptype = p[0] | (p[1] << 8)
-    data = p[5 : 5 + min(p[4], TUNNEL_MAX)]
-    if not PAYLOAD_TYPE_BASE <= ptype < PAYLOAD_TYPE_BASE + len(Kind):
+    try:
+        tun = unpack_tunnel(payload)
+    except DecodeError:
+        cap.decode_errors += 1
         return
-    kind = Kind(ptype - PAYLOAD_TYPE_BASE)
+    if tun is None:
+        return
+    kind, _target, _ids, data = tun
     if kind == Kind.MULTI:
-        if not data or len(data) < 1 + data[0]:
-            cap.decode_errors += 1
-            return
-        data = data[1 + data[0] :]
         kind = Kind.P2P
     try:
         msg = decode_msg(data)

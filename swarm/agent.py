@@ -242,25 +242,12 @@ class Agent:
         return self
 
     def _open(self) -> None:
-        from swarm.transport import Transport, open_session
+        from swarm.bridge import open_node
+        from swarm.transport import Transport
 
-        key = None
-        if self.key_file is not None:
-            from radios.signing import load_key
-
-            key = load_key(self.key_file)
-        if self.radio_url is not None:
-            from radios.link import open_link
-
-            self.link = open_link(self.radio_url)
-            self.session = open_session()  # no endpoints, no scouting: only the radio
-        else:
-            self.session = open_session(self.zenoh_listen, self.zenoh_connect)
-        if self.link is not None:
-            from swarm.bridge import BridgeConfig, RadioBridge
-
-            self.bridge = RadioBridge(self.session, self.link, name=self.name, agent_id=self.id,
-                                      config=BridgeConfig(signing_key=key)).start()
+        self.session, self.link, self.bridge = open_node(
+            self.name, self.id, radio=self.radio_url, listen=self.zenoh_listen,
+            connect=self.zenoh_connect, key_file=self.key_file)
         if self.fc_url is not None:
             from firmware_bridge.driver import connect
 

@@ -44,7 +44,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from enum import IntEnum
 from typing import Any
@@ -559,3 +559,39 @@ def bridge_message_frame_bytes(msg: Message, *, signed: bool) -> int:
     key = b"\0" * 32 if signed else None
     return len(FrameBuilder(1, COMP_ID, signing_key=key).tunnel(
         encode(msg), target_system=1, payload_type=PAYLOAD_TYPE_BASE + Kind.P2P))
+
+
+def open_node(name: str, agent_id: int, *, radio: str | None = None, listen: Sequence[str] = (),
+              connect: Sequence[str] = (), key_file: str | None = None,
+              capture: str | None = None) -> tuple[Any, Any, RadioBridge | None]:
+    """A node's way into the key space: ``(session, link, bridge)``. With ``radio`` the
+    Zenoh session has no endpoints and no scouting (only the radio), the link is
+    opened (captured to ``capture`` if given) and bridged, MAVLink 2 signed with the
+    key in ``key_file``; otherwise a session on the Zenoh endpoints, no link or bridge.
+    Whatever was opened is closed again if a later step fails.
+
+    Raises:
+        radios.errors.ConfigError: the key file. radios.errors.LinkOpenError: the radio.
+        swarm.errors.TransportError: the Zenoh endpoints.
+    """
+    from radios.link import open_link
+    from radios.signing import load_key
+    from swarm.transport import open_session
+
+    key = load_key(key_file) if key_file is not None else None
+    if radio is None:
+        return open_session(listen, connect), None, None
+    link = open_link(radio, capture=capture)
+    try:
+        session = open_session()
+    except BaseException:
+        link.close()
+        raise
+    try:
+        bridge = RadioBridge(session, link, name=name, agent_id=agent_id,
+                             config=BridgeConfig(signing_key=key)).start()
+    except BaseException:
+        link.close()
+        session.close()
+        raise
+    return session, link, bridge

@@ -39,7 +39,7 @@ from radios.mavlink import decode as decode_frame
 from radios.tlog import read_tlog
 from swarm.bridge import COMP_ID, Kind, unpack_tunnel
 from swarm.errors import DecodeError
-from swarm.gcs.station import CommandRefused, CommandSpec, StationConfig, StationCore
+from swarm.gcs.station import CommandRefused, CommandSpec, StationConfig, StationCore, StationView
 from swarm.gslink import is_station
 from swarm.messages import Advertize, GSAdvertize, Message, Pose, check_name
 from swarm.messages import decode as decode_msg
@@ -184,7 +184,7 @@ def _vehicle(cap: Capture, names: dict[int, str], t: float, sysid: int, m: Any) 
     _center(cap, pose)
 
 
-class ReplayStation:
+class ReplayStation(StationView):
     """A capture played into a passive station core; the server's view of it."""
 
     id = 255
@@ -329,22 +329,6 @@ class ReplayStation:
 
     def _now(self) -> float:
         return self.capture.t0 + self.position
-
-    def snapshot(self) -> dict[str, Any]:
-        with self._lock:
-            body = self.core.snapshot(self._now())
-        body["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
-        return body
-
-    def snapshot_json(self) -> str:
-        station = {"name": self.name, "id": self.id, "link": self.describe()}
-        with self._lock:
-            return self.core.snapshot_json(self._now(), station)
-
-    def agent(self, agent_id: int) -> dict[str, Any] | None:
-        with self._lock:
-            a = self.core.agents.get(agent_id)
-            return a.as_dict(self._now()) if a is not None else None
 
     def center(self) -> list[float] | None:
         return self.capture.center

@@ -750,7 +750,40 @@ _STOP = object()
 TICK_S = 0.05
 
 
-class Station:
+class StationView:
+    """What the server reads from a station, live or replayed: both keep a
+    :class:`StationCore` under a lock and say what time it is for it (``_now``)."""
+
+    core: StationCore
+    name: str
+    id: int
+    _lock: threading.Lock | threading.RLock
+
+    def _now(self) -> float:
+        raise NotImplementedError  # each station knows its own time
+
+    def describe(self) -> str:
+        raise NotImplementedError
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            body = self.core.snapshot(self._now())
+        body["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
+        return body
+
+    def snapshot_json(self) -> str:
+        """:meth:`snapshot` as JSON text (what the server sends)."""
+        station = {"name": self.name, "id": self.id, "link": self.describe()}
+        with self._lock:
+            return self.core.snapshot_json(self._now(), station)
+
+    def agent(self, agent_id: int) -> dict[str, Any] | None:
+        with self._lock:
+            a = self.core.agents.get(agent_id)
+            return a.as_dict(self._now()) if a is not None else None
+
+
+class Station(StationView):
     """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.
 
     Construction checks arguments (ValueError); :meth:`start` opens everything and may
@@ -807,24 +840,12 @@ class Station:
         return self
 
     def _open(self) -> None:
-        from swarm.transport import Transport, open_session
+        from swarm.bridge import open_node
+        from swarm.transport import Transport
 
-        key = None
-        if self.key_file is not None:
-            from radios.signing import load_key
-
-            key = load_key(self.key_file)
-        if self.radio_url is not None:
-            from radios.link import open_link
-
-            self.link = open_link(self.radio_url, capture=self.capture)
-            self.session = open_session()  # no endpoints, no scouting: only the radio
-            from swarm.bridge import BridgeConfig, RadioBridge
-
-            self.bridge = RadioBridge(self.session, self.link, name=self.name, agent_id=self.id,
-                                      config=BridgeConfig(signing_key=key)).start()
-        else:
-            self.session = open_session(self.zenoh_listen, self.zenoh_connect)
+        self.session, self.link, self.bridge = open_node(
+            self.name, self.id, radio=self.radio_url, listen=self.zenoh_listen,
+            connect=self.zenoh_connect, key_file=self.key_file, capture=self.capture)
         self.transport = tr = Transport(self.name, self.session)
         tr.on_inbox(lambda m: self._q.put((m, "")))
         tr.on_gs_advertize(lambda m: self._q.put((m, "")))
@@ -880,23 +901,9 @@ class Station:
             parts.append("connect=" + ",".join(self.zenoh_connect))
         return "zenoh " + " ".join(parts)
 
-    # -- for the server (any thread) --------------------------------------------------
-    def snapshot(self) -> dict[str, Any]:
-        with self._lock:
-            body = self.core.snapshot(self.clock())
-        body["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
-        return body
-
-    def snapshot_json(self) -> str:
-        """:meth:`snapshot` as JSON text (what the server sends)."""
-        station = {"name": self.name, "id": self.id, "link": self.describe()}
-        with self._lock:
-            return self.core.snapshot_json(self.clock(), station)
-
-    def agent(self, agent_id: int) -> dict[str, Any] | None:
-        with self._lock:
-            a = self.core.agents.get(agent_id)
-            return a.as_dict(self.clock()) if a is not None else None
+    # -- for the server (any thread): snapshot, snapshot_json, agent from StationView --
+    def _now(self) -> float:
+        return self.clock()
 
     def center(self) -> list[float] | None:
         with self._lock:

@@ -587,6 +587,9 @@ class Vehicle:
         with self._send_lock:
             if self._closed and msg.get_type() != "HEARTBEAT":
                 raise BridgeError("vehicle connection closed")
+            signing = self._conn.mav.signing
+            if signing.sign_outgoing:  # pymavlink adds 10 µs a frame: keep up with the wall clock
+                signing.timestamp = max(signing.timestamp, signing_timestamp())
             try:
                 self._conn.mav.send(msg)
             except OSError as e:
@@ -1062,6 +1065,11 @@ _CMD_NAMES = {MAV_CMD_NAV_TAKEOFF: "NAV_TAKEOFF", MAV_CMD_DO_SET_MODE: "DO_SET_M
 
 def _cmd_name(command: int) -> str:
     return _CMD_NAMES.get(command, f"command {command}")
+
+
+def signing_timestamp() -> int:
+    """The wall clock in MAVLink signing units (10 µs since 2015-01-01 UTC)."""
+    return int((time.time() - 1420070400) * 100_000)
 
 
 # --- connect ---------------------------------------------------------------------------

@@ -23,7 +23,10 @@ parser never raises on input: it only returns frames and counts.
 
 from __future__ import annotations
 
+import random
 import struct
+import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -240,30 +243,71 @@ def parse_one(data: bytes) -> Frame:
     return frames[0]
 
 
+#: MAVLink signing time base: 10 µs units since 2015-01-01 00:00 UTC.
+SIGNING_EPOCH = 1420070400
+
+
+class SigningClock:
+    """Signing timestamps for one process (MAVLink 2 signing specification).
+
+    :meth:`issue` returns ``max(last issued + 1, reference())`` where :meth:`reference` is
+    the wall clock in 10 µs units since 2015, or the newest timestamp accepted from a
+    signed peer if that is later (:meth:`observe`): timestamps follow the wall clock, never
+    repeat or go back when the clock steps back, and a machine whose clock is behind (a Pi
+    without a real-time clock) takes the swarm's time from the first signed frame it
+    accepts. Thread-safe; share one clock between the builders and the verifier of a node.
+    """
+
+    def __init__(self) -> None:
+        self._last = 0
+        self._seen = 0
+        self._lock = threading.Lock()
+
+    def reference(self) -> int:
+        """The current time: the wall clock, or the newest peer timestamp if later."""
+        return max(int((time.time() - SIGNING_EPOCH) * 100_000), self._seen)
+
+    def issue(self) -> int:
+        with self._lock:
+            self._last = max(self._last + 1, self.reference())
+            return self._last
+
+    def observe(self, ts: int) -> None:
+        """A timestamp from a frame whose signature was verified."""
+        with self._lock:
+            if ts > self._seen:
+                self._seen = ts
+
+
 class FrameBuilder:
-    """Builds MAVLink 2 frames for one (sysid, compid) with its own sequence counter."""
+    """Builds MAVLink 2 frames for one (sysid, compid) with its own sequence counter.
+
+    With ``signing_key`` every frame is signed, stamped by ``clock`` (by default one of its
+    own) on link ``link_id`` (by default drawn at random, so a restarted process opens a new
+    signing stream).
+    """
 
     def __init__(self, sysid: int, compid: int = 0, *, signing_key: bytes | None = None,
-                 link_id: int = 0) -> None:
+                 link_id: int | None = None, clock: SigningClock | None = None) -> None:
         if not 1 <= sysid <= 255:
             raise FrameError(f"system id {sysid} is outside 1..255")
         if not 0 <= compid <= 255:
             raise FrameError(f"component id {compid} is outside 0..255")
         self.mav = dialect.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self.mav.robust_parsing = True
+        self.clock: SigningClock | None = None
         if signing_key is not None:
             if len(signing_key) != 32:
                 raise FrameError("a MAVLink signing key is 32 bytes")
-            import time
-
+            self.clock = clock or SigningClock()
             self.mav.signing.secret_key = signing_key
             self.mav.signing.sign_outgoing = True
-            self.mav.signing.link_id = link_id & 0xFF
-            # 10 µs units since 2015-01-01; pymavlink increments it per frame
-            self.mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
+            self.mav.signing.link_id = (random.randrange(256) if link_id is None else link_id) & 0xFF
 
     def build(self, msg: Any) -> bytes:
         """Pack a pymavlink message object and advance the sequence number."""
+        if self.clock is not None:  # pymavlink stamps with this, then adds one we ignore
+            self.mav.signing.timestamp = self.clock.issue()
         raw = bytes(msg.pack(self.mav))
         self.mav.seq = (self.mav.seq + 1) % 256
         return raw

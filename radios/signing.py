@@ -5,11 +5,15 @@ Theory of operation
 A signed MAVLink 2 frame has incompat flag 0x01 and 13 more bytes: link id (1),
 timestamp (6, little-endian, units of 10 µs since 2015-01-01) and the first 6
 bytes of SHA-256(secret_key + every byte of the frame before the signature).
-:class:`Signer` builds frames through pymavlink with signing on (pymavlink keeps the
-timestamp strictly increasing). :class:`Verifier` checks the signature and drops
-replays: per stream (sysid, compid, link id) the timestamp must grow, and a stream
-seen for the first time must be within a minute of our own clock, as the MAVLink
-signing specification says.
+:class:`~radios.mavlink.FrameBuilder` signs frames, stamped by a
+:class:`~radios.mavlink.SigningClock`: the wall clock, strictly increasing, and never
+behind the newest timestamp the node has accepted from a peer. :class:`Verifier` checks
+the signature and drops replays, as the MAVLink signing specification says: per stream
+(sysid, compid, link id) the timestamp must grow, and a stream heard for the first time
+must not be more than a minute older than our clock (a stream from the future is
+accepted, and our clock moves up to it: a machine booted with its clock behind joins
+the swarm's time instead of refusing it). Only frames whose signature verified move
+the clock.
 
 Keys: :func:`load_key` reads 32 raw bytes, 64 hex digits, or else a passphrase
 turned into a key by SHA-256 as MAVProxy's ``signing setup`` does.
@@ -24,10 +28,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from radios.errors import ConfigError
-from radios.mavlink import IFLAG_SIGNED, SIGNATURE_LEN, STX_V2, Frame
+from radios.mavlink import IFLAG_SIGNED, SIGNATURE_LEN, SIGNING_EPOCH, STX_V2, Frame, SigningClock
 
-EPOCH_2015 = 1420070400
-MAX_SKEW_TICKS = 60 * 100_000  # a new stream may be one minute off our clock
+EPOCH_2015 = SIGNING_EPOCH
+MAX_SKEW_TICKS = 60 * 100_000  # a new stream may be one minute behind our clock
 
 
 def key_from_passphrase(passphrase: str) -> bytes:
@@ -79,7 +83,7 @@ class Verifier:
     (by default only RADIO_STATUS from the local radio, sysid 51)."""
 
     key: bytes
-    clock: Callable[[], float] = time.time
+    clock: SigningClock = field(default_factory=SigningClock)
     allow_unsigned: Callable[[Frame], bool] = lambda f: f.msgid == 109 and f.sysid == 51
     stats: VerifyStats = field(default_factory=VerifyStats)
     _last: dict[tuple[int, int, int], int] = field(default_factory=dict)
@@ -100,12 +104,13 @@ class Verifier:
         stream = (frame.sysid, frame.compid, link_id)
         last = self._last.get(stream)
         if last is None:
-            if abs(ts - now_ticks(self.clock)) > MAX_SKEW_TICKS:
+            if ts < self.clock.reference() - MAX_SKEW_TICKS:
                 self.stats.replayed += 1
                 return False
         elif ts <= last:
             self.stats.replayed += 1
             return False
         self._last[stream] = ts
+        self.clock.observe(ts)
         self.stats.accepted += 1
         return True

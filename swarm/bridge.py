@@ -51,7 +51,14 @@ from typing import Any
 
 from radios.errors import RadioError
 from radios.link import Link
-from radios.mavlink import MSG_RADIO_STATUS, MSG_TUNNEL, Frame, FrameBuilder, radio_status_fields
+from radios.mavlink import (
+    MSG_RADIO_STATUS,
+    MSG_TUNNEL,
+    Frame,
+    FrameBuilder,
+    SigningClock,
+    radio_status_fields,
+)
 from radios.signing import Verifier
 from swarm.errors import DecodeError, VersionMismatch
 from swarm.messages import (
@@ -119,7 +126,7 @@ class BridgeConfig:
     bursts: tuple[float, float, float] = (1500.0, 300.0, 320.0)
     queue_sizes: tuple[int, int, int] = (64, 4, 16)
     signing_key: bytes | None = None
-    link_id: int = 0
+    link_id: int | None = None  # signing link id; None: drawn at random per start (a new stream)
     radio_status_stale_s: float = 5.0
     #: a new P2P protocol item waits this long for identical payloads to other peers
     #: (a leader's heartbeat to N members) so they leave as one multicast frame
@@ -212,11 +219,12 @@ class RadioBridge:
         self.clock = clock
         self.stats = BridgeStats()
         self.radio = RadioState()
+        signing = SigningClock()  # one time base for what this node signs and verifies
         self._builder = FrameBuilder(agent_id, COMP_ID, signing_key=self.cfg.signing_key,
-                                     link_id=self.cfg.link_id)
+                                     link_id=self.cfg.link_id, clock=signing)
         self._vehicle_builder = FrameBuilder(agent_id, 1, signing_key=self.cfg.signing_key,
-                                             link_id=self.cfg.link_id)
-        self._verifier = Verifier(self.cfg.signing_key) if self.cfg.signing_key else None
+                                             link_id=self.cfg.link_id, clock=signing)
+        self._verifier = Verifier(self.cfg.signing_key, signing) if self.cfg.signing_key else None
         now = clock()
         self._queues: list[deque[_Item]] = [deque() for _ in Klass]
         self._buckets = [_Bucket(r, b, b, now) for r, b in zip(self.cfg.rates, self.cfg.bursts, strict=True)]

@@ -408,6 +408,27 @@ def test_signing(fake_factory) -> None:
         assert v.state.last_heartbeat_time > 0
 
 
+def test_signing_timestamps_follow_the_wall_clock(fake_factory, monkeypatch) -> None:
+    """pymavlink stamps the first frame with the wall clock and adds 10 µs per frame after
+    that, so a companion's stamps lagged by its uptime; an autopilot rebooted after a
+    minute (its own clock from GPS) would refuse the stream as a replay."""
+    key = bytes(range(32))
+    port = free_udp_port()
+    fake = fake_factory(port, signing_key=key)
+    with drv.connect(f"udpin:127.0.0.1:{port}", timeout=5, signing_key=key):
+        later = time.time() + 90.0
+        monkeypatch.setattr(time, "time", lambda: later)
+        want = int((later - 1420070400) * 100_000)
+
+        def newest() -> int:
+            return max(fake.conn.mav.signing.stream_timestamps.values(), default=0)
+
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and newest() < want:
+            time.sleep(0.05)
+        assert newest() >= want  # the companion heartbeat (1 Hz) carries the new time
+
+
 def test_signing_refuses_unsigned_vehicle(fake_factory) -> None:
     port = free_udp_port()
     fake_factory(port)  # unsigned heartbeats

@@ -1,0 +1,161 @@
+"""MAVLink 2 signing timestamps across restarts, clock steps and late joiners.
+
+The bug these tests pin (issue 11, item 1): the frame builder set the signing timestamp
+once and pymavlink added one tick (10 µs) per frame, so a sender's timestamp lagged the
+wall clock by its uptime; a verifier that first heard such a stream (a restarted agent,
+a late station) called it a replay when the lag passed a minute, and a signed swarm split
+for good after a restart. The wall clock is monkeypatched here (``time.time``), so a
+minute and a half of uptime costs nothing.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from radios.mavlink import FrameBuilder, FrameParser, SigningClock
+from radios.signing import EPOCH_2015, MAX_SKEW_TICKS, Verifier, key_from_passphrase, now_ticks
+
+KEY = key_from_passphrase("swarm key")
+T0 = 1_790_000_000.0  # 2026-09, a plausible field date
+
+
+class WallClock:
+    """A settable stand-in for ``time.time`` (the wall clock every signer reads)."""
+
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture
+def wall(monkeypatch: pytest.MonkeyPatch) -> Iterator[WallClock]:
+    clock = WallClock(T0)
+    monkeypatch.setattr(time, "time", clock)
+    yield clock
+
+
+def parse(raw: bytes):  # type: ignore[no-untyped-def]
+    frames = FrameParser().feed(raw)
+    assert len(frames) == 1
+    return frames[0]
+
+
+def stamp(raw: bytes) -> int:
+    return int.from_bytes(raw[-12:-6], "little")
+
+
+def test_timestamp_follows_the_wall_clock_not_the_frame_count(wall: WallClock) -> None:
+    b = FrameBuilder(7, 190, signing_key=KEY)
+    for _ in range(1000):  # a busy sender: 1000 frames ...
+        b.heartbeat()
+    wall.t += 90.0  # ... and 90 s of uptime
+    ts = stamp(b.heartbeat())
+    assert abs(ts - now_ticks(wall)) <= 1000 + 1
+    assert ts == pytest.approx((T0 + 90.0 - EPOCH_2015) * 100_000, abs=2000)
+
+
+def test_a_verifier_started_late_accepts_a_sender_with_uptime(wall: WallClock) -> None:
+    """The reported split: a member restarted after 90 s hears the others' streams."""
+    sender = FrameBuilder(3, 190, signing_key=KEY)
+    sender.heartbeat()
+    wall.t += 90.0
+    late = Verifier(KEY)  # the restarted member / the late station
+    assert late.check(parse(sender.heartbeat()))
+    assert late.stats.accepted == 1 and late.stats.replayed == 0
+
+
+def test_a_restarted_sender_is_accepted_by_a_verifier_that_knew_it(wall: WallClock) -> None:
+    v = Verifier(KEY)
+    first = FrameBuilder(3, 190, signing_key=KEY)
+    for _ in range(5):
+        assert v.check(parse(first.heartbeat()))
+    wall.t += 90.0  # kill -9, start again
+    again = FrameBuilder(3, 190, signing_key=KEY)
+    assert v.check(parse(again.heartbeat()))
+
+
+def test_timestamps_strictly_increase_when_the_clock_steps_back(wall: WallClock) -> None:
+    clock = SigningClock()
+    b = FrameBuilder(3, 190, signing_key=KEY, clock=clock)
+    stamps = [stamp(b.heartbeat()) for _ in range(3)]
+    wall.t -= 3600.0  # NTP or GPS steps the clock an hour back
+    stamps += [stamp(b.heartbeat()) for _ in range(3)]
+    wall.t += 7200.0  # and an hour forward
+    stamps += [stamp(b.heartbeat()) for _ in range(3)]
+    assert all(a < b for a, b in itertools.pairwise(stamps))
+    assert stamps[-1] >= now_ticks(wall)
+
+
+def test_builders_sharing_a_clock_never_reuse_a_timestamp(wall: WallClock) -> None:
+    clock = SigningClock()
+    a = FrameBuilder(3, 190, signing_key=KEY, clock=clock)
+    b = FrameBuilder(3, 1, signing_key=KEY, clock=clock)
+    stamps = [stamp(x.heartbeat()) for _ in range(50) for x in (a, b)]
+    assert len(set(stamps)) == len(stamps) and stamps == sorted(stamps)
+
+
+def test_real_replays_are_still_refused(wall: WallClock) -> None:
+    v = Verifier(KEY)
+    b = FrameBuilder(3, 190, signing_key=KEY)
+    old = parse(b.heartbeat())
+    assert v.check(old)
+    assert not v.check(old)  # the same frame again
+    newer = parse(b.heartbeat())
+    assert v.check(newer)
+    assert not v.check(old)  # an older frame of a known stream
+    assert v.stats.replayed == 2
+
+
+def test_a_new_stream_more_than_a_minute_old_is_a_replay(wall: WallClock) -> None:
+    recorded = parse(FrameBuilder(9, 190, signing_key=KEY).heartbeat())  # captured by an attacker
+    wall.t += 61.0
+    v = Verifier(KEY)  # a verifier that never heard stream 9
+    assert not v.check(recorded)
+    assert v.stats.replayed == 1
+    wall.t -= 2.0  # within a minute it is indistinguishable from a live stream (the spec's window)
+    assert Verifier(KEY).check(recorded)
+
+
+def test_a_verifier_with_a_slow_clock_adopts_the_swarm_time(wall: WallClock) -> None:
+    """A Pi without a real-time clock booted an hour behind: it accepts current streams (they are
+    not old) and from then on stamps its own frames with the swarm's time, as the MAVLink signing
+    specification asks, so the others accept it too."""
+    swarm_sender = FrameBuilder(3, 190, signing_key=KEY)
+    frame = parse(swarm_sender.heartbeat())
+    wall.t -= 3600.0  # this machine's clock
+    clock = SigningClock()
+    v = Verifier(KEY, clock=clock)
+    mine = FrameBuilder(4, 190, signing_key=KEY, clock=clock)
+    behind = parse(mine.heartbeat())
+    assert v.check(frame)
+    caught_up = parse(mine.heartbeat())
+    wall.t += 3600.0
+    other = Verifier(KEY)
+    assert not other.check(behind)  # an hour old: refused as a new stream
+    assert other.check(caught_up)  # after hearing the swarm, current
+    assert MAX_SKEW_TICKS == 60 * 100_000
+
+
+def test_forged_and_unsigned_frames_do_not_move_the_clock(wall: WallClock) -> None:
+    clock = SigningClock()
+    v = Verifier(KEY, clock=clock)
+    wall.t += 10_000.0
+    future = parse(FrameBuilder(5, 190, signing_key=key_from_passphrase("intruder")).heartbeat())
+    wall.t -= 10_000.0
+    assert not v.check(future)
+    assert clock.reference() == now_ticks(wall)
+
+
+def test_default_link_id_differs_between_starts() -> None:
+    """A restarted sender opens a new stream (link id), so a clock stepped back by less than a
+    minute between the runs cannot make the new run's frames look like replays."""
+    ids = {FrameBuilder(3, 190, signing_key=KEY).heartbeat()[-13] for _ in range(40)}
+    assert len(ids) > 1
+    fixed = FrameBuilder(3, 190, signing_key=KEY, link_id=7).heartbeat()
+    assert fixed[-13] == 7

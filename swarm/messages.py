@@ -411,8 +411,7 @@ class _R:
 def _w_ids(w: _W, ids: Iterable[int]) -> None:
     s = sorted(set(ids))
     for i in s:
-        if not 0 <= i <= 255:
-            raise MessageError(f"agent id {i} out of range")
+        check_id(i)
     if len(s) <= 32:
         w.u8(len(s))
         w.b += bytes(s)
@@ -428,13 +427,19 @@ def _r_ids(r: _R) -> frozenset[int]:
     n = r.u8()
     if n == 0x80:
         bits = r.take(32)
-        return frozenset(i for i in range(256) if bits[i >> 3] >> (i & 7) & 1)
-    if n > 32:
+        ids = frozenset(i for i in range(256) if bits[i >> 3] >> (i & 7) & 1)
+        if len(ids) <= 32:  # the encoder sends a list: one message, one spelling
+            raise DecodeError(f"pool of {len(ids)} sent as a bitmap")
+    elif n > 32:
         raise DecodeError(f"bad pool length byte {n}")
-    ids = r.take(n)
-    if list(ids) != sorted(set(ids)):
-        raise DecodeError("pool ids not sorted and unique")
-    return frozenset(ids)
+    else:
+        raw = r.take(n)
+        if list(raw) != sorted(set(raw)):
+            raise DecodeError("pool ids not sorted and unique")
+        ids = frozenset(raw)
+    if ids and (min(ids) < 1 or max(ids) > 250):
+        raise DecodeError("pool holds an id outside 1..250")
+    return ids
 
 
 def _w_str(w: _W, s: str, limit: int = 32) -> None:
@@ -489,7 +494,7 @@ def _w_task(w: _W, t: Task) -> None:
                t.gen & 0xFF, max(-127, min(127, round(t.turn_rate * 2))))
         w.u8(len(t.assignments))
         for a in t.assignments:
-            w.pack("BBb", a.member, a.follows, int(a.side))
+            w.pack("BBb", check_id(a.member), check_id(a.follows), int(a.side))
 
 
 def _r_task(r: _R) -> Task:
@@ -502,12 +507,16 @@ def _r_task(r: _R) -> Task:
     hdg, back, side, gen, rate = r.unpack("HBBBb")
     if hdg >= 36000:
         raise DecodeError("task heading out of range")
+    if rate == -128:
+        raise DecodeError("task turn rate out of range")
     n = r.u8()
     out = []
     for _ in range(n):
         m, f, s = r.unpack("BBb")
         if s not in (-1, 1):
             raise DecodeError("formation side must be -1 or 1")
+        if not (1 <= m <= 250 and 1 <= f <= 250):
+            raise DecodeError("formation slot names an id outside 1..250")
         out.append(Assignment(m, f, Side(s)))
     return Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen, rate / 2.0)
 
@@ -595,8 +604,22 @@ def _id(gcs: bool = False) -> tuple[Callable[[_W, Any], None], Callable[[_R], An
     return w, r
 
 
+def _opt_id() -> Codec:
+    """An agent id, or 0 for none (a leader, a candidate, a command's target: the swarm)."""
+    def w(wr: _W, v: int) -> None:
+        wr.u8(v if v == 0 else check_id(v))
+
+    def r(rd: _R) -> int:
+        v = rd.u8()
+        if v > 250:
+            raise DecodeError(f"agent id {v} out of range")
+        return v
+
+    return w, r
+
+
 U8, U16, U32 = _fmt("B"), _fmt("H"), _fmt("I")
-ID, ANY_ID = _id(), _id(gcs=True)
+ID, ANY_ID, OPT_ID = _id(), _id(gcs=True), _opt_id()
 NAME = ((lambda w, v: _w_str(w, check_name(v))), _r_name)
 REASON_MAX = 96  # a CommandAck's reason, bytes of UTF-8 (the frame holds 128)
 TEXT = ((lambda w, v: _w_str(w, v, REASON_MAX)), (lambda r: _r_str(r, REASON_MAX)))
@@ -616,15 +639,15 @@ _LAYOUT: dict[type[Message], list[tuple[str, tuple[Callable[[_W, Any], None], Ca
     SyncPoolAck: [("sender", ID), ("same", BOOL), ("locked", BOOL), ("members", IDS)],
     Selection: [("sender", ID), ("candidate", ID), ("weight", U32), ("epoch", U16)],
     PoseReport: [("pose", POSE)],
-    AgentState: [("sender", ID), ("phase", _enum(Phase)), ("leader", U8), ("candidate", U8),
+    AgentState: [("sender", ID), ("phase", _enum(Phase)), ("leader", OPT_ID), ("candidate", OPT_ID),
                  ("weight", U32), ("epoch", U16), ("locked", BOOL), ("pool", IDS), ("members", IDS)],
     GSConnect: [("sender", ANY_ID), ("seq", U16)],
     GSConnectAck: [("sender", ID), ("seq", U16), ("hb_interval_ms", U16)],
     Telemetry: [("sender", ID), ("pose", POSE), ("mode", U8), ("flags", U8), ("phase", _enum(Phase)),
-                ("leader", U8), ("battery", U8), ("rssi", U8), ("remrssi", U8),
+                ("leader", OPT_ID), ("battery", U8), ("rssi", U8), ("remrssi", U8),
                 ("groundspeed", _scaled("B", 4))],
     GSHeartbeat: [("sender", ANY_ID), ("seq", U8)],
-    Command: [("sender", ANY_ID), ("seq", U16), ("target", U8), ("kind", _enum(CommandKind))],
+    Command: [("sender", ANY_ID), ("seq", U16), ("target", OPT_ID), ("kind", _enum(CommandKind))],
     CommandAck: [("sender", ID), ("seq", U16), ("result", _enum(AckResult)), ("reason", TEXT)],
     NameConflict: [("sender", ID), ("name", NAME), ("other_id", ID)],
 }

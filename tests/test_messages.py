@@ -93,12 +93,12 @@ messages = st.one_of(
     st.builds(SyncPoolAck, ids, st.booleans(), st.booleans(), pools),
     st.builds(Selection, ids, ids, st.integers(0, 2**32 - 1), st.integers(0, 65535)),
     st.builds(PoseReport, poses),
-    st.builds(AgentState, ids, st.sampled_from(Phase), st.integers(0, 255), st.integers(0, 255),
+    st.builds(AgentState, ids, st.sampled_from(Phase), st.integers(0, 250), st.integers(0, 250),
               st.integers(0, 2**32 - 1), st.integers(0, 65535), st.booleans(), pools, pools),
     st.builds(GSConnect, st.integers(1, 255), st.integers(0, 65535)),
     st.builds(GSConnectAck, ids, st.integers(0, 65535), st.integers(0, 65535)),
     st.builds(Telemetry, ids, poses, st.integers(0, 255), st.integers(0, 255), st.sampled_from(Phase),
-              st.integers(0, 255), st.integers(0, 255), st.integers(0, 255), st.integers(0, 255),
+              st.integers(0, 250), st.integers(0, 255), st.integers(0, 255), st.integers(0, 255),
               st.integers(0, 255).map(lambda v: v / 4.0)),
     st.builds(GSHeartbeat, st.integers(1, 255), st.integers(0, 255)),
     commands,
@@ -133,6 +133,75 @@ def test_truncated_or_extended_messages_are_rejected(msg: object, data: st.DataO
         decode(raw[:cut])
     with pytest.raises(DecodeError):
         decode(raw + b"\x00")
+
+
+# -- canonical encoding: one message, one byte string ---------------------------------
+
+@given(messages, st.data())
+@settings(max_examples=1500)
+def test_mutated_messages_decode_only_to_their_own_bytes(msg: object, data: st.DataObject) -> None:
+    """Valid messages with a byte changed, inserted or removed: whatever still decodes must
+    re-encode to exactly the bytes received (a decoder that accepts two spellings of one
+    message lets a signed frame be altered in meaning-preserving ways, and hides bugs)."""
+    raw = bytearray(encode(msg))  # type: ignore[arg-type]
+    for _ in range(data.draw(st.integers(1, 3))):
+        at = data.draw(st.integers(0, len(raw)))
+        op = data.draw(st.sampled_from(["set", "insert", "delete"]))
+        value = data.draw(st.integers(0, 255))
+        if op == "set" and at < len(raw):
+            raw[at] = value
+        elif op == "insert":
+            raw.insert(at, value)
+        elif op == "delete" and at < len(raw) and len(raw) > 1:
+            del raw[at]
+    try:
+        got = decode(bytes(raw))
+    except DecodeError:
+        return
+    assert encode(got) == bytes(raw)
+
+
+def _start_pool_ack(pool_bytes: bytes) -> bytes:
+    return encode(StartPoolAck(1, PoolStatus.SUCCESS, False, frozenset()))[:-1] + pool_bytes
+
+
+def _bitmap(ids: list[int]) -> bytes:
+    bits = bytearray(32)
+    for i in ids:
+        bits[i >> 3] |= 1 << (i & 7)
+    return b"\x80" + bytes(bits)
+
+
+@pytest.mark.parametrize(("what", "raw"), [
+    ("a small pool sent as a bitmap", _start_pool_ack(_bitmap([1, 2, 3]))),
+    ("a bitmap pool holding id 0", _start_pool_ack(_bitmap([0, *range(1, 40)]))),
+    ("a bitmap pool holding id 251", _start_pool_ack(_bitmap([*range(1, 40), 251]))),
+    ("a bitmap pool holding the station's 255", _start_pool_ack(_bitmap([*range(1, 40), 255]))),
+    ("a list pool holding id 0", _start_pool_ack(bytes([2, 0, 5]))),
+    ("a list pool holding id 253", _start_pool_ack(bytes([2, 5, 253]))),
+    ("a leader id of 252 in AgentState", encode(AgentState(3, Phase.MEMBER, 1, 0, 0, 0, False,
+                                                            frozenset(), frozenset()))[:3]
+     + bytes([252]) + encode(AgentState(3, Phase.MEMBER, 1, 0, 0, 0, False,
+                                        frozenset(), frozenset()))[4:]),
+    ("a command to the station's own id", encode(Command(255, 1, 7, CommandKind.LAND))[:4]
+     + bytes([255]) + encode(Command(255, 1, 7, CommandKind.LAND))[5:]),
+    ("a turn rate of -128 (the encoder writes -127..127)",
+     encode(Heartbeat(1, 2, 3, frozenset({1}), Task(TaskKind.FOLLOW)))[:-2] + b"\x80\x00"),
+    ("a formation slot following agent 0",
+     encode(Heartbeat(1, 2, 3, frozenset({1}), Task(TaskKind.FOLLOW, assignments=(
+         Assignment(2, 1, Side.LEFT),))))[:-2] + b"\x00\xff"),
+])
+def test_non_canonical_or_out_of_range_ids_are_refused(what: str, raw: bytes) -> None:
+    with pytest.raises(DecodeError):
+        decode(raw)
+
+
+def test_pools_hold_agent_ids_only() -> None:
+    for bad in (0, 251, 255):
+        with pytest.raises(MessageError):
+            encode(StartPoolAck(1, PoolStatus.SUCCESS, False, frozenset({1, bad})))
+    with pytest.raises(MessageError):
+        encode(AgentState(3, Phase.MEMBER, 251, 0, 0, 0, False, frozenset(), frozenset()))
 
 
 def test_every_type_is_covered_by_the_strategies() -> None:

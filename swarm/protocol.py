@@ -59,7 +59,9 @@ Beyond the paper (each rule stated once, here):
   HeartbeatAck, the leader's pose heard by a member as a Heartbeat, for the
   timeouts only (membership and tasks still come from Heartbeats). At 20% loss a
   member whose acks alone were counted was expelled every minute or so, and each
-  expulsion re-formed the V.
+  expulsion re-formed the V. But poses alone keep a member for at most
+  ``HB_SILENCE_FACTOR`` leader timeouts: an expelled member is no longer sent
+  Heartbeats, and would otherwise stay the member of a swarm that does not have it.
 * **Alone**: an agent that found nobody for ``alone_timeout`` forms a swarm of one
   (and absorbs others later by the rules above).
 * **Votes** come from a pluggable :class:`VotePolicy`: random (the paper),
@@ -121,6 +123,9 @@ class Profile:
 
 
 PAPER = Profile()
+#: a member that hears its leader's poses but no Heartbeat for this many leader timeouts
+#: was expelled (Heartbeats go to members only) and leaves
+HB_SILENCE_FACTOR = 3.0
 
 
 def fast_profile(round_s: float) -> Profile:
@@ -302,7 +307,7 @@ class Core:
             ph = self.phase
         if ph == Phase.LEADER:
             self._leader_timers(now, out)
-        elif ph == Phase.MEMBER and now - max(self.last_hb, self.leader_seen) > self.profile.leader_timeout:
+        elif ph == Phase.MEMBER and now > self._member_deadline():
             self.counters.left += 1
             self._go_idle(now)
             out += self.tick(now)
@@ -324,9 +329,16 @@ class Core:
         elif self.phase == Phase.LEADER:
             times += [t + p.ack_timeout for t in self.members.values()]
         elif self.phase == Phase.MEMBER:
-            times.append(max(self.last_hb, self.leader_seen) + p.leader_timeout)
+            times.append(self._member_deadline())
         times += [t + p.startpool_retry for t in self._asked.values()]
         return min(times) if times else None
+
+    def _member_deadline(self) -> float:
+        """When a member leaves: no sign of its leader for ``leader_timeout``, or no
+        Heartbeat (which only members are sent) for ``HB_SILENCE_FACTOR`` times that."""
+        p = self.profile
+        return min(max(self.last_hb, self.leader_seen) + p.leader_timeout,
+                   self.last_hb + HB_SILENCE_FACTOR * p.leader_timeout)
 
     def set_pose(self, pose: Pose) -> None:
         self.pose = pose

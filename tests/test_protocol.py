@@ -138,6 +138,29 @@ def test_member_not_listed_by_its_leader_leaves() -> None:
     assert m.phase == Phase.IDLE
 
 
+def test_member_expelled_while_deaf_leaves_although_it_hears_the_leaders_poses() -> None:
+    """Found by the fault bench: a member whose radio was flooded was expelled; its leader's
+    Heartbeats then went to the other members only (multicast), but the leader's pose stream
+    kept the expelled member's leader timeout from firing, so it stayed a member of a swarm
+    that did not have it, for good. Poses keep a member only so long without a Heartbeat."""
+    m = Core(2)
+    m.start(0.0)
+    m.handle(Heartbeat(1, 0, 1, frozenset({2, 3})), 1.0)
+    t = 1.0
+    limit = 1.0 + PAPER.leader_timeout * 3
+    while t < limit - 0.2:  # poses only: the expelled member is no longer addressed
+        t += 0.25
+        m.note_pose(1, POSE, t)
+        m.tick(t)
+        assert m.phase == Phase.MEMBER  # a lost Heartbeat or two is not an expulsion
+    for _ in range(4):
+        t += 0.25
+        m.note_pose(1, POSE, t)
+        m.tick(t)
+    assert m.phase != Phase.MEMBER and m.counters.left == 1
+    assert m.next_deadline() is not None
+
+
 def test_leader_adopts_a_late_joiner() -> None:
     lead = Core(1)
     lead.start(0.0)

@@ -15,6 +15,7 @@ AREAS = {
     "election": ("swarm.bench.election", "real agent processes vs the simulator: election times"),
     "gcs": ("swarm.bench.gcs", "ground station: 50 agents at 5 Hz, WebSocket rate, server CPU, page frames"),
     "formation": ("swarm.bench.formation", "V formation slot error and air use vs pose rate and loss"),
+    "faults": ("swarm.bench.faults", "a signed swarm in flight: crashes, restarts, unplugs, a rogue radio"),
 }
 
 

@@ -591,8 +591,7 @@ def run_faults(names: tuple[str, ...], *, log: Callable[[str], None] | None = No
             except BenchError as exc:
                 r = FaultResult(name, detail={"error": str(exc)})
             results.append(r)
-            if bench.log:
-                bench.log(json.dumps(r.as_dict()))
+            bench.log(json.dumps(r.as_dict()))
         elect = bench.elect_s or 0.0
         lt = bench.leader_timeout_s
     faults = [r.as_dict() for r in results]

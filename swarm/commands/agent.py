@@ -15,6 +15,13 @@ The ``fast`` profile derives its windows from the radio network's TDM round, whi
 the agent does not read from the radio: give ``--round-s``, or ``--slots N`` (the
 number of radios of a multipoint network; 2 for a standard pair) and
 ``--air-speed`` and the round is computed as the SiK firmware does.
+
+``--radio-params NETID=25,AIR_SPEED=64`` (or a JSON/TOML file) makes the agent check
+its radio before the bridge opens it (:mod:`radios.sik.guard`: ``+++``, ``ATI5``):
+any radio in range can change a SiK radio's parameters with ``RT`` commands. A
+radio that differs is named in one line and the agent exits 1; with
+``--restore-radio`` it writes the expected values back (``AT&W``, ``ATZ``), says so
+in one line and starts.
 """
 
 from __future__ import annotations
@@ -28,6 +35,8 @@ from collections.abc import Callable
 from typing import Any
 
 from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
+from radios.errors import ATError
+from radios.sik.guard import check_radio, describe, parse_expected
 from swarm.agent import PROFILES, VOTES, Agent, default_round_s, state_dict
 from swarm.cliutil import EXIT_FAILURE, EXIT_USAGE, StopFlag, UsageError, guarded, parser, print_json
 from swarm.errors import MessageError, TransportError
@@ -60,6 +69,12 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS",
                    help="radio air rate for the round (default 64)")
     p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
+    p.add_argument("--radio-params", metavar="NAME=V,...|FILE",
+                   help="the swarm's radio parameters (NETID=25,AIR_SPEED=64,... or a JSON/TOML "
+                        "file): check the radio before starting, refuse to start if it differs")
+    p.add_argument("--restore-radio", action="store_true",
+                   help="with --radio-params: write the expected values back (AT&W, ATZ) "
+                        "instead of refusing to start")
     p.add_argument("--vote", choices=VOTES, default="random",
                    help="vote weight: random (the paper), battery, or link (RSSI)")
     p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
@@ -92,6 +107,27 @@ def _text(name: str, st: AgentState) -> str:
     return " ".join(parts)
 
 
+def _check_radio(a: argparse.Namespace) -> None:
+    """The radio guard before the bridge opens the port. Raises RadioError (exit 1)
+    for a radio that differs (without --restore-radio) or does not answer, and
+    ConfigError (exit 2) for bad expected parameters."""
+    expected = parse_expected(a.radio_params)
+    report = check_radio(a.radio, expected, restore=a.restore_radio)
+    if not report.mismatches:
+        return
+    what = describe(report.mismatches)
+    if not report.restored:
+        raise ATError(f"radio {a.radio} differs from the swarm's parameters: {what}; "
+                      "another radio may have reconfigured it (RT commands). Fix it with "
+                      "swarm radio-config, or pass --restore-radio")
+    line = f"radio {a.radio} differed from the swarm's parameters ({what}): restored"
+    if a.json:
+        print_json({"event": "radio-restored", "name": a.name, "id": a.id, "radio": a.radio,
+                    "differed": {m.name: m.actual for m in report.mismatches}})
+    else:
+        print(f"agent {a.name}: {line}", flush=True)
+
+
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     a = _build_parser().parse_args(argv)
@@ -108,6 +144,12 @@ def main(argv: list[str] | None = None) -> int:
             a.round_s = default_round_s(a.slots, a.air_speed)
         except ValueError as exc:
             raise UsageError(f"--air-speed: {exc}") from None
+    if a.restore_radio and not a.radio_params:
+        raise UsageError("--restore-radio needs --radio-params")
+    if a.radio_params:
+        if a.radio is None:
+            raise UsageError("--radio-params checks a radio: give --radio")
+        _check_radio(a)
     lock = threading.Lock()
     t0 = time.monotonic()
 

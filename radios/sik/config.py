@@ -37,7 +37,7 @@ from typing import Any, Protocol
 
 import serial
 
-from radios.errors import ATError, ATTimeoutError, LinkClosedError, LinkOpenError
+from radios.errors import ATError, ATTimeoutError, ConfigError, LinkClosedError, LinkOpenError
 from radios.sik.params import check_flavour, spec_for, validate_user_value
 
 READ_SLICE = 0.05  # seconds: the longest a single port read blocks
@@ -342,6 +342,36 @@ class SikConfigurator:
         index = self.indices.get(spec.name, spec.index)
         lines = self.command(self._op(f"ATS{index}={number}"))
         self._expect_ok(lines, f"{spec.name}={number} (ATS{index}={number})")
+
+    def set_key(self, key: bytes) -> None:
+        """``AT&E=<hex>``: give the local radio its AES key (AES builds only; the key
+        length must match the ENCRYPTION_LEVEL already set in RAM). No message this
+        raises contains the key. Raises :class:`ConfigError` in remote mode (an ``RT``
+        line crosses the air in clear), :class:`ATError` if the radio does not take
+        it, :class:`ATTimeoutError` without an answer.
+        """
+        if self.remote:
+            raise ConfigError("an AES key is never sent to a remote radio: RT commands "
+                              "cross the air unencrypted")
+        try:
+            lines = self.command("AT&E=" + key.hex().upper())
+        except ATTimeoutError:
+            raise ATTimeoutError(f"no answer to AT&E=<key> on {self.port_name}") from None
+        status = [strip_node(line) for line in lines]
+        if "OK" in status and any(line.lower().startswith("key len")
+                                  for line in status):
+            return
+        raise ATError(f"radio on {self.port_name} did not take the key (AT&E=<key>): is "
+                      "ENCRYPTION_LEVEL set to match the key length?")
+
+    def key_matches(self, key: bytes) -> bool:
+        """``AT&E?``: whether the radio's RAM key is ``key`` (the answer is never
+        returned or printed). Raises :class:`ATTimeoutError` without an answer."""
+        try:
+            lines = self.command("AT&E?", lines=1)
+        except ATTimeoutError:
+            raise ATTimeoutError(f"no answer to AT&E? on {self.port_name}") from None
+        return any(strip_node(line).lower() == key.hex() for line in lines)
 
     def save(self) -> None:
         """``AT&W``: save the parameters to flash. Raises :class:`ATError` unless OK."""

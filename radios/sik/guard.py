@@ -105,10 +105,10 @@ def parse_expected(spec: str) -> dict[str, int]:
             raise ConfigError(f"radio parameters file {text}: expected a table of NAME = value")
         raw = loaded
     expected: dict[str, int] = {}
-    for key, value in raw.items():
-        if not isinstance(value, (int, str)) or isinstance(value, bool):
-            raise ConfigError(f"radio parameter {key}: {value!r} is not a whole number")
-        canonical, number = _canonical(str(key), value)
+    for key, given in raw.items():
+        if not isinstance(given, (int, str)) or isinstance(given, bool):
+            raise ConfigError(f"radio parameter {key}: {given!r} is not a whole number")
+        canonical, number = _canonical(str(key), given)
         expected[canonical] = number
     if not expected:
         raise ConfigError("radio parameters: nothing to check")

@@ -11,12 +11,13 @@ import json
 from pathlib import Path
 
 import pytest
-from emu_helpers import running_emulator
+from emu_helpers import running_emulator, wait_until
 
 from radios.errors import ConfigError
 from radios.sik.config import SikConfigurator, open_port
 from radios.sik.guard import (
     Mismatch,
+    RecheckTimer,
     check_radio,
     compare,
     describe,
@@ -25,6 +26,7 @@ from radios.sik.guard import (
 )
 from radios.sik.params import NETID
 from swarm.commands import agent as agent_cmd
+from swarm.procs import Child
 
 SWARM = {"NETID": 25, "AIR_SPEED": 64}
 
@@ -133,7 +135,10 @@ def test_agent_radio_params_usage_errors(capsys: pytest.CaptureFixture[str]) -> 
         ([*base, "--radio", "/dev/null", "--radio-params", "NETID=x"], "whole number"),
         ([*base, "--zenoh-listen", "tcp/127.0.0.1:7447", "--radio-params", "NETID=25"],
          "--radio"),
-        ([*base, "--radio", "/dev/null", "--restore-radio"], "--restore-radio needs"),
+        ([*base, "--radio", "/dev/null", "--restore-radio"], "need --radio-params"),
+        ([*base, "--radio", "/dev/null", "--radio-recheck", "30"], "need --radio-params"),
+        ([*base, "--radio", "/dev/null", "--radio-params", "NETID=25", "--radio-recheck", "-1"],
+         "seconds"),
     ]
     for argv, message in cases:
         assert agent_cmd.main(argv) == 2, argv
@@ -147,3 +152,55 @@ def test_guard_on_a_port_that_is_not_a_radio(tmp_path: Path,
                            "--radio-params", "NETID=25"])
     assert code == 2
     assert "no such device" in capsys.readouterr().err
+
+
+def _events(child: Child, kind: str) -> list[dict[str, object]]:
+    out = []
+    for line in list(child.lines):
+        try:
+            obj = json.loads(line)
+        except ValueError:
+            continue
+        if obj.get("event") == kind:
+            out.append(obj)
+    return out
+
+
+def test_isolated_agent_rechecks_and_restores_its_radio(tmp_path: Path) -> None:
+    # A real `swarm agent` process alone on radio 0: it hears no other agent, so it
+    # re-checks its radio every 12 s. A rogue on radio 1 moves radio 0 to NETID 77
+    # right after one check; the next check puts it back.
+    with running_emulator(tmp_path, 2) as emu:
+        emu.wait_locked(0, 1)
+        agent = Child(["agent", "--name", "a1", "--id", "1", "--radio", emu.paths[0], "--json",
+                       "--radio-params", "NETID=25,AIR_SPEED=64", "--restore-radio",
+                       "--radio-recheck", "12"], name="agent")
+        try:
+            wait_until(lambda: _events(agent, "radio-checked") or agent.proc.poll() is not None,
+                       90.0, "the agent's first re-check")
+            assert agent.proc.poll() is None, agent.errors
+            emu.wait_locked(0, 1)
+            _rogue_moves_radio0(emu.paths[1])
+            assert emu.emu.params[0].eeprom[NETID] == 77
+            restored = wait_until(lambda: _events(agent, "radio-restored")
+                                  or agent.proc.poll() is not None, 90.0, "the restore")
+            assert agent.proc.poll() is None, agent.errors
+            assert restored[0]["differed"] == {"NETID": 77}
+            p = emu.emu.params[0]
+            assert (p.eeprom[NETID], p.active[NETID]) == (25, 25)
+        finally:
+            agent.stop()
+
+
+def test_recheck_timer() -> None:
+    timer = RecheckTimer(10.0)
+    assert not timer.update(True, 0.0)
+    assert not timer.update(True, 9.9)
+    assert timer.update(True, 10.0)
+    assert not timer.update(True, 15.0)
+    assert not timer.update(False, 16.0)  # heard someone: start over
+    assert not timer.update(True, 17.0)
+    assert not timer.update(True, 26.9)
+    assert timer.update(True, 27.0)
+    with pytest.raises(ConfigError):
+        RecheckTimer(0)

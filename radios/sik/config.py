@@ -10,7 +10,8 @@ every read is a short poll (``READ_SLICE``) inside a loop bounded by
 * :meth:`~SikConfigurator.enter_command_mode` first sends ``\\r\\nAT\\r\\n`` in case the
   radio was left in command mode (the echo ``AT`` followed by ``OK`` proves it). If
   not, it keeps silent for 1.2 s, writes ``+++`` with no line end and waits for
-  ``OK``, which the radio prints after another 1 s of silence; it tries twice. The
+  ``OK``, which the radio prints after another 1 s of silence (on a busy link right
+  after data from the air: then it is the last thing received); it tries twice. The
   probe and the ``+`` bytes reach the remote end as data, as with any SiK tool.
 * :meth:`~SikConfigurator.command` writes one line plus CR and collects the reply:
   the echo of the line is dropped; the reply is complete at an ``OK``/``ERROR`` line,
@@ -49,7 +50,9 @@ LOCAL_TIMEOUT = 1.0  # default wait for the first reply line of a local command
 REMOTE_TIMEOUT = 2.0  # default wait for the first reply line of a remote command
 HARD_EXTRA = 5.0  # a reply that keeps streaming is cut this long after its timeout
 
-_OK_AFTER_PLUS = re.compile(rb"(?:^|\n)(?:\[\d+\] )?OK\r\n")
+# After +++ the radio prints OK and then nothing more (command mode drops air data),
+# but data from the air may come just before it, not ending in a line break.
+_OK_AFTER_PLUS = re.compile(rb"(?:^|\n)(?:\[\d+\] )?OK\r\n|(?:\[\d+\] )?OK\r\n\Z")
 _OK_AFTER_PROBE = re.compile(rb"AT\r\n(?:\[\d+\] )?OK\r\n")
 _NODE_PREFIX = re.compile(r"^\[\d+\]\s*")
 _PARAM_LINE = re.compile(r"^S(\d+):\s*([A-Z0-9_]+)=(\d+)$")

@@ -19,9 +19,14 @@ cannot stop that on the air; an agent can notice it on its own radio and undo it
   ``restore=True`` it writes each differing value (``ATSn=``), saves (``AT&W``),
   reboots (``ATZ``) and reads the parameters back to prove it worked. It always
   leaves the radio in data mode.
+* :class:`RecheckTimer` (pure, fed with ``now``) says when to check again a radio
+  that has heard no one for a while: a radio moved to another NETID hears nothing,
+  so isolation is the symptom, and a radio that hears no one loses no traffic to the
+  check.
 
 Not covered: the AES key itself (``AT&E?`` would print it on the serial line; only
-ENCRYPTION_LEVEL is compared), and a rogue that acts again after the check.
+ENCRYPTION_LEVEL is compared), and a rogue that acts while the radio still hears
+its peers.
 """
 
 from __future__ import annotations
@@ -58,6 +63,30 @@ class GuardReport:
     @property
     def ok(self) -> bool:
         return not self.mismatches or self.restored
+
+
+class RecheckTimer:
+    """When to re-check an isolated radio: once it has been isolated for ``quiet_s``
+    seconds, then every ``quiet_s`` seconds while it stays isolated; hearing anyone
+    starts over. Pure: fed with the isolation state and ``now``."""
+
+    def __init__(self, quiet_s: float) -> None:
+        if quiet_s <= 0:
+            raise ConfigError(f"the radio re-check needs a positive delay, not {quiet_s}")
+        self.quiet_s = quiet_s
+        self._since: float | None = None
+
+    def update(self, isolated: bool, now: float) -> bool:
+        """Returns True when the radio should be checked now."""
+        if not isolated:
+            self._since = None
+            return False
+        if self._since is None:
+            self._since = now
+        if now - self._since >= self.quiet_s:
+            self._since = now  # next check after another quiet_s of isolation
+            return True
+        return False
 
 
 def _canonical(name: str, value: int | str) -> tuple[str, int]:

@@ -269,7 +269,7 @@ PARAMS_MULTIPOINT: tuple[ParamSpec, ...] = (
 AES_PARAM = ParamSpec(
     ENCRYPTION_LEVEL, "ENCRYPTION_LEVEL", 0, 0, 3, "boot",
     "AES encryption (0 off, 1 AES-128, 2 AES-192, 3 AES-256; only on firmware built "
-    "with AES); set the key with --key", strict=False)
+    "with AES); the key is set with AT&E (swarm radio-config --aes-key)", strict=False)
 
 PARAMS_STANDARD_AES: tuple[ParamSpec, ...] = (*PARAMS_STANDARD, AES_PARAM)
 
@@ -469,7 +469,7 @@ class SikParams:
         from the RAM ENCRYPTION_LEVEL; fewer digits than that set the default key and
         return False (the firmware prints an error line, then OK); extra digits are
         ignored; a non-hex digit reads as 0."""
-        length = key_length(self.ram.get(ENCRYPTION_LEVEL, 0))
+        length = min(key_length(self.ram.get(ENCRYPTION_LEVEL, 0)), KEY_BYTES)
         if len(hex_digits) < 2 * length:
             key = bytes([DEFAULT_KEY_BYTE]) * length
             ok = False
@@ -482,7 +482,7 @@ class SikParams:
 
     def key_hex(self) -> str:
         """``AT&E?``: the RAM key in lower-case hex, as many bytes as the RAM level says."""
-        return self.key_ram[:key_length(self.ram.get(ENCRYPTION_LEVEL, 0))].hex()
+        return self.key_ram[:min(key_length(self.ram.get(ENCRYPTION_LEVEL, 0)), KEY_BYTES)].hex()
 
     def active_key(self) -> bytes:
         """The key the radio encrypts with, or b'' when it runs without encryption."""
@@ -509,7 +509,7 @@ class SikParams:
             ram[MAX_FREQ] = ram[MIN_FREQ] + 1000
         self.ram = ram
         self.active = dict(ram)
-        self.key_ram = self.key_active = getattr(self, "key_eeprom", bytes(KEY_BYTES))
+        self.key_ram = self.key_active = self.key_eeprom
 
     def _cross_ok(self, index: int, value: int, table: Mapping[int, int]) -> bool:
         """The multipoint firmware's checks that involve other registers."""

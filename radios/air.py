@@ -39,6 +39,15 @@ Each radio runs the firmware's loop, reduced to the moments where it can act:
   (``stx``). A HEARTBEAT sent from the host makes the radio inject RADIO_STATUS
   (rssi, remrssi, txbuf % free, noise, remnoise, rxerrors) into its serial output.
 
+AES builds (``RadioConfig.key`` not empty; tdm.c, packet.c, freq_hopping.c): the
+hopping sequence is seeded by a CRC-16 of the key instead of the NETID, so a radio
+with another key (or none) shares a channel with this one only by chance: it hears
+a packet with probability 1/NUM_CHANNELS and never locks. Data and injected replies
+are encrypted: a receiver with another key writes garbage of the same length to its
+host. ``RT`` commands travel in clear and any radio that hears one runs it, key or
+no key. Packets carry at most 31 bytes of data (packet_get_next) and need 16 more
+bytes of window.
+
 Not modelled (documented simplifications): duty cycle and LBT, temperature, the
 per-channel frequency plan (NETIDs never interfere), opportunistic resend (off
 since 2.0), CTS unless ``flow_control`` is set by the caller.
@@ -46,6 +55,7 @@ since 2.0), CTS unless ``flow_control`` is set by the caller.
 
 from __future__ import annotations
 
+import binascii
 import heapq
 import math
 import random
@@ -87,6 +97,14 @@ class RadioConfig:
     node_count: int = 2
     in_buf: int = 1850
     out_buf: int = 645
+    key: bytes = b""  # the AES key it runs with (AES builds, ENCRYPTION_LEVEL > 0)
+
+    def hop_seed(self) -> int:
+        """What seeds the channel shuffle (freq_hopping.c shuffleRand): the NETID, or a
+        CRC-16 of the 32-byte key when encryption is on."""
+        if not self.key:
+            return self.netid
+        return binascii.crc_hqx((self.key + bytes(32))[:32], 0)
 
     def compatible(self, other: RadioConfig) -> bool:
         """Both ends must match on these to hear each other (reference/sik.md)."""
@@ -484,7 +502,10 @@ class AirModel:
 
     # packetiser (packet.c) ----------------------------------------------------
     def _packet_get_next(self, r: _Radio, mx: int, t: float) -> tuple[bytes, bool]:
-        if r.injected:
+        if r.cfg.key:
+            # packet.c: encrypted packets are at most 32 bytes of cipher text
+            mx = 0 if mx <= 16 else 15 if mx <= 32 else 31
+        if r.injected and mx > 0:
             n = min(mx, INJECT_MAX)
             chunk = bytes(r.injected[:n])
             del r.injected[:n]
@@ -647,6 +668,8 @@ class AirModel:
             return
         remaining = int((end - t) / TICK_S)
         mx = max_xmit(r.t, remaining)
+        if r.cfg.key:
+            mx = mx - 16 if mx >= 16 else 0  # tdm.c: room for the cipher's padding
         if mx <= 0:
             if mp:
                 self._wake_at(r, next_start)
@@ -725,16 +748,22 @@ class AirModel:
         sender = self.radios[pkt.sender]
         if not r.cfg.compatible(sender.cfg):
             return
+        seed = r.cfg.hop_seed()
         for other in self._airing:
             if other is pkt or not (other.t_start < pkt.t_end and pkt.t_start < other.t_end):
                 continue
             if other.sender == r.index:
                 return  # half duplex: it was transmitting and heard nothing
-            if self.radios[other.sender].cfg.compatible(r.cfg):
+            ocfg = self.radios[other.sender].cfg
+            if ocfg.compatible(r.cfg) and ocfg.hop_seed() == seed:
                 r.stats.collisions += 1
                 r.stats.rx_errors += 1
                 return
-        if not r.locked:
+        if sender.cfg.hop_seed() != seed:
+            # another hopping sequence (AES key): on our channel only by chance
+            if self.rng.random() >= 1.0 / max(r.cfg.num_channels, 1):
+                return
+        elif not r.locked:
             # the multipoint base sends its sync on a fixed channel: heard at once
             base = r.cfg.firmware == "multipoint" and sender.cfg.node_id == 0
             if not base and self.rng.random() >= 1.0 / max(r.cfg.num_channels, 1):
@@ -759,6 +788,11 @@ class AirModel:
             return
         if not mp:
             self._sync(r, pkt, t)
+        if sender.cfg.key != r.cfg.key and pkt.payload and not (
+                pkt.command and pkt.payload.startswith(b"RT")):
+            # encrypted with another key (or not at all): decrypts to garbage
+            pkt = Packet(pkt.sender, self.rng.randbytes(len(pkt.payload)), pkt.window,
+                         pkt.bonus, pkt.command, pkt.dest, pkt.t_start, pkt.t_end, pkt.kind)
         if pkt.command:
             self._remote_at(r, pkt, t)
         elif pkt.payload and (not mp or pkt.dest in (BROADCAST, r.cfg.node_id)):

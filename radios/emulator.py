@@ -19,6 +19,8 @@ master ends and drives one :class:`radios.air.AirModel` in real time
   sent down an unplugged cable are lost) and stale input is flushed;
 * each radio has its own SiK parameters and AT command interpreter, so ``+++``,
   ``ATI5``, ``ATS3=..``, ``AT&W``, ``ATZ`` and ``RT..`` behave as on hardware;
+  ``aes=True`` makes every radio an RFD900P running a SiK build with AES
+  (ENCRYPTION_LEVEL, ``AT&E``; standard firmware only);
 * every MAVLink frame put on air is captured to a ``.tlog`` when asked, and the
   model's counters can be written to a JSON file (at exit and every 2 s).
 
@@ -71,6 +73,7 @@ class EmulatorConfig:
     capture: str | None = None
     stats_json: str | None = None
     seed: int = 0
+    aes: bool = False  # RFD900P radios running a SiK build with AES (standard firmware)
 
     def resolved_firmware(self) -> str:
         if self.firmware is not None:
@@ -94,7 +97,11 @@ class EmulatorConfig:
             validate_user_value(self.resolved_firmware(), "NETID", n)
         if not 0.0 <= self.loss <= 1.0:
             raise ConfigError(f"--loss {self.loss}: a probability between 0 and 1")
+        if self.aes and self.resolved_firmware() != "standard":
+            raise ConfigError("--aes: the multipoint SiK firmware has no AES encryption")
         for name, value in self.params.items():
+            if name.upper() == "ENCRYPTION_LEVEL" and not self.aes:
+                raise ConfigError("ENCRYPTION_LEVEL exists only on firmware built with AES")
             validate_user_value(self.resolved_firmware(), name, value)
 
 
@@ -107,6 +114,32 @@ def parse_param(text: str) -> tuple[str, int]:
         return name.strip().upper(), int(value)
     except ValueError:
         raise ConfigError(f"--param {text!r}: the value must be an integer") from None
+
+
+def radio_config_of(p: SikParams) -> RadioConfig:
+    """What the air model needs of a radio whose parameters are ``p`` (its active copy)."""
+
+    def a(name: str) -> int:
+        return p.active[spec_for(p.flavour, name).index]
+
+    mp = p.flavour == "multipoint"
+    return RadioConfig(
+        netid=a("NETID"),
+        air_kbps=a("AIR_SPEED"),
+        serial_baud=SERIAL_BAUD.get(a("SERIAL_SPEED"), 57600),
+        ecc=bool(a("ECC")),
+        mavlink=a("MAVLINK"),
+        max_window_ms=131 if mp else a("MAX_WINDOW"),
+        num_channels=a("NUM_CHANNELS"),
+        min_freq=a("MIN_FREQ"),
+        max_freq=a("MAX_FREQ"),
+        txpower_dbm=a("TXPOWER"),
+        firmware=p.flavour,
+        node_id=a("NODEID") if mp else 0,
+        node_destination=a("NODEDESTINATION") if mp else 0xFFFF,
+        node_count=a("NODECOUNT") if mp else 2,
+        key=p.active_key(),
+    )
 
 
 class Emulator:
@@ -153,28 +186,7 @@ class Emulator:
 
     def radio_config(self, i: int) -> RadioConfig:
         """The model's view of radio ``i``'s active parameters."""
-        p = self.params[i]
-
-        def a(name: str) -> int:
-            return p.active[spec_for(self.firmware, name).index]
-
-        mp = self.firmware == "multipoint"
-        return RadioConfig(
-            netid=a("NETID"),
-            air_kbps=a("AIR_SPEED"),
-            serial_baud=SERIAL_BAUD.get(a("SERIAL_SPEED"), 57600),
-            ecc=bool(a("ECC")),
-            mavlink=a("MAVLINK"),
-            max_window_ms=131 if mp else a("MAX_WINDOW"),
-            num_channels=a("NUM_CHANNELS"),
-            min_freq=a("MIN_FREQ"),
-            max_freq=a("MAX_FREQ"),
-            txpower_dbm=a("TXPOWER"),
-            firmware=self.firmware,
-            node_id=a("NODEID") if mp else 0,
-            node_destination=a("NODEDESTINATION") if mp else 0xFFFF,
-            node_count=a("NODECOUNT") if mp else 2,
-        )
+        return radio_config_of(self.params[i])
 
     def _losses(self) -> list[LossModel]:
         out: list[LossModel] = []
@@ -212,7 +224,8 @@ class Emulator:
             self._capture = TlogWriter(self.cfg.capture)
         try:
             for i in range(self.cfg.nodes):
-                self.params.append(SikParams(self.firmware, stored=self._stored(i)))
+                self.params.append(SikParams(self.firmware, stored=self._stored(i),
+                                             aes=self.cfg.aes))
             for i in range(self.cfg.nodes):
                 master, slave = os.openpty()
                 tty.setraw(slave)
@@ -244,6 +257,7 @@ class Emulator:
     def _make_at(self, i: int, _cfg: RadioConfig) -> ATEngine:
         return ATEngine(
             self.params[i], flavour=self.firmware,
+            board="RFD900P" if self.cfg.aes else "HM-TRP",
             ati6=lambda: self.model.ati6(i) if self.model else "",
             ati7=lambda: self.model.ati7(i) if self.model else "",
             node_id=i if self.firmware == "multipoint" else None,

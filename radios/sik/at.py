@@ -43,8 +43,15 @@ whole text, target included, is handed out and the emulator routes it
 Multipoint firmware prefixes every line it prints, locally and remotely, with
 ``[<node id>] `` (``[1] OK``); the standard firmware prints bare lines.
 
+A command line holds 16 characters on Si1000 boards and 69 on the Si103x boards
+(RFD900P, RFD900U, MRO900), as at.h's AT_CMD_MAXLEN; a received ``RT`` line longer
+than that is ignored. On an AES build (``SikParams(aes=True)``, RFD900P/RFD900U only)
+``AT&E=<hex>`` sets the key (printing ``key len N`` then ``OK``; too short a key prints
+``ERROR - Key length:..`` then ``OK`` and sets the default key) and ``AT&E?`` prints
+it, locally and over the air alike: the firmware asks nothing more of an ``RT`` line.
+
 Not modelled: the bootloader and board extras (``AT&UPDATE``, ``AT&P``, ``ATP...``,
-``AT+...``, ``AT&E`` answer ``ERROR``), multipoint ``ATI8``, the short window in which
+``AT+...``, and ``AT&E`` without AES answer ``ERROR``), multipoint ``ATI8``, the short window in which
 the firmware drops bytes while a local command runs, and the TDM debug output of
 ``AT&T=TDM`` (the flag is kept). ``AT&T=RSSI`` prints the ATI7 line every 0.5 s.
 """
@@ -70,6 +77,9 @@ BOARD_IDS: dict[str, int] = {
 }
 BOOTLOADER_VERSION = 2  # ATI4; a plausible value for an HM-TRP bootloader
 AT_CMD_MAXLEN = 16  # Si1000 boards (Si103x boards allow 69)
+AT_CMD_MAXLEN_SI103X = 69
+SI103X_BOARDS = frozenset({"RFD900P", "RFD900U", "MRO900"})
+AES_BOARDS = frozenset({"RFD900P", "RFD900U"})  # the only boards ever built with AES
 REMOTE_REPLY_MAX = 252  # bytes of captured output a remote command returns
 GUARD_TIME = 1.0  # seconds of serial silence before and after +++
 RSSI_REPORT_INTERVAL = 0.5  # AT&T=RSSI prints the ATI7 line this often
@@ -161,8 +171,8 @@ class ATEngine:
     the radio powered on (the first ``+++`` needs 1 s of silence after it); None means
     long ago.
 
-    Raises :class:`ConfigError` if ``flavour`` differs from ``params.flavour`` or the
-    board is unknown.
+    Raises :class:`ConfigError` if ``flavour`` differs from ``params.flavour``, the
+    board is unknown, or ``params`` is an AES build on a board never built with AES.
     """
 
     def __init__(self, params: SikParams, *, flavour: str = "standard", board: str = "HM-TRP",
@@ -173,7 +183,11 @@ class ATEngine:
                               f"flavour {params.flavour!r}")
         if board not in BOARD_IDS:
             raise ConfigError(f"unknown SiK board {board!r}: use one of " + ", ".join(BOARD_IDS))
+        if getattr(params, "aes", False) and board not in AES_BOARDS:
+            raise ConfigError(f"SiK firmware with AES was only built for "
+                              f"{' and '.join(sorted(AES_BOARDS))}, not {board}")
         self.params = params
+        self.max_line = AT_CMD_MAXLEN_SI103X if board in SI103X_BOARDS else AT_CMD_MAXLEN
         self.flavour = params.flavour
         self.board = board
         self.version = version
@@ -249,7 +263,9 @@ class ATEngine:
         """
         t = self._now if now is None else max(now, self._now)
         self._now = t
-        line = command.strip().upper()[:AT_CMD_MAXLEN]
+        line = command.strip().upper()
+        if len(line) > self.max_line:
+            return RemoteResult()  # tdm.c's handle_at_command drops it
         if self.flavour == "multipoint":
             line = split_remote_target(line)[0]
         if line.startswith("RT"):
@@ -321,7 +337,7 @@ class ATEngine:
                 out.host += b"\b \b"
                 del self._line[-1]
             return False
-        if len(self._line) < AT_CMD_MAXLEN:
+        if len(self._line) < self.max_line:
             if 0x20 <= c < 0x7F:
                 upper = ord(chr(c).upper())
                 self._line.append(upper)
@@ -409,6 +425,15 @@ class ATEngine:
         if which == "W":
             self.params.save()
             return ["OK"]
+        if which == "E" and self.params.aes:
+            if arg[1:2] == "?":
+                return [self.params.key_hex()]
+            if arg[1:2] == "=":
+                length = len(self.params.key_hex()) // 2
+                if self.params.set_key(arg[2:]):
+                    return [f"key len {length}", "OK"]
+                return [f"ERROR - Key length:{len(arg[2:])}, Required {2 * length}", "OK"]
+            return ["ERROR"]
         if which == "T":
             mode = arg[1:]
             if mode == "":

@@ -10,7 +10,8 @@ every read is a short poll (``READ_SLICE``) inside a loop bounded by
 * :meth:`~SikConfigurator.enter_command_mode` first sends ``\\r\\nAT\\r\\n`` in case the
   radio was left in command mode (the echo ``AT`` followed by ``OK`` proves it). If
   not, it keeps silent for 1.2 s, writes ``+++`` with no line end and waits for
-  ``OK``, which the radio prints after another 1 s of silence; it tries twice. The
+  ``OK``, which the radio prints after another 1 s of silence (on a busy link right
+  after data from the air: then it is the last thing received); it tries twice. The
   probe and the ``+`` bytes reach the remote end as data, as with any SiK tool.
 * :meth:`~SikConfigurator.command` writes one line plus CR and collects the reply:
   the echo of the line is dropped; the reply is complete at an ``OK``/``ERROR`` line,
@@ -37,7 +38,7 @@ from typing import Any, Protocol
 
 import serial
 
-from radios.errors import ATError, ATTimeoutError, LinkClosedError, LinkOpenError
+from radios.errors import ATError, ATTimeoutError, ConfigError, LinkClosedError, LinkOpenError
 from radios.sik.params import check_flavour, spec_for, validate_user_value
 
 READ_SLICE = 0.05  # seconds: the longest a single port read blocks
@@ -49,7 +50,9 @@ LOCAL_TIMEOUT = 1.0  # default wait for the first reply line of a local command
 REMOTE_TIMEOUT = 2.0  # default wait for the first reply line of a remote command
 HARD_EXTRA = 5.0  # a reply that keeps streaming is cut this long after its timeout
 
-_OK_AFTER_PLUS = re.compile(rb"(?:^|\n)(?:\[\d+\] )?OK\r\n")
+# After +++ the radio prints OK and then nothing more (command mode drops air data),
+# but data from the air may come just before it, not ending in a line break.
+_OK_AFTER_PLUS = re.compile(rb"(?:^|\n)(?:\[\d+\] )?OK\r\n|(?:\[\d+\] )?OK\r\n\Z")
 _OK_AFTER_PROBE = re.compile(rb"AT\r\n(?:\[\d+\] )?OK\r\n")
 _NODE_PREFIX = re.compile(r"^\[\d+\]\s*")
 _PARAM_LINE = re.compile(r"^S(\d+):\s*([A-Z0-9_]+)=(\d+)$")
@@ -342,6 +345,36 @@ class SikConfigurator:
         index = self.indices.get(spec.name, spec.index)
         lines = self.command(self._op(f"ATS{index}={number}"))
         self._expect_ok(lines, f"{spec.name}={number} (ATS{index}={number})")
+
+    def set_key(self, key: bytes) -> None:
+        """``AT&E=<hex>``: give the local radio its AES key (AES builds only; the key
+        length must match the ENCRYPTION_LEVEL already set in RAM). No message this
+        raises contains the key. Raises :class:`ConfigError` in remote mode (an ``RT``
+        line crosses the air in clear), :class:`ATError` if the radio does not take
+        it, :class:`ATTimeoutError` without an answer.
+        """
+        if self.remote:
+            raise ConfigError("an AES key is never sent to a remote radio: RT commands "
+                              "cross the air unencrypted")
+        try:
+            lines = self.command("AT&E=" + key.hex().upper())
+        except ATTimeoutError:
+            raise ATTimeoutError(f"no answer to AT&E=<key> on {self.port_name}") from None
+        status = [strip_node(line) for line in lines]
+        if "OK" in status and any(line.lower().startswith("key len")
+                                  for line in status):
+            return
+        raise ATError(f"radio on {self.port_name} did not take the key (AT&E=<key>): is "
+                      "ENCRYPTION_LEVEL set to match the key length?")
+
+    def key_matches(self, key: bytes) -> bool:
+        """``AT&E?``: whether the radio's RAM key is ``key`` (the answer is never
+        returned or printed). Raises :class:`ATTimeoutError` without an answer."""
+        try:
+            lines = self.command("AT&E?", lines=1)
+        except ATTimeoutError:
+            raise ATTimeoutError(f"no answer to AT&E? on {self.port_name}") from None
+        return any(strip_node(line).lower() == key.hex() for line in lines)
 
     def save(self) -> None:
         """``AT&W``: save the parameters to flash. Raises :class:`ATError` unless OK."""

@@ -34,6 +34,20 @@ the parameter, the value and the accepted range.
 
 Only the HM-TRP (Si1000, 20 dBm) board is modelled: TXPOWER is capped at 20 and
 rounded to the HM-TRP power levels whatever board an emulated radio claims to be.
+
+**AES builds** (``SikParams(aes=True)``, standard flavour only). ArduPilot's SiK tree
+has AES code behind ``INCLUDE_AES`` (parameters.c/h, at.c, tdm.c, packet.c,
+serial.c, freq_hopping.c, AES/aes.c), built only for the RFD900+/RFD900U "e"
+boards (Si1030) and switched off for every board since 2021 (commit 85c5ea2, "to
+allow code to fit"). Such a build has one more register, S16 ``ENCRYPTION_LEVEL``
+(default 0 = off; low nibble 1/2/3 = AES-128/192/256, high nibble 0 = CBC, 1 = CTR;
+the firmware checks no value), and a key kept beside the parameters (flash, RAM and
+the running copy like the registers): ``AT&E=<hex>`` sets the RAM key, its length
+taken from the RAM ENCRYPTION_LEVEL (16/24/32 bytes; too few hex digits set the
+default key of 0x62 bytes and still answer OK), ``AT&E?`` prints it, ``AT&W`` saves
+it, ``ATZ`` runs with it. :class:`SikParams` keeps the three copies of the key in
+``key_eeprom``/``key_ram``/``key_active``; :func:`validate_key_hex` is the host-side
+check. The multipoint firmware has no AES at all.
 """
 
 from __future__ import annotations
@@ -64,6 +78,11 @@ FORMAT, SERIAL_SPEED, AIR_SPEED, NETID, TXPOWER = 0, 1, 2, 3, 4
 MIN_FREQ, MAX_FREQ = 8, 9
 # Multipoint-only registers.
 NODEID, NODEDESTINATION, SYNCANY, NODECOUNT = 15, 16, 17, 18
+# AES builds of the standard firmware only (parameters.h, INCLUDE_AES).
+ENCRYPTION_LEVEL = 16
+KEY_BYTES = 32  # parameters.c keeps a 32-byte key whatever the level
+DEFAULT_KEY_BYTE = 0x62  # param_set_default_encryption_key(): 'b' bytes
+ENCRYPTION_LEVELS = (0, 1, 2, 3)  # what the host lets a user set (CBC; 0 = off)
 
 
 @dataclass(frozen=True)
@@ -247,6 +266,43 @@ PARAMS_MULTIPOINT: tuple[ParamSpec, ...] = (
 )
 
 
+AES_PARAM = ParamSpec(
+    ENCRYPTION_LEVEL, "ENCRYPTION_LEVEL", 0, 0, 3, "boot",
+    "AES encryption (0 off, 1 AES-128, 2 AES-192, 3 AES-256; only on firmware built "
+    "with AES); the key is set with AT&E (swarm radio-config --aes-key)", strict=False)
+
+PARAMS_STANDARD_AES: tuple[ParamSpec, ...] = (*PARAMS_STANDARD, AES_PARAM)
+
+
+def key_length(level: int) -> int:
+    """Key bytes for an ENCRYPTION_LEVEL (aes.h's AES_KEY_LENGTH: 8 * (1 + low nibble))."""
+    return 8 * (1 + (level & 0xF))
+
+
+def validate_key_hex(level: int, key: str) -> bytes:
+    """Check a key a user gives for ENCRYPTION_LEVEL ``level``; return its bytes.
+
+    The key must be exactly ``2 * key_length(level)`` hex digits (the firmware would
+    silently take the default key for fewer and ignore extra digits). The message
+    never repeats the key. Raises :class:`ConfigError`.
+    """
+    if level not in ENCRYPTION_LEVELS or level == 0:
+        raise ConfigError(f"a key needs ENCRYPTION_LEVEL 1, 2 or 3, not {level}")
+    text = key.strip()
+    want = 2 * key_length(level)
+    if len(text) != want:
+        raise ConfigError(f"the key for ENCRYPTION_LEVEL={level} must be {want} hex digits "
+                          f"({want * 4} bits), got {len(text)} characters")
+    if not all(c in "0123456789abcdefABCDEF" for c in text):
+        raise ConfigError("the key must contain hex digits only (0-9, a-f)")
+    return bytes.fromhex(text)
+
+
+def _hex_nibble(c: str) -> int:
+    """parameters.c's read_hex_nibble: a hex digit's value, 0 for anything else."""
+    return int(c, 16) if c in "0123456789abcdefABCDEF" else 0
+
+
 def check_flavour(flavour: str) -> Flavour:
     """Return ``flavour`` if it names a firmware flavour; raise :class:`ConfigError` if not."""
     for known in FLAVOURS:
@@ -270,6 +326,8 @@ def spec_for(flavour: str, name: str) -> ParamSpec:
     for spec in specs:
         if spec.name == wanted:
             return spec
+    if flavour == "standard" and wanted == AES_PARAM.name:
+        return AES_PARAM  # exists only on AES builds; the radio's ATI5 decides
     hint = ""
     if flavour == "standard" and any(s.name == wanted for s in PARAMS_MULTIPOINT):
         hint = " (it is a multipoint parameter: use the multipoint firmware flavour)"
@@ -315,13 +373,25 @@ class SikParams:
     register number to value. A new instance has booted from ``eeprom``.
 
     ``stored`` seeds ``eeprom`` by parameter name (a radio configured earlier).
-    Raises :class:`ConfigError` for an unknown flavour or band, or a bad ``stored`` value.
+    ``aes`` models a firmware built with AES (S16 ENCRYPTION_LEVEL and a key;
+    ``stored_key`` seeds the key in flash). Raises :class:`ConfigError` for an unknown
+    flavour or band, a bad ``stored`` value, or AES asked of the multipoint firmware.
     """
 
     def __init__(self, flavour: str = "standard", *, band: int = 915,
-                 stored: Mapping[str, int] | None = None) -> None:
+                 stored: Mapping[str, int] | None = None, aes: bool = False,
+                 stored_key: bytes | None = None) -> None:
         self.flavour: Flavour = check_flavour(flavour)
-        self.specs: tuple[ParamSpec, ...] = params_for(self.flavour)
+        if aes and self.flavour != "standard":
+            raise ConfigError("the multipoint SiK firmware has no AES encryption")
+        self.aes = aes
+        self.specs: tuple[ParamSpec, ...] = (PARAMS_STANDARD_AES if aes
+                                             else params_for(self.flavour))
+        # the key: flash, RAM (AT&E=) and running copies, like the registers
+        self.key_eeprom = (bytes(stored_key) + bytes(KEY_BYTES))[:KEY_BYTES] if stored_key \
+            else bytes(KEY_BYTES)
+        self.key_ram = self.key_eeprom
+        self.key_active = self.key_eeprom
         if band not in BANDS:
             raise ConfigError(f"unknown band {band} MHz: use one of "
                               + ", ".join(str(b) for b in BANDS))
@@ -329,6 +399,8 @@ class SikParams:
         self.eeprom: dict[int, int] = self.defaults()
         for name, value in (stored or {}).items():
             spec = spec_for(self.flavour, name)
+            if spec.index >= len(self.specs) or self.specs[spec.index] is not spec:
+                raise ConfigError(f"{spec.name} exists only on firmware built with AES")
             self.eeprom[spec.index] = validate_user_value(self.flavour, name, value)
         self.ram: dict[int, int] = {}
         self.active: dict[int, int] = {}
@@ -384,9 +456,39 @@ class SikParams:
         return True
 
     def save(self) -> None:
-        """``AT&W``: RAM to flash, tagged with the current format."""
+        """``AT&W``: RAM to flash, tagged with the current format (and the key, on AES
+        builds)."""
         self.eeprom = dict(self.ram)
         self.eeprom[FORMAT] = PARAM_FORMAT_CURRENT
+        self.key_eeprom = self.key_ram
+
+    # -- AES builds ---------------------------------------------------------------
+
+    def set_key(self, hex_digits: str) -> bool:
+        """``AT&E=hex``: set the RAM key (param_set_encryption_key). Its length comes
+        from the RAM ENCRYPTION_LEVEL; fewer digits than that set the default key and
+        return False (the firmware prints an error line, then OK); extra digits are
+        ignored; a non-hex digit reads as 0."""
+        length = min(key_length(self.ram.get(ENCRYPTION_LEVEL, 0)), KEY_BYTES)
+        if len(hex_digits) < 2 * length:
+            key = bytes([DEFAULT_KEY_BYTE]) * length
+            ok = False
+        else:
+            key = bytes(_hex_nibble(hex_digits[2 * i]) << 4 | _hex_nibble(hex_digits[2 * i + 1])
+                        for i in range(length))
+            ok = True
+        self.key_ram = key + self.key_ram[length:]
+        return ok
+
+    def key_hex(self) -> str:
+        """``AT&E?``: the RAM key in lower-case hex, as many bytes as the RAM level says."""
+        return self.key_ram[:min(key_length(self.ram.get(ENCRYPTION_LEVEL, 0)), KEY_BYTES)].hex()
+
+    def active_key(self) -> bytes:
+        """The key the radio encrypts with, or b'' when it runs without encryption."""
+        if not self.aes or self.active.get(ENCRYPTION_LEVEL, 0) & 0xF == 0:
+            return b""
+        return self.key_active[:key_length(self.active[ENCRYPTION_LEVEL])]
 
     def factory_reset(self) -> None:
         """``AT&F``: defaults into RAM only (flash and the running radio are unchanged)."""
@@ -407,6 +509,7 @@ class SikParams:
             ram[MAX_FREQ] = ram[MIN_FREQ] + 1000
         self.ram = ram
         self.active = dict(ram)
+        self.key_ram = self.key_active = self.key_eeprom
 
     def _cross_ok(self, index: int, value: int, table: Mapping[int, int]) -> bool:
         """The multipoint firmware's checks that involve other registers."""

@@ -15,6 +15,16 @@ The ``fast`` profile derives its windows from the radio network's TDM round, whi
 the agent does not read from the radio: give ``--round-s``, or ``--slots N`` (the
 number of radios of a multipoint network; 2 for a standard pair) and
 ``--air-speed`` and the round is computed as the SiK firmware does.
+
+``--radio-params NETID=25,AIR_SPEED=64`` (or a JSON/TOML file) makes the agent check
+its radio before the bridge opens it (:mod:`radios.sik.guard`: ``+++``, ``ATI5``):
+any radio in range can change a SiK radio's parameters with ``RT`` commands. A
+radio that differs is named in one line and the agent exits 1; with
+``--restore-radio`` it writes the expected values back (``AT&W``, ``ATZ``), says so
+in one line and starts. ``--radio-recheck S`` repeats the check when the agent has
+heard no other agent for S seconds (a radio moved to another NETID hears no one),
+unless a flight controller reports the vehicle armed: the agent stops, checks (and
+restores), and starts again with a fresh protocol state.
 """
 
 from __future__ import annotations
@@ -28,6 +38,8 @@ from collections.abc import Callable
 from typing import Any
 
 from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
+from radios.errors import ATError
+from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
 from swarm.agent import PROFILES, VOTES, Agent, default_round_s, state_dict
 from swarm.cliutil import EXIT_FAILURE, EXIT_USAGE, StopFlag, UsageError, guarded, parser, print_json
 from swarm.errors import MessageError, TransportError
@@ -60,6 +72,15 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS",
                    help="radio air rate for the round (default 64)")
     p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
+    p.add_argument("--radio-params", metavar="NAME=V,...|FILE",
+                   help="the swarm's radio parameters (NETID=25,AIR_SPEED=64,... or a JSON/TOML "
+                        "file): check the radio before starting, refuse to start if it differs")
+    p.add_argument("--radio-recheck", type=float, default=0.0, metavar="S",
+                   help="with --radio-params: check the radio again after S seconds without "
+                        "hearing another agent (not while the vehicle is armed; default: off)")
+    p.add_argument("--restore-radio", action="store_true",
+                   help="with --radio-params: write the expected values back (AT&W, ATZ) "
+                        "instead of refusing to start")
     p.add_argument("--vote", choices=VOTES, default="random",
                    help="vote weight: random (the paper), battery, or link (RSSI)")
     p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
@@ -92,6 +113,34 @@ def _text(name: str, st: AgentState) -> str:
     return " ".join(parts)
 
 
+def _check_radio(a: argparse.Namespace, *, again: bool = False) -> None:
+    """The radio guard before the bridge opens the port. Raises RadioError (exit 1)
+    for a radio that differs (without --restore-radio) or does not answer, and
+    ConfigError (exit 2) for bad expected parameters. ``again``: a re-check of an
+    isolated agent, which says so in one line even when the radio is as expected."""
+    report = check_radio(a.radio, parse_expected(a.radio_params), restore=a.restore_radio)
+    if not report.mismatches:
+        if again:
+            if a.json:
+                print_json({"event": "radio-checked", "name": a.name, "id": a.id,
+                            "radio": a.radio})
+            else:
+                print(f"agent {a.name}: radio {a.radio} checked after {a.radio_recheck:g} s "
+                      "without hearing another agent: as expected", flush=True)
+        return
+    what = describe(report.mismatches)
+    if not report.restored:
+        raise ATError(f"radio {a.radio} differs from the swarm's parameters: {what}; "
+                      "another radio may have reconfigured it (RT commands). Fix it with "
+                      "swarm radio-config, or pass --restore-radio")
+    line = f"radio {a.radio} differed from the swarm's parameters ({what}): restored"
+    if a.json:
+        print_json({"event": "radio-restored", "name": a.name, "id": a.id, "radio": a.radio,
+                    "differed": {m.name: m.actual for m in report.mismatches}})
+    else:
+        print(f"agent {a.name}: {line}", flush=True)
+
+
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     a = _build_parser().parse_args(argv)
@@ -108,6 +157,14 @@ def main(argv: list[str] | None = None) -> int:
             a.round_s = default_round_s(a.slots, a.air_speed)
         except ValueError as exc:
             raise UsageError(f"--air-speed: {exc}") from None
+    if (a.restore_radio or a.radio_recheck) and not a.radio_params:
+        raise UsageError("--restore-radio and --radio-recheck need --radio-params")
+    if a.radio_recheck < 0:
+        raise UsageError(f"--radio-recheck {a.radio_recheck}: seconds, 0 for off")
+    if a.radio_params:
+        if a.radio is None:
+            raise UsageError("--radio-params checks a radio: give --radio")
+        _check_radio(a)
     lock = threading.Lock()
     t0 = time.monotonic()
 
@@ -149,22 +206,40 @@ def main(argv: list[str] | None = None) -> int:
         pilot = PilotConfig(speed_mps=a.speed, turn_radius_m=a.turn_radius,
                             formation=FormationConfig(back_m=a.back, side_m=a.side, stagger_m=a.stagger,
                                                       min_separation_m=a.min_separation))
-        agent = Agent(a.name, a.id, radio=a.radio, zenoh_listen=a.zenoh_listen,
-                      zenoh_connect=a.zenoh_connect, fc=a.fc, profile=a.profile, round_s=a.round_s,
-                      key_file=a.key, vote=a.vote, pose_hz=a.pose_hz, pilot=pilot, on_state=on_state,
-                      on_event=on_event)
+
+        def make_agent() -> Agent:
+            return Agent(a.name, a.id, radio=a.radio, zenoh_listen=a.zenoh_listen,
+                         zenoh_connect=a.zenoh_connect, fc=a.fc, profile=a.profile,
+                         round_s=a.round_s, key_file=a.key, vote=a.vote, pose_hz=a.pose_hz,
+                         pilot=pilot, on_state=on_state, on_event=on_event)
+
+        agent = make_agent()
     except (MessageError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return _run(a, agent, StopFlag().install(), lock, gate, emit)
+        return _run(a, agent, StopFlag().install(), lock, gate, emit, make_agent)
     finally:
         for sig, handler in previous.items():  # main() may run inside another program
             signal.signal(sig, handler)
 
 
-def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lock,
-         gate: dict[str, Any], emit: Callable[[AgentState], None]) -> int:
+def _isolated(agent: Agent) -> bool:
+    """The agent hears no other agent: alone in its pool, following no one else."""
+    st = agent.state()
+    if st is None:
+        return True
+    others = (st.pool | st.members) - {agent.id}
+    return not others and st.leader in (0, agent.id)
+
+
+def _may_pause(agent: Agent) -> bool:
+    """Stopping the agent for a radio check is safe: no vehicle, or one disarmed."""
+    return agent.vehicle is None or not agent.vehicle.state.armed
+
+
+def _start(agent: Agent) -> int | None:
+    """Start the agent; None on success, else the exit code (message printed)."""
     try:
         agent.start()
     except TransportError as exc:
@@ -182,6 +257,16 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lo
         agent.stop()
         print(f"{PROG}: error: flight controller: {exc}", file=sys.stderr)
         return EXIT_FAILURE
+    return None
+
+
+def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lock,
+         gate: dict[str, Any], emit: Callable[[AgentState], None],
+         make_agent: Callable[[], Agent]) -> int:
+    failed = _start(agent)
+    if failed is not None:
+        return failed
+    recheck = RecheckTimer(a.radio_recheck) if a.radio_recheck else None
     try:
         with lock:
             if a.json:
@@ -195,6 +280,16 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lo
                 emit(st)
             gate["pending"].clear()
         while not stop.wait(0.5):
+            if recheck is not None and recheck.update(_isolated(agent), time.monotonic()) \
+                    and _may_pause(agent):
+                agent.stop()
+                with lock:
+                    _check_radio(a, again=True)  # RadioError: exit 1 (differs or silent)
+                agent = make_agent()
+                failed = _start(agent)
+                if failed is not None:
+                    return failed
+                continue
             if not agent.running:
                 why = "radio link lost" if agent.bridge is not None and agent.bridge.link_lost \
                     else "the agent's protocol thread stopped"

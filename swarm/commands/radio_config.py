@@ -15,6 +15,14 @@ With ``--remote`` the same operations go to the radio at the other end of the li
 ``RT...`` commands; after ``RTZ`` the remote radio needs time to resynchronise, so
 the values shown are those read just before the reboot.
 
+Encryption (SiK builds with AES only: RFD900+/RFD900U "e" firmware): ``--set
+ENCRYPTION_LEVEL=1 --aes-key FILE`` (FILE holds 32, 48 or 64 hex digits for levels
+1, 2, 3). The key is checked against the level before the port is opened, sent only
+to the local radio (``--remote`` would carry it over the air in clear), after the
+radio's ``ATI5`` has shown an ENCRYPTION_LEVEL register (a radio without AES would
+overflow its 16-character line and send the rest of the key to the air as data),
+checked with ``AT&E?`` after the reboot, and never printed.
+
 Output: a table (``S1   SERIAL_SPEED   57``) or, with ``--json``, one JSON object of
 parameter name -> int and nothing else on stdout. Exit codes: 0 success, 1 the radio
 did not answer or refused, 2 bad usage (bad parameter, missing port).
@@ -27,7 +35,13 @@ import time
 
 from radios.errors import ATError, ConfigError, RadioError
 from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port
-from radios.sik.params import FLAVOURS, Flavour, check_flavour, validate_user_value
+from radios.sik.params import (
+    FLAVOURS,
+    Flavour,
+    check_flavour,
+    validate_key_hex,
+    validate_user_value,
+)
 from swarm.cliutil import UsageError, guarded, parser, print_json
 
 PROG = "swarm radio-config"
@@ -71,6 +85,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--firmware", choices=FLAVOURS, default=None,
                     help="firmware flavour the parameters are checked against "
                          "(default: standard; the radio's banner must agree when setting)")
+    ap.add_argument("--aes-key", metavar="FILE",
+                    help="file holding the AES key in hex, with --set ENCRYPTION_LEVEL=1|2|3 "
+                         "(32/48/64 digits; SiK builds with AES only; local radio only; "
+                         "never printed)")
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     try:
         args = ap.parse_args(argv)
@@ -80,13 +98,14 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError(f"--baud must be positive, got {args.baud}")
     flavour = check_flavour(args.firmware or "standard")
     settings = _parse_sets(args.sets, flavour)
+    key = _read_key(args.aes_key, settings, args.remote)
 
     port = open_port(args.port, args.baud)
     try:
         conf = SikConfigurator(port, flavour=flavour, remote=args.remote, port_name=args.port)
         conf.enter_command_mode()
         try:
-            values = _configure(conf, args.firmware, settings, args.remote)
+            values = _configure(conf, args.firmware, settings, args.remote, key)
         except RadioError:
             _leave_quietly(conf)
             raise
@@ -101,8 +120,31 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _read_key(path: str | None, settings: dict[str, int], remote: bool) -> bytes | None:
+    """The AES key from ``--aes-key FILE``, checked against ENCRYPTION_LEVEL; raises
+    UsageError/ConfigError (messages never contain the key)."""
+    level = settings.get("ENCRYPTION_LEVEL")
+    if path is None:
+        if level:
+            raise UsageError("--set ENCRYPTION_LEVEL needs --aes-key FILE: without it the "
+                             "radio encrypts with whatever key it holds (by default a known one)")
+        return None
+    if remote:
+        raise UsageError("--aes-key only configures the local radio: RT commands cross the air "
+                         "unencrypted, key included")
+    if not level:
+        raise UsageError("--aes-key needs --set ENCRYPTION_LEVEL=1, 2 or 3")
+    try:
+        with open(path, encoding="ascii") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UsageError(f"--aes-key {path}: cannot read it: "
+                         f"{getattr(exc, 'strerror', None) or exc.__class__.__name__}") from None
+    return validate_key_hex(level, text)
+
+
 def _configure(conf: SikConfigurator, firmware: str | None, settings: dict[str, int],
-               remote: bool) -> dict[str, int]:
+               remote: bool, key: bytes | None = None) -> dict[str, int]:
     """Everything done in command mode; returns the values to print."""
     banner = conf.version()
     detected = _detected_flavour(banner)
@@ -114,9 +156,17 @@ def _configure(conf: SikConfigurator, firmware: str | None, settings: dict[str, 
     if not settings:
         conf.exit_command_mode()
         return values
+    if "ENCRYPTION_LEVEL" in settings and "ENCRYPTION_LEVEL" not in values:
+        raise ConfigError(f"the radio's firmware ({banner!r}) has no AES encryption (its ATI5 "
+                          "shows no ENCRYPTION_LEVEL): nothing was written")
     for name, value in settings.items():
         try:
             conf.set_param(name, value)
+        except ATError as exc:
+            raise ATError(f"{exc}; nothing was saved") from None
+    if key is not None:
+        try:
+            conf.set_key(key)
         except ATError as exc:
             raise ATError(f"{exc}; nothing was saved") from None
     if remote:
@@ -138,6 +188,9 @@ def _configure(conf: SikConfigurator, firmware: str | None, settings: dict[str, 
         raise ATError(f"settings saved and radio rebooted, but reading them back failed: "
                       f"{exc}") from None
     values = conf.read_params()
+    if key is not None and not conf.key_matches(key):
+        conf.exit_command_mode()
+        raise ATError("the radio rebooted without the new key (AT&E? shows another one)")
     conf.exit_command_mode()
     return values
 

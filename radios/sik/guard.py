@@ -1,0 +1,232 @@
+"""The radio guard: does a SiK radio still run the swarm's parameters? Put them back.
+
+Theory of operation
+-------------------
+Any radio in range can reconfigure a SiK radio with ``RT`` commands (``RTS3=77``,
+``RT&W``, ``RTZ``): the firmware runs them whatever their origin, and MAVLink
+signing never sees them (they are the radio's own traffic, not MAVLink). The swarm
+cannot stop that on the air; an agent can notice it on its own radio and undo it.
+
+* Pure part: :func:`parse_expected` reads the expected parameters (``NETID=25,
+  AIR_SPEED=64`` or a JSON/TOML file of name -> value) and checks every name and
+  value against the firmware's tables before any port is touched;
+  :func:`compare` lists what differs from the values a radio reports (``ATI5``,
+  i.e. after the boot rewrites: give AIR_SPEED and TXPOWER as the radio shows them);
+  :func:`describe` says it in one line.
+* I/O part: :func:`check_radio` opens the radio's serial port, enters command mode
+  (1 s of silence, ``+++``: this interrupts the link for about 3 s, which is why the
+  agent does it before its bridge opens the port), reads ``ATI5`` and compares. With
+  ``restore=True`` it writes each differing value (``ATSn=``), saves (``AT&W``),
+  reboots (``ATZ``) and reads the parameters back to prove it worked. It always
+  leaves the radio in data mode.
+* :class:`RecheckTimer` (pure, fed with ``now``) says when to check again a radio
+  that has heard no one for a while: a radio moved to another NETID hears nothing,
+  so isolation is the symptom, and a radio that hears no one loses no traffic to the
+  check.
+
+Not covered: the AES key itself (``AT&E?`` would print it on the serial line; only
+ENCRYPTION_LEVEL is compared), and a rogue that acts while the radio still hears
+its peers.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from radios.errors import ATError, ConfigError, RadioError
+from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port
+from radios.sik.params import FLAVOURS, spec_for, validate_user_value
+
+REBOOT_SETTLE = 0.5  # seconds for a rebooted radio to start before talking to it again
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    name: str
+    expected: int
+    actual: int | None  # None: the radio has no such parameter
+
+
+@dataclass
+class GuardReport:
+    """What :func:`check_radio` found and did."""
+
+    mismatches: list[Mismatch]
+    restored: bool = False
+    values: dict[str, int] = field(default_factory=dict)  # as read (after restoring)
+
+    @property
+    def ok(self) -> bool:
+        return not self.mismatches or self.restored
+
+
+class RecheckTimer:
+    """When to re-check an isolated radio: once it has been isolated for ``quiet_s``
+    seconds, then every ``quiet_s`` seconds while it stays isolated; hearing anyone
+    starts over. Pure: fed with the isolation state and ``now``."""
+
+    def __init__(self, quiet_s: float) -> None:
+        if quiet_s <= 0:
+            raise ConfigError(f"the radio re-check needs a positive delay, not {quiet_s}")
+        self.quiet_s = quiet_s
+        self._since: float | None = None
+
+    def update(self, isolated: bool, now: float) -> bool:
+        """Returns True when the radio should be checked now."""
+        if not isolated:
+            self._since = None
+            return False
+        if self._since is None:
+            self._since = now
+        if now - self._since >= self.quiet_s:
+            self._since = now  # next check after another quiet_s of isolation
+            return True
+        return False
+
+
+def _canonical(name: str, value: int | str) -> tuple[str, int]:
+    """Validate one expected setting against whichever firmware table knows it."""
+    errors: list[str] = []
+    for flavour in FLAVOURS:
+        try:
+            spec = spec_for(flavour, name)
+        except ConfigError as exc:
+            errors.append(str(exc))
+            continue
+        return spec.name, validate_user_value(flavour, spec.name, value)
+    raise ConfigError(errors[0])
+
+
+def parse_expected(spec: str) -> dict[str, int]:
+    """Expected parameters from ``NAME=V[,NAME=V...]`` or the path of a ``.json`` /
+    ``.toml`` file holding a table of name -> integer.
+
+    Raises :class:`ConfigError` for a malformed list, an unreadable or malformed file,
+    an unknown name, a bad value, or nothing at all to check.
+    """
+    text = spec.strip()
+    raw: Mapping[str, object]
+    if "=" in text:
+        pairs: dict[str, object] = {}
+        for item in text.split(","):
+            name, sep, value = item.partition("=")
+            if not sep or not name.strip():
+                raise ConfigError(f"radio parameters: expected NAME=VALUE, got {item.strip()!r}")
+            pairs[name.strip()] = value.strip()
+        raw = pairs
+    else:
+        path = Path(text)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise ConfigError(f"radio parameters file {text}: {exc.strerror or exc}") from None
+        try:
+            loaded = tomllib.loads(data.decode()) if path.suffix == ".toml" else json.loads(data)
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise ConfigError(f"radio parameters file {text}: not valid "
+                              f"{'TOML' if path.suffix == '.toml' else 'JSON'}: {exc}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"radio parameters file {text}: expected a table of NAME = value")
+        raw = loaded
+    expected: dict[str, int] = {}
+    for key, given in raw.items():
+        if not isinstance(given, (int, str)) or isinstance(given, bool):
+            raise ConfigError(f"radio parameter {key}: {given!r} is not a whole number")
+        canonical, number = _canonical(str(key), given)
+        expected[canonical] = number
+    if not expected:
+        raise ConfigError("radio parameters: nothing to check")
+    return expected
+
+
+def compare(expected: Mapping[str, int], actual: Mapping[str, int]) -> list[Mismatch]:
+    """Every expected parameter the radio does not report with the expected value."""
+    return [Mismatch(name, value, actual.get(name)) for name, value in expected.items()
+            if actual.get(name) != value]
+
+
+def describe(mismatches: list[Mismatch]) -> str:
+    """``NETID=77 (expected 25), ENCRYPTION_LEVEL missing (expected 1)``."""
+    parts = []
+    for m in mismatches:
+        got = " missing" if m.actual is None else f"={m.actual}"
+        parts.append(f"{m.name}{got} (expected {m.expected})")
+    return ", ".join(parts)
+
+
+def split_radio_url(url: str) -> tuple[str, int]:
+    """``serial:/dev/ttyUSB0?baud=115200`` -> (``/dev/ttyUSB0``, 115200); default 57600.
+
+    Raises :class:`ConfigError` for a URL that is not a local serial device.
+    """
+    target = url[len("serial:"):] if url.startswith("serial:") else url
+    path, _, query = target.partition("?")
+    if "://" in path or not path:
+        raise ConfigError(f"the radio check needs a serial device, not {url!r}")
+    baud = 57600
+    for item in filter(None, query.split("&")):
+        key, _, value = item.partition("=")
+        if key == "baud":
+            if not value.isdigit() or int(value) <= 0:
+                raise ConfigError(f"{url}: bad baud rate {value!r}")
+            baud = int(value)
+    return path, baud
+
+
+def check_radio(url: str, expected: Mapping[str, int], *, restore: bool = False) -> GuardReport:
+    """Read the radio on ``url`` and compare it with ``expected``; see the module docstring.
+
+    Raises :class:`LinkOpenError` if the port cannot be opened, :class:`ATTimeoutError`
+    if the radio does not answer, :class:`ATError` if it refuses a value or still
+    differs after restoring, :class:`ConfigError` for a bad URL or expected value.
+    """
+    path, baud = split_radio_url(url)
+    port = open_port(path, baud)
+    try:
+        conf = SikConfigurator(port, port_name=path)
+        conf.enter_command_mode()
+        try:
+            report = _check(conf, expected, restore)
+        except RadioError:
+            if conf.in_command_mode:
+                try:
+                    conf.exit_command_mode()
+                except RadioError:
+                    pass
+            raise
+    finally:
+        port.close()
+    return report
+
+
+def _check(conf: SikConfigurator, expected: Mapping[str, int], restore: bool) -> GuardReport:
+    banner = conf.version()
+    conf.flavour = "multipoint" if banner.startswith("MP ") else "standard"
+    values = conf.read_params()
+    mismatches = compare(expected, values)
+    if not mismatches or not restore:
+        conf.exit_command_mode()
+        return GuardReport(mismatches, values=values)
+    missing = [m.name for m in mismatches if m.actual is None]
+    if missing:
+        conf.exit_command_mode()
+        raise ATError(f"the radio ({banner}) has no {', '.join(missing)}: cannot restore")
+    for m in mismatches:
+        conf.set_param(m.name, m.expected)
+    conf.save()
+    conf.reboot()
+    if "SERIAL_SPEED" in expected:
+        conf.port.baudrate = SERIAL_BAUD[expected["SERIAL_SPEED"]]
+    time.sleep(REBOOT_SETTLE)
+    conf.enter_command_mode()
+    values = conf.read_params()
+    conf.exit_command_mode()
+    still = compare(expected, values)
+    if still:
+        raise ATError(f"restored and rebooted, but the radio still differs: {describe(still)}")
+    return GuardReport(mismatches, restored=True, values=values)

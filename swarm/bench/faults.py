@@ -408,9 +408,10 @@ class FaultBench:
         lead = self.leader()
         k = next(k for k in sorted(self.agents) if k != lead)
         a = self.agents[k]
-        wait = uptime_s - (time.monotonic() - a.started_at)
-        others = min(time.monotonic() - b.started_at for b in self.agents.values())
-        wait = max(wait, uptime_s - others)  # every sender's signing stream is that old
+        # the restarted member must verify streams that have run that long (their
+        # signing timestamps lagged by their uptime before the fix)
+        oldest = max(time.monotonic() - b.started_at for b in self.agents.values() if b is not a)
+        wait = uptime_s - oldest
         if wait > 0:
             time.sleep(wait)
         t = time.monotonic()
@@ -465,6 +466,9 @@ class FaultBench:
         return self._measure(f"{size // 1024} KiB of garbage into a member's radio", t, time.monotonic(),
                              radio=f"agent{k}")
 
+
+    def fault_garbage_small(self) -> FaultResult:
+        return self.fault_garbage(64 * 1024)
 
     # -- the rogue radio --------------------------------------------------------------
     def _rogue_send(self, frames: list[bytes], rate_bps: float = 3000.0) -> None:

@@ -461,6 +461,12 @@ class GcsServer:
                 await ws.close(code=1001, message=b"station stopping")
         if self._runner is not None:
             await self._runner.cleanup()
+        # what is left (a connection still draining a refused body): cancelled, not
+        # abandoned with the loop
+        rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for t in rest:
+            t.cancel()
+        await asyncio.gather(*rest, return_exceptions=True)
 
     def _spawn(self, coro: Awaitable[Any]) -> None:
         task = asyncio.ensure_future(coro)

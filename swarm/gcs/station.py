@@ -181,7 +181,7 @@ def _number(body: dict[str, Any], key: str, lo: float, hi: float, what: str) -> 
         raise CommandRefused(400, f"{key!r} must be a number, not {names.get(type(v), type(v).__name__)}")
     if isinstance(v, float) and not math.isfinite(v):
         shown = "NaN" if math.isnan(v) else ("Infinity" if v > 0 else "-Infinity")
-        raise CommandRefused(400, f"{key!r} must be a finite number, not {shown}")
+        raise CommandRefused(400, f"{key!r} must be a number, not {shown}")
     if not lo <= v <= hi:
         shown = str(v) if isinstance(v, float) or abs(v) < 10 ** 15 else "a number of more than 15 digits"
         raise CommandRefused(400, f"{key!r} {shown} outside {lo:g}..{hi:g}")
@@ -202,7 +202,7 @@ def parse_command(body: Any) -> CommandSpec:
     if not isinstance(kind_s, str) or kind_s.lower() not in KINDS:
         # a short reason whatever was sent (a 60 KB string, a nested list)
         shown = repr(kind_s[:24]) + ("..." if len(kind_s) > 24 else "") if isinstance(kind_s, str) \
-            else "null" if kind_s is None else f"of type {type(kind_s).__name__}"
+            else f"of type {type(kind_s).__name__}" if isinstance(kind_s, (list, dict, int)) else repr(kind_s)
         raise CommandRefused(400, f"unknown command kind {shown}: one of {', '.join(KINDS)}")
     kind = KINDS[kind_s.lower()]
     if "target" not in body:
@@ -222,7 +222,7 @@ def parse_command(body: Any) -> CommandSpec:
             raise CommandRefused(400, f"{kind.name.lower()} is a swarm command: target \"swarm\"")
     else:
         shown = repr(t[:24]) + ("..." if len(t) > 24 else "") if isinstance(t, str) \
-            else "null" if t is None else f"of type {type(t).__name__}"
+            else f"of type {type(t).__name__}" if isinstance(t, (list, dict)) else repr(t)
         raise CommandRefused(400, f"target {shown}: an agent id (1..250) or \"swarm\"")
     what = kind.name.lower()
     if kind == CommandKind.TAKEOFF:  # the pilot's range (swarm.pilot): refused here, not in the air

@@ -314,6 +314,20 @@ def test_a_huge_declared_body_is_413_unread(open_server: GcsServer) -> None:
     assert '"error"' in head
 
 
+def test_a_huge_chunked_body_is_413(open_server: GcsServer) -> None:
+    import http.client
+
+    conn = http.client.HTTPConnection("127.0.0.1", open_server.port, timeout=30)
+    try:
+        chunks = (b"[" + b"1," * 8000 for _ in range(10))  # 160 KB, no Content-Length
+        conn.request("POST", "/api/command", body=chunks, headers=JSON, encode_chunked=True)
+        r = conn.getresponse()
+        assert r.status == 413 and b"too large" in r.read()
+    finally:
+        conn.close()
+    assert request(open_server.port, "GET", "/api/config").status == 200
+
+
 def test_parse_command_takes_any_json_value() -> None:
     """The pure check alone: anything JSON can hold is a CommandRefused or a spec."""
     deep: Any = 1

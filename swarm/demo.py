@@ -378,7 +378,8 @@ def _start_gcs(radio: str, http: str, children: list[Child], out: Callable[[str]
     children.append(gcs)
     try:
         line = gcs.wait_lines(1, 30)[0]
-        url = json.loads(line).get("url")
+        ready = json.loads(line)
+        url = ready.get("open") or ready.get("url")  # with its token beyond loopback
     except (ChildError, ValueError) as exc:
         out(f"   ground station not started: {exc}")
         return None

@@ -4,8 +4,13 @@ Live: ``swarm gcs --radio URL`` (a SiK radio or an emulator pty) or
 ``--zenoh-listen/--zenoh-connect EP...`` (Zenoh over IP). Replay:
 ``swarm gcs --replay CAPTURE [--speed X]`` plays a ``.tlog`` on the same page.
 
+The page and the API answer only their own page, under this machine's names
+(``--allow-host NAME`` adds one) and, beyond loopback, only with the station's token
+(``--token``, ``--token-file``, or one generated and printed once in the ready
+line's address ``.../?token=...``); README, "Security".
+
 It prints one ready line once the HTTP server listens (``--json``:
-``{"event": "ready", "url", "name", "id", "link", "replay", ...}``), then one line per
+``{"event": "ready", "url", "name", "id", "link", "replay", "token", ...}``), then one line per
 station event (connections, leader changes, command results; ``--json``:
 ``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 0).
 Bad input (a missing serial device, a port in use, a tile folder that is not
@@ -27,7 +32,17 @@ from typing import Any
 from radios.errors import CaptureError
 from swarm.cliutil import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
 from swarm.errors import MessageError, TransportError
-from swarm.gcs.server import MAX_WS_HZ, OSM_ATTRIBUTION, OSM_TILES, GcsServer, ServerConfig, ServerError
+from swarm.gcs.server import (
+    MAX_WS_HZ,
+    OSM_ATTRIBUTION,
+    OSM_TILES,
+    TOKEN_RULE,
+    GcsServer,
+    ServerConfig,
+    ServerError,
+    check_host_name,
+    check_token,
+)
 from swarm.gslink import STATION_IDS
 from swarm.messages import check_name
 
@@ -55,6 +70,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--center", metavar="LAT,LON", help="initial map centre (default: the first agent)")
     p.add_argument("--ws-hz", type=float, default=2.0,
                    help=f"state pushes per second on the WebSocket (default 2, at most {MAX_WS_HZ:g})")
+    _add_security_arguments(p)
     p.add_argument("--capture", metavar="FILE", help="record the radio's traffic to a .tlog (with --radio)")
     p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
     p.add_argument("--name", default="gcs", help="station name (default gcs)")
@@ -63,6 +79,51 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paused", action="store_true", help="replay: start paused")
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
     return p
+
+
+# -- who may use the page and the API (README, "Security") ----------------------------
+
+def _add_security_arguments(p: argparse.ArgumentParser) -> None:
+    sec = p.add_argument_group("who may use the page and the API")
+    tok = sec.add_mutually_exclusive_group()
+    tok.add_argument("--token", metavar="TOKEN",
+                     help=f"the token the page and the API need ({TOKEN_RULE}); default: none on "
+                          "loopback, generated and printed once beyond it")
+    tok.add_argument("--token-file", metavar="FILE",
+                     help="read the token from FILE (keeps it out of the process list)")
+    sec.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                     help="a host name the page may be opened under besides localhost and the "
+                          "listening address (repeatable)")
+
+
+def _token(a: argparse.Namespace) -> str | None:
+    """The operator's token (--token, --token-file) or None. Raises UsageError."""
+    if a.token_file is not None:
+        try:
+            text = Path(a.token_file).read_text(encoding="utf-8").strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not UTF-8 text"
+            raise UsageError(f"--token-file {a.token_file}: {why}") from None
+        try:
+            return check_token(text)
+        except ValueError:
+            raise UsageError(f"--token-file {a.token_file}: the token must be {TOKEN_RULE}") from None
+    if a.token is not None:
+        try:
+            return check_token(a.token)
+        except ValueError:
+            raise UsageError(f"--token: {TOKEN_RULE}") from None
+    return None
+
+
+def _allowed_hosts(a: argparse.Namespace) -> tuple[str, ...]:
+    out = []
+    for name in a.allow_host:
+        try:
+            out.append(check_host_name(name))
+        except ValueError as exc:
+            raise UsageError(f"--allow-host: {exc}") from None
+    return tuple(out)
 
 
 def parse_http(text: str) -> tuple[str, int]:
@@ -113,7 +174,8 @@ def _server_config(a: argparse.Namespace) -> ServerConfig:
         raise UsageError(f"--ws-hz {a.ws_hz}: more than 0, at most {MAX_WS_HZ:g}")
     return ServerConfig(host=host, port=port, tiles=tiles, tiles_dir=tiles_dir,
                         attribution=a.attribution if a.attribution is not None else OSM_ATTRIBUTION,
-                        center=parse_center(a.center) if a.center else None, ws_hz=a.ws_hz)
+                        center=parse_center(a.center) if a.center else None, ws_hz=a.ws_hz,
+                        token=_token(a), allow_hosts=_allowed_hosts(a))
 
 
 def _check(a: argparse.Namespace) -> None:
@@ -197,9 +259,15 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
             server = GcsServer(station, cfg).start()
         except ServerError as exc:
             raise UsageError(str(exc)) from None
+        # the token: "none", "given" (the operator has it: not printed) or "generated"
+        # (printed here, once, in the address to open)
+        token = "none" if cfg.token is None else "generated" if cfg.token_generated else "given"
         ready: dict[str, Any] = {"event": "ready", "url": server.url, "name": station.name,
                                  "id": station.id, "link": station.describe(),
-                                 "replay": a.replay is not None, "tiles": cfg.tile_template}
+                                 "replay": a.replay is not None, "tiles": cfg.tile_template,
+                                 "listen": f"{cfg.host}:{server.port}", "token": token}
+        if token == "generated":
+            ready["open"] = server.token_url
         if a.replay is not None:
             ready["duration_s"] = round(station.capture.duration, 3)
             ready["records"] = station.capture.records
@@ -207,7 +275,11 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
             if a.json:
                 print_json(ready)
             else:
-                print(f"gcs {station.name} id={station.id} {station.describe()} {server.url} ready",
+                where = server.token_url if token == "generated" else server.url
+                note = " (token required)" if token == "given" else ""
+                if cfg.host in ("", "0.0.0.0", "::"):
+                    note += " (listening on every address: other machines use this one's address)"
+                print(f"gcs {station.name} id={station.id} {station.describe()} {where}{note} ready",
                       flush=True)
         station.add_listener(on_event)
         while not stop.wait(0.5):

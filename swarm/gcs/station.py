@@ -166,13 +166,25 @@ class CommandSpec:
 
 
 def _number(body: dict[str, Any], key: str, lo: float, hi: float, what: str) -> float:
+    """``body[key]`` as a float in ``lo..hi``. Any JSON value is refused with a short
+    reason: NaN and infinities, and integers of any size (compared exactly, never
+    converted first: a 400-digit integer overflows a float).
+
+    Raises:
+        CommandRefused: (400) missing, not a number, not finite, out of range.
+    """
     if key not in body:
         raise CommandRefused(400, f"{what} needs {key!r}")
     v = body[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise CommandRefused(400, f"{key!r} must be a number, not {v!r}")
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        names = {str: "a string", list: "a list", dict: "an object", type(None): "null", bool: "true/false"}
+        raise CommandRefused(400, f"{key!r} must be a number, not {names.get(type(v), type(v).__name__)}")
+    if isinstance(v, float) and not math.isfinite(v):
+        shown = "NaN" if math.isnan(v) else ("Infinity" if v > 0 else "-Infinity")
+        raise CommandRefused(400, f"{key!r} must be a number, not {shown}")
     if not lo <= v <= hi:
-        raise CommandRefused(400, f"{key!r} {v} outside {lo:g}..{hi:g}")
+        shown = str(v) if isinstance(v, float) or abs(v) < 10 ** 15 else "a number of more than 15 digits"
+        raise CommandRefused(400, f"{key!r} {shown} outside {lo:g}..{hi:g}")
     return float(v)
 
 
@@ -188,7 +200,10 @@ def parse_command(body: Any) -> CommandSpec:
         raise CommandRefused(400, "a command is a JSON object")
     kind_s = body.get("kind")
     if not isinstance(kind_s, str) or kind_s.lower() not in KINDS:
-        raise CommandRefused(400, f"unknown command kind {kind_s!r}: one of {', '.join(KINDS)}")
+        # a short reason whatever was sent (a 60 KB string, a nested list)
+        shown = repr(kind_s[:24]) + ("..." if len(kind_s) > 24 else "") if isinstance(kind_s, str) \
+            else f"of type {type(kind_s).__name__}" if isinstance(kind_s, (list, dict, int)) else repr(kind_s)
+        raise CommandRefused(400, f"unknown command kind {shown}: one of {', '.join(KINDS)}")
     kind = KINDS[kind_s.lower()]
     if "target" not in body:
         raise CommandRefused(400, "a command needs a 'target': an agent id or \"swarm\"")
@@ -200,12 +215,15 @@ def parse_command(body: Any) -> CommandSpec:
             raise CommandRefused(400, f"{kind.name.lower()} is for one agent, not the swarm")
     elif isinstance(t, int) and not isinstance(t, bool):
         if not 1 <= t <= 250:
-            raise CommandRefused(400, f"target {t} is not an agent id (1..250)")
+            shown = str(t) if abs(t) < 10 ** 15 else "a number of more than 15 digits"
+            raise CommandRefused(400, f"target {shown} is not an agent id (1..250)")
         target = t
         if kind not in AGENT_KINDS:
             raise CommandRefused(400, f"{kind.name.lower()} is a swarm command: target \"swarm\"")
     else:
-        raise CommandRefused(400, f"target {t!r}: an agent id (1..250) or \"swarm\"")
+        shown = repr(t[:24]) + ("..." if len(t) > 24 else "") if isinstance(t, str) \
+            else f"of type {type(t).__name__}" if isinstance(t, (list, dict)) else repr(t)
+        raise CommandRefused(400, f"target {shown}: an agent id (1..250) or \"swarm\"")
     what = kind.name.lower()
     if kind == CommandKind.TAKEOFF:  # the pilot's range (swarm.pilot): refused here, not in the air
         return CommandSpec(target, kind, alt=_number(body, "alt", 1.0, MAX_TAKEOFF_M, what))

@@ -12,6 +12,12 @@
  * "command_result" with the same id) or, while it is down, POST /api/command; every
  * answer, and every refusal with its reason, lands in the event log.
  *
+ * Token (a station beyond loopback, or started with --token): the operator opens
+ * /?token=...; the station answers with the page and an HttpOnly cookie that every
+ * later request and the socket carry. The page drops the token from the address
+ * bar at once (history.replaceState), so it is not in the history, a bookmark or a
+ * copied link. A 401 (a restarted station with a new token) lands in the log.
+ *
  * Stable hooks for tests: #agents [data-agent-id], .agent-marker[data-agent-id],
  * #telemetry [data-field], #election [data-field], #log, #cmd-status, window.gcs.
  */
@@ -51,7 +57,22 @@
     altTyped: false,      // the operator typed a go-to altitude
     replay: null,
     replayAt: -Infinity,  // when the socket last pushed the replay status
+    tokenWarned: false,
   };
+
+  // the station has set the URL's token as a cookie: keep it out of the address bar
+  (function dropToken() {
+    const u = new URL(location.href);
+    if (!u.searchParams.has("token")) return;
+    u.searchParams.delete("token");
+    history.replaceState(history.state, "", u.pathname + u.search + u.hash);
+  })();
+
+  function tokenRefused(what) {
+    if (S.tokenWarned) return;
+    S.tokenWarned = true;
+    log("error", what + ": the station wants its token: open the address it printed (…/?token=…)", "error");
+  }
 
   // ---------------------------------------------------------------- helpers
   function fmt(v, digits, unit) {
@@ -438,6 +459,7 @@
       try {
         const r = await fetch("/api/state", { cache: "no-store" });
         if (r.ok) onState(await r.json());
+        else if (r.status === 401) tokenRefused("GET /api/state");
       } catch (err) { /* station unreachable: keep trying */ }
     };
     poll();
@@ -696,6 +718,7 @@
     try {
       const r = await fetch("/api/config", { cache: "no-store" });
       if (r.ok) cfg = Object.assign(cfg, await r.json());
+      else if (r.status === 401) tokenRefused("GET /api/config");
       else log("error", "GET /api/config: " + r.status, "error");
     } catch (err) {
       log("error", "GET /api/config failed: " + err, "error");

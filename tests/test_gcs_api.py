@@ -390,6 +390,11 @@ def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path) -> None:
     assert a2["lon"] == pytest.approx(HOME[1] + 2e-5)  # the 3 s fix is stamped 3.01 s
     assert a2["heading"] == 45.0 and a2["alt"] == 520.0
     assert [e["text"] for e in events][:2] == ["alpha (1) connected", "alpha (1) is the leader"]
+    for bad in (10**400, -(10**400), float("nan"), "2", None, True):  # never OverflowError
+        with pytest.raises(CommandRefused):
+            rp.control("speed", bad)
+        with pytest.raises(CommandRefused):
+            rp.control("seek", bad)
     assert rp.control("speed", 2.0)["speed"] == 2.0
     clock.t += 2.0
     rp.step()

@@ -355,8 +355,11 @@ class ReplayStation(StationView):
 
 
 def _number(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise CommandRefused(400, f"{what} needs a number 'value', not {value!r}")
+    """A finite number; integers too large for a float are refused, never converted."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or (isinstance(value, int) and abs(value) > 2**53) \
+            or (isinstance(value, float) and not math.isfinite(value)):
+        raise CommandRefused(400, f"{what} needs a number 'value', not {str(value)[:40]}")
     return float(value)
 
 

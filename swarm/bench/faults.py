@@ -165,6 +165,14 @@ class AgentProc:
                     out.append(json.loads(line))
         return out
 
+    def all_events(self) -> list[dict[str, Any]]:
+        out = []
+        for line in list(self.agent.lines if self.agent else []):
+            if line.startswith("{"):
+                with contextlib.suppress(ValueError):
+                    out.append(json.loads(line))
+        return out
+
     def kill(self) -> None:
         if self.agent is not None and self.agent.proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
@@ -563,6 +571,37 @@ class FaultBench:
                 if raw[0] == 0xFD and raw[2] & 1:  # signed swarm frames only
                     frames.append(raw)
         return self._rogue_fault(f"rogue radio: {len(frames)} signed frames replayed from the air", frames)
+
+
+    def fault_rogue_remote_at(self) -> FaultResult:
+        """The rogue's host puts its radio in command mode and sends the leader's radio
+        ``RTS3=77``, ``RT&W`` and ``RTZ`` (multipoint: ``,<node>``): the leader's radio
+        moves to NETID 77 for good unless its agent notices and restores it."""
+        from radios.sik.config import SikConfigurator, open_port
+
+        self._settled("rogue remote AT")
+        lead = self.leader()
+        node = lead - 1  # radio K-1 is node K-1
+        t = time.monotonic()
+        port = open_port(self.links[self.n + 1])
+        try:
+            conf = SikConfigurator(port, flavour="multipoint", port_name="rogue")
+            conf.enter_command_mode()
+            for cmd in (f"RTS3=77,{node}", f"RT&W,{node}", f"RTZ,{node}"):
+                for _ in range(3):  # air loss: a rogue repeats itself
+                    with contextlib.suppress(Exception):
+                        conf.command(cmd, timeout=1.0, expect_reply=False)
+            with contextlib.suppress(Exception):
+                conf.exit_command_mode()
+        finally:
+            port.close()
+        res = self._measure("rogue radio: remote AT (RTS3=77, RT&W, RTZ) to the leader's radio",
+                            t, time.monotonic(), target=f"agent{lead}")
+        moved = any(e.get("event") == "radio-restored" for e in self.agents[lead].all_events())
+        res.detail["leader_radio_restored"] = moved
+        if not res.survived:
+            res.frames_accepted_from_rogue += 1  # the radio stayed moved: the commands took
+        return res
 
 
 def _describe(s: Snapshot) -> str:

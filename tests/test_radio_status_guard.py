@@ -270,7 +270,8 @@ def test_rogue_radio_status_stream_slows_poses_by_at_most_a_fifth(
           f"thinned {[b.stats.poses_thinned for b in bridges]}")
     assert rate0 > 0.5 * POSE_HZ * len(AGENTS), "the baseline itself carried the poses"
     assert rate1 >= 0.8 * rate0, f"pose rate fell from {rate0:.2f}/s to {rate1:.2f}/s"
-    # held poses arrive late in a burst (the count alone hides it): the stream may lose at
-    # most one pose in a row, so its longest gap grows by one pose period at most
-    assert gap1 <= 1.2 * gap0 + 1.0 / POSE_HZ, f"longest pose gap grew from {gap0:.2f} s to {gap1:.2f} s"
+    # held poses arrive late in a burst (the count alone hides it: 11.4/s against 12/s
+    # before the fix, with the longest gap 0.60 s -> 1.76 s). The bridge may skip at most
+    # one pose in a row: one pose period, and one more for a loaded machine
+    assert gap1 <= gap0 + 2.0 / POSE_HZ, f"longest pose gap grew from {gap0:.2f} s to {gap1:.2f} s"
     assert all(r >= 50 for r in rejected), f"forged RADIO_STATUS counted as rejected: {rejected}"

@@ -284,10 +284,16 @@ def test_exit_on_radio_loss_exits_1_with_one_line(tmp_path: Path) -> None:
         emu.stop()
 
 
-def test_exit_on_radio_loss_needs_a_radio() -> None:
+def test_exit_on_radio_loss_needs_a_radio(capsys: pytest.CaptureFixture[str]) -> None:
+    from swarm.commands.agent import main as agent_main
     from swarm.commands.gcs import main as gcs_main
 
     assert gcs_main(["--zenoh-listen", "tcp/127.0.0.1:1", "--exit-on-radio-loss"]) == 2
+    assert agent_main(["--name", "a", "--id", "1", "--zenoh-listen", "tcp/127.0.0.1:1",
+                       "--exit-on-radio-loss"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["swarm gcs: error: --exit-on-radio-loss is for a station on a radio (--radio)",
+                   "swarm agent: error: --exit-on-radio-loss is for an agent on a radio (--radio)"]
 
 
 

@@ -121,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("give --radio URL, or --zenoh-listen / --zenoh-connect endpoints")
     if a.radio is not None and (a.zenoh_listen or a.zenoh_connect):
         raise UsageError("--radio and Zenoh endpoints exclude each other")
+    if a.exit_on_radio_loss and a.radio is None:
+        raise UsageError("--exit-on-radio-loss is for an agent on a radio (--radio)")
     if a.round_s is None:
         if not 2 <= a.slots <= 32:
             raise UsageError("--slots: 2..32")

@@ -37,7 +37,7 @@ swarm/<own>/state      0           swarm/<sender name>/state
 * **Radio loss**: when the device goes away (USB radio unplugged, emulator pty
   dropped) the bridge drops its queues, logs about once a second and reopens the
   device at the same path with back-off (``reopen_radio``), keeping its name table
-  and signing state; listeners hear ``("lost", reason)`` and ``("back", reason)``.
+  and signing state; listeners hear ``("lost", reason)`` and ``("back", "after S s")``.
   With ``reopen_radio`` off it stops and sets ``link_lost``, as before.
 * **HEARTBEAT** into the local radio once a second (that makes a SiK radio report
   RADIO_STATUS), and the vehicle's HEARTBEAT and GLOBAL_POSITION_INT forwarded at

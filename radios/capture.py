@@ -25,6 +25,7 @@ import os
 import time
 from collections.abc import Callable
 
+from radios.errors import LinkClosedError
 from radios.link import Link, LinkStats
 from radios.mavlink import Frame
 from radios.tlog import TlogWriter
@@ -87,6 +88,17 @@ class CaptureLink(Link):
         if frame is not None:
             self.writer.write(frame.raw)
         return frame
+
+    @property
+    def can_reopen(self) -> bool:  # type: ignore[override]
+        return self.inner.can_reopen
+
+    def reopen(self) -> None:
+        """Reopen the inner link's device (see :meth:`Link.reopen`); the capture goes on
+        in the same file."""
+        if self._closed:
+            raise LinkClosedError(f"{self.url} is closed")
+        self.inner.reopen()
 
     def _close(self) -> None:
         try:

@@ -22,7 +22,14 @@ master ends and drives one :class:`radios.air.AirModel` in real time
   ``aes=True`` makes every radio an RFD900P running a SiK build with AES
   (ENCRYPTION_LEVEL, ``AT&E``; standard firmware only);
 * every MAVLink frame put on air is captured to a ``.tlog`` when asked, and the
-  model's counters can be written to a JSON file (at exit and every 2 s).
+  model's counters can be written to a JSON file (at exit and every 2 s);
+* **unplug and plug back** (:meth:`Emulator.unplug`, :meth:`Emulator.replug`, or
+  lines written to the FIFO ``DIR/control``: ``unplug I [FOR_S]``, ``replug I``):
+  unplugging closes radio *i*'s master and removes ``DIR/radio<i>``, so the host's
+  reads and writes fail as on a USB radio pulled out; plugging back creates a new
+  pty at the same path. The radio itself stays powered (a radio fed by the
+  vehicle, its USB cable pulled): it keeps its slot and its lock on the air, sends
+  what it still held, and what it receives meanwhile is lost.
 
 :class:`Emulator` is usable in-process (tests) or through ``swarm radio-emu``.
 """
@@ -30,6 +37,7 @@ master ends and drives one :class:`radios.air.AirModel` in real time
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import select
@@ -37,6 +45,7 @@ import stat
 import threading
 import time
 import tty
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +64,8 @@ BAUD_CODE = {v: k for k, v in SERIAL_BAUD.items()}
 READ_AHEAD_S = 0.02
 STATS_EVERY_S = 2.0
 MAX_PENDING = 65536
+CONTROL = "control"  # the control FIFO in DIR
+CONTROL_HELP = "unplug I [FOR_S] | replug I"
 
 
 @dataclass
@@ -166,6 +177,15 @@ class Emulator:
         self._closed = False
         self._last_stats = 0.0
         self.started = clock()
+        self.plugged: list[bool] = []
+        self.unplugs = 0
+        self._requests: deque[tuple[str, int, float | None]] = deque()
+        self._replug_at: dict[int, float] = {}
+        self._control: Path | None = None
+        self._control_fds: list[int] = []
+        self._control_buf = bytearray()
+        #: called on the emulator's thread with one line per unplug, plug or bad control line
+        self.on_event: Callable[[str], None] | None = None
 
     # -- set-up -------------------------------------------------------------
     def _stored(self, i: int) -> dict[str, int]:
@@ -217,6 +237,11 @@ class Emulator:
                 link.unlink()  # a stale link left by an emulator that was killed
             elif link.exists():
                 raise ConfigError(f"{link} exists and is not a link: choose another --dir")
+        control = d / CONTROL
+        if control.is_symlink() or (control.exists() and stat.S_ISFIFO(control.stat().st_mode)):
+            control.unlink()  # left by an emulator that was killed
+        elif control.exists():
+            raise ConfigError(f"{control} exists and is not a FIFO: choose another --dir")
         losses = self._losses()
         if self.cfg.capture:
             from radios.tlog import TlogWriter
@@ -227,19 +252,19 @@ class Emulator:
                 self.params.append(SikParams(self.firmware, stored=self._stored(i),
                                              aes=self.cfg.aes))
             for i in range(self.cfg.nodes):
-                master, slave = os.openpty()
-                tty.setraw(slave)
-                name = os.ttyname(slave)
-                os.close(slave)
-                os.set_blocking(master, False)
-                self.masters.append(master)
-                self.slave_names.append(name)
+                self.masters.append(-1)
+                self.slave_names.append("")
                 self.connected.append(False)
+                self.plugged.append(False)
                 self._pending.append(bytearray())
                 self._parsers.append(FrameParser())
-                link = d / f"radio{i}"
-                os.symlink(name, link)
-                self.links.append(link)
+                self.links.append(d / f"radio{i}")
+                self._plug(i)
+            os.mkfifo(control, 0o600)
+            self._control = control
+            # our own writer keeps the FIFO from reporting end-of-file between writers
+            self._control_fds = [os.open(control, os.O_RDONLY | os.O_NONBLOCK),
+                                 os.open(control, os.O_WRONLY | os.O_NONBLOCK)]
             now = self.clock()
             self.started = now
             self.model = AirModel(
@@ -253,6 +278,125 @@ class Emulator:
             self.close()
             raise
         return list(zip(self.links, self.slave_names, strict=True))
+
+    def _plug(self, i: int) -> None:
+        """A new pty for radio ``i`` at ``DIR/radio<i>``."""
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        name = os.ttyname(slave)
+        os.close(slave)
+        os.set_blocking(master, False)
+        self.masters[i], self.slave_names[i] = master, name
+        self.connected[i] = False
+        self._pending[i].clear()
+        link = self.links[i]
+        with contextlib.suppress(FileNotFoundError):
+            link.unlink()
+        os.symlink(name, link)
+        self.plugged[i] = True
+
+    def _unplug(self, i: int) -> None:
+        self.plugged[i] = False
+        self.connected[i] = False
+        self._pending[i].clear()
+        with contextlib.suppress(OSError):
+            if self.links[i].is_symlink():
+                self.links[i].unlink()
+        with contextlib.suppress(OSError):
+            os.close(self.masters[i])
+        self.masters[i] = -1
+        self.unplugs += 1
+
+    def unplug(self, i: int, for_s: float | None = None) -> None:
+        """Pull radio ``i``'s cable (plugged back after ``for_s`` s if given). Safe from
+        any thread: done by :meth:`run` within 0.1 s.
+
+        Raises:
+            ConfigError: no such radio or a bad duration.
+        """
+        self._check_radio(i)
+        if for_s is not None and not 0.0 <= for_s <= 86400.0:
+            raise ConfigError(f"unplug {i} {for_s}: a duration of 0 to 86400 s")
+        self._requests.append(("unplug", i, for_s))
+
+    def replug(self, i: int) -> None:
+        """Plug radio ``i`` back (a new pty at the same path). Safe from any thread.
+
+        Raises:
+            ConfigError: no such radio.
+        """
+        self._check_radio(i)
+        self._requests.append(("replug", i, None))
+
+    def _check_radio(self, i: int) -> None:
+        if not 0 <= i < self.cfg.nodes:
+            raise ConfigError(f"no radio {i}: radios are 0..{self.cfg.nodes - 1}")
+
+    def _tell(self, text: str) -> None:
+        if self.on_event is not None:
+            with contextlib.suppress(Exception):
+                self.on_event(text)
+
+    def _serve(self, now: float, poller: Any, registered: list[int]) -> None:
+        """Carry out unplug and plug requests (on the run thread)."""
+        for i, t in list(self._replug_at.items()):
+            if now >= t:
+                del self._replug_at[i]
+                self._requests.append(("replug", i, None))
+        while self._requests:
+            what, i, for_s = self._requests.popleft()
+            if what == "unplug":
+                if for_s is not None:
+                    self._replug_at[i] = now + for_s
+                if not self.plugged[i]:
+                    continue
+                if registered[i] > 0:
+                    poller.unregister(self.masters[i])
+                registered[i] = 0
+                self._unplug(i)
+                self._tell(f"radio{i} unplugged" + (f" for {for_s:g} s" if for_s is not None else ""))
+            elif not self.plugged[i]:
+                self._replug_at.pop(i, None)
+                try:
+                    self._plug(i)
+                except OSError as exc:
+                    self._tell(f"radio{i} not plugged back: {exc.strerror or exc}")
+                    continue
+                self._tell(f"radio{i} plugged back: {self.links[i]} -> {self.slave_names[i]}")
+
+    def _read_control(self) -> None:
+        try:
+            data = os.read(self._control_fds[0], 4096)
+        except OSError as exc:
+            if exc.errno in (errno.EAGAIN, errno.EINTR):
+                return
+            raise
+        self._control_buf += data
+        if len(self._control_buf) > 4096 and b"\n" not in self._control_buf:
+            self._control_buf.clear()
+            self._tell(f"control: line too long (expected {CONTROL_HELP})")
+        while b"\n" in self._control_buf:
+            line, _, rest = bytes(self._control_buf).partition(b"\n")
+            self._control_buf[:] = rest
+            self.control(line.decode("utf-8", "replace"))
+
+    def control(self, line: str) -> None:
+        """One control line (``unplug I [FOR_S]`` or ``replug I``); a bad one is
+        reported through ``on_event`` and changes nothing."""
+        words = line.split()
+        if not words:
+            return
+        try:
+            if words[0] == "unplug" and len(words) in (2, 3):
+                self.unplug(int(words[1]), float(words[2]) if len(words) == 3 else None)
+            elif words[0] in ("replug", "plug") and len(words) == 2:
+                self.replug(int(words[1]))
+            else:
+                raise ValueError
+        except ValueError:
+            self._tell(f"control: {line.strip()[:80]!r}: expected {CONTROL_HELP}")
+        except ConfigError as exc:
+            self._tell(f"control: {line.strip()[:80]!r}: {exc}")
 
     def _make_at(self, i: int, _cfg: RadioConfig) -> ATEngine:
         return ATEngine(
@@ -285,8 +429,12 @@ class Emulator:
         n = self.cfg.nodes
         registered = [-1] * n
         next_hup_check = 0.0
+        control = self._control_fds[0] if self._control_fds else None
+        if control is not None:
+            poller.register(control, select.POLLIN)
         while not stop.is_set():
             now = self.clock()
+            self._serve(now, poller, registered)
             model.advance(now)
             for i in range(n):
                 out = model.take_output(i, now)
@@ -336,6 +484,9 @@ class Emulator:
                 continue
             t = self.clock()
             for fd, ev in events:
+                if fd == control:
+                    self._read_control()
+                    continue
                 i = self.masters.index(fd)
                 if ev & (select.POLLHUP | select.POLLERR):
                     self._disconnect(i)
@@ -368,7 +519,7 @@ class Emulator:
 
     def _check_connections(self) -> None:
         for i, fd in enumerate(self.masters):
-            if self.connected[i]:
+            if self.connected[i] or not self.plugged[i]:
                 continue
             p = select.poll()
             p.register(fd, select.POLLIN)
@@ -400,7 +551,7 @@ class Emulator:
             "dropped_output_bytes": self.dropped_output,
             "radios": [
                 {"radio": i, "link": str(self.links[i]), "pty": self.slave_names[i],
-                 "connected": self.connected[i], **model.status(i)}
+                 "connected": self.connected[i], "plugged": self.plugged[i], **model.status(i)}
                 for i in range(self.cfg.nodes)
             ],
         }
@@ -429,8 +580,15 @@ class Emulator:
                 if link.is_symlink():
                     link.unlink()
         for fd in self.masters:
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        for fd in self._control_fds:
             with contextlib.suppress(OSError):
                 os.close(fd)
+        if self._control is not None:
+            with contextlib.suppress(OSError):
+                self._control.unlink()
         if self._capture is not None:
             self._capture.close()
 

@@ -13,7 +13,12 @@ API on top of them (python-can's ``BusABC`` pattern):
   None on timeout;
 * :class:`LinkStats` counts frames and bytes each way, CRC errors, bytes skipped
   while resynchronising, and drops;
-* ``close()`` is safe twice and links are context managers.
+* ``close()`` is safe twice and links are context managers;
+* :meth:`Link.reopen` opens the device again at the same path after it went away
+  (a USB radio unplugged and plugged back, an emulator pty dropped and recreated):
+  serial links can (``can_reopen``), others raise ``LinkOpenError``. The link
+  object stays the same, with its statistics; bytes of a half-received frame are
+  dropped.
 
 URLs (see :func:`open_link`):
 
@@ -66,6 +71,7 @@ class Link:
 
     can_send = True
     can_recv = True
+    can_reopen = False
 
     def __init__(self, url: str) -> None:
         self.url = url
@@ -158,6 +164,16 @@ class Link:
                 if not self._pending and deadline is not None and now >= deadline:
                     return None
 
+    def reopen(self) -> None:
+        """Open the device behind this link again, at the same URL, after it went away.
+
+        Raises:
+            LinkClosedError: the link was closed by its owner.
+            LinkOpenError: the device is (still) missing or cannot be opened, or this
+                kind of link cannot be reopened (``can_reopen`` is False).
+        """
+        raise LinkOpenError(f"{self.url}: this kind of link cannot be reopened")
+
     def close(self) -> None:
         """Close the link; safe to call more than once."""
         with self._send_lock:
@@ -180,17 +196,41 @@ class Link:
 class SerialLink(Link):
     """A serial device (real radio, emulator pty) or a pyserial URL handler."""
 
+    can_reopen = True
+
     def __init__(self, url: str, port: Any) -> None:
         super().__init__(url)
         self.port = port
+        self._gone = False  # the device went away; reopen() may bring it back
+        self._fd = self._fileno(port)
+
+    @staticmethod
+    def _fileno(port: Any) -> int | None:
         try:
-            self._fd: int | None = port.fileno()
+            return int(port.fileno())
         except Exception:
-            self._fd = None
+            return None
+
+    def reopen(self) -> None:
+        """See :meth:`Link.reopen`: the old port is closed first, then the device is
+        opened again with the same options."""
+        with self._send_lock, self._recv_lock:
+            if self._closed:
+                raise LinkClosedError(f"{self.url} is closed")
+            if not self._gone:
+                self._gone = True
+                self._close()
+            fresh = open_serial(self.url)
+            self.port, self._fd = fresh.port, fresh._fd
+            self._parser = FrameParser(stats=self._parser.stats)
+            self._pending.clear()
+            self._gone = False
 
     def _read(self, timeout: float) -> bytes:
         if self._closed:
             raise LinkClosedError(f"{self.url} is closed")
+        if self._gone:
+            raise LinkClosedError(f"{self.url}: device gone")
         try:
             if self._fd is not None:
                 r, _, _ = select.select([self._fd], [], [], timeout)
@@ -212,6 +252,8 @@ class SerialLink(Link):
     def _write(self, data: bytes) -> None:
         import serial
 
+        if self._gone:
+            raise LinkClosedError(f"{self.url}: device gone")
         try:
             n = self.port.write(data)
         except serial.SerialTimeoutException as exc:

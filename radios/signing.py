@@ -80,11 +80,13 @@ class VerifyStats:
 @dataclass
 class Verifier:
     """Checks signed frames; ``allow_unsigned`` decides which unsigned frames pass
-    (by default only RADIO_STATUS from the local radio, sysid 51)."""
+    (by default only RADIO_STATUS with the ids a SiK radio gives its own, sysid 51
+    compid 68; whether it really is the local radio's, the bridge judges)."""
 
     key: bytes
     clock: SigningClock = field(default_factory=SigningClock)
-    allow_unsigned: Callable[[Frame], bool] = lambda f: f.msgid == 109 and f.sysid == 51
+    allow_unsigned: Callable[[Frame], bool] = \
+        lambda f: f.msgid == 109 and f.sysid == 51 and f.compid == 68
     stats: VerifyStats = field(default_factory=VerifyStats)
     _last: dict[tuple[int, int, int], int] = field(default_factory=dict)
 

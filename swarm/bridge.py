@@ -27,9 +27,18 @@ swarm/<own>/state      0           swarm/<sender name>/state
   heartbeat to its members) goes on air once, listing the addressees.
 * **Priorities and budgets**: three queues (protocol > pose > telemetry), each
   with a token bucket of air bytes per second, so one agent cannot flood the
-  channel. RADIO_STATUS from the local radio throttles: below 50% free transmit
-  buffer only protocol and pose go, below 20% only protocol (reports older than
-  5 s are ignored), as ArduPilot and PX4 do with txbuf.
+  channel.
+* **RADIO_STATUS** (flow control): only a report plausibly from the local radio
+  counts (:mod:`swarm.radio_guard`: sysid 51 compid 68, one per HEARTBEAT we sent,
+  consistent with the bytes we wrote; forged ones are counted in
+  ``radio_status_rejected``), and its effect is bounded: below 50% free transmit
+  buffer telemetry waits; poses are thinned by at most 15%, never held; protocol
+  always goes. Reports older than 5 s are ignored, as ArduPilot and PX4 do with txbuf.
+* **Radio loss**: when the device goes away (USB radio unplugged, emulator pty
+  dropped) the bridge drops its queues, logs about once a second and reopens the
+  device at the same path with back-off (``reopen_radio``), keeping its name table
+  and signing state; listeners hear ``("lost", reason)`` and ``("back", "after S s")``.
+  With ``reopen_radio`` off it stops and sets ``link_lost``, as before.
 * **HEARTBEAT** into the local radio once a second (that makes a SiK radio report
   RADIO_STATUS), and the vehicle's HEARTBEAT and GLOBAL_POSITION_INT forwarded at
   1 Hz under the agent's system id so MAVProxy or QGroundControl list vehicles.
@@ -49,7 +58,7 @@ from dataclasses import asdict, dataclass
 from enum import IntEnum
 from typing import Any
 
-from radios.errors import RadioError
+from radios.errors import LinkOpenError, RadioError
 from radios.link import Link
 from radios.mavlink import (
     MSG_RADIO_STATUS,
@@ -70,6 +79,7 @@ from swarm.messages import (
     decode,
     encode,
 )
+from swarm.radio_guard import RadioState, RadioStatusGuard
 from swarm.transport import KEY_ADVERTIZE, KEY_GS_ADVERTIZE, PREFIX, inbox_key, pose_key, state_key
 
 log = logging.getLogger(__name__)
@@ -128,6 +138,10 @@ class BridgeConfig:
     signing_key: bytes | None = None
     link_id: int | None = None  # signing link id; None: drawn at random per start (a new stream)
     radio_status_stale_s: float = 5.0
+    #: reopen the radio when its device goes away (else stop and set ``link_lost``)
+    reopen_radio: bool = True
+    #: first and longest wait between attempts to reopen a lost radio (s)
+    reopen_backoff: tuple[float, float] = (0.1, 1.0)
     #: a new P2P protocol item waits this long for identical payloads to other peers
     #: (a leader's heartbeat to N members) so they leave as one multicast frame
     coalesce_s: float = 0.005
@@ -149,7 +163,13 @@ class BridgeStats:
     version_mismatch: int = 0
     conflicts: int = 0
     send_errors: int = 0
-    throttled: int = 0  # send-loop passes that held a class back (txbuf back-off)
+    throttled: int = 0  # send-loop passes that held telemetry back (txbuf back-off)
+    poses_thinned: int = 0  # poses skipped by the bounded txbuf back-off
+    radio_status_accepted: int = 0
+    radio_status_rejected: int = 0  # RADIO_STATUS not plausibly from the local radio
+    radio_losses: int = 0  # the radio's device went away
+    radio_reopens: int = 0  # ... and was opened again
+    dropped_radio_down: int = 0  # frames dropped while the radio was away
     heartbeats: int = 0
     vehicle_forwarded: int = 0
     unsigned: int = 0
@@ -186,19 +206,6 @@ class _Bucket:
 
 
 @dataclass
-class RadioState:
-    """The last RADIO_STATUS of the local radio."""
-
-    rssi: int = 0
-    remrssi: int = 0
-    txbuf: int = 100
-    noise: int = 0
-    remnoise: int = 0
-    rxerrors: int = 0
-    t: float = -1e9
-
-
-@dataclass
 class _Peer:
     id: int
     name: str
@@ -218,7 +225,7 @@ class RadioBridge:
         self.cfg = config or BridgeConfig()
         self.clock = clock
         self.stats = BridgeStats()
-        self.radio = RadioState()
+        self.guard = RadioStatusGuard(stale_s=self.cfg.radio_status_stale_s)
         signing = SigningClock()  # one time base for what this node signs and verifies
         self._builder = FrameBuilder(agent_id, COMP_ID, signing_key=self.cfg.signing_key,
                                      link_id=self.cfg.link_id, clock=signing)
@@ -234,7 +241,11 @@ class RadioBridge:
         self._conflicts_logged: set[tuple[str, int]] = set()
         self._vehicle_last: dict[int, float] = {}
         self._closed = False
-        self.link_lost = False  # the radio link died (device gone, emulator stopped)
+        self.link_lost = False  # the radio link died and is not reopened (see reopen_radio)
+        self.link_down = False  # the radio is away and being reopened
+        self.loss_reason = ""
+        self._listeners: list[Callable[[str, str], None]] = []
+        self._next_hb = 0.0
         self._sub: Any = None
         self._threads: list[threading.Thread] = []
 
@@ -264,6 +275,23 @@ class RadioBridge:
 
     def peers(self) -> dict[str, int]:
         return {n: p.id for n, p in self._by_name.items()}
+
+    @property
+    def radio(self) -> RadioState:
+        """The last plausible RADIO_STATUS of the local radio."""
+        return self.guard.state
+
+    def add_listener(self, fn: Callable[[str, str], None]) -> None:
+        """``fn(what, text)`` when the radio goes away (``"lost"``, why) and when it is
+        open again (``"back"``, after how long); called on the bridge's receive thread."""
+        self._listeners.append(fn)
+
+    def _tell(self, what: str, text: str) -> None:
+        for fn in list(self._listeners):
+            try:
+                fn(what, text)
+            except Exception:
+                log.exception("bridge %s: radio listener failed", self.name)
 
     # -- local samples -> air -----------------------------------------------------
     def _on_local(self, sample: Any) -> None:
@@ -319,6 +347,9 @@ class RadioBridge:
         with self._cond:
             if self._closed:
                 return
+            if self.link_down:
+                self.stats.dropped_radio_down += 1
+                return
             if len(q) >= limit:
                 q.popleft()  # the oldest is the stalest
                 self.stats.queue_drops += 1
@@ -327,13 +358,10 @@ class RadioBridge:
             self._cond.notify()
 
     def _allowed_classes(self, now: float) -> tuple[Klass, ...]:
-        if now - self.radio.t > self.cfg.radio_status_stale_s:
+        # protocol and poses always go (poses may be thinned, see _next_frame)
+        if self.guard.telemetry_allowed(now):
             return tuple(Klass)
-        if self.radio.txbuf < 20:
-            return (Klass.PROTOCOL,)
-        if self.radio.txbuf < 50:
-            return (Klass.PROTOCOL, Klass.POSE)
-        return tuple(Klass)
+        return (Klass.PROTOCOL, Klass.POSE)
 
     def _next_frame(self, now: float) -> tuple[bytes | None, float]:
         """Pick the next frame to send (under the lock). Returns (frame, wait)."""
@@ -360,6 +388,9 @@ class RadioBridge:
                 wait = min(wait, bucket.wait_for(size))
                 continue
             q.popleft()
+            if klass == Klass.POSE and not self.guard.take_pose(now):
+                self.stats.poses_thinned += 1  # bounded txbuf back-off: skip this one
+                return None, 0.0
             bucket.tokens -= size
             # packed only now, so sequence numbers and signing timestamps follow air order
             return (item.raw_frame if item.raw_frame is not None else self._pack(item)), 0.0
@@ -394,27 +425,35 @@ class RadioBridge:
                                     payload_type=PAYLOAD_TYPE_BASE + int(item.kind))
 
     def _tx_loop(self) -> None:
-        next_hb = self.clock()
+        self._next_hb = self.clock()
         while True:
             with self._cond:
                 if self._closed:
                     return
+                if self.link_down:  # the receive thread is reopening the radio
+                    self._cond.wait(0.25)
+                    continue
                 now = self.clock()
-                if now >= next_hb:
-                    next_hb = now + 1.0 / self.cfg.heartbeat_hz
+                if now >= self._next_hb:
+                    self._next_hb = now + 1.0 / self.cfg.heartbeat_hz
                     frame: bytes | None = self._builder.heartbeat()
                     self.stats.heartbeats += 1
+                    # before it is written: the radio's answer may come back at once
+                    self.guard.heartbeat_sent(now)
                     wait = 0.0
                 else:
                     frame, wait = self._next_frame(now)
                 if frame is None:
-                    self._cond.wait(max(0.001, min(wait, next_hb - now)))
+                    self._cond.wait(max(0.001, min(wait, self._next_hb - now)))
                     continue
             try:
                 self.link.send(frame)
                 self.stats.frames_out += 1
                 self.stats.bytes_out += len(frame)
+                with self._cond:
+                    self.guard.wrote(len(frame), now)
             except RadioError as exc:
+                # a device that went away is noticed (and reopened) by the receive thread
                 self.stats.send_errors += 1
                 if self.link.closed:
                     log.warning("bridge %s: radio link closed: %s", self.name, exc)
@@ -427,16 +466,68 @@ class RadioBridge:
             try:
                 frame = self.link.recv(0.2)
             except RadioError as exc:
-                if not self._closed:
-                    log.warning("bridge %s: radio link lost: %s", self.name, exc)
-                    self.link_lost = True
-                return
+                if self._closed or not self._radio_lost(str(exc)):
+                    return
+                continue
             if frame is None:
                 continue
             try:
                 self.handle_frame(frame)
             except Exception:  # a bug here must not kill the bridge
                 log.exception("bridge %s: error handling a frame", self.name)
+
+    def _radio_lost(self, reason: str) -> bool:
+        """The radio's device went away: drop the queues, then reopen it with back-off
+        (True once it is back) or, without ``reopen_radio``, give up (False)."""
+        t0 = self.clock()
+        with self._cond:
+            self.link_down = True
+            self.loss_reason = reason
+            self.stats.radio_losses += 1
+            for q in self._queues:
+                self.stats.dropped_radio_down += len(q)
+                q.clear()
+            self.guard.reset()
+        url = self.link.url
+        if not self.cfg.reopen_radio or not self.link.can_reopen or self.link.closed:
+            # the owner reports it (swarm agent / swarm gcs print one line and exit 1)
+            log.info("bridge %s: radio %s lost: %s", self.name, url, reason)
+            self.link_lost = True
+            self._tell("lost", reason)
+            return False
+        log.warning("bridge %s: radio %s lost (%s): waiting for it to come back", self.name, url, reason)
+        self._tell("lost", reason)
+        first, longest = self.cfg.reopen_backoff
+        backoff, next_log = first, t0 + 1.0
+        while True:
+            with self._cond:
+                if self._closed:
+                    return False
+                self._cond.wait(backoff)
+                if self._closed:
+                    return False
+            try:
+                self.link.reopen()
+                break
+            except LinkOpenError as exc:
+                now = self.clock()
+                if now >= next_log:  # about once a second, not once per attempt
+                    next_log = now + 1.0
+                    log.warning("bridge %s: radio still away after %.0f s: %s", self.name, now - t0, exc)
+                backoff = min(longest, backoff * 2)
+            except RadioError as exc:  # closed by its owner meanwhile
+                log.info("bridge %s: radio %s not reopened: %s", self.name, url, exc)
+                self.link_lost = True
+                return False
+        away = self.clock() - t0
+        with self._cond:
+            self.link_down = False
+            self.stats.radio_reopens += 1
+            self._next_hb = self.clock()  # a HEARTBEAT at once: the radio reports again
+            self._cond.notify_all()
+        log.warning("bridge %s: radio %s back after %.1f s", self.name, url, away)
+        self._tell("back", f"after {away:.1f} s")
+        return True
 
     def handle_frame(self, frame: Frame) -> None:
         """Process one frame from the radio (public for tests)."""
@@ -448,8 +539,16 @@ class RadioBridge:
             return
         if frame.msgid == MSG_RADIO_STATUS:
             f = radio_status_fields(frame)
-            self.radio = RadioState(f["rssi"], f["remrssi"], f["txbuf"], f["noise"],
-                                    f["remnoise"], f["rxerrors"], self.clock())
+            report = RadioState(f["rssi"], f["remrssi"], f["txbuf"], f["noise"], f["remnoise"],
+                                f["rxerrors"])
+            with self._cond:
+                why = self.guard.offer(frame.sysid, frame.compid, report, self.clock())
+                if why is None:
+                    self.stats.radio_status_accepted += 1
+                else:
+                    self.stats.radio_status_rejected += 1
+                    self._log_once(("radio_status", why), "bridge %s: RADIO_STATUS rejected (%s): "
+                                   "not plausibly from the local radio", self.name, why)
             return
         if frame.msgid != MSG_TUNNEL:
             return

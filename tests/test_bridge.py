@@ -406,22 +406,41 @@ def solo() -> Iterator[tuple[RadioBridge, MemoryLink, Transport, Recorder]]:
         yield bridge, link, transport, rec
 
 
+def local_report(bridge: RadioBridge, txbuf: int) -> None:
+    """A RADIO_STATUS as the local radio sends it: once per HEARTBEAT the bridge wrote."""
+    n = bridge.stats.heartbeats
+    wait_until(lambda: bridge.stats.heartbeats > n, "the bridge's next HEARTBEAT")
+    bridge.handle_frame(radio_status(txbuf))
+
+
 def test_backoff_on_radio_status_txbuf(solo: tuple[RadioBridge, MemoryLink, Transport, Recorder]) -> None:
+    """Below 50 % free txbuf telemetry waits; protocol and poses always go (poses thinned
+    by at most 15 %, see test_radio_status_guard); a report claiming more bytes waiting
+    than the bridge wrote is rejected."""
     bridge, link, t, _ = solo
-    bridge.handle_frame(radio_status(10))
-    assert bridge.radio.txbuf == 10
-    t.publish_pose(PoseReport(POSE))
+    local_report(bridge, 10)
+    assert bridge.stats.radio_status_rejected == 1, "90 % of the buffer full after one HEARTBEAT"
+    assert bridge.radio.txbuf == 100
+    for k in range(40):  # ~1.1 kB of protocol: now a nearly full buffer is plausible
+        t.send("a2", Selection(1, 2, k, 5))
+    wait_until(lambda: len(link.tunnels(Kind.P2P)) == 40, "protocol frames written")
+    local_report(bridge, 10)
+    assert bridge.radio.txbuf == 10 and bridge.stats.radio_status_accepted == 1
     t.publish_state(AgentState(1, Phase.IDLE))
     t.send("a2", StartPool(1))
-    wait_until(lambda: link.tunnels(Kind.P2P), "protocol despite a nearly full txbuf")
-    time.sleep(1.0)
-    assert not link.tunnels(Kind.POSE) and not link.tunnels(Kind.STATE), "pose and telemetry held"
+    t.publish_pose(PoseReport(POSE))
+    wait_until(lambda: len(link.tunnels(Kind.P2P)) == 41, "protocol despite a nearly full txbuf")
+    wait_until(lambda: link.tunnels(Kind.POSE), "a pose despite a nearly full txbuf")
+    time.sleep(0.5)
+    assert not link.tunnels(Kind.STATE), "telemetry held"
     assert bridge.stats.throttled > 0
-    bridge.handle_frame(radio_status(40))  # below 50%: pose goes, telemetry still held
-    wait_until(lambda: link.tunnels(Kind.POSE), "pose once txbuf is back to 40%")
-    time.sleep(1.0)
+    for k in range(40):
+        t.send("a2", Selection(1, 2, 100 + k, 5))
+    local_report(bridge, 40)  # below 50%: telemetry still held
+    assert bridge.radio.txbuf == 40
+    time.sleep(0.5)
     assert not link.tunnels(Kind.STATE)
-    bridge.handle_frame(radio_status(90))
+    local_report(bridge, 90)
     wait_until(lambda: link.tunnels(Kind.STATE), "telemetry once txbuf is back to 90%")
 
 
@@ -512,8 +531,9 @@ def test_replayed_signed_frame_counted() -> None:
         bridge.handle_frame(tunnel_frame(9, Kind.P2P, encode(StartPool(7)), target=1,
                                          key=key_from_passphrase("not the swarm key")))
         assert (bridge.stats.unsigned, bridge.stats.bad_signature) == (1, 1)
-        bridge.handle_frame(radio_status(33))  # the local radio's, unsigned: accepted
-        assert bridge.radio.txbuf == 33 and bridge.stats.unsigned == 1
+        bridge.handle_frame(radio_status(33))  # the local radio's ids, unsigned: past signing
+        assert bridge.stats.unsigned == 1
+        assert bridge.stats.radio_status_accepted + bridge.stats.radio_status_rejected == 1
         assert bridge.stats.published == 1
         time.sleep(0.3)
         assert rec.from_radio() == [("swarm/a1", encode(StartPool(9)))]

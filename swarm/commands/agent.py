@@ -11,6 +11,12 @@ With ``--json``, what the pilot does (commands answered, following, holds and
 why) comes as ``{"event": "pilot", "name", "id", "text", "t"}`` lines.
 SIGINT or SIGTERM stops it cleanly (exit 0).
 
+If the radio goes away (a USB radio unplugged) the agent keeps its swarm state and
+waits for the device to come back at the same path, reopening it with back-off;
+it prints ``agent NAME: radio lost: ...`` and ``agent NAME: radio back after S s``
+(``--json``: ``{"event": "radio", "name", "id", "state": "lost"|"back", "text",
+"t"}``). With ``--exit-on-radio-loss`` it exits 1 instead, with one line on stderr.
+
 The ``fast`` profile derives its windows from the radio network's TDM round, which
 the agent does not read from the radio: give ``--round-s``, or ``--slots N`` (the
 number of radios of a multipoint network; 2 for a standard pair) and
@@ -97,7 +103,21 @@ def _build_parser() -> argparse.ArgumentParser:
     f.add_argument("--turn-radius", type=float, default=25.0, metavar="M",
                    help="corner radius of a leader's route (default 25)")
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
+    add_radio_loss_argument(p)
     return p
+
+
+def add_radio_loss_argument(p: argparse.ArgumentParser) -> None:
+    """``--exit-on-radio-loss``, shared with ``swarm gcs``."""
+    p.add_argument("--exit-on-radio-loss", action="store_true",
+                   help="exit 1 when the radio goes away, instead of waiting for it to come "
+                        "back (for a service manager that restarts the program)")
+
+
+def radio_loss_message(bridge: Any) -> str:
+    """The one line for a radio lost for good (``bridge`` may be None)."""
+    reason = getattr(bridge, "loss_reason", "")
+    return "radio link lost" + (f": {reason}" if reason else "")
 
 
 def _text(name: str, st: AgentState) -> str:
@@ -150,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("give --radio URL, or --zenoh-listen / --zenoh-connect endpoints")
     if a.radio is not None and (a.zenoh_listen or a.zenoh_connect):
         raise UsageError("--radio and Zenoh endpoints exclude each other")
+    if a.exit_on_radio_loss and a.radio is None:
+        raise UsageError("--exit-on-radio-loss is for an agent on a radio (--radio)")
     if a.round_s is None:
         if not 2 <= a.slots <= 32:
             raise UsageError("--slots: 2..32")
@@ -170,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # state changes that happen before the ready line is out wait for it, so that
     # readers always see "ready" first
-    gate: dict[str, Any] = {"ready": False, "pending": []}
+    gate: dict[str, Any] = {"ready": False, "pending": [], "t0": t0}
 
     def on_state(st: AgentState) -> None:
         with lock:
@@ -224,6 +246,30 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(sig, handler)
 
 
+def _watch_radio(a: argparse.Namespace, bridge: Any, lock: threading.Lock, gate: dict[str, Any]) -> None:
+    """Radio lost / back as events; with --exit-on-radio-loss the bridge gives up
+    instead of reopening (the agent then stops and main exits 1)."""
+    if a.exit_on_radio_loss:
+        bridge.cfg.reopen_radio = False
+    t0 = gate["t0"]
+
+    def on_radio(what: str, text: str) -> None:
+        with lock:
+            if not gate["ready"]:
+                return
+            try:
+                if a.json:
+                    print_json({"event": "radio", "name": a.name, "id": a.id, "state": what,
+                                "text": text, "t": round(time.monotonic() - t0, 3)})
+                else:
+                    print(f"agent {a.name}: radio {what}" + (": " if what == "lost" else " ") + text,
+                          flush=True)
+            except (BrokenPipeError, ValueError):
+                pass
+
+    bridge.add_listener(on_radio)
+
+
 def _isolated(agent: Agent) -> bool:
     """The agent hears no other agent: alone in its pool, following no one else."""
     st = agent.state()
@@ -266,6 +312,8 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lo
     failed = _start(agent)
     if failed is not None:
         return failed
+    if agent.bridge is not None:
+        _watch_radio(a, agent.bridge, lock, gate)
     recheck = RecheckTimer(a.radio_recheck) if a.radio_recheck else None
     try:
         with lock:
@@ -289,10 +337,12 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lo
                 failed = _start(agent)
                 if failed is not None:
                     return failed
+                if agent.bridge is not None:
+                    _watch_radio(a, agent.bridge, lock, gate)
                 continue
             if not agent.running:
-                why = "radio link lost" if agent.bridge is not None and agent.bridge.link_lost \
-                    else "the agent's protocol thread stopped"
+                why = radio_loss_message(agent.bridge) if agent.bridge is not None \
+                    and agent.bridge.link_lost else "the agent's protocol thread stopped"
                 print(f"{PROG}: error: {why}", file=sys.stderr)
                 return EXIT_FAILURE
     finally:

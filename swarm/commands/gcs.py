@@ -14,8 +14,10 @@ It prints one ready line once the HTTP server listens (``--json``:
 station event (connections, leader changes, command results; ``--json``:
 ``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 0).
 Bad input (a missing serial device, a port in use, a tile folder that is not
-one, a damaged capture) prints one line and exits 2; a radio lost while running
-exits 1.
+one, a damaged capture) prints one line and exits 2. A radio lost while running
+(a USB radio unplugged) is waited for and reopened at the same path, the station
+keeping its view of the swarm (events ``radio lost: ...`` and ``radio back after S
+s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
 """
 
 from __future__ import annotations
@@ -26,11 +28,13 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
 from radios.errors import CaptureError
 from swarm.cliutil import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
+from swarm.commands.agent import add_radio_loss_argument, radio_loss_message
 from swarm.errors import MessageError, TransportError
 from swarm.gcs.server import (
     MAX_WS_HZ,
@@ -78,6 +82,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=float, help="replay speed factor (default 1)")
     p.add_argument("--paused", action="store_true", help="replay: start paused")
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
+    add_radio_loss_argument(p)
     return p
 
 
@@ -187,6 +192,8 @@ def _check(a: argparse.Namespace) -> None:
         raise UsageError("--speed and --paused are for --replay")
     if a.capture is not None and a.radio is None:
         raise UsageError("--capture records a radio's traffic: it needs --radio")
+    if a.exit_on_radio_loss and a.radio is None:
+        raise UsageError("--exit-on-radio-loss is for a station on a radio (--radio)")
     if a.replay is not None and a.key is not None:
         raise UsageError("--key is for a live station (a replay sends nothing)")
     try:
@@ -282,10 +289,17 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
                 print(f"gcs {station.name} id={station.id} {station.describe()} {where}{note} ready",
                       flush=True)
         station.add_listener(on_event)
+        bridge = getattr(station, "bridge", None)
+        if bridge is not None:
+            if a.exit_on_radio_loss:
+                bridge.cfg.reopen_radio = False
+            bridge.add_listener(lambda what, text: on_event(
+                {"t": round(time.time(), 3), "kind": "radio",
+                 "text": f"radio {what}" + (": " if what == "lost" else " ") + text}))
         while not stop.wait(0.5):
             if not station.running:
                 bridge = getattr(station, "bridge", None)
-                why = "radio link lost" if bridge is not None and bridge.link_lost \
+                why = radio_loss_message(bridge) if bridge is not None and bridge.link_lost \
                     else "the station's thread stopped"
                 print(f"{PROG}: error: {why}", file=sys.stderr)
                 return EXIT_FAILURE

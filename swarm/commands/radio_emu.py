@@ -14,7 +14,10 @@ PROG = "swarm radio-emu"
 
 def build_parser() -> argparse.ArgumentParser:
     p = parser(PROG, "Emulate N SiK radios: DIR/radio0..N-1 are serial ports of radios "
-                     "sharing one emulated air. Runs until SIGINT/SIGTERM.")
+                     "sharing one emulated air. Runs until SIGINT/SIGTERM. Unplug a radio's "
+                     "cable and plug it back at run time by writing lines to the FIFO "
+                     "DIR/control: 'unplug I [FOR_S]', 'replug I' (the radio stays powered "
+                     "and keeps its place on the air; one line on stdout for each).")
     p.add_argument("--nodes", type=int, required=True, help="number of radios")
     p.add_argument("--dir", required=True, help="existing directory for the radio<i> links")
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS",
@@ -75,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
             c = model.radios[i].cfg
             print(f"radio{i} {link} -> {pty} netid={c.netid} air={c.air_kbps}kbps "
                   f"serial={c.serial_baud} firmware={c.firmware}", flush=True)
+        emu.on_event = lambda text: print(text, flush=True)
         emu.run(stop.event)
         st = emu.stats()
         print(f"stopped after {st['elapsed_s']:.1f} s: channel utilisation "

@@ -1,0 +1,299 @@
+"""A radio unplugged and plugged back (issue 11, item 8).
+
+To the host an unplugged USB radio is a device node that disappears while reads
+and writes fail; plugged back, a new node appears at the same path. The emulator
+does exactly that to one radio (its control FIFO ``DIR/control`` or
+:meth:`Emulator.unplug`), while the radio keeps its place on the air. Covered: the
+emulator's unplug and replug; :meth:`SerialLink.reopen`; the bridge waiting for the
+device, logging about once a second, reopening it and carrying traffic again with
+its name table kept; and real ``swarm agent`` and ``swarm gcs`` processes that stay
+up and return to the swarm, or with ``--exit-on-radio-loss`` exit 1 with one line.
+
+Nothing sleeps to hope: waits poll for an outcome until a generous deadline; the
+outage itself is a span of time the test chooses.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import time
+from collections.abc import Callable
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import pytest
+from emu_helpers import AIR_DEADLINE, heartbeat, recv_until, running_emulator, tunnel, wait_until
+from net_helpers import free_port
+
+from radios.errors import LinkClosedError, LinkOpenError
+from radios.link import open_link
+from swarm.bridge import RadioBridge
+from swarm.messages import Advertize, Selection, encode
+from swarm.procs import Child, start_emulator
+from swarm.transport import Transport, open_session
+
+DEADLINE = 60.0  # a failing wait only; radios lock in seconds, elections take a few windows
+OUTAGE_S = 3.0
+
+
+def control(directory: Path, line: str) -> None:
+    """Write one line to the emulator's control FIFO."""
+    fd = os.open(directory / "control", os.O_WRONLY | os.O_NONBLOCK)
+    try:
+        os.write(fd, (line + "\n").encode())
+    finally:
+        os.close(fd)
+
+
+# -- the emulator and the link ----------------------------------------------------------
+
+def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Path) -> None:
+    events: list[str] = []
+    with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
+        run.emu.on_event = events.append
+        a = stack.enter_context(run.open(0))
+        b = run.open(1)
+        stack.callback(b.close)
+        run.wait_ready(0, 1)
+        b.send(tunnel(2, b"before"))
+        assert recv_until(a, lambda f: f.sysid == 2) is not None
+        run.emu.unplug(1)
+        path = Path(run.paths[1])
+        wait_until(lambda: not path.exists(), AIR_DEADLINE, "radio1's device node to disappear")
+        with pytest.raises(LinkClosedError):  # reads fail, as on a pulled USB radio
+            wait_until(lambda: b.recv(0.1) and False, AIR_DEADLINE, "a failing read")
+        with pytest.raises(LinkOpenError, match="no such device"):
+            b.reopen()
+        assert run.radio(1)["locked"] and not run.radio(1)["plugged"]
+        run.emu.replug(1)
+        wait_until(path.exists, AIR_DEADLINE, "radio1's device node back")
+        b.reopen()
+        run.wait_connected(1)
+        assert run.radio(1)["locked"], "a radio powered on its own keeps its lock"
+        b.send(heartbeat(2))
+        assert recv_until(a, lambda f: f.sysid == 2 and f.msgid == 0) is not None
+        a.send(tunnel(1, b"after"))
+        assert recv_until(b, lambda f: f.sysid == 1 and f.payload[5:10] == b"after") is not None
+        # the control FIFO: an unplug for a while, and a bad line that changes nothing
+        control(tmp_path, "unplug 0 1.5")
+        control(tmp_path, "unplug seven")
+        wait_until(lambda: not Path(run.paths[0]).exists(), AIR_DEADLINE, "radio0 unplugged")
+        wait_until(lambda: Path(run.paths[0]).exists(), AIR_DEADLINE, "radio0 back by itself")
+        wait_until(lambda: len(events) >= 5, AIR_DEADLINE, "an event line for each")
+    assert events[0] == "radio1 unplugged" and events[1].startswith("radio1 plugged back: ")
+    assert sorted(events[2:4]) == ["control: 'unplug seven': expected unplug I [FOR_S] | replug I",
+                                   "radio0 unplugged for 1.5 s"], events
+    assert events[4].startswith("radio0 plugged back: ")
+    assert not (tmp_path / "control").exists() and os.listdir(tmp_path) == []
+
+
+def test_a_link_that_cannot_be_reopened_says_so(tmp_path: Path) -> None:
+    with open_link("loop://") as loop:
+        assert loop.can_reopen
+    from radios.tlog import TlogWriter
+
+    cap = tmp_path / "x.tlog"
+    with TlogWriter(cap) as w:
+        w.write(heartbeat(1), 1.0)
+    with open_link(str(cap)) as replay:
+        assert not replay.can_reopen
+        with pytest.raises(LinkOpenError, match="cannot be reopened"):
+            replay.reopen()
+    link = open_link("loop://")
+    link.close()
+    with pytest.raises(LinkClosedError):
+        link.reopen()
+
+
+# -- the bridge -----------------------------------------------------------------------
+
+def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytest.LogCaptureFixture
+                                                   ) -> None:
+    caplog.set_level(logging.WARNING, logger="swarm.bridge")
+    heard: list[tuple[str, str]] = []
+    with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
+        nodes = []
+        for i, name in enumerate(("a1", "a2")):
+            session = open_session()
+            stack.callback(session.close)
+            link = run.open(i, capture=str(tmp_path / f"{name}.tlog"))
+            stack.callback(link.close)
+            bridge = RadioBridge(session, link, name=name, agent_id=i + 1).start()
+            stack.callback(bridge.close)
+            t = Transport(name, session)
+            stack.callback(t.close)
+            inbox: list[Any] = []
+            t.on_inbox(inbox.append)
+            nodes.append((bridge, t, inbox))
+        (b1, t1, in1), (b2, t2, in2) = nodes
+        b2.add_listener(lambda what, text: heard.append((what, text)))
+
+        def learnt() -> bool:
+            t1.advertise(Advertize(1, "a1"))
+            t2.advertise(Advertize(2, "a2"))
+            return "a2" in b1.peers() and "a1" in b2.peers()
+
+        wait_until(learnt, DEADLINE, "both bridges to learn the other's name", 0.5)
+        t0 = time.monotonic()
+        run.emu.unplug(1, OUTAGE_S)
+        wait_until(lambda: b2.link_down, AIR_DEADLINE, "a2's bridge to notice its radio gone")
+        t1.send("a2", Selection(1, 2, 7, 3))  # goes on air into nowhere; nothing breaks
+        wait_until(lambda: b2.stats.radio_reopens == 1, AIR_DEADLINE + OUTAGE_S, "a2's radio reopened")
+        away = time.monotonic() - t0
+        assert not b2.link_lost and b2.stats.radio_losses == 1
+        assert heard[0][0] == "lost" and heard[1][0] == "back" and heard[1][1].startswith("after ")
+        # traffic both ways again, and the name table survived (no new Advertize)
+        t2.send("a1", Selection(2, 1, 8, 3))
+        wait_until(lambda: any(m == Selection(2, 1, 8, 3) for m in in1), AIR_DEADLINE, "a2 -> a1")
+        wait_until(lambda: (t1.send("a2", Selection(1, 2, 9, 3)),
+                            any(m == Selection(1, 2, 9, 3) for m in in2))[1],
+                   AIR_DEADLINE, "a1 -> a2", 0.5)
+        wait_until(lambda: b2.stats.radio_status_accepted > 0, AIR_DEADLINE, "RADIO_STATUS again")
+    lines = [r.getMessage() for r in caplog.records if r.name == "swarm.bridge" and "a2" in r.getMessage()]
+    assert sum("lost" in x for x in lines) == 1 and sum("back after" in x for x in lines) == 1, lines
+    waiting = [x for x in lines if "still away" in x]
+    assert len(waiting) <= away + 1, f"about one line a second while waiting, not a flood: {lines}"
+    # the capture went on in the same file across the reopen
+    from radios.tlog import TlogReader
+
+    with TlogReader(tmp_path / "a2.tlog") as reader:
+        sent = [r.frame for r in reader if r.frame.sysid == 2]
+    assert any(encode(Selection(2, 1, 8, 3)).rstrip(b"\0") in f.payload for f in sent), "sent after reopening"
+    assert any(f.msgid == 0 for f in sent[:3]), "and what was sent before it"
+
+
+# -- real processes --------------------------------------------------------------------
+
+def last(child: Child, event: str) -> dict[str, Any] | None:
+    for line in reversed(list(child.lines)):
+        obj = json.loads(line)
+        if obj.get("event") == event:
+            return dict(obj)
+    return None
+
+
+def events(child: Child, event: str) -> list[dict[str, Any]]:
+    return [o for o in map(json.loads, list(child.lines)) if o.get("event") == event]
+
+
+def up(*children: Child) -> Callable[[], None]:
+    def check() -> None:
+        for c in children:
+            assert c.proc.poll() is None, f"{c.name} exited {c.proc.returncode}: {c.errors[-5:]}"
+    return check
+
+
+def settled(a1: Child, a2: Child) -> tuple[int, frozenset[int]] | None:
+    """(leader, members) when both agents agree, the leader leading the other."""
+    s1, s2 = last(a1, "state"), last(a2, "state")
+    if s1 is None or s2 is None or s1["leader"] != s2["leader"] or not s1["leader"]:
+        return None
+    lead = s1 if s1["phase"] == "LEADER" else s2
+    other = s2 if lead is s1 else s1
+    if lead["phase"] != "LEADER" or other["phase"] != "MEMBER" or set(lead["members"]) != {other["id"]}:
+        return None
+    return int(lead["id"]), frozenset(lead["members"])
+
+
+def get(url: str) -> Any:
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def test_agent_and_station_stay_up_and_return_after_an_unplug(tmp_path: Path) -> None:
+    emu, paths = start_emulator(3, tmp_path, "--seed", "16")
+    children: list[Child] = []
+    try:
+        a1 = Child(["agent", "--name", "agent1", "--id", "1", "--radio", paths[0], "--json"], name="agent1")
+        a2 = Child(["agent", "--name", "agent2", "--id", "2", "--radio", paths[1], "--json"], name="agent2")
+        gcs = Child(["gcs", "--radio", paths[2], "--http", f"127.0.0.1:{free_port()}", "--tiles", "none",
+                     "--json"], name="gcs")
+        children += [a1, a2, gcs]
+        alive = up(*children)
+        url = json.loads(gcs.wait_lines(1, 30)[0])["url"]
+        for c in (a1, a2):
+            c.wait_lines(1, 30)
+
+        def swarm() -> tuple[int, frozenset[int]] | None:
+            alive()
+            return settled(a1, a2)
+
+        def connected() -> set[int]:
+            alive()
+            return {a["id"] for a in get(url + "api/state")["agents"] if a["connected"]}
+
+        before = wait_until(swarm, DEADLINE, "agent1 and agent2 to agree on a leader", 0.1)
+        wait_until(lambda: connected() == {1, 2}, DEADLINE, "the station to connect both", 0.2)
+        # agent2's radio is pulled out for a few seconds
+        control(tmp_path, f"unplug 1 {OUTAGE_S}")
+        lost = wait_until(lambda: (alive(), events(a2, "radio"))[1], DEADLINE, "agent2: radio lost", 0.1)
+        assert lost[0]["state"] == "lost" and lost[0]["name"] == "agent2"
+        wait_until(lambda: len(events(a2, "radio")) >= 2, DEADLINE, "agent2: radio back", 0.1)
+        assert events(a2, "radio")[1]["state"] == "back"
+        after = wait_until(swarm, DEADLINE, "agent1 and agent2 to agree again", 0.1)
+        print(f"\nbefore the unplug: leader {before[0]} members {set(before[1])}; "
+              f"after: leader {after[0]} members {set(after[1])}")
+        assert after == before or set(after[1]) | {after[0]} == {1, 2}
+        # the station's radio next
+        control(tmp_path, f"unplug 2 {OUTAGE_S}")
+        wait_until(lambda: (alive(), [e for e in events(gcs, "log") if e["kind"] == "radio"])[1],
+                   DEADLINE, "gcs: radio lost", 0.1)
+        wait_until(lambda: len([e for e in events(gcs, "log") if e["kind"] == "radio"]) >= 2,
+                   DEADLINE, "gcs: radio back", 0.1)
+        radio = [e["text"] for e in events(gcs, "log") if e["kind"] == "radio"]
+        assert radio[0].startswith("radio lost: ") and radio[1].startswith("radio back after "), radio
+        wait_until(lambda: connected() == {1, 2}, DEADLINE, "the station to see both agents again", 0.2)
+        for c in children:
+            c.proc.send_signal(signal.SIGTERM)
+        for c in children:
+            assert c.proc.wait(10) == 0, f"{c.name}: {c.errors[-5:]}"
+            assert not [e for e in c.errors if "Traceback" in e], c.errors
+    finally:
+        for c in children:
+            c.stop(grace=3)
+        emu.stop()
+
+
+def test_exit_on_radio_loss_exits_1_with_one_line(tmp_path: Path) -> None:
+    emu, paths = start_emulator(2, tmp_path, "--seed", "16")
+    children: list[Child] = []
+    try:
+        agent = Child(["agent", "--name", "agent1", "--id", "1", "--radio", paths[0],
+                       "--exit-on-radio-loss"], name="agent1")
+        gcs = Child(["gcs", "--radio", paths[1], "--http", f"127.0.0.1:{free_port()}", "--tiles", "none",
+                     "--exit-on-radio-loss"], name="gcs")
+        children += [agent, gcs]
+        for c in children:
+            c.wait_lines(1, 30)
+        control(tmp_path, "unplug 0")
+        control(tmp_path, "unplug 1")
+        for c, prog in ((agent, "swarm agent"), (gcs, "swarm gcs")):
+            assert c.proc.wait(30) == 1, c.errors
+            c.stop()
+            assert c.errors == [c.errors[0]] and c.errors[0].startswith(f"{prog}: error: radio link lost"), \
+                c.errors
+    finally:
+        for c in children:
+            c.stop(grace=3)
+        emu.stop()
+
+
+def test_exit_on_radio_loss_needs_a_radio(capsys: pytest.CaptureFixture[str]) -> None:
+    from swarm.commands.agent import main as agent_main
+    from swarm.commands.gcs import main as gcs_main
+
+    assert gcs_main(["--zenoh-listen", "tcp/127.0.0.1:1", "--exit-on-radio-loss"]) == 2
+    assert agent_main(["--name", "a", "--id", "1", "--zenoh-listen", "tcp/127.0.0.1:1",
+                       "--exit-on-radio-loss"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["swarm gcs: error: --exit-on-radio-loss is for a station on a radio (--radio)",
+                   "swarm agent: error: --exit-on-radio-loss is for an agent on a radio (--radio)"]
+
+
+

@@ -234,7 +234,7 @@ def test_command_is_acked_and_a_duplicate_ack_is_dropped() -> None:
     assert core.take_finished() == [req]
     core.handle(CommandAck(3, o.msg.seq, AckResult.ACCEPTED), 1.3)  # answer to a retry
     assert core.counters.duplicate_acks == 1
-    assert [e.text for e in core.take_events()] == ["TAKEOFF -> agent3 (3): ACCEPTED"]
+    assert [e.text for e in core.take_events()] == [f"TAKEOFF -> agent3 (3): ACCEPTED [seq {o.msg.seq}]"]
     assert core.take_finished() == []
     assert not msgs(core.tick(5.0), Command)  # nothing more to send
 

@@ -623,7 +623,8 @@ class StationCore:
         for agent in p.sent_to:
             self._answered.append((agent, p.msg.seq))
         what = p.msg.kind.name + (" (swarm)" if p.swarm else "")
-        text = f"{what} -> {self._label(p.agent)}: {result}" + (f" ({reason})" if reason else "")
+        text = (f"{what} -> {self._label(p.agent)}: {result}" + (f" ({reason})" if reason else "")
+                + f" [seq {p.msg.seq}]")  # the agent's own log names the same seq
         self._event(now, "command", text)
         if p.request.done:
             self._finished.append(p.request)

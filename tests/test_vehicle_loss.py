@@ -15,6 +15,7 @@ import urllib.error
 import urllib.request
 from typing import Any
 
+from gcs_browser import browser
 from net_helpers import free_port, wait_until
 
 from swarm.gcs.station import StationCore
@@ -115,6 +116,17 @@ def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> No
         assert v["mode"] is None and v["armed"] is None and v["connected"] is True
         wait_until(lambda: any(e.get("kind") == "vehicle" and "vehicle link lost" in e["text"]
                                for e in _json_lines(gcs, "log")), "the station's event", 30)
+        with browser() as ctx:  # the page says it in the agent's entry and its telemetry
+            page = ctx.new_page()
+            page.goto(url)
+            page.wait_for_function("() => window.gcs && window.gcs.ready", timeout=15000)
+            badge = '#agents [data-agent-id="1"] .badge'
+            page.wait_for_function(f"() => (document.querySelector('{badge}') || {{}}).textContent"
+                                   " === 'vehicle link lost'", timeout=15000)
+            page.click('#agents [data-agent-id="1"]')
+            page.wait_for_function("() => document.querySelector('#telemetry [data-field=\"mode\"]')"
+                                   ".textContent === 'unknown (vehicle link lost)'", timeout=15000)
+            assert "lost" in page.inner_text("#log")
         sim = Child(sim_argv, name="sim again")
         children.append(sim)
         wait_until(lambda: len(_json_lines(agent, "vehicle")) >= 2, "the vehicle back on the agent", 60)

@@ -36,7 +36,17 @@ protocol or link, queues between them):
   a radio, gives the bridge a HEARTBEAT and a GLOBAL_POSITION_INT for standard
   ground stations. The driver does not expose raw pymavlink messages, so those two
   are rebuilt from the snapshot (same fields; the vehicle type, not in the
-  snapshot, is sent as a quadrotor); the bridge rate-limits them to 1 Hz.
+  snapshot, is sent as a quadrotor); the bridge rate-limits them to 1 Hz. While the
+  driver reports the vehicle link lost the thread publishes nothing (a stale
+  position would look alive to the swarm).
+* **Vehicle link**: the driver's link-lost / link-restored callbacks come through
+  the queue: an event (``vehicle link lost`` / ``vehicle link back``), the core told
+  (:meth:`~swarm.protocol.Core.set_vehicle_link`: a leader that cannot fly hands
+  over), and Telemetry without FLAG_FC_OK and with the mode unknown.
+* **Commands** from a station are answered on the protocol thread through
+  :func:`swarm.gslink.answer_command` (a repeat is answered from the log and never
+  run twice; new answers are sent again 0.5 and 1.5 s later); vehicle calls run
+  on their own thread.
 
 Profiles: ``paper`` (the default) or ``fast``, whose windows follow the radio
 network's TDM round (``round_s``). The round is not read from the radio: pass it,
@@ -426,6 +436,7 @@ class Agent:
         if isinstance(item, _VehicleLink):
             self.stats["vehicle_link_lost" if not item.up else "vehicle_link_back"] += 1
             self._event(VEHICLE_LINK_BACK if item.up else VEHICLE_LINK_LOST)
+            core.set_vehicle_link(item.up, now)  # a leader that cannot fly hands over
             return []
         if not isinstance(item, Message):
             return []
@@ -643,6 +654,8 @@ class Agent:
 
     def _pose_once(self) -> None:
         v = self.vehicle
+        if not getattr(v, "link_ok", True):
+            return  # no fresh position: a stale one would look alive to the swarm
         s = v.state
         if self.bridge is not None and getattr(v, "link_ok", True):
             for msg in vehicle_messages(s):

@@ -138,3 +138,52 @@ def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> No
     finally:
         for c in children:
             c.stop(grace=3)
+
+
+def test_the_leader_whose_vehicle_simulator_dies_hands_over() -> None:
+    """Two agents over Zenoh, each flying a simulated vehicle of its own; the leader's
+    simulator is killed: the other agent leads and the old leader follows it."""
+    ports = []
+    for _ in range(2):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    children: list[Child] = []
+    try:
+        sims = {i: Child(["sim", "--vehicles", "1", "--base-port", str(ports[i - 1]), "--seed", str(i)],
+                         name=f"sim{i}") for i in (1, 2)}
+        children += sims.values()
+        fcs = {i: sims[i].wait_lines(2, 30)[0].split("-> ", 1)[1].split()[0] for i in (1, 2)}
+        link = {1: ["--zenoh-listen", ep], 2: ["--zenoh-connect", ep]}
+        agents = {i: Child(["agent", "--name", f"agent{i}", "--id", str(i), *link[i], "--fc", fcs[i],
+                            "--json"], name=f"agent{i}") for i in (1, 2)}
+        children += agents.values()
+
+        def phases() -> dict[int, tuple[str, int]]:
+            for c in children:
+                assert c.proc.poll() is None, f"{c.name} exited: {c.errors[-5:]}"
+            out = {}
+            for i, a in agents.items():
+                states = _json_lines(a, "state")
+                if states:
+                    out[i] = (states[-1]["phase"], states[-1]["leader"])
+            return out
+
+        def agreed() -> int | None:
+            p = phases()
+            if len(p) == 2 and {ph for ph, _ in p.values()} == {"LEADER", "MEMBER"} \
+                    and len({lead for _, lead in p.values()}) == 1:
+                return p[1][1]
+            return None
+
+        leader = wait_until(agreed, "one leader for both agents", 90)
+        other = 3 - leader
+        sims[leader].proc.send_signal(signal.SIGKILL)
+        sims[leader].proc.wait(10)
+        children.remove(sims[leader])
+        wait_until(lambda: agreed() == other, f"agent{other} leads: agent{leader} lost its vehicle", 90)
+        assert any(e["link"] is False for e in _json_lines(agents[leader], "vehicle"))
+    finally:
+        for c in children:
+            c.stop(grace=3)

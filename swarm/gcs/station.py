@@ -21,7 +21,10 @@ station's part:
 4. Telemetry, ``swarm/<name>/state`` (AgentState) and ``swarm/<name>/pose``
    (PoseReport) fill each agent's view: position, a trail (the last ``trail_s``,
    at most ``trail_points`` points), mode, flags, battery, radio, election state.
-   The swarm's leader is the one most connected agents follow.
+   The swarm's leader is the one most connected agents follow. An agent whose
+   Telemetry had FLAG_FC_OK and loses it has lost its flight controller: a
+   ``vehicle`` event ("vehicle link lost"), ``vehicle_link: false`` and its mode,
+   arming and airborne state unknown until the flag is back ("vehicle link back").
 5. Commands: :meth:`StationCore.submit` checks a :class:`CommandSpec` against what
    the station knows (unknown agent, not connected, no leader: refused with a
    reason and an HTTP-like status, nothing sent) and returns a :class:`Request`

@@ -36,7 +36,17 @@ protocol or link, queues between them):
   a radio, gives the bridge a HEARTBEAT and a GLOBAL_POSITION_INT for standard
   ground stations. The driver does not expose raw pymavlink messages, so those two
   are rebuilt from the snapshot (same fields; the vehicle type, not in the
-  snapshot, is sent as a quadrotor); the bridge rate-limits them to 1 Hz.
+  snapshot, is sent as a quadrotor); the bridge rate-limits them to 1 Hz. While the
+  driver reports the vehicle link lost the thread publishes nothing (a stale
+  position would look alive to the swarm).
+* **Vehicle link**: the driver's link-lost / link-restored callbacks come through
+  the queue: an event (``vehicle link lost`` / ``vehicle link back``), the core told
+  (:meth:`~swarm.protocol.Core.set_vehicle_link`: a leader that cannot fly hands
+  over), and Telemetry without FLAG_FC_OK and with the mode unknown.
+* **Commands** from a station are answered on the protocol thread through
+  :func:`swarm.gslink.answer_command` (a repeat is answered from the log and never
+  run twice; new answers are sent again 0.5 and 1.5 s later); vehicle calls run
+  on their own thread.
 
 Profiles: ``paper`` (the default) or ``fast``, whose windows follow the radio
 network's TDM round (``round_s``). The round is not read from the radio: pass it,
@@ -71,6 +81,7 @@ from swarm.gslink import (
     CommandLog,
     GsLink,
     GsOut,
+    answer_command,
     mode_code,
 )
 from swarm.messages import (
@@ -91,7 +102,6 @@ from swarm.messages import (
     Telemetry,
     check_id,
     check_name,
-    fit_reason,
 )
 from swarm.pilot import Call, Mode, Pilot, PilotConfig, Role
 from swarm.protocol import (
@@ -138,6 +148,11 @@ class _PoseIn:
 
 
 @dataclass(frozen=True)
+class _VehicleLink:
+    up: bool  # the driver's link-lost / link-restored callbacks
+
+
+@dataclass(frozen=True)
 class _CallDone:
     call: Call
     ok: bool
@@ -145,6 +160,9 @@ class _CallDone:
 
 
 _STOP = object()
+#: the agent's events (``on_event``) when its flight controller falls silent and comes back
+VEHICLE_LINK_LOST = "vehicle link lost"
+VEHICLE_LINK_BACK = "vehicle link back"
 SETPOINT_PERIOD = 0.1  # the pilot's step: setpoints at 10 Hz
 STATE_KEEPALIVE_S = 5.0  # state publication period once leading or following
 
@@ -207,6 +225,7 @@ class Agent:
             "send_errors": 0, "state_published": 0, "own_echo": 0, "id_conflicts": 0,
             "errors": 0, "poses": 0, "vehicle_forwarded": 0, "gs_sent": 0,
             "commands": 0, "command_replays": 0, "setpoints": 0, "setpoint_errors": 0, "poses_heard": 0,
+            "vehicle_link_lost": 0, "vehicle_link_back": 0,
         }
         self.names: dict[int, str] = {}  # agent id -> name, from Advertize
         self._ids: dict[str, int] = {}  # name -> agent id
@@ -251,7 +270,9 @@ class Agent:
         if self.fc_url is not None:
             from firmware_bridge.driver import connect
 
-            self.vehicle = connect(self.fc_url, timeout=self.fc_timeout)
+            self.vehicle = connect(self.fc_url, timeout=self.fc_timeout,
+                                   on_link_lost=lambda: self._q.put(_VehicleLink(False)),
+                                   on_link_restored=lambda: self._q.put(_VehicleLink(True)))
         self.core = Core(self.id, self.name, self.profile, self._policy(), rng=self._rng,
                          has_fc=self.vehicle is not None)
         self.transport = Transport(self.name, self.session)
@@ -358,6 +379,9 @@ class Agent:
                 next_publish = now + (STATE_KEEPALIVE_S if settled else self.profile.state_interval)
             deadline = core.next_deadline()
             wake = min(next_publish, self.gs.next_deadline(), next_step)
+            again = self.commands.next_deadline()
+            if again is not None:
+                wake = min(wake, again)
             if deadline is not None:
                 wake = min(wake, deadline)
             try:
@@ -380,6 +404,8 @@ class Agent:
                 outs += core.tick(self.clock())
                 self._send(outs)
                 self._send_gs(self.gs.tick(self.clock(), self._telemetry))
+                for station, ack in self.commands.due(self.clock()):
+                    self._reply(station, ack)  # answers are sent three times
                 now = self.clock()
                 if now >= next_step:
                     next_step = max(next_step + SETPOINT_PERIOD, now - SETPOINT_PERIOD)
@@ -406,6 +432,11 @@ class Agent:
             return []
         if isinstance(item, _Task):
             core.set_task(item.task)
+            return []
+        if isinstance(item, _VehicleLink):
+            self.stats["vehicle_link_lost" if not item.up else "vehicle_link_back"] += 1
+            self._event(VEHICLE_LINK_BACK if item.up else VEHICLE_LINK_LOST)
+            core.set_vehicle_link(item.up, now)  # a leader that cannot fly hands over
             return []
         if not isinstance(item, Message):
             return []
@@ -466,24 +497,18 @@ class Agent:
     def _command(self, core: Core, cmd: Command, now: float) -> None:
         """Answer a Command (once per station and sequence number) and act on it."""
         self.stats["commands"] += 1
-        ack = self.commands.seen(cmd.sender, cmd.seq)
-        if ack is not None:
+        ack, calls, repeat = answer_command(
+            self.commands, cmd, self.id, self.vehicle is not None,
+            lambda c: self.pilot.command(c, self._role(core), now), now)
+        if repeat:  # a retry: the same answer, nothing run again
             self.stats["command_replays"] += 1
             self._reply(cmd.sender, ack)
             return
-        calls: list[Call] = []
-        if cmd.target not in (0, self.id):
-            result, why = AckResult.UNKNOWN_AGENT, f"this is agent {self.id}, not {cmd.target}"
-        elif self.vehicle is None and cmd.target != 0:
-            result, why = AckResult.FAILED, "no flight controller on this agent"
-        else:
-            result, why, calls = self.pilot.command(cmd, self._role(core), now)
+        result, why = ack.result, ack.reason
         if result == AckResult.ACCEPTED and cmd.target == 0 and core.phase == Phase.LEADER:
             core.set_task(self.pilot.task)  # FOLLOW or HOLD rides on the next heartbeats
-        ack = CommandAck(self.id, cmd.seq, result, fit_reason(why))
-        self.commands.record(cmd.sender, cmd.seq, ack)
         self._reply(cmd.sender, ack)
-        self._event(f"command {cmd.kind.name} from {cmd.sender}: {result.name}"
+        self._event(f"command {cmd.kind.name} seq {cmd.seq} from {cmd.sender}: {result.name}"
                     + (f" ({why})" if why else ""))
         for c in calls:
             self._calls.put(c)
@@ -587,9 +612,10 @@ class Agent:
         v = self.vehicle
         if v is not None:
             s = v.state
-            mode = mode_code(s.mode)
+            link_ok = bool(getattr(v, "link_ok", True))
+            mode = mode_code(s.mode) if link_ok else 0  # not the last mode heard: unknown
             flags |= (FLAG_ARMED if s.armed else 0) | (FLAG_AIRBORNE if s.in_air else 0)
-            flags |= FLAG_FC_OK if getattr(v, "link_ok", True) else 0
+            flags |= FLAG_FC_OK if link_ok else 0
             flags |= FLAG_HOLDING if self.pilot.holding else 0
             if 0 <= s.battery_remaining <= 100:
                 battery = s.battery_remaining
@@ -628,6 +654,8 @@ class Agent:
 
     def _pose_once(self) -> None:
         v = self.vehicle
+        if not getattr(v, "link_ok", True):
+            return  # no fresh position: a stale one would look alive to the swarm
         s = v.state
         if self.bridge is not None and getattr(v, "link_ok", True):
             for msg in vehicle_messages(s):
@@ -691,5 +719,5 @@ def state_dict(name: str, st: AgentState) -> dict[str, Any]:
             "candidate": st.candidate, "weight": st.weight, "epoch": st.epoch}
 
 
-__all__ = ["PROFILES", "VOTES", "Agent", "default_round_s", "pose_from_state", "state_dict",
-           "vehicle_messages"]
+__all__ = ["PROFILES", "VEHICLE_LINK_BACK", "VEHICLE_LINK_LOST", "VOTES", "Agent", "default_round_s",
+           "pose_from_state", "state_dict", "vehicle_messages"]

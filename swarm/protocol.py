@@ -68,6 +68,15 @@ Beyond the paper (each rule stated once, here):
   battery, or link quality, each in the high byte with random low bits.
 * **Elections are named** by ``epoch`` = the pool digest's low 16 bits: votes
   from another pool (an older election) are ignored and counted.
+* **A leader that cannot fly hands over** (:meth:`Core.set_vehicle_link`): an
+  agent with a flight controller whose link to it is lost does not lead. A
+  leader whose vehicle link has been lost for ``vehicle_grace`` sends its members
+  a last Heartbeat listing nobody (so they leave at once, by the rule above,
+  instead of after ``leader_timeout``) and goes IDLE; until the link is back the
+  agent votes with weight 0 (any agent that can fly outweighs it), does not form
+  a swarm of one, and advertises without FLAG_HAS_FC. A member whose vehicle is
+  lost stays a member (it holds; the station marks it). A shorter loss changes
+  nothing: the driver already waits 2 s before it calls a link lost.
 """
 
 from __future__ import annotations
@@ -120,6 +129,7 @@ class Profile:
     leader_timeout: float = 3.0
     alone_timeout: float = 8.0
     state_interval: float = 1.0
+    vehicle_grace: float = 3.0  # a leader without its vehicle this long steps down
 
 
 PAPER = Profile()
@@ -229,6 +239,7 @@ class Counters:
     left: int = 0
     elections: int = 0
     merges: int = 0
+    step_downs: int = 0  # leaderships handed over for a lost vehicle link
 
 
 @dataclass
@@ -241,6 +252,8 @@ class Core:
     policy: VotePolicy = field(default_factory=RandomVote)
     rng: random.Random = field(default_factory=random.Random)
     has_fc: bool = False
+    vehicle_ok: bool = True  # the flight controller heard (see set_vehicle_link)
+    vehicle_lost_at: float = 0.0
 
     phase: Phase = Phase.IDLE
     pool: set[int] = field(default_factory=set)
@@ -294,9 +307,10 @@ class Core:
         ph = self.phase
         if ph in (Phase.IDLE, Phase.POOLING, Phase.LEADER) and self._due("advertize", now,
                                                                        self.profile.advertize_interval):
-            flags = (FLAG_HAS_FC if self.has_fc else 0) | (FLAG_LEADER if ph == Phase.LEADER else 0)
+            fc = self.has_fc and self.vehicle_ok
+            flags = (FLAG_HAS_FC if fc else 0) | (FLAG_LEADER if ph == Phase.LEADER else 0)
             out.append(Out(ADVERTIZE, Advertize(self.me, self.name or f"agent{self.me}", flags)))
-        if ph == Phase.IDLE and now - self._idle_since >= self.profile.alone_timeout:
+        if ph == Phase.IDLE and now - self._idle_since >= self.profile.alone_timeout and self.can_lead:
             self._become_leader(now, set())  # a swarm of one
             ph = self.phase
         if ph in (Phase.POOLING, Phase.LOCKED):
@@ -305,7 +319,10 @@ class Core:
         if ph == Phase.ELECTING:
             self._election_timers(now, out)
             ph = self.phase
-        if ph == Phase.LEADER:
+        grounded = not self.can_lead and now - self.vehicle_lost_at >= self.profile.vehicle_grace
+        if ph == Phase.LEADER and grounded:
+            self._step_down(now, out)
+        elif ph == Phase.LEADER:
             self._leader_timers(now, out)
         elif ph == Phase.MEMBER and now > self._member_deadline():
             self.counters.left += 1
@@ -317,7 +334,7 @@ class Core:
         """When :meth:`tick` next has something to do."""
         p = self.profile
         times = list(self._next.values())
-        if self.phase == Phase.IDLE:
+        if self.phase == Phase.IDLE and self.can_lead:
             times.append(self._idle_since + p.alone_timeout)
         elif self.phase == Phase.POOLING:
             times.append(self.changed_at + p.lock_window)
@@ -328,6 +345,8 @@ class Core:
             times.append(self.vote_changed_at + p.vote_window)
         elif self.phase == Phase.LEADER:
             times += [t + p.ack_timeout for t in self.members.values()]
+            if not self.can_lead:
+                times.append(self.vehicle_lost_at + p.vehicle_grace)
         elif self.phase == Phase.MEMBER:
             times.append(self._member_deadline())
         times += [t + p.startpool_retry for t in self._asked.values()]
@@ -357,6 +376,18 @@ class Core:
             self.members[agent] = max(self.members[agent], now)
         elif self.phase == Phase.MEMBER and agent == self.leader:
             self.leader_seen = max(self.leader_seen, now)
+
+    @property
+    def can_lead(self) -> bool:
+        """False while an agent with a flight controller has lost its link to it."""
+        return self.vehicle_ok or not self.has_fc
+
+    def set_vehicle_link(self, up: bool, now: float) -> None:
+        """The flight controller's link lost (``up`` false) or back. See "A leader
+        that cannot fly hands over" in the module docstring."""
+        if up != self.vehicle_ok:
+            self.vehicle_ok = up
+            self.vehicle_lost_at = now
 
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""
@@ -424,6 +455,14 @@ class Core:
         self._next = {"advertize": now, "heartbeat": now}
         self.counters.elections += 1
 
+    def _step_down(self, now: float, out: list[Out]) -> None:
+        """Hand over: a last Heartbeat that lists nobody releases every member now."""
+        self.hb_seq = (self.hb_seq + 1) & 0xFF
+        hb = Heartbeat(self.me, self.epoch, self.hb_seq, frozenset(), self.task)
+        out += [Out(m, hb) for m in sorted(self.members)]
+        self.counters.step_downs += 1
+        self._go_idle(now)
+
     def _become_member(self, leader: int, now: float) -> None:
         self._set_phase(Phase.MEMBER)
         self.leader = leader
@@ -463,7 +502,8 @@ class Core:
     def _start_election(self, now: float, out: list[Out]) -> None:
         self._set_phase(Phase.ELECTING)
         self.epoch = pool_digest(self.pool) & 0xFFFF
-        self.vote = (self.policy.weight(self.rng), self.me)
+        # an agent that cannot fly votes for itself with weight 0: anyone else wins
+        self.vote = (self.policy.weight(self.rng) if self.can_lead else 0, self.me)
         self.vote_changed_at = now
         self._next["vote"] = now
 

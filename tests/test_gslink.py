@@ -96,14 +96,20 @@ def test_mode_codes_round_trip() -> None:
     assert mode_code("NO_SUCH_MODE") == 0 and mode_name(200) == ""
 
 
-def test_command_log_replays_answers() -> None:
+def test_command_log_replays_answers_and_sends_new_ones_again() -> None:
+    from swarm.messages import Command, CommandKind
+
     log = CommandLog(size=2)
+    c1, c2, c3 = (Command(255, s, 3, CommandKind.ARM) for s in (1, 2, 3))
     a = CommandAck(3, 1, AckResult.ACCEPTED)
-    log.record(255, 1, a)
-    assert log.seen(255, 1) is a and log.seen(254, 1) is None
-    log.record(255, 2, a)
-    log.record(255, 3, a)
-    assert log.seen(255, 1) is None  # oldest forgotten
+    assert log.record(c1, a, 10.0)
+    assert log.seen(c1) is a and log.seen(Command(254, 1, 3, CommandKind.ARM)) is None
+    assert log.next_deadline() == 10.5
+    assert log.due(10.4) == [] and log.due(10.5) == [(255, a)] and log.due(11.5) == [(255, a)]
+    assert log.next_deadline() is None
+    log.record(c2, a)
+    log.record(c3, a)
+    assert log.seen(c1) is None  # oldest forgotten
 
 
 # -- a real agent over Zenoh ---------------------------------------------------------

@@ -298,3 +298,131 @@ def test_campaign_paper_n10_loss10_bounded() -> None:
 def test_campaign_paper_n10_loss10_500_seeds() -> None:
     r = campaign(Scenario(agents=10, loss=0.1), 500)
     assert r["converged"] == 500 and r["violations"] == 0, r["failing"]
+
+
+# -- a leader that cannot fly hands over (issue 11, item 7) ------------------------------
+
+def _leader_of(members: set[int], *, has_fc: bool = True) -> Core:
+    lead = Core(1, policy=FixedVote(99), has_fc=has_fc)
+    lead.start(0.0)
+    for m in members:
+        lead.handle(StartPool(m), 0.0)
+    for t in (2.0, 4.0, 6.1):
+        lead.tick(t)
+    assert lead.phase == Phase.LEADER and set(lead.members) == members
+    return lead
+
+
+def test_a_leader_whose_vehicle_is_lost_hands_over_after_the_grace() -> None:
+    lead = _leader_of({2, 3})
+    g = lead.profile.vehicle_grace
+    lead.set_vehicle_link(False, 7.0)
+    assert lead.next_deadline() is not None and lead.next_deadline() <= 7.0 + g  # type: ignore[operator]
+    for t in (7.0, 7.0 + g / 2):
+        for m in (2, 3):
+            lead.handle(HeartbeatAck(m, 1, POSE), t)
+        lead.tick(t)
+    assert lead.phase == Phase.LEADER  # a short loss changes nothing
+    out = lead.tick(7.0 + g)
+    assert lead.phase == Phase.IDLE and lead.counters.step_downs == 1
+    last = [o for o in out if isinstance(o.msg, Heartbeat)]
+    assert {o.to for o in last} == {2, 3} and all(o.msg.members == frozenset() for o in last)
+    # a member hearing that last Heartbeat leaves at once (no leader_timeout to wait)
+    m = Core(2)
+    m.start(0.0)
+    m.handle(Heartbeat(1, 0, 1, frozenset({2, 3})), 6.5)
+    m.handle(last[0].msg, 7.0 + g)
+    assert m.phase == Phase.IDLE
+    # until its vehicle is back it does not form a swarm of one, and says it has none
+    out = lead.tick(7.0 + g + 3 * lead.profile.alone_timeout)
+    assert lead.phase == Phase.IDLE
+    ads = [o.msg for o in out if isinstance(o.msg, Advertize)]
+    assert ads and not ads[0].flags & 0x01
+    nd = lead.next_deadline()
+    assert nd is not None and nd > 7.0 + g + 3 * lead.profile.alone_timeout - 1  # no busy loop
+
+
+def test_a_vehicle_back_within_the_grace_keeps_the_leader() -> None:
+    lead = _leader_of({2})
+    lead.set_vehicle_link(False, 7.0)
+    lead.set_vehicle_link(True, 8.0)
+    lead.handle(HeartbeatAck(2, 1, POSE), 9.0)
+    lead.tick(7.0 + lead.profile.vehicle_grace + 1)
+    assert lead.phase == Phase.LEADER and lead.counters.step_downs == 0
+
+
+def test_without_a_flight_controller_nothing_changes() -> None:
+    lead = _leader_of({2}, has_fc=False)
+    lead.set_vehicle_link(False, 7.0)  # meaningless without one
+    lead.handle(HeartbeatAck(2, 1, POSE), 10.0)
+    lead.tick(7.0 + lead.profile.vehicle_grace + 1)
+    assert lead.phase == Phase.LEADER
+
+
+def test_an_agent_without_its_vehicle_votes_with_weight_zero_and_loses() -> None:
+    a = Core(3, policy=FixedVote(99), has_fc=True)  # would win: the heaviest and highest id
+    a.set_vehicle_link(False, 0.0)
+    a.start(0.0)
+    a.handle(StartPool(2), 0.0)
+    a.tick(2.0)
+    a.tick(4.0)
+    assert a.phase == Phase.ELECTING and a.vote == (0, 3)
+    a.handle(Selection(2, 2, 1, a.epoch), 4.1)
+    assert a.vote == (1, 2)
+    a.tick(4.1 + a.profile.vote_window)
+    assert a.phase == Phase.MEMBER and a.leader == 2
+
+
+def test_a_member_without_its_vehicle_stays_a_member() -> None:
+    m = Core(2, has_fc=True)
+    m.start(0.0)
+    m.handle(Heartbeat(1, 0, 1, frozenset({2})), 1.0)
+    m.set_vehicle_link(False, 1.5)
+    for k in range(20):
+        m.handle(Heartbeat(1, 0, 2 + k, frozenset({2})), 2.0 + k * 0.5)
+        m.tick(2.0 + k * 0.5)
+    assert m.phase == Phase.MEMBER and m.leader == 1
+
+
+def test_three_cores_hand_over_to_one_that_can_fly() -> None:
+    """Three cores over an instant, lossless channel and a manual clock: the elected
+    leader loses its vehicle; the other two elect one of them, and the old leader
+    joins as a member; its vehicle back, nothing changes."""
+    cores = {i: Core(i, policy=FixedVote(10 * i), has_fc=True, rng=random.Random(i)) for i in (1, 2, 3)}
+    queue: list[tuple[int, object]] = []
+
+    def send(outs: list, sender: int) -> None:  # type: ignore[type-arg]
+        for o in outs:
+            targets = [i for i in cores if i != sender] if o.to == ADVERTIZE else [o.to]
+            queue.extend((to, o.msg) for to in targets)
+
+    t = 0.0
+    for i, c in cores.items():
+        send(c.start(t), i)
+
+    def run(until: float) -> None:
+        nonlocal t
+        while t < until:
+            while queue:
+                to, msg = queue.pop(0)
+                send(cores[to].handle(msg, t), to)  # type: ignore[arg-type]
+            for i, c in cores.items():
+                send(c.tick(t), i)
+            t = round(t + 0.05, 2)
+
+    def agreed() -> int | None:
+        leaders = {c.leader for c in cores.values() if c.phase in (Phase.LEADER, Phase.MEMBER)}
+        phases = [c.phase for c in cores.values()]
+        if len(leaders) == 1 and phases.count(Phase.LEADER) == 1 and phases.count(Phase.MEMBER) == 2:
+            return leaders.pop()
+        return None
+
+    run(20.0)
+    assert agreed() == 3
+    cores[3].set_vehicle_link(False, t)
+    run(t + 30.0)
+    assert agreed() == 2, [(c.me, c.phase, c.leader) for c in cores.values()]
+    assert cores[3].counters.step_downs == 1 and cores[3].phase == Phase.MEMBER
+    cores[3].set_vehicle_link(True, t)
+    run(t + 20.0)
+    assert agreed() == 2 and sum(c.counters.step_downs for c in cores.values()) == 1

@@ -8,7 +8,9 @@ one JSON object: the ready line ``{"event": "ready", "name", "id", "link"}``, th
 ``{"event": "state", "name", "id", "phase", "leader", "pool", "locked", "members",
 "candidate", "weight", "epoch", "t"}`` (``t``: seconds since the agent started).
 With ``--json``, what the pilot does (commands answered, following, holds and
-why) comes as ``{"event": "pilot", "name", "id", "text", "t"}`` lines.
+why; each command with its seq) comes as ``{"event": "pilot", "name", "id", "text",
+"t"}`` lines, and a flight controller falling silent or heard again as
+``{"event": "vehicle", "name", "id", "link": false | true, "text", "t"}``.
 SIGINT or SIGTERM stops it cleanly (exit 0).
 
 If the radio goes away (a USB radio unplugged) the agent keeps its swarm state and
@@ -46,7 +48,15 @@ from typing import Any
 from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
 from radios.errors import ATError
 from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
-from swarm.agent import PROFILES, VOTES, Agent, default_round_s, state_dict
+from swarm.agent import (
+    PROFILES,
+    VEHICLE_LINK_BACK,
+    VEHICLE_LINK_LOST,
+    VOTES,
+    Agent,
+    default_round_s,
+    state_dict,
+)
 from swarm.cliutil import EXIT_FAILURE, EXIT_USAGE, StopFlag, UsageError, guarded, parser, print_json
 from swarm.errors import MessageError, TransportError
 from swarm.formation import FormationConfig
@@ -216,7 +226,11 @@ def main(argv: list[str] | None = None) -> int:
             if not gate["ready"]:
                 return
             try:
-                if a.json:
+                if a.json and text in (VEHICLE_LINK_LOST, VEHICLE_LINK_BACK):
+                    print_json({"event": "vehicle", "name": a.name, "id": a.id,
+                                "link": text == VEHICLE_LINK_BACK, "text": text,
+                                "t": round(time.monotonic() - t0, 3)})
+                elif a.json:
                     print_json({"event": "pilot", "name": a.name, "id": a.id, "text": text,
                                 "t": round(time.monotonic() - t0, 3)})
                 else:

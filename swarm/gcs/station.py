@@ -21,16 +21,31 @@ station's part:
 4. Telemetry, ``swarm/<name>/state`` (AgentState) and ``swarm/<name>/pose``
    (PoseReport) fill each agent's view: position, a trail (the last ``trail_s``,
    at most ``trail_points`` points), mode, flags, battery, radio, election state.
-   The swarm's leader is the one most connected agents follow.
+   The swarm's leader is the one most connected agents follow. An agent whose
+   Telemetry had FLAG_FC_OK and loses it has lost its flight controller: a
+   ``vehicle`` event ("vehicle link lost"), ``vehicle_link: false`` and its mode,
+   arming and airborne state unknown until the flag is back ("vehicle link back").
 5. Commands: :meth:`StationCore.submit` checks a :class:`CommandSpec` against what
    the station knows (unknown agent, not connected, no leader: refused with a
    reason and an HTTP-like status, nothing sent) and returns a :class:`Request`
    holding one :class:`Command` per addressee. Each is re-sent with the same seq
-   every ``command_retry`` up to ``command_tries`` times; its CommandAck (matched
-   by seq and sender; duplicates and late answers are counted and dropped) or
-   ``NO_ANSWER`` after the last try completes it. Swarm FOLLOW and STOP go to the
-   leader as Command(target=0); swarm STOP also goes to every connected agent;
-   swarm ARM/DISARM/TAKEOFF/LAND/RETURN go to every connected agent.
+   after ``command_backoff`` gaps (0.5, 1, 2, 3, 4 s, then 4 s) until its
+   CommandAck arrives or ``command_give_up`` (12 s) has passed since the first
+   send. Answers are matched by seq and by the agents the command went to
+   (duplicates and late answers are counted and dropped). Swarm FOLLOW and STOP
+   go to the leader as Command(target=0), and every retry goes to the leader the
+   station sees *then*: a command sent just before an election reaches the new
+   leader. A "not the leader" or "no leader" answer to a swarm command is not
+   final while time remains (the agent does not remember it, so the new leader
+   answers for itself). Swarm STOP also goes to every connected agent; swarm
+   ARM/DISARM/TAKEOFF/LAND/RETURN go to every connected agent.
+6. Results (:data:`RESULTS`): the agent's answer (``ACCEPTED``, or a refusal:
+   ``REJECTED``, ``FAILED``, ``BAD_ARGUMENT``, ``NO_LEADER``, ``UNKNOWN_AGENT``...,
+   with its reason); at give-up without an answer, ``CARRIED_OUT`` when the
+   agent's Telemetry since the first send shows the command's effect
+   (:func:`evidence`: ARM armed, DISARM disarmed, TAKEOFF airborne or a take-off
+   mode, LAND and RETURN their modes; each a change from what it was when the
+   command was first sent), else ``NO_ANSWER``.
 
 :class:`StationCore` does no I/O, starts no thread and reads no clock:
 ``handle(msg, now)``, ``submit(spec, now)`` and ``tick(now)`` return the
@@ -52,6 +67,7 @@ import json
 import logging
 import math
 import queue
+import random
 import threading
 import time
 from collections import Counter, deque
@@ -85,6 +101,12 @@ from swarm.pilot import MAX_TAKEOFF_M
 log = logging.getLogger(__name__)
 
 NO_ANSWER = "NO_ANSWER"
+#: no answer, but the agent's Telemetry shows the command's effect (see :func:`evidence`)
+CARRIED_OUT = "CARRIED_OUT"
+#: every result a command can end with: the agents' answers, then the station's two
+RESULTS = (*(r.name for r in AckResult), CARRIED_OUT, NO_ANSWER)
+#: results that mean the command was carried out
+DONE_RESULTS = (AckResult.ACCEPTED.name, CARRIED_OUT)
 KINDS: dict[str, CommandKind] = {k.name.lower(): k for k in CommandKind}
 #: kinds a swarm target accepts (FOLLOW and STOP through the leader; the rest fanned out)
 SWARM_KINDS = {CommandKind.ARM, CommandKind.DISARM, CommandKind.TAKEOFF, CommandKind.LAND,
@@ -112,8 +134,9 @@ class StationConfig:
     heartbeat_interval: float = 1.0
     min_timeout: float = 2.0
     timeout_heartbeats: float = 3.0
-    command_retry: float = 1.0
-    command_tries: int = 3
+    #: gaps between a command's tries (the last one repeats), and how long it is tried
+    command_backoff: tuple[float, ...] = (0.5, 1.0, 2.0, 3.0, 4.0)
+    command_give_up: float = 12.0
     trail_s: float = 60.0
     trail_points: int = 120
     events: int = 200
@@ -121,11 +144,16 @@ class StationConfig:
 
     def __post_init__(self) -> None:
         for k in ("advertize_interval", "connect_retry", "connect_give_up", "heartbeat_interval",
-                  "min_timeout", "timeout_heartbeats", "command_retry", "trail_s", "passive_timeout"):
+                  "min_timeout", "timeout_heartbeats", "command_give_up", "trail_s",
+                  "passive_timeout"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{k} {v!r}: a positive number of seconds")
-        for k in ("command_tries", "trail_points", "events"):
+        b = self.command_backoff
+        if not (isinstance(b, tuple) and b and all(
+                isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in b)):
+            raise ValueError(f"command_backoff {b!r}: a tuple of positive numbers of seconds")
+        for k in ("trail_points", "events"):
             v = getattr(self, k)
             if not (isinstance(v, int) and v > 0):
                 raise ValueError(f"{k} {v!r}: a positive integer")
@@ -236,14 +264,57 @@ def parse_command(body: Any) -> CommandSpec:
     return CommandSpec(target, kind)
 
 
+@dataclass(frozen=True)
+class _Seen:
+    """What the station saw of an agent's vehicle when a command was first sent."""
+
+    mode: str
+    armed: bool | None
+    airborne: bool | None
+    holding: bool | None
+
+
+_TAKEOFF_MODES = ("AUTO.TAKEOFF",)
+_LAND_MODES = ("AUTO.LAND", "LAND")
+_RETURN_MODES = ("AUTO.RTL", "RTL")
+
+
+def evidence(kind: CommandKind, before: _Seen, now: _Seen) -> str | None:
+    """Why the agent's Telemetry shows ``kind`` carried out, or None.
+
+    Only a change since the command was first sent counts (an agent armed before
+    ARM proves nothing). FOLLOW, STOP, GOTO and WAYPOINT leave no mark that only they
+    leave (holding also comes from a stale pose or a neighbour too close): without an
+    answer they are ``NO_ANSWER``.
+    """
+    if kind == CommandKind.ARM and now.armed is True and before.armed is not True:
+        return "armed"
+    if kind == CommandKind.DISARM and now.armed is False and before.armed is not False:
+        return "disarmed"
+    if kind == CommandKind.TAKEOFF:
+        if now.airborne is True and before.airborne is not True:
+            return "airborne"
+        if now.mode in _TAKEOFF_MODES and before.mode not in _TAKEOFF_MODES:
+            return f"mode {now.mode}"
+    for k, modes in ((CommandKind.LAND, _LAND_MODES), (CommandKind.RETURN, _RETURN_MODES)):
+        if kind == k and now.mode in modes and before.mode not in modes:
+            return f"mode {now.mode}"
+    return None
+
+
 @dataclass
 class _Pending:
     request: Request
-    agent: int
+    agent: int  # the addressee (for a swarm command: the leader it was last sent to)
     swarm: bool  # Command(target=0) to the leader
     msg: Command
+    first_sent: float = 0.0
     tries: int = 0
     next_try: float = 0.0
+    sent_to: set[int] = field(default_factory=set)
+    before: dict[int, _Seen] = field(default_factory=dict)  # by agent, at its first send
+    shown: str | None = None  # evidence seen in Telemetry (agent: what)
+    refusal: tuple[int, str, str] | None = None  # a swarm "not here" answer: agent, result, reason
     result: str | None = None
     reason: str = ""
 
@@ -274,7 +345,7 @@ class Request:
         return 200
 
     def body(self) -> dict[str, Any]:
-        ok = bool(self.pending) and all(p.result == AckResult.ACCEPTED.name for p in self.pending)
+        ok = bool(self.pending) and all(p.result in DONE_RESULTS for p in self.pending)
         out: dict[str, Any] = {"ok": ok, "results": [p.as_dict() for p in self.pending]}
         if self.status == 504:
             out["error"] = "no answer after retries"
@@ -301,6 +372,9 @@ class AgentView:
     armed: bool | None = None
     airborne: bool | None = None
     holding: bool | None = None
+    #: the agent's link to its flight controller: None until one was seen, then
+    #: whether Telemetry says it is up (FLAG_FC_OK)
+    vehicle_link: bool | None = None
     battery: int | None = None
     rssi: int | None = None
     remrssi: int | None = None
@@ -333,7 +407,8 @@ class AgentView:
             "alt": round(p.alt, 1) if p else None, "heading": round(p.heading, 1) if p else None,
             "groundspeed": None if self.groundspeed is None else round(self.groundspeed, 2),
             "mode": self.mode or None, "armed": self.armed, "airborne": self.airborne,
-            "holding": self.holding, "battery": self.battery, "rssi": self.rssi,
+            "holding": self.holding, "vehicle_link": self.vehicle_link,
+            "battery": self.battery, "rssi": self.rssi,
             "remrssi": self.remrssi, "phase": self.phase.name if self.phase is not None else None,
             "leader": self.leader, "pool": sorted(self.pool), "members": sorted(self.members),
             "locked": self.locked,
@@ -363,7 +438,7 @@ class StationCore:
 
     def __init__(self, name: str = "gcs", station_id: int = GCS_ID,
                  config: StationConfig | None = None, *, passive: bool = False,
-                 wall_offset: float = 0.0) -> None:
+                 wall_offset: float = 0.0, first_seq: int = 1) -> None:
         check_name(name)
         if not is_station(station_id):
             raise ValueError(f"station id {station_id}: ground stations use 251..255")
@@ -382,11 +457,13 @@ class StationCore:
         self._next_advertize = -math.inf
         self._next_hb = -math.inf
         self._hb_seq = 0
-        self._seq = itertools.count(1)
+        # the runtime starts commands at a random seq: an agent remembers answers by
+        # (station, seq), and a restarted station must not reuse the seqs it just used
+        self._seq = itertools.count(first_seq)
         self._connect_seq = itertools.count(1)
         self._request_ids = itertools.count(1)
         self._pending: dict[int, _Pending] = {}  # by seq
-        self._answered: deque[int] = deque(maxlen=256)  # seqs already completed
+        self._answered: deque[tuple[int, int]] = deque(maxlen=256)  # (agent, seq) completed
         self._leader_dirty = False  # a connection, phase or leader changed
 
     # -- inputs -----------------------------------------------------------------
@@ -503,7 +580,8 @@ class StationCore:
         out: list[StOut] = []
         for agent, target in plan:
             seq = self._next_seq()
-            p = _Pending(req, agent, target == 0, Command(self.id, seq, target, kind, **args))
+            p = _Pending(req, agent, target == 0, Command(self.id, seq, target, kind, **args),
+                         first_sent=now)
             req.pending.append(p)
             self._pending[seq] = p
             out += self._send_command(p, now)
@@ -516,13 +594,23 @@ class StationCore:
                 return seq
 
     def _send_command(self, p: _Pending, now: float) -> list[StOut]:
+        if p.swarm and self.leader and self.leader in self.agents:
+            p.agent = self.leader  # re-resolved at every try: elections happen
+        if p.agent not in p.before:
+            p.before[p.agent] = self._seen(self.agents[p.agent])
+        p.sent_to.add(p.agent)
         p.tries += 1
-        p.next_try = now + self.cfg.command_retry
+        gaps = self.cfg.command_backoff
+        p.next_try = now + gaps[min(p.tries, len(gaps)) - 1]
         if p.tries == 1:
             self.counters.commands_sent += 1
         else:
             self.counters.command_retries += 1
         return [StOut(p.agent, self.agents[p.agent].name, p.msg)]
+
+    @staticmethod
+    def _seen(a: AgentView) -> _Seen:
+        return _Seen(a.mode, a.armed, a.airborne, a.holding)
 
     def _ack(self, msg: CommandAck, now: float) -> None:
         a = self.agents.get(msg.sender)
@@ -533,23 +621,58 @@ class StationCore:
                                         f"{msg.result.name}" + (f" ({msg.reason})" if msg.reason else ""))
             return
         p = self._pending.get(msg.seq)
-        if p is None or p.agent != msg.sender:
-            if msg.seq in self._answered:
+        if p is None or msg.sender not in p.sent_to:
+            if (msg.sender, msg.seq) in self._answered:
                 self.counters.duplicate_acks += 1
             else:
                 self.counters.late_acks += 1
             return
+        if p.swarm and msg.result in (AckResult.REJECTED, AckResult.NO_LEADER):
+            # "not the leader" / "no leader": not final while there is time to find the
+            # leader (the agent keeps no record of it, so it will answer again)
+            p.refusal = (msg.sender, msg.result.name, msg.reason)
+            if now - p.first_sent < self.cfg.command_give_up:
+                if self.leader and msg.sender != self.leader:
+                    p.next_try = min(p.next_try, now)  # it already sees another leader: go now
+                return
+        p.agent = msg.sender
         self._complete(p, msg.result.name, msg.reason, now)
 
     def _complete(self, p: _Pending, result: str, reason: str, now: float) -> None:
         p.result, p.reason = result, reason
         del self._pending[p.msg.seq]
-        self._answered.append(p.msg.seq)
+        for agent in p.sent_to:
+            self._answered.append((agent, p.msg.seq))
         what = p.msg.kind.name + (" (swarm)" if p.swarm else "")
-        text = f"{what} -> {self._label(p.agent)}: {result}" + (f" ({reason})" if reason else "")
+        text = (f"{what} -> {self._label(p.agent)}: {result}" + (f" ({reason})" if reason else "")
+                + f" [seq {p.msg.seq}]")  # the agent's own log names the same seq
         self._event(now, "command", text)
         if p.request.done:
             self._finished.append(p.request)
+
+    def _give_up(self, p: _Pending, now: float) -> None:
+        tries = f"{p.tries} {'try' if p.tries == 1 else 'tries'} in {now - p.first_sent:.0f} s"
+        if p.shown is not None:
+            agent, _, what = p.shown.partition(":")
+            p.agent = int(agent)
+            self._complete(p, CARRIED_OUT, f"no answer after {tries}, but it shows {what}", now)
+        elif p.refusal is not None:
+            p.agent, result, reason = p.refusal
+            self._complete(p, result, reason, now)
+        else:
+            self._complete(p, NO_ANSWER, f"no answer after {tries}", now)
+
+    def _look_for_evidence(self, a: AgentView) -> None:
+        """Telemetry from ``a``: does it show a pending command carried out?"""
+        now_seen = None
+        for p in self._pending.values():
+            before = p.before.get(a.id)
+            if before is None or p.shown is not None:
+                continue
+            now_seen = now_seen or self._seen(a)
+            what = evidence(p.msg.kind, before, now_seen)
+            if what is not None:
+                p.shown = f"{a.id}:{what}"
 
     # -- time -----------------------------------------------------------------------
     def tick(self, now: float) -> list[StOut]:
@@ -580,10 +703,10 @@ class StationCore:
                 for a in round_:
                     out.append(StOut(a.id, a.name, GSHeartbeat(self.id, self._hb_seq)))
                 self.counters.heartbeats_sent += len(round_)
-        for p in [p for p in self._pending.values() if now + 1e-9 >= p.next_try]:
-            if p.tries >= self.cfg.command_tries:
-                self._complete(p, NO_ANSWER, f"no answer after {p.tries} tries", now)
-            else:
+        for p in list(self._pending.values()):
+            if now + 1e-9 >= p.first_sent + self.cfg.command_give_up:
+                self._give_up(p, now)
+            elif now + 1e-9 >= p.next_try:
                 out += self._send_command(p, now)
         self._update_leader(now)
         return out
@@ -595,7 +718,8 @@ class StationCore:
                 times.append(self._last_alive(a) + self._timeout(a))
             if a.connect_seq is not None and not self.passive:
                 times.append(a.next_connect)
-        times += [p.next_try for p in self._pending.values()]
+        for p in self._pending.values():
+            times.append(min(p.next_try, p.first_sent + self.cfg.command_give_up))
         return min(times) if times else math.inf
 
     # -- outputs for the runtime ---------------------------------------------------------
@@ -692,7 +816,8 @@ class StationCore:
             a.pose = msg.pose
             self._trail(a, msg.pose, now)
         fc = bool(msg.flags & FLAG_FC_OK)  # without a flight controller these are unknown
-        a.mode = mode_name(msg.mode)
+        self._vehicle_link(a, fc, now)
+        a.mode = mode_name(msg.mode) if fc or a.vehicle_link is None else ""
         a.armed = bool(msg.flags & FLAG_ARMED) if fc else None
         a.airborne = bool(msg.flags & FLAG_AIRBORNE) if fc else None
         a.holding = bool(msg.flags & FLAG_HOLDING)
@@ -700,7 +825,20 @@ class StationCore:
         a.rssi, a.remrssi = msg.rssi, msg.remrssi
         a.groundspeed = msg.groundspeed if fc else a.groundspeed
         self._set_election(a, msg.phase, msg.leader)
+        if self._pending:
+            self._look_for_evidence(a)
         return out
+
+    def _vehicle_link(self, a: AgentView, up: bool, now: float) -> None:
+        """FLAG_FC_OK: an agent that had a flight controller and lost it is an alert."""
+        if up == a.vehicle_link or (not up and a.vehicle_link is None):
+            return  # unchanged, or an agent without a flight controller
+        if not up:
+            self._event(now, "vehicle", f"{self._label(a.id)}: vehicle link lost "
+                                         "(its flight controller is silent; mode unknown)")
+        elif a.vehicle_link is False:
+            self._event(now, "vehicle", f"{self._label(a.id)}: vehicle link back")
+        a.vehicle_link = up
 
     def _state(self, msg: AgentState, name: str, now: float) -> None:
         if not 1 <= msg.sender <= 250:
@@ -751,6 +889,9 @@ class StationCore:
             leader = max(top) if top else 0
         if leader != self.leader:
             self.leader = leader
+            for p in self._pending.values():
+                if p.swarm and leader and p.agent != leader:
+                    p.next_try = min(p.next_try, now)  # to the new leader at the next tick
             if leader:
                 self._event(now, "leader", f"{self._label(leader)} is the leader")
             else:
@@ -822,7 +963,8 @@ class Station(StationView):
             raise ValueError("give a radio or at least one Zenoh endpoint (listen or connect)")
         if capture is not None and radio is None:
             raise ValueError("a capture records the radio's traffic: it needs a radio")
-        self.core = StationCore(name, station_id, config, wall_offset=wall() - clock())
+        self.core = StationCore(name, station_id, config, wall_offset=wall() - clock(),
+                                first_seq=random.randrange(1, 0x10000))
         self.name = name
         self.id = station_id
         self.radio_url = radio
@@ -1027,5 +1169,6 @@ class Station(StationView):
                     log.exception("station: event listener failed")
 
 
-__all__ = ["KINDS", "NO_ANSWER", "AgentView", "CommandRefused", "CommandSpec", "Event", "Request",
-           "StOut", "Station", "StationConfig", "StationCore", "parse_command"]
+__all__ = ["CARRIED_OUT", "DONE_RESULTS", "KINDS", "NO_ANSWER", "RESULTS", "AgentView",
+           "CommandRefused", "CommandSpec", "Event", "Request", "StOut", "Station", "StationConfig",
+           "StationCore", "evidence", "parse_command"]

@@ -320,7 +320,9 @@
       setText(rec.rowName, a.name + " (" + a.id + ")");
       rec.rowLead.hidden = !isLeader;
     }
-    setText(rec.rowBadge, off ? "disconnected" : String(a.phase || "").toLowerCase());
+    // a flight controller gone silent is said in the agent's entry, not just in the log
+    setText(rec.rowBadge, off ? "disconnected" : a.vehicle_link === false ? "vehicle link lost"
+      : String(a.phase || "").toLowerCase());
     v.leader = isLeader;
     v.off = off;
     v.selected = selected;
@@ -373,7 +375,7 @@
     }
     const a = rec.data;
     setText($("#telemetry-title"), a.name + " (" + a.id + ")" + (a.connected ? "" : " — disconnected"));
-    f("mode", a.mode || "—");
+    f("mode", a.vehicle_link === false ? "unknown (vehicle link lost)" : a.mode || "—");
     f("armed", a.armed ? "armed" : "disarmed");
     f("alt", fmt(a.alt, 1, "m") + (a.airborne ? " (airborne)" : ""));
     f("groundspeed", fmt(a.groundspeed, 1, "m/s"));
@@ -552,7 +554,8 @@
     const bad = [];
     for (const x of results) {
       const res = String(x.result || "");
-      const good = /^(ok|accepted|done|sent|in_progress|success)$/i.test(res);
+      // CARRIED_OUT: no answer, but the agent's telemetry shows it done (the reason says how)
+      const good = /^(ok|accepted|done|sent|in_progress|success|carried_out)$/i.test(res);
       // the station logs every answer as an event; the page adds the refusals in red
       if (!good) {
         log("refused", what + ": " + agentName(x.agent) + " " + res + (x.reason ? ": " + x.reason : ""), "refused");
@@ -562,6 +565,7 @@
     if (!results.length && r.ok === false) log("refused", what + ": not done", "refused");
     if (bad.length) status(what + ": refused: " + bad.join("; "), false);
     else if (r.ok === false) status(what + ": not done", false);
+    else if (results.some((x) => x.result === "CARRIED_OUT")) status(what + ": carried out (no answer; the telemetry shows it)", true);
     else status(what + ": accepted", true);
   }
 

@@ -1,0 +1,114 @@
+"""A command carried out whose answers were all lost, from the page to the agent and back:
+a real station and server, an agent speaking the real connection protocol over Zenoh
+that flies home on RETURN but whose answers never arrive, and the page in headless
+Chromium. The API says CARRIED_OUT with how it knows; the page shows it as done (not a
+refusal in red)."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import urllib.request
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from gcs_browser import browser
+from net_helpers import free_port, wait_until
+
+from swarm.gcs.server import GcsServer, ServerConfig
+from swarm.gcs.station import Station, StationConfig
+from swarm.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+from swarm.messages import Command, CommandKind, Message, Phase, Pose, Telemetry
+from swarm.transport import Transport
+
+HOME = (47.397742, 8.545594)
+
+
+class HomingAgent:
+    """Answers nothing; RETURN switches its mode to AUTO.RTL (its answers 'lost')."""
+
+    def __init__(self, ep: str) -> None:
+        self.mode = "POSCTL"
+        self.got: list[Command] = []
+        self.tr = Transport.open("agent1", connect=[ep])
+        self.gs = GsLink(1, "agent1", GsConfig(hb_interval=0.2))
+        self.lock = threading.Lock()
+        self.stop_ev = threading.Event()
+        self.tr.on_inbox(self._inbox)
+        self.tr.on_gs_advertize(self._inbox)
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def telemetry(self) -> Telemetry:
+        return Telemetry(1, Pose(HOME[0], HOME[1], 500.0, 0.0), mode_code(self.mode), FLAG_ARMED | FLAG_FC_OK,
+                         Phase.LEADER, 1, 80, 150, 140, 1.5)
+
+    def _inbox(self, m: Message) -> None:
+        with self.lock:
+            if isinstance(m, Command):
+                self.got.append(m)
+                if m.kind == CommandKind.RETURN:
+                    self.mode = "AUTO.RTL"
+                return
+            self._send(self.gs.handle(m, time.monotonic()))
+
+    def _send(self, outs: list[Any]) -> None:
+        for o in outs:
+            if o.to == 0:
+                self.tr.gs_advertise(o.msg)
+            elif (name := self.gs.station_name(o.to)) is not None:
+                self.tr.send(name, o.msg)
+
+    def _run(self) -> None:
+        while not self.stop_ev.wait(0.05):
+            with self.lock:
+                self._send(self.gs.tick(time.monotonic(), self.telemetry))
+
+    def close(self) -> None:
+        self.stop_ev.set()
+        self.thread.join(2)
+        self.tr.close()
+
+
+@pytest.fixture
+def live() -> Iterator[tuple[str, HomingAgent]]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    # a shorter give-up than the 12 s default: the rule is the same, the test is quicker
+    cfg = StationConfig(command_backoff=(0.5, 1.0), command_give_up=3.0)
+    station = Station("gcs", zenoh_listen=[ep], config=cfg).start()
+    server = GcsServer(station, ServerConfig(port=free_port())).start()
+    agent = HomingAgent(ep)
+    try:
+        wait_until(lambda: any(a["connected"] for a in station.snapshot()["agents"]), "agent1 connected", 30)
+        yield server.url, agent
+    finally:
+        agent.close()
+        server.stop()
+        station.stop()
+
+
+def test_a_return_done_but_unanswered_is_carried_out_on_the_api_and_the_page(
+        live: tuple[str, HomingAgent]) -> None:
+    url, agent = live
+    data = json.dumps({"target": 1, "kind": "return"}).encode()
+    req = urllib.request.Request(url + "api/command", data=data, method="POST")
+    with urllib.request.urlopen(req, timeout=30) as r:
+        status, body = r.status, json.loads(r.read())
+    assert status == 200 and body["ok"] is True, body
+    (res,) = body["results"]
+    assert res["result"] == "CARRIED_OUT" and res["reason"].endswith("but it shows mode AUTO.RTL"), res
+    assert len(agent.got) >= 2 and {c.seq for c in agent.got} == {agent.got[0].seq}  # retried, one seq
+    with agent.lock:
+        agent.mode = "POSCTL"  # back under control: the page's RETURN must show its own evidence
+    with browser() as ctx:
+        page = ctx.new_page()
+        page.goto(url)
+        page.wait_for_function("() => window.gcs && window.gcs.ready", timeout=15000)
+        page.click('#agents [data-agent-id="1"]')
+        page.select_option("#cmd-target", "selected")
+        page.click('#commands button[data-kind="return"]')
+        page.wait_for_function("() => /carried out/.test(document.querySelector('#cmd-status').textContent)",
+                               timeout=20000)
+        assert "ok" in str(page.get_attribute("#cmd-status", "class"))

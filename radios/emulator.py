@@ -65,7 +65,7 @@ READ_AHEAD_S = 0.02
 STATS_EVERY_S = 2.0
 MAX_PENDING = 65536
 CONTROL = "control"  # the control FIFO in DIR
-CONTROL_HELP = "unplug I [FOR_S] | replug I"
+CONTROL_HELP = "unplug I [FOR_S] | replug I | loss P"
 
 
 @dataclass
@@ -184,6 +184,7 @@ class Emulator:
         self._control: Path | None = None
         self._control_fds: list[int] = []
         self._control_buf = bytearray()
+        self.uniform_loss = UniformLoss(cfg.loss)
         #: called on the emulator's thread with one line per unplug, plug or bad control line
         self.on_event: Callable[[str], None] | None = None
 
@@ -209,9 +210,9 @@ class Emulator:
         return radio_config_of(self.params[i])
 
     def _losses(self) -> list[LossModel]:
-        out: list[LossModel] = []
-        if self.cfg.loss > 0:
-            out.append(UniformLoss(self.cfg.loss))
+        # always there, so that ``loss P`` can raise it later; at 0 it draws no random
+        # number, so a run without loss is unchanged
+        out: list[LossModel] = [self.uniform_loss]
         if self.cfg.burst_loss:
             out.append(GilbertElliott.parse(self.cfg.burst_loss))
         if self.cfg.positions:
@@ -328,6 +329,17 @@ class Emulator:
         self._check_radio(i)
         self._requests.append(("replug", i, None))
 
+    def set_loss(self, p: float) -> None:
+        """Change the uniform loss of every link while running (``loss P`` on the FIFO).
+
+        Raises:
+            ConfigError: not a probability.
+        """
+        if not 0.0 <= p <= 1.0:
+            raise ConfigError(f"loss {p:g}: a probability between 0 and 1")
+        self.uniform_loss.p = p
+        self._tell(f"loss {p:g}")
+
     def _check_radio(self, i: int) -> None:
         if not 0 <= i < self.cfg.nodes:
             raise ConfigError(f"no radio {i}: radios are 0..{self.cfg.nodes - 1}")
@@ -391,6 +403,8 @@ class Emulator:
                 self.unplug(int(words[1]), float(words[2]) if len(words) == 3 else None)
             elif words[0] in ("replug", "plug") and len(words) == 2:
                 self.replug(int(words[1]))
+            elif words[0] == "loss" and len(words) == 2:
+                self.set_loss(float(words[1]))
             else:
                 raise ValueError
         except ValueError:

@@ -85,10 +85,41 @@ def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Pat
         wait_until(lambda: Path(run.paths[0]).exists(), AIR_DEADLINE, "radio0 back by itself")
         wait_until(lambda: len(events) >= 5, AIR_DEADLINE, "an event line for each")
     assert events[0] == "radio1 unplugged" and events[1].startswith("radio1 plugged back: ")
-    assert sorted(events[2:4]) == ["control: 'unplug seven': expected unplug I [FOR_S] | replug I",
+    assert sorted(events[2:4]) == ["control: 'unplug seven': expected unplug I [FOR_S] | replug I | loss P",
                                    "radio0 unplugged for 1.5 s"], events
     assert events[4].startswith("radio0 plugged back: ")
     assert not (tmp_path / "control").exists() and os.listdir(tmp_path) == []
+
+
+def test_emulator_loss_can_be_changed_while_running(tmp_path: Path) -> None:
+    """``loss P`` on the control FIFO: a fault bench raises the loss of a running swarm."""
+    events: list[str] = []
+    with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
+        run.emu.on_event = events.append
+        a = stack.enter_context(run.open(0))
+        b = stack.enter_context(run.open(1))
+        run.wait_ready(0, 1)
+        control(tmp_path, "loss 1")
+        wait_until(lambda: "loss 1" in events, AIR_DEADLINE, "the loss change reported")
+        lost_before = run.radio(0).get("lost", 0)
+        for k in range(5):
+            b.send(tunnel(2, b"gone%d" % k))
+        time.sleep(1.0)
+        assert [f for f in drain_frames(a) if f.sysid == 2 and f.msgid == 385] == []
+        control(tmp_path, "loss 0")
+        control(tmp_path, "loss 1.5")  # refused: changes nothing
+        wait_until(lambda: len(events) >= 3, AIR_DEADLINE, "both lines answered")
+        b.send(tunnel(2, b"back"))
+        assert recv_until(a, lambda f: f.sysid == 2 and f.payload[5:9] == b"back") is not None
+        assert lost_before is not None
+    assert events[1] == "loss 0" and events[2].startswith("control: 'loss 1.5': ")
+
+
+def drain_frames(link: Any) -> list[Any]:
+    out = []
+    while (f := link.recv(0.2)) is not None:
+        out.append(f)
+    return out
 
 
 def test_a_link_that_cannot_be_reopened_says_so(tmp_path: Path) -> None:

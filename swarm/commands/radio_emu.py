@@ -17,7 +17,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "sharing one emulated air. Runs until SIGINT/SIGTERM. Unplug a radio's "
                      "cable and plug it back at run time by writing lines to the FIFO "
                      "DIR/control: 'unplug I [FOR_S]', 'replug I' (the radio stays powered "
-                     "and keeps its place on the air; one line on stdout for each).")
+                     "and keeps its place on the air; one line on stdout for each), and "
+                     "change the loss with 'loss P'.")
     p.add_argument("--nodes", type=int, required=True, help="number of radios")
     p.add_argument("--dir", required=True, help="existing directory for the radio<i> links")
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS",

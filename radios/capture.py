@@ -100,6 +100,10 @@ class CaptureLink(Link):
             raise LinkClosedError(f"{self.url} is closed")
         self.inner.reopen()
 
+    def release(self) -> None:
+        """Release the inner link's device (see :meth:`Link.release`)."""
+        self.inner.release()
+
     def _close(self) -> None:
         try:
             self.inner.close()

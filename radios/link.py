@@ -174,6 +174,16 @@ class Link:
         """
         raise LinkOpenError(f"{self.url}: this kind of link cannot be reopened")
 
+    def release(self) -> None:
+        """Close the device but keep the link, as if it went away: reads and writes fail
+        until :meth:`reopen` (so that another program, such as an AT configurator, can
+        use the port meanwhile).
+
+        Raises:
+            LinkOpenError: this kind of link cannot be reopened.
+        """
+        raise LinkOpenError(f"{self.url}: this kind of link cannot be released and reopened")
+
     def close(self) -> None:
         """Close the link; safe to call more than once."""
         with self._send_lock:
@@ -225,6 +235,13 @@ class SerialLink(Link):
             self._parser = FrameParser(stats=self._parser.stats)
             self._pending.clear()
             self._gone = False
+
+    def release(self) -> None:
+        """See :meth:`Link.release`."""
+        with self._send_lock, self._recv_lock:
+            if not self._closed and not self._gone:
+                self._gone = True
+                self._close()
 
     def _read(self, timeout: float) -> bytes:
         if self._closed:

@@ -39,6 +39,9 @@ swarm/<own>/state      0           swarm/<sender name>/state
   device at the same path with back-off (``reopen_radio``), keeping its name table
   and signing state; listeners hear ``("lost", reason)`` and ``("back", "after S s")``.
   With ``reopen_radio`` off it stops and sets ``link_lost``, as before.
+  :meth:`RadioBridge.lend_radio` uses the same path on purpose: it releases the
+  device for a function that needs the port to itself (the radio guard's AT
+  commands), then takes it back; listeners hear ``("paused", why)`` and ``("back", ...)``.
 * **HEARTBEAT** into the local radio once a second (that makes a SiK radio report
   RADIO_STATUS), and the vehicle's HEARTBEAT and GLOBAL_POSITION_INT forwarded at
   1 Hz under the agent's system id so MAVProxy or QGroundControl list vehicles.
@@ -56,9 +59,9 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from enum import IntEnum
-from typing import Any
+from typing import Any, TypeVar
 
-from radios.errors import LinkOpenError, RadioError
+from radios.errors import LinkClosedError, LinkOpenError, RadioError
 from radios.link import Link
 from radios.mavlink import (
     MSG_RADIO_STATUS,
@@ -83,6 +86,7 @@ from swarm.radio_guard import RadioState, RadioStatusGuard
 from swarm.transport import KEY_ADVERTIZE, KEY_GS_ADVERTIZE, PREFIX, inbox_key, pose_key, state_key
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 PAYLOAD_TYPE_BASE = 32768
 TUNNEL_MAX = 128
@@ -243,6 +247,9 @@ class RadioBridge:
         self._closed = False
         self.link_lost = False  # the radio link died and is not reopened (see reopen_radio)
         self.link_down = False  # the radio is away and being reopened
+        self._lent = False  # the device is lent out (lend_radio)
+        self._lent_for = ""
+        self._rx_away = threading.Event()  # the receive thread is in _radio_lost
         self.loss_reason = ""
         self._listeners: list[Callable[[str, str], None]] = []
         self._next_hb = 0.0
@@ -476,9 +483,40 @@ class RadioBridge:
             except Exception:  # a bug here must not kill the bridge
                 log.exception("bridge %s: error handling a frame", self.name)
 
+    def lend_radio(self, fn: Callable[[], T], why: str = "radio check", timeout: float = 5.0) -> T:
+        """Release the radio's device, run ``fn`` (which may open the device itself: AT
+        commands need the port to themselves), then take the radio back, on the caller's
+        thread. The swarm state stays; frames queued meanwhile are dropped, as when the
+        radio is unplugged. Raises what ``fn`` raises (after taking the radio back), and
+        :class:`~radios.errors.LinkClosedError` if the bridge is closed or its radio is
+        already away.
+        """
+        with self._cond:
+            if self._closed or self.link_lost or self.link_down:
+                raise LinkClosedError(f"{self.link.url}: the radio is not ours to lend now")
+            self._lent, self._lent_for = True, why
+            self.link_down = True
+        try:
+            self.link.release()
+            deadline = time.monotonic() + timeout
+            # the receive thread notices its closed port and waits in _radio_lost
+            self._rx_away.wait(max(0.0, deadline - time.monotonic()))
+            return fn()
+        finally:
+            with self._cond:
+                self._lent = False
+                self._cond.notify_all()
+
     def _radio_lost(self, reason: str) -> bool:
         """The radio's device went away: drop the queues, then reopen it with back-off
         (True once it is back) or, without ``reopen_radio``, give up (False)."""
+        self._rx_away.set()
+        try:
+            return self._wait_for_radio(reason)
+        finally:
+            self._rx_away.clear()
+
+    def _wait_for_radio(self, reason: str) -> bool:
         t0 = self.clock()
         with self._cond:
             self.link_down = True
@@ -495,8 +533,13 @@ class RadioBridge:
             self.link_lost = True
             self._tell("lost", reason)
             return False
-        log.warning("bridge %s: radio %s lost (%s): waiting for it to come back", self.name, url, reason)
-        self._tell("lost", reason)
+        lent = self._lent
+        if lent:
+            log.info("bridge %s: radio %s paused: %s", self.name, url, self._lent_for)
+            self._tell("paused", self._lent_for)
+        else:
+            log.warning("bridge %s: radio %s lost (%s): waiting for it to come back", self.name, url, reason)
+            self._tell("lost", reason)
         first, longest = self.cfg.reopen_backoff
         backoff, next_log = first, t0 + 1.0
         while True:
@@ -506,6 +549,9 @@ class RadioBridge:
                 self._cond.wait(backoff)
                 if self._closed:
                     return False
+                if self._lent:  # lent out (lend_radio): not ours to reopen yet
+                    backoff, next_log = first, self.clock() + 1.0
+                    continue
             try:
                 self.link.reopen()
                 break
@@ -525,7 +571,7 @@ class RadioBridge:
             self.stats.radio_reopens += 1
             self._next_hb = self.clock()  # a HEARTBEAT at once: the radio reports again
             self._cond.notify_all()
-        log.warning("bridge %s: radio %s back after %.1f s", self.name, url, away)
+        (log.info if lent else log.warning)("bridge %s: radio %s back after %.1f s", self.name, url, away)
         self._tell("back", f"after {away:.1f} s")
         return True
 

@@ -91,6 +91,48 @@ def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Pat
     assert not (tmp_path / "control").exists() and os.listdir(tmp_path) == []
 
 
+def test_bridge_lends_its_radio_for_an_at_check_and_takes_it_back(tmp_path: Path) -> None:
+    """An agent in flight checks its radio's registers (AT commands need the port to
+    themselves) without stopping: the bridge lends the port and takes it back."""
+    from radios.sik.guard import check_radio
+
+    heard: list[tuple[str, str]] = []
+    with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
+        nodes = []
+        for i, name in enumerate(("a1", "a2")):
+            session = open_session()
+            stack.callback(session.close)
+            link = run.open(i)
+            stack.callback(link.close)
+            bridge = RadioBridge(session, link, name=name, agent_id=i + 1).start()
+            stack.callback(bridge.close)
+            t = Transport(name, session)
+            stack.callback(t.close)
+            inbox: list[Any] = []
+            t.on_inbox(inbox.append)
+            nodes.append((bridge, t, inbox))
+        (b1, t1, in1), (b2, t2, in2) = nodes
+        b2.add_listener(lambda what, text: heard.append((what, text)))
+
+        def learnt() -> bool:
+            t1.advertise(Advertize(1, "a1"))
+            t2.advertise(Advertize(2, "a2"))
+            return "a2" in b1.peers() and "a1" in b2.peers()
+
+        wait_until(learnt, DEADLINE, "both bridges to learn the other's name", 0.5)
+        report = b2.lend_radio(lambda: check_radio(run.paths[1], {"NETID": 25}), why="radio check")
+        assert report.ok and report.values["NETID"] == 25
+        wait_until(lambda: b2.stats.radio_reopens == 1, AIR_DEADLINE, "a2's radio taken back")
+        assert not b2.link_lost and heard[0] == ("paused", "radio check") and heard[1][0] == "back"
+        wait_until(lambda: (t1.send("a2", Selection(1, 2, 9, 3)),
+                            any(m == Selection(1, 2, 9, 3) for m in in2))[1],
+                   AIR_DEADLINE, "a1 -> a2 after the check", 0.5)
+        assert "a1" in b2.peers()  # the name table survived
+        with pytest.raises(ValueError):  # what the borrower raises comes out; the radio comes back
+            b2.lend_radio(lambda: (_ for _ in ()).throw(ValueError("boom")))
+        wait_until(lambda: b2.stats.radio_reopens == 2, AIR_DEADLINE, "a2's radio taken back again")
+
+
 def test_emulator_loss_can_be_changed_while_running(tmp_path: Path) -> None:
     """``loss P`` on the control FIFO: a fault bench raises the loss of a running swarm."""
     events: list[str] = []

@@ -29,7 +29,8 @@ import tempfile
 import time
 import urllib.error
 import urllib.request
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, Protocol
 
 from swarm.procs import Child, start_emulator
 
@@ -59,7 +60,13 @@ def _post(url: str, body: Any) -> tuple[int, Any]:
         return e.code, json.loads(e.read())
 
 
-def _events(child: Child, event: str) -> list[dict[str, Any]]:
+class HasLines(Protocol):
+    """A process's output lines (a :class:`~swarm.procs.Child`, or the lines from a mark on)."""
+
+    lines: list[str]
+
+
+def _events(child: HasLines, event: str) -> list[dict[str, Any]]:
     out = []
     for line in list(child.lines):
         try:
@@ -137,7 +144,7 @@ def _campaign(url: str, n: int, children: list[Child]) -> dict[str, Any]:
             "command_s_max": round(took[-1], 2) if took else None}
 
 
-def _judge(gcs: Child, agents: list[Child], bodies: list[tuple[int, Any]]) -> dict[str, Any]:
+def _judge(gcs: HasLines, agents: Sequence[HasLines], bodies: list[tuple[int, Any]]) -> dict[str, Any]:
     # what the agents did: (agent id, seq) -> result, from their own logs
     did: dict[tuple[int, int], str] = {}
     for a in agents:

@@ -55,6 +55,7 @@ HOME = (47.397742, 8.545594, 488.0)
 SPACING_M = 8.0
 HEALTH_TIMEOUT_S = 120.0
 ROGUE_ID = 77
+RECHECK_S = 5.0
 
 
 class BenchError(ChildError):
@@ -204,7 +205,10 @@ class FaultBench:
         self.workdir = workdir or self._tmp.name  # type: ignore[union-attr]
         self.key_file = os.path.join(self.workdir, "swarm.key")
         self.capture = os.path.join(self.workdir, "air.tlog")
-        self.agent_args: list[str] = []
+        # the radio guard: a radio moved off the swarm's network by a rogue's RT commands is
+        # restored by its agent once it has heard no one for RECHECK_S
+        self.agent_args: list[str] = ["--radio-params", "NETID=25", "--restore-radio",
+                                      "--radio-recheck", str(RECHECK_S)]
         self.log = log or (lambda _s: None)
         self.emu: Child | None = None
         self.links: list[str] = []
@@ -478,6 +482,127 @@ class FaultBench:
     def fault_garbage_small(self) -> FaultResult:
         return self.fault_garbage(64 * 1024)
 
+    def _control(self, line: str) -> None:
+        """One line to the emulator's control FIFO (``unplug``, ``replug``, ``loss``)."""
+        fd = os.open(os.path.join(self.workdir, "radios", "control"), os.O_WRONLY | os.O_NONBLOCK)
+        try:
+            os.write(fd, (line + "\n").encode())
+        finally:
+            os.close(fd)
+
+    def fault_radio_unplug(self, down_s: float = 3.0) -> FaultResult:
+        """The leader's USB radio pulled out and plugged back: the agent waits for it."""
+        self._settled("radio unplug")
+        lead = self.leader()
+        t = time.monotonic()
+        self._control(f"unplug {lead - 1}")
+        time.sleep(down_s)
+        self._control(f"replug {lead - 1}")
+        res = self._measure(f"the leader's radio unplugged for {down_s:g} s and plugged back", t,
+                            time.monotonic(), radio=f"agent{lead}")
+        res.detail["agent_alive"] = self.agents[lead].live
+        if not self.agents[lead].live:
+            res.survived = False
+        return res
+
+    def fault_commands(self, count: int = 20, loss: float = 0.2) -> FaultResult:
+        """``count`` swarm commands (FOLLOW with a new heading, STOP, in turn) through the
+        station's API at ``loss``, each outcome checked against the agents' own logs."""
+        from swarm.bench.commands import _campaign, _judge
+
+        self._settled("commands")
+        marks = {k: len(a.agent.lines) for k, a in self.agents.items() if a.agent is not None}
+        assert self.station is not None
+        station_mark = len(self.station.lines)
+        self._control(f"loss {loss:g}")
+        t = time.monotonic()
+        try:
+            camp = _campaign(self.station_url + "/", count, [self.station])
+        finally:
+            self._control(f"loss {self.loss:g}")
+        end = time.monotonic()
+        time.sleep(3.0)  # the last answers and log lines
+        agents = [_Lines(a.agent.lines[marks[k]:]) for k, a in self.agents.items()
+                  if a.agent is not None and k in marks]
+        judged = _judge(_Lines(self.station.lines[station_mark:]), agents, camp.pop("_bodies"))
+        # the swarm commands leave the V stopped or following: FOLLOW again for the next fault
+        self.command({"target": "swarm", "kind": "follow", "heading": 0})
+        res = self._measure(f"{count} swarm commands at {loss:.0%} loss", t, end)
+        res.commands_lost = int(judged["silently_lost"]) + int(judged["wrongly_reported"])
+        res.detail.update({k: judged[k] for k in ("addressees", "accepted", "carried_out_unacked",
+                                                    "refused", "no_answer", "silently_lost",
+                                                    "wrongly_reported", "wrong")})
+        res.detail.update({k: camp[k] for k in ("refused_at_station", "command_s_p50", "command_s_max")})
+        return res
+
+    def _pose_stats(self, start_wall: float, end_wall: float) -> dict[int, tuple[int, float]]:
+        """Per agent: pose frames put on the air in the window, and the longest gap."""
+        from radios.errors import RadioError
+        from radios.tlog import read_tlog
+        from swarm.bridge import Kind, unpack_tunnel
+        from swarm.errors import SwarmError
+
+        times: dict[int, list[float]] = {k: [] for k in self.agents}
+        try:
+            with read_tlog(self.capture) as r:
+                for rec in r:
+                    if rec.t < start_wall or rec.t > end_wall:
+                        continue
+                    f = rec.frame
+                    if f.msgid != 385 or f.sysid not in times:
+                        continue
+                    with contextlib.suppress(SwarmError):
+                        u = unpack_tunnel(f.payload)
+                        if u is not None and u[0] == Kind.POSE:
+                            times[f.sysid].append(rec.t)
+        except RadioError:  # the record being written: what was read is enough
+            pass
+        out = {}
+        for k, ts in times.items():
+            edges = [start_wall, *ts, end_wall]
+            out[k] = (len(ts), max(b - a for a, b in itertools.pairwise(edges)))
+        return out
+
+    def fault_rogue_radio_status(self, seconds: float = 20.0, hz: float = 10.0) -> FaultResult:
+        """Forged RADIO_STATUS (sysid 51, compid 68, txbuf 0) from the rogue at ``hz``: the
+        pose streams may slow by at most 20 %."""
+        import struct
+
+        from radios.link import open_link
+        from radios.mavlink import pack_frame
+
+        self._settled("forged RADIO_STATUS")
+        before_end = time.time()
+        time.sleep(seconds)  # the baseline window, the same length
+        t = time.monotonic()
+        start_wall = time.time()
+        link = open_link(self.links[self.n + 1])
+        sent = 0
+        try:
+            while time.time() - start_wall < seconds:
+                link.send(pack_frame(109, struct.pack("<HHBBBBB", 0, 0, 200, 200, 0, 30, 30),
+                                     sysid=51, compid=68, seq=sent & 0xFF))
+                sent += 1
+                time.sleep(1.0 / hz)
+        finally:
+            link.close()
+        end_wall = time.time()
+        time.sleep(1.0)
+        base = self._pose_stats(before_end - seconds, before_end)
+        during = self._pose_stats(start_wall, end_wall)
+        res = self._measure(f"rogue radio: forged RADIO_STATUS at {hz:g} Hz, txbuf 0", t, time.monotonic(),
+                            rogue_frames=sent)
+        rates = {k: (during[k][0] / base[k][0]) if base[k][0] else None for k in base}
+        worst = min((r for r in rates.values() if r is not None), default=None)
+        res.detail.update({
+            "pose_rate_ratio_min": None if worst is None else round(worst, 3),
+            "longest_pose_gap_s_before": round(max(g for _n, g in base.values()), 2),
+            "longest_pose_gap_s_during": round(max(g for _n, g in during.values()), 2),
+        })
+        if worst is None or worst < 0.8:
+            res.frames_accepted_from_rogue = sent  # the forgeries slowed the swarm
+        return res
+
     # -- the rogue radio --------------------------------------------------------------
     def _rogue_send(self, frames: list[bytes], rate_bps: float = 3000.0) -> None:
         """Write frames into the rogue radio at about ``rate_bps`` (under its serial rate)."""
@@ -573,10 +698,48 @@ class FaultBench:
         return self._rogue_fault(f"rogue radio: {len(frames)} signed frames replayed from the air", frames)
 
 
+    def fault_rogue_vote(self, seconds: float = 15.0) -> FaultResult:
+        """The leader killed, and while the others elect a new one the rogue sends
+        Selections for a candidate that does not exist (id 77, the heaviest weight, the
+        survivors' election epoch), unsigned and signed with another key, in its own name
+        and in the survivors' names."""
+        from radios.mavlink import FrameBuilder
+        from radios.signing import key_from_passphrase
+        from swarm.bridge import COMP_ID, PAYLOAD_TYPE_BASE, Kind
+        from swarm.messages import Selection, encode, pool_digest
+
+        self._settled("forged vote")
+        lead = self.leader()
+        survivors = sorted(k for k in self.agents if k != lead)
+        epoch = pool_digest(survivors) & 0xFFFF
+        builders = [FrameBuilder(sysid, COMP_ID, signing_key=key)
+                    for sysid in (ROGUE_ID, *survivors)
+                    for key in (None, key_from_passphrase("not the swarm key"))]
+        t = time.monotonic()
+        self.agents[lead].kill()
+        frames: list[bytes] = []
+        while time.monotonic() - t < seconds and len(frames) < 2000:
+            batch = [b.tunnel(encode(Selection(b.mav.srcSystem, ROGUE_ID, 0xFFFFFFFF, epoch)),
+                              target_system=k, payload_type=PAYLOAD_TYPE_BASE + int(Kind.P2P))
+                     for b in builders for k in survivors]
+            self._rogue_send(batch)
+            frames += batch
+        res = self._measure("rogue radio: forged votes during an election (leader killed)", t,
+                            time.monotonic(), rogue_frames=len(frames), killed=f"agent{lead}")
+        with self._hist_lock:
+            samples = [x for x in self.history if x.t >= t]
+        forged = sum(1 for x in samples for st in x.states.values()
+                     if ROGUE_ID in (st.get("leader"), st.get("candidate")))
+        res.detail["samples_with_forged_candidate"] = forged
+        res.frames_accepted_from_rogue = forged
+        self.agents[lead].start_agent()
+        return res
+
     def fault_rogue_remote_at(self) -> FaultResult:
         """The rogue's host puts its radio in command mode and sends the leader's radio
         ``RTS3=77``, ``RT&W`` and ``RTZ`` (multipoint: ``,<node>``): the leader's radio
         moves to NETID 77 for good unless its agent notices and restores it."""
+        from radios.errors import RadioError
         from radios.sik.config import SikConfigurator, open_port
 
         self._settled("rogue remote AT")
@@ -588,9 +751,9 @@ class FaultBench:
             conf = SikConfigurator(port, flavour="multipoint", port_name="rogue")
             conf.enter_command_mode()
             for cmd in (f"RTS3=77,{node}", f"RT&W,{node}", f"RTZ,{node}"):
-                for _ in range(3):  # air loss: a rogue repeats itself
-                    with contextlib.suppress(Exception):
-                        conf.command(cmd, timeout=1.0, expect_reply=False)
+                for _ in range(3):  # air loss: a rogue repeats itself (RTZ is never answered)
+                    with contextlib.suppress(RadioError):
+                        conf.command(cmd, timeout=1.0)
             with contextlib.suppress(Exception):
                 conf.exit_command_mode()
         finally:
@@ -602,6 +765,13 @@ class FaultBench:
         if not res.survived:
             res.frames_accepted_from_rogue += 1  # the radio stayed moved: the commands took
         return res
+
+
+class _Lines:
+    """A process's output lines from a mark on (what :func:`swarm.bench.commands._judge` reads)."""
+
+    def __init__(self, lines: list[str]) -> None:
+        self.lines = lines
 
 
 def _describe(s: Snapshot) -> str:
@@ -617,8 +787,9 @@ def _describe(s: Snapshot) -> str:
 
 FAULTS_QUICK = ("leader_kill", "member_restart", "station_restart", "rogue_unsigned", "rogue_wrong_key",
                 "rogue_replay")
-FAULTS_ALL = ("leader_kill", "leader_stop", "member_restart", "station_restart", "vehicle_restart",
-              "garbage", "rogue_unsigned", "rogue_wrong_key", "rogue_replay")
+FAULTS_ALL = ("leader_kill", "leader_stop", "member_restart", "station_restart", "radio_unplug",
+              "vehicle_restart", "garbage", "rogue_unsigned", "rogue_wrong_key", "rogue_replay",
+              "rogue_vote", "rogue_remote_at", "rogue_radio_status", "commands")
 
 
 def run_faults(names: tuple[str, ...], *, log: Callable[[str], None] | None = None,

@@ -30,14 +30,19 @@ any radio in range can change a SiK radio's parameters with ``RT`` commands. A
 radio that differs is named in one line and the agent exits 1; with
 ``--restore-radio`` it writes the expected values back (``AT&W``, ``ATZ``), says so
 in one line and starts. ``--radio-recheck S`` repeats the check when the agent has
-heard no other agent for S seconds (a radio moved to another NETID hears no one),
-unless a flight controller reports the vehicle armed: the agent stops, checks (and
-restores), and starts again with a fresh protocol state.
+heard no other agent for S seconds (a radio moved to another NETID hears no one):
+the radio bridge lends the port to the check for a few seconds
+(:meth:`~swarm.bridge.RadioBridge.lend_radio`) while the agent goes on, in flight
+too: its protocol state, its pilot and its flight controller are not touched, and
+a radio that hears no one loses nothing by the pause. A re-check that finds the
+radio silent, or different without ``--restore-radio``, prints one line
+(``radio-check-failed``) and the agent carries on; it tries again S seconds later.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 import threading
@@ -46,7 +51,7 @@ from collections.abc import Callable
 from typing import Any
 
 from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
-from radios.errors import ATError
+from radios.errors import ATError, RadioError
 from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
 from swarm.agent import (
     PROFILES,
@@ -143,32 +148,37 @@ def _text(name: str, st: AgentState) -> str:
     return " ".join(parts)
 
 
-def _check_radio(a: argparse.Namespace, *, again: bool = False) -> None:
-    """The radio guard before the bridge opens the port. Raises RadioError (exit 1)
-    for a radio that differs (without --restore-radio) or does not answer, and
-    ConfigError (exit 2) for bad expected parameters. ``again``: a re-check of an
-    isolated agent, which says so in one line even when the radio is as expected."""
+def _check_radio(a: argparse.Namespace, *, again: bool = False,
+                 lock: threading.Lock | None = None) -> None:
+    """The radio guard (before the bridge opens the port, or on a port it lent). Raises
+    RadioError for a radio that differs (without --restore-radio) or does not answer, and
+    ConfigError for bad expected parameters. ``again``: a re-check of an isolated agent,
+    which says so in one line even when the radio is as expected. ``lock``: held while
+    printing (not while checking: the agent's threads print too)."""
     report = check_radio(a.radio, parse_expected(a.radio_params), restore=a.restore_radio)
+
+    def say(obj: dict[str, Any], text: str) -> None:
+        with lock if lock is not None else contextlib.nullcontext():
+            try:
+                if a.json:
+                    print_json({**obj, "name": a.name, "id": a.id, "radio": a.radio})
+                else:
+                    print(f"agent {a.name}: {text}", flush=True)
+            except (BrokenPipeError, ValueError):
+                pass
+
     if not report.mismatches:
         if again:
-            if a.json:
-                print_json({"event": "radio-checked", "name": a.name, "id": a.id,
-                            "radio": a.radio})
-            else:
-                print(f"agent {a.name}: radio {a.radio} checked after {a.radio_recheck:g} s "
-                      "without hearing another agent: as expected", flush=True)
+            say({"event": "radio-checked"}, f"radio {a.radio} checked after {a.radio_recheck:g} s "
+                "without hearing another agent: as expected")
         return
     what = describe(report.mismatches)
     if not report.restored:
         raise ATError(f"radio {a.radio} differs from the swarm's parameters: {what}; "
                       "another radio may have reconfigured it (RT commands). Fix it with "
                       "swarm radio-config, or pass --restore-radio")
-    line = f"radio {a.radio} differed from the swarm's parameters ({what}): restored"
-    if a.json:
-        print_json({"event": "radio-restored", "name": a.name, "id": a.id, "radio": a.radio,
-                    "differed": {m.name: m.actual for m in report.mismatches}})
-    else:
-        print(f"agent {a.name}: {line}", flush=True)
+    say({"event": "radio-restored", "differed": {m.name: m.actual for m in report.mismatches}},
+        f"radio {a.radio} differed from the swarm's parameters ({what}): restored")
 
 
 @guarded(PROG)
@@ -243,18 +253,15 @@ def main(argv: list[str] | None = None) -> int:
                             formation=FormationConfig(back_m=a.back, side_m=a.side, stagger_m=a.stagger,
                                                       min_separation_m=a.min_separation))
 
-        def make_agent() -> Agent:
-            return Agent(a.name, a.id, radio=a.radio, zenoh_listen=a.zenoh_listen,
-                         zenoh_connect=a.zenoh_connect, fc=a.fc, profile=a.profile,
-                         round_s=a.round_s, key_file=a.key, vote=a.vote, pose_hz=a.pose_hz,
-                         pilot=pilot, on_state=on_state, on_event=on_event)
-
-        agent = make_agent()
+        agent = Agent(a.name, a.id, radio=a.radio, zenoh_listen=a.zenoh_listen,
+                      zenoh_connect=a.zenoh_connect, fc=a.fc, profile=a.profile,
+                      round_s=a.round_s, key_file=a.key, vote=a.vote, pose_hz=a.pose_hz,
+                      pilot=pilot, on_state=on_state, on_event=on_event)
     except (MessageError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return _run(a, agent, StopFlag().install(), lock, gate, emit, make_agent)
+        return _run(a, agent, StopFlag().install(), lock, gate, emit)
     finally:
         for sig, handler in previous.items():  # main() may run inside another program
             signal.signal(sig, handler)
@@ -276,8 +283,8 @@ def _watch_radio(a: argparse.Namespace, bridge: Any, lock: threading.Lock, gate:
                     print_json({"event": "radio", "name": a.name, "id": a.id, "state": what,
                                 "text": text, "t": round(time.monotonic() - t0, 3)})
                 else:
-                    print(f"agent {a.name}: radio {what}" + (": " if what == "lost" else " ") + text,
-                          flush=True)
+                    sep = ": " if what in ("lost", "paused") else " "
+                    print(f"agent {a.name}: radio {what}{sep}{text}", flush=True)
             except (BrokenPipeError, ValueError):
                 pass
 
@@ -293,9 +300,20 @@ def _isolated(agent: Agent) -> bool:
     return not others and st.leader in (0, agent.id)
 
 
-def _may_pause(agent: Agent) -> bool:
-    """Stopping the agent for a radio check is safe: no vehicle, or one disarmed."""
-    return agent.vehicle is None or not agent.vehicle.state.armed
+def _recheck_radio(a: argparse.Namespace, bridge: Any, lock: threading.Lock) -> None:
+    """Check (and restore) the radio of a running agent: the bridge lends the port."""
+    try:
+        bridge.lend_radio(lambda: _check_radio(a, again=True, lock=lock), why="radio check")
+    except RadioError as exc:  # silent, different, refused: say so, keep flying, retry later
+        with lock:
+            try:
+                if a.json:
+                    print_json({"event": "radio-check-failed", "name": a.name, "id": a.id,
+                                "radio": a.radio, "error": str(exc)})
+                else:
+                    print(f"agent {a.name}: radio check failed: {exc}", flush=True)
+            except (BrokenPipeError, ValueError):
+                pass
 
 
 def _start(agent: Agent) -> int | None:
@@ -321,8 +339,7 @@ def _start(agent: Agent) -> int | None:
 
 
 def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lock,
-         gate: dict[str, Any], emit: Callable[[AgentState], None],
-         make_agent: Callable[[], Agent]) -> int:
+         gate: dict[str, Any], emit: Callable[[AgentState], None]) -> int:
     failed = _start(agent)
     if failed is not None:
         return failed
@@ -342,17 +359,9 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, lock: threading.Lo
                 emit(st)
             gate["pending"].clear()
         while not stop.wait(0.5):
-            if recheck is not None and recheck.update(_isolated(agent), time.monotonic()) \
-                    and _may_pause(agent):
-                agent.stop()
-                with lock:
-                    _check_radio(a, again=True)  # RadioError: exit 1 (differs or silent)
-                agent = make_agent()
-                failed = _start(agent)
-                if failed is not None:
-                    return failed
-                if agent.bridge is not None:
-                    _watch_radio(a, agent.bridge, lock, gate)
+            if recheck is not None and agent.bridge is not None \
+                    and recheck.update(_isolated(agent), time.monotonic()):
+                _recheck_radio(a, agent.bridge, lock)
                 continue
             if not agent.running:
                 why = radio_loss_message(agent.bridge) if agent.bridge is not None \

@@ -93,7 +93,8 @@ def test_a_return_done_but_unanswered_is_carried_out_on_the_api_and_the_page(
         live: tuple[str, HomingAgent]) -> None:
     url, agent = live
     data = json.dumps({"target": 1, "kind": "return"}).encode()
-    req = urllib.request.Request(url + "api/command", data=data, method="POST")
+    req = urllib.request.Request(url + "api/command", data=data, method="POST",
+                                 headers={"Content-Type": "application/json"})
     with urllib.request.urlopen(req, timeout=30) as r:
         status, body = r.status, json.loads(r.read())
     assert status == 200 and body["ok"] is True, body

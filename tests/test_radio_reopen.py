@@ -111,7 +111,7 @@ def test_bridge_lends_its_radio_for_an_at_check_and_takes_it_back(tmp_path: Path
             inbox: list[Any] = []
             t.on_inbox(inbox.append)
             nodes.append((bridge, t, inbox))
-        (b1, t1, in1), (b2, t2, in2) = nodes
+        (b1, t1, _in1), (b2, t2, in2) = nodes
         b2.add_listener(lambda what, text: heard.append((what, text)))
 
         def learnt() -> bool:

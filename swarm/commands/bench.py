@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib
+import signal
+from typing import Any
 
 from swarm.cliutil import guarded, parser, print_json
 
@@ -19,6 +21,10 @@ AREAS = {
 }
 
 
+def _interrupt(_signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     p = parser(PROG, "Run a benchmark; figures are printed as a table or one JSON object.")
@@ -26,7 +32,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quick", action="store_true", help="shorter runs (CI): same fields, wider noise")
     args = p.parse_args(argv)
-    result = importlib.import_module(AREAS[args.area][0]).run(quick=args.quick)
+    # SIGTERM as Ctrl-C: the benches stop the processes they started on the way out
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        result = importlib.import_module(AREAS[args.area][0]).run(quick=args.quick)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     if args.json:
         print_json(result)
     else:

@@ -4,20 +4,46 @@ ready, measure CPU, and stop cleanly (SIGTERM, then SIGKILL after a grace period
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from radios.errors import RadioError
 
 
 class ChildError(RadioError):
     """A child process failed to start or exited early."""
+
+
+def json_events(lines: Sequence[str], event: str | None = None) -> list[dict[str, Any]]:
+    """The JSON objects among a process's output lines (``--json``), those whose
+    ``"event"`` is ``event`` if given; other lines are skipped."""
+    out = []
+    for line in list(lines):
+        if not line.startswith("{"):
+            continue
+        try:
+            obj = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(obj, dict) and (event is None or obj.get("event") == event):
+            out.append(obj)
+    return out
+
+
+def free_tcp_port() -> int:
+    """A TCP port free on 127.0.0.1 right now (for a child to listen on)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def cpu_seconds(pid: int) -> float:

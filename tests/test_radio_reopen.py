@@ -91,6 +91,40 @@ def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Pat
     assert not (tmp_path / "control").exists() and os.listdir(tmp_path) == []
 
 
+class _Node:
+    def __init__(self, bridge: RadioBridge, transport: Transport, inbox: list[Any]) -> None:
+        self.bridge, self.t, self.inbox = bridge, transport, inbox
+
+
+def _two_bridged_nodes(run: Any, stack: ExitStack,
+                       link_options: Callable[[str], dict[str, Any]] = lambda _name: {}
+                       ) -> tuple[_Node, _Node]:
+    """Two radio bridges ("a1", "a2") on the emulator's radios 0 and 1, each with its own
+    Zenoh session and transport, that have learnt each other's names."""
+    nodes = []
+    for i, name in enumerate(("a1", "a2")):
+        session = open_session()
+        stack.callback(session.close)
+        link = run.open(i, **link_options(name))
+        stack.callback(link.close)
+        bridge = RadioBridge(session, link, name=name, agent_id=i + 1).start()
+        stack.callback(bridge.close)
+        t = Transport(name, session)
+        stack.callback(t.close)
+        inbox: list[Any] = []
+        t.on_inbox(inbox.append)
+        nodes.append(_Node(bridge, t, inbox))
+    n1, n2 = nodes
+
+    def learnt() -> bool:
+        n1.t.advertise(Advertize(1, "a1"))
+        n2.t.advertise(Advertize(2, "a2"))
+        return "a2" in n1.bridge.peers() and "a1" in n2.bridge.peers()
+
+    wait_until(learnt, DEADLINE, "both bridges to learn the other's name", 0.5)
+    return n1, n2
+
+
 def test_bridge_lends_its_radio_for_an_at_check_and_takes_it_back(tmp_path: Path) -> None:
     """An agent in flight checks its radio's registers (AT commands need the port to
     themselves) without stopping: the bridge lends the port and takes it back."""
@@ -98,28 +132,9 @@ def test_bridge_lends_its_radio_for_an_at_check_and_takes_it_back(tmp_path: Path
 
     heard: list[tuple[str, str]] = []
     with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
-        nodes = []
-        for i, name in enumerate(("a1", "a2")):
-            session = open_session()
-            stack.callback(session.close)
-            link = run.open(i)
-            stack.callback(link.close)
-            bridge = RadioBridge(session, link, name=name, agent_id=i + 1).start()
-            stack.callback(bridge.close)
-            t = Transport(name, session)
-            stack.callback(t.close)
-            inbox: list[Any] = []
-            t.on_inbox(inbox.append)
-            nodes.append((bridge, t, inbox))
-        (b1, t1, _in1), (b2, t2, in2) = nodes
+        n1, n2 = _two_bridged_nodes(run, stack)
+        b2, t1, in2 = n2.bridge, n1.t, n2.inbox
         b2.add_listener(lambda what, text: heard.append((what, text)))
-
-        def learnt() -> bool:
-            t1.advertise(Advertize(1, "a1"))
-            t2.advertise(Advertize(2, "a2"))
-            return "a2" in b1.peers() and "a1" in b2.peers()
-
-        wait_until(learnt, DEADLINE, "both bridges to learn the other's name", 0.5)
         report = b2.lend_radio(lambda: check_radio(run.paths[1], {"NETID": 25}), why="radio check")
         assert report.ok and report.values["NETID"] == 25
         wait_until(lambda: b2.stats.radio_reopens == 1, AIR_DEADLINE, "a2's radio taken back")
@@ -189,28 +204,11 @@ def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytes
     caplog.set_level(logging.WARNING, logger="swarm.bridge")
     heard: list[tuple[str, str]] = []
     with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
-        nodes = []
-        for i, name in enumerate(("a1", "a2")):
-            session = open_session()
-            stack.callback(session.close)
-            link = run.open(i, capture=str(tmp_path / f"{name}.tlog"))
-            stack.callback(link.close)
-            bridge = RadioBridge(session, link, name=name, agent_id=i + 1).start()
-            stack.callback(bridge.close)
-            t = Transport(name, session)
-            stack.callback(t.close)
-            inbox: list[Any] = []
-            t.on_inbox(inbox.append)
-            nodes.append((bridge, t, inbox))
-        (b1, t1, in1), (b2, t2, in2) = nodes
+        n1, n2 = _two_bridged_nodes(
+            run, stack, link_options=lambda name: {"capture": str(tmp_path / f"{name}.tlog")})
+        t1, in1 = n1.t, n1.inbox
+        b2, t2, in2 = n2.bridge, n2.t, n2.inbox
         b2.add_listener(lambda what, text: heard.append((what, text)))
-
-        def learnt() -> bool:
-            t1.advertise(Advertize(1, "a1"))
-            t2.advertise(Advertize(2, "a2"))
-            return "a2" in b1.peers() and "a1" in b2.peers()
-
-        wait_until(learnt, DEADLINE, "both bridges to learn the other's name", 0.5)
         t0 = time.monotonic()
         run.emu.unplug(1, OUTAGE_S)
         wait_until(lambda: b2.link_down, AIR_DEADLINE, "a2's bridge to notice its radio gone")

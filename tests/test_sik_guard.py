@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 from emu_helpers import running_emulator, wait_until
@@ -26,7 +27,7 @@ from radios.sik.guard import (
 )
 from radios.sik.params import NETID
 from swarm.commands import agent as agent_cmd
-from swarm.procs import Child
+from swarm.procs import Child, json_events
 
 SWARM = {"NETID": 25, "AIR_SPEED": 64}
 
@@ -154,16 +155,8 @@ def test_guard_on_a_port_that_is_not_a_radio(tmp_path: Path,
     assert "no such device" in capsys.readouterr().err
 
 
-def _events(child: Child, kind: str) -> list[dict[str, object]]:
-    out = []
-    for line in list(child.lines):
-        try:
-            obj = json.loads(line)
-        except ValueError:
-            continue
-        if obj.get("event") == kind:
-            out.append(obj)
-    return out
+def _events(child: Child, kind: str) -> list[dict[str, Any]]:
+    return json_events(child.lines, kind)
 
 
 def test_isolated_agent_rechecks_and_restores_its_radio(tmp_path: Path) -> None:

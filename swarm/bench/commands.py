@@ -32,18 +32,10 @@ import urllib.request
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from swarm.procs import Child, start_emulator
+from swarm.procs import Child, free_tcp_port, json_events, start_emulator
 
 _AGENT_RE = re.compile(r"^command (\w+) seq (\d+) from (\d+): (\w+)")
 _STATION_RE = re.compile(r"^(\w+)(?: \(swarm\))? -> .*\((\d+)\): (\w+).* \[seq (\d+)\]$")
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _get(url: str) -> Any:
@@ -68,15 +60,7 @@ class HasLines(Protocol):
 
 
 def _events(child: HasLines, event: str) -> list[dict[str, Any]]:
-    out = []
-    for line in list(child.lines):
-        try:
-            obj = json.loads(line)
-        except ValueError:
-            continue
-        if obj.get("event") == event:
-            out.append(obj)
-    return out
+    return json_events(child.lines, event)
 
 
 def _alive(children: list[Child]) -> None:
@@ -93,7 +77,7 @@ def run(quick: bool = False, n: int | None = None, loss: float = 0.2, agents: in
     with tempfile.TemporaryDirectory(prefix="swarm-bench-commands-") as d:
         emu, links = start_emulator(agents + 1, d, "--loss", str(loss))
         try:
-            gcs = Child(["gcs", "--radio", links[0], "--http", f"127.0.0.1:{_free_port()}",
+            gcs = Child(["gcs", "--radio", links[0], "--http", f"127.0.0.1:{free_tcp_port()}",
                          "--tiles", "none", "--json"], name="gcs")
             children.append(gcs)
             url = json.loads(gcs.wait_lines(1, 30)[0])["url"]

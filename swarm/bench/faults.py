@@ -46,7 +46,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from swarm.procs import Child, ChildError, start_emulator
+from swarm.procs import Child, ChildError, json_events, start_emulator
 
 AGENTS = 4
 LOSS = 0.1
@@ -149,30 +149,19 @@ class AgentProc:
         return self.agent is not None and self.agent.proc.poll() is None and not self.stopped
 
     def state(self) -> dict[str, Any] | None:
-        if self.agent is None:
-            return None
-        for line in reversed(self.agent.lines):
-            if '"event": "state"' in line or '"event":"state"' in line:
-                with contextlib.suppress(ValueError):
-                    d: dict[str, Any] = json.loads(line)
-                    return d
+        """The newest ``state`` line (the agent prints one on every change)."""
+        for line in reversed(self.agent.lines if self.agent else []):
+            if '"event": "state"' in line:
+                found = json_events([line], "state")
+                if found:
+                    return found[0]
         return None
 
     def events(self, kind: str = "pilot") -> list[dict[str, Any]]:
-        out = []
-        for line in list(self.agent.lines if self.agent else []):
-            if line.startswith("{") and f'"event": "{kind}"' in line:
-                with contextlib.suppress(ValueError):
-                    out.append(json.loads(line))
-        return out
+        return json_events(self.agent.lines if self.agent else [], kind)
 
     def all_events(self) -> list[dict[str, Any]]:
-        out = []
-        for line in list(self.agent.lines if self.agent else []):
-            if line.startswith("{"):
-                with contextlib.suppress(ValueError):
-                    out.append(json.loads(line))
-        return out
+        return json_events(self.agent.lines if self.agent else [])
 
     def kill(self) -> None:
         if self.agent is not None and self.agent.proc.poll() is None:

@@ -31,21 +31,13 @@ import time
 import urllib.request
 from typing import Any
 
-from swarm.procs import Child, cpu_seconds
+from swarm.procs import Child, cpu_seconds, free_tcp_port
 
 AGENTS = 50
 HZ = 5.0
 CENTER = (47.397742, 8.545594)
 TARGET_CPU = 20.0
 TARGET_FRAME_MS = 50.0
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _get(url: str) -> Any:
@@ -83,8 +75,8 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     seconds = 8.0 if quick else 20.0
     # full trails (60 s) make the biggest state messages: the steady state
     warm_up = 2.0 if quick else 62.0
-    ep = f"tcp/127.0.0.1:{_free_port()}"
-    station = Child(["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{_free_port()}",
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    station = Child(["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_tcp_port()}",
                      "--tiles", "none", "--json"], name="gcs")
     feeder: subprocess.Popen[bytes] | None = None
     out: dict[str, Any] = {"agents": agents, "rate_hz": hz, "warm_up_s": warm_up, "measure_s": seconds}

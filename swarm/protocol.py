@@ -63,7 +63,10 @@ Beyond the paper (each rule stated once, here):
   ``HB_SILENCE_FACTOR`` leader timeouts: an expelled member is no longer sent
   Heartbeats, and would otherwise stay the member of a swarm that does not have it.
 * **Alone**: an agent that found nobody for ``alone_timeout`` forms a swarm of one
-  (and absorbs others later by the rules above).
+  (and absorbs others later by the rules above). An agent that hears a leader
+  advertise is not alone: it keeps asking that leader (StartPool) instead. One that
+  can hear the swarm but not be heard (its radio flooded, a one-way link) would
+  otherwise lead a swarm of one beside the real leader for as long as that lasts.
 * **Votes** come from a pluggable :class:`VotePolicy`: random (the paper),
   battery, or link quality, each in the high byte with random low bits.
 * **Elections are named** by ``epoch`` = the pool digest's low 16 bits: votes
@@ -544,9 +547,12 @@ class Core:
             out.append(Out(a, Heartbeat(self.me, self.epoch, self.hb_seq, frozenset(self.members),
                                         self.task)))
             return
+        if self.phase == Phase.IDLE and msg.flags & FLAG_LEADER:
+            self._idle_since = now  # not alone: a swarm is there to join (see "Alone")
         if self.phase == Phase.IDLE or (self.phase == Phase.POOLING and a not in self.pool):
-            if a in self._asked:
-                return  # retried by the timer
+            asked = self._asked.get(a)
+            if asked is not None and now - asked < self.profile.startpool_retry:
+                return  # asked a moment ago; each Advertize after that asks again
             self._asked[a] = now
             out.append(Out(a, StartPool(self.me)))
         else:

@@ -161,6 +161,30 @@ def test_member_expelled_while_deaf_leaves_although_it_hears_the_leaders_poses()
     assert m.next_deadline() is not None
 
 
+def test_an_agent_that_hears_a_leader_is_not_alone() -> None:
+    """Found by the fault bench: a member whose radio was flooded for three minutes could
+    hear the swarm but not be heard; expelled, it formed a swarm of one after the alone
+    timeout, and the swarm had two leaders for the rest of the flood. An agent that hears
+    a leader's Advertize keeps asking to join it instead."""
+    from swarm.protocol import FLAG_LEADER
+
+    a = Core(4)
+    a.start(0.0)
+    t = 0.0
+    asked = 0
+    while t < 3 * PAPER.alone_timeout:
+        t += 1.0
+        out = a.handle(Advertize(1, "agent1", FLAG_LEADER), t) + a.tick(t)
+        asked += sum(isinstance(o.msg, StartPool) and o.to == 1 for o in out)
+        assert a.phase == Phase.IDLE  # not a second leader
+    assert asked >= 3  # it keeps asking the leader it hears
+    quiet = t
+    while a.phase == Phase.IDLE and t < quiet + 2 * PAPER.alone_timeout:
+        t += 0.25
+        a.tick(t)
+    assert a.phase == Phase.LEADER and t >= quiet + PAPER.alone_timeout  # alone now: a swarm of one
+
+
 def test_leader_adopts_a_late_joiner() -> None:
     lead = Core(1)
     lead.start(0.0)

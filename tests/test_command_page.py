@@ -7,69 +7,33 @@ refusal in red)."""
 from __future__ import annotations
 
 import json
-import threading
-import time
 import urllib.request
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 from gcs_browser import browser
 from net_helpers import free_port, wait_until
+from test_gcs_api import ScriptedAgent
 
 from swarm.gcs.server import GcsServer, ServerConfig
 from swarm.gcs.station import Station, StationConfig
-from swarm.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.messages import Command, CommandKind, Message, Phase, Pose, Telemetry
-from swarm.transport import Transport
-
-HOME = (47.397742, 8.545594)
+from swarm.messages import Command, CommandKind, Phase
 
 
-class HomingAgent:
+class HomingAgent(ScriptedAgent):
     """Answers nothing; RETURN switches its mode to AUTO.RTL (its answers 'lost')."""
 
     def __init__(self, ep: str) -> None:
-        self.mode = "POSCTL"
-        self.got: list[Command] = []
-        self.tr = Transport.open("agent1", connect=[ep])
-        self.gs = GsLink(1, "agent1", GsConfig(hb_interval=0.2))
-        self.lock = threading.Lock()
-        self.stop_ev = threading.Event()
-        self.tr.on_inbox(self._inbox)
-        self.tr.on_gs_advertize(self._inbox)
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
+        super().__init__(ep, 1, phase=Phase.LEADER, leader=1)
+        self.answers = {}
 
-    def telemetry(self) -> Telemetry:
-        return Telemetry(1, Pose(HOME[0], HOME[1], 500.0, 0.0), mode_code(self.mode), FLAG_ARMED | FLAG_FC_OK,
-                         Phase.LEADER, 1, 80, 150, 140, 1.5)
+    @property
+    def got(self) -> list[Command]:
+        return self.commands
 
-    def _inbox(self, m: Message) -> None:
-        with self.lock:
-            if isinstance(m, Command):
-                self.got.append(m)
-                if m.kind == CommandKind.RETURN:
-                    self.mode = "AUTO.RTL"
-                return
-            self._send(self.gs.handle(m, time.monotonic()))
-
-    def _send(self, outs: list[Any]) -> None:
-        for o in outs:
-            if o.to == 0:
-                self.tr.gs_advertise(o.msg)
-            elif (name := self.gs.station_name(o.to)) is not None:
-                self.tr.send(name, o.msg)
-
-    def _run(self) -> None:
-        while not self.stop_ev.wait(0.05):
-            with self.lock:
-                self._send(self.gs.tick(time.monotonic(), self.telemetry))
-
-    def close(self) -> None:
-        self.stop_ev.set()
-        self.thread.join(2)
-        self.tr.close()
+    def on_command(self, m: Command) -> None:
+        if m.kind == CommandKind.RETURN:
+            self.mode = "AUTO.RTL"
 
 
 @pytest.fixture

@@ -55,6 +55,7 @@ class ScriptedAgent:
         self.phase, self.leader = phase, leader
         self.answers: dict[CommandKind, AckResult] = {k: AckResult.ACCEPTED for k in CommandKind}
         self.commands: list[Command] = []
+        self.mode = "POSCTL"
         self.tr = Transport.open(self.name, connect=[ep])
         self.gs = GsLink(agent_id, self.name, GsConfig(hb_interval=0.2))
         self.lock = threading.Lock()
@@ -68,13 +69,14 @@ class ScriptedAgent:
         return Pose(HOME[0] + self.id * 1e-4, HOME[1], 500.0, 30.0 * self.id)
 
     def telemetry(self) -> Telemetry:
-        return Telemetry(self.id, self.pose(), mode_code("POSCTL"), FLAG_ARMED | FLAG_FC_OK, self.phase,
+        return Telemetry(self.id, self.pose(), mode_code(self.mode), FLAG_ARMED | FLAG_FC_OK, self.phase,
                          self.leader, 80, 150, 140, 1.5)
 
     def _inbox(self, m: Message) -> None:
         with self.lock:
             if isinstance(m, Command):
                 self.commands.append(m)
+                self.on_command(m)
                 result = self.answers.get(m.kind)
                 if result is not None:
                     station = self.gs.station_name(m.sender)
@@ -82,6 +84,9 @@ class ScriptedAgent:
                         self.tr.send(station, CommandAck(self.id, m.seq, result, "scripted"))
                 return
             self._send(self.gs.handle(m, _now()))
+
+    def on_command(self, m: Command) -> None:
+        """What the agent does with a command (besides answering it): nothing here."""
 
     def _send(self, outs: list[Any]) -> None:
         for o in outs:

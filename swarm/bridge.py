@@ -489,8 +489,12 @@ class RadioBridge:
         thread. The swarm state stays; frames queued meanwhile are dropped, as when the
         radio is unplugged. Raises what ``fn`` raises (after taking the radio back), and
         :class:`~radios.errors.LinkClosedError` if the bridge is closed or its radio is
-        already away.
+        already away, :class:`~radios.errors.LinkOpenError` for a link that cannot be
+        reopened (a replayed capture). Lending works with ``reopen_radio`` off too
+        (``--exit-on-radio-loss``): only a radio that really goes away ends the bridge.
         """
+        if not self.link.can_reopen:
+            raise LinkOpenError(f"{self.link.url}: this kind of link cannot be lent and taken back")
         with self._cond:
             if self._closed or self.link_lost or self.link_down:
                 raise LinkClosedError(f"{self.link.url}: the radio is not ours to lend now")
@@ -521,13 +525,14 @@ class RadioBridge:
         with self._cond:
             self.link_down = True
             self.loss_reason = reason
-            self.stats.radio_losses += 1
+            if not self._lent:
+                self.stats.radio_losses += 1
             for q in self._queues:
                 self.stats.dropped_radio_down += len(q)
                 q.clear()
             self.guard.reset()
         url = self.link.url
-        if not self.cfg.reopen_radio or not self.link.can_reopen or self.link.closed:
+        if not self._lent and (not self.cfg.reopen_radio or not self.link.can_reopen or self.link.closed):
             # the owner reports it (swarm agent / swarm gcs print one line and exit 1)
             log.info("bridge %s: radio %s lost: %s", self.name, url, reason)
             self.link_lost = True
@@ -556,6 +561,11 @@ class RadioBridge:
                 self.link.reopen()
                 break
             except LinkOpenError as exc:
+                if not self.cfg.reopen_radio:  # lent, and gone meanwhile: as any loss without reopening
+                    log.info("bridge %s: radio %s lost: %s", self.name, url, exc)
+                    self.link_lost = True
+                    self._tell("lost", str(exc))
+                    return False
                 now = self.clock()
                 if now >= next_log:  # about once a second, not once per attempt
                     next_log = now + 1.0

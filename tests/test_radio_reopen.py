@@ -143,9 +143,11 @@ def test_bridge_lends_its_radio_for_an_at_check_and_takes_it_back(tmp_path: Path
                             any(m == Selection(1, 2, 9, 3) for m in in2))[1],
                    AIR_DEADLINE, "a1 -> a2 after the check", 0.5)
         assert "a1" in b2.peers()  # the name table survived
+        b2.cfg.reopen_radio = False  # --exit-on-radio-loss: a lend is not a loss
         with pytest.raises(ValueError):  # what the borrower raises comes out; the radio comes back
             b2.lend_radio(lambda: (_ for _ in ()).throw(ValueError("boom")))
         wait_until(lambda: b2.stats.radio_reopens == 2, AIR_DEADLINE, "a2's radio taken back again")
+        assert not b2.link_lost and b2.stats.radio_losses == 0
 
 
 def test_emulator_loss_can_be_changed_while_running(tmp_path: Path) -> None:

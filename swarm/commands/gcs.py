@@ -278,6 +278,9 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
         if a.replay is not None:
             ready["duration_s"] = round(station.capture.duration, 3)
             ready["records"] = station.capture.records
+        bridge = getattr(station, "bridge", None)
+        if bridge is not None and a.exit_on_radio_loss:
+            bridge.cfg.reopen_radio = False  # before "ready": a radio pulled at once ends it too
         with lock:
             if a.json:
                 print_json(ready)
@@ -291,8 +294,6 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
         station.add_listener(on_event)
         bridge = getattr(station, "bridge", None)
         if bridge is not None:
-            if a.exit_on_radio_loss:
-                bridge.cfg.reopen_radio = False
             bridge.add_listener(lambda what, text: on_event(
                 {"t": round(time.time(), 3), "kind": "radio",
                  "text": f"radio {what}" + (": " if what == "lost" else " ") + text}))

@@ -5,6 +5,7 @@ short route. Then ``swarm replay --plot`` on the capture it left, and bad input.
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -14,6 +15,7 @@ import pytest
 
 from radios.tlog import TlogWriter
 from swarm.commands.replay import main as replay_main
+from swarm.tracks import analyse
 
 
 def run_swarm(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
@@ -54,8 +56,13 @@ def test_replay_plots_the_demo_capture(demo: tuple[dict[str, object], Path], tmp
     got = json.loads(capsys.readouterr().out)
     assert got["leader"] == s["leader"] and got["agents"] == [1, 2, 3]
     assert got["samples"] > 50 and got["turn_max_m"] is not None and got["turn_max_m"] < 10.0
-    # a short route is mostly turn: straight samples may be too few for an RMS
-    assert got["formation_rms_m"] is None or got["formation_rms_m"] < 2.0
+    # This short route is nearly all turn: its few straight samples (4 to 20, right where the V is
+    # still settling) give a noisy RMS, so the formation is judged here as the demo judges a route
+    # without straight legs: every slot error the capture yields, in the demo's own bound.
+    an = analyse(str(s["capture"]))
+    assert len(an.errors) == got["samples"]
+    errs = [e for _t, _m, e, _turn in an.errors]
+    assert math.sqrt(sum(e * e for e in errs) / len(errs)) < 2.0
     assert out.read_bytes()[:4] == b"\x89PNG"
 
 

@@ -49,7 +49,9 @@ demo: setup
 
 test: setup
 	$(BIN)/ruff check radios firmware_bridge swarm tests
+	$(BIN)/ruff format --check radios firmware_bridge swarm tests
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-logo
 	$(BIN)/pytest
 
 clean:

@@ -65,8 +65,17 @@ mavlink: Any = mavutil.mavlink
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "Endpoint", "GlobalTarget", "LocalTarget", "StatusText", "Vehicle", "VehicleState",
-    "WaitTimeout", "connect", "parse_url", "validate_global", "validate_local",
+    "Endpoint",
+    "GlobalTarget",
+    "LocalTarget",
+    "StatusText",
+    "Vehicle",
+    "VehicleState",
+    "WaitTimeout",
+    "connect",
+    "parse_url",
+    "validate_global",
+    "validate_local",
 ]
 
 # --- constants (reference/autopilot.md sections 1-4) -------------------------------
@@ -90,8 +99,15 @@ FORCE_ARM_ARDUPILOT = 2989
 
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_IN_PROGRESS = 5
-MAV_RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED",
-                    4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}
+MAV_RESULT_NAMES = {
+    0: "ACCEPTED",
+    1: "TEMPORARILY_REJECTED",
+    2: "DENIED",
+    3: "UNSUPPORTED",
+    4: "FAILED",
+    5: "IN_PROGRESS",
+    6: "CANCELLED",
+}
 
 LANDED_UNDEFINED, LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = 0, 1, 2, 3, 4
 
@@ -163,8 +179,10 @@ def parse_url(url: str) -> Endpoint:
     scheme, sep, rest = url.partition(":")
     scheme = scheme.lower()
     if not sep or not rest:
-        raise ConnectError(f"{url!r}: expected SCHEME:..., e.g. udpin:127.0.0.1:14540, "
-                           "tcp:127.0.0.1:5760 or serial:/dev/ttyAMA0:921600")
+        raise ConnectError(
+            f"{url!r}: expected SCHEME:..., e.g. udpin:127.0.0.1:14540, "
+            "tcp:127.0.0.1:5760 or serial:/dev/ttyAMA0:921600"
+        )
     if scheme == "serial":
         device, colon, baud_s = rest.rpartition(":")
         if not colon:
@@ -279,8 +297,11 @@ def _open(ep: Endpoint, timeout: float, source_system: int) -> Any:
 
 def is_autopilot_heartbeat(msg: Any) -> bool:
     """True for a flight controller's HEARTBEAT (not a GCS, companion or gimbal)."""
-    return (msg.get_type() == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID
-            and msg.type not in NON_VEHICLE_TYPES)
+    return (
+        msg.get_type() == "HEARTBEAT"
+        and msg.autopilot != MAV_AUTOPILOT_INVALID
+        and msg.type not in NON_VEHICLE_TYPES
+    )
 
 
 # --- state ---------------------------------------------------------------------------
@@ -379,8 +400,9 @@ def _velocity(v: Sequence[float] | None) -> tuple[float, float, float] | None:
     return out
 
 
-def validate_local(north: float, east: float, down: float, yaw: float,
-                   velocity: Sequence[float] | None = None) -> LocalTarget:
+def validate_local(
+    north: float, east: float, down: float, yaw: float, velocity: Sequence[float] | None = None
+) -> LocalTarget:
     """Check a local NED setpoint.
 
     Raises:
@@ -396,8 +418,9 @@ def validate_local(north: float, east: float, down: float, yaw: float,
     return LocalTarget(n, e, d, _wrap(y), _velocity(velocity))
 
 
-def validate_global(lat: float, lon: float, rel_alt: float, yaw: float,
-                    velocity: Sequence[float] | None = None) -> GlobalTarget:
+def validate_global(
+    lat: float, lon: float, rel_alt: float, yaw: float, velocity: Sequence[float] | None = None
+) -> GlobalTarget:
     """Check a global setpoint (altitude relative to home).
 
     Raises:
@@ -414,8 +437,9 @@ def validate_global(lat: float, lon: float, rel_alt: float, yaw: float,
     return GlobalTarget(la, lo, a, _wrap(y), _velocity(velocity))
 
 
-def setpoint_message(target: LocalTarget | GlobalTarget, *, time_boot_ms: int,
-                     target_system: int, target_component: int) -> Any:
+def setpoint_message(
+    target: LocalTarget | GlobalTarget, *, time_boot_ms: int, target_system: int, target_component: int
+) -> Any:
     """The SET_POSITION_TARGET_* message for ``target``: LOCAL_NED (frame 1) or
     GLOBAL_INT (frame 6, relative altitude), type mask position + yaw (2552), or
     position + velocity feed-forward + yaw (2496) when the target has a velocity."""
@@ -425,12 +449,41 @@ def setpoint_message(target: LocalTarget | GlobalTarget, *, time_boot_ms: int,
     vn, ve, vd = vel if vel is not None else (0.0, 0.0, 0.0)
     if isinstance(target, LocalTarget):
         return mavlink.MAVLink_set_position_target_local_ned_message(
-            t, target_system, target_component, FRAME_LOCAL_NED, mask,
-            target.north, target.east, target.down, vn, ve, vd, 0, 0, 0, target.yaw, 0)
+            t,
+            target_system,
+            target_component,
+            FRAME_LOCAL_NED,
+            mask,
+            target.north,
+            target.east,
+            target.down,
+            vn,
+            ve,
+            vd,
+            0,
+            0,
+            0,
+            target.yaw,
+            0,
+        )
     return mavlink.MAVLink_set_position_target_global_int_message(
-        t, target_system, target_component, FRAME_GLOBAL_RELATIVE_ALT_INT, mask,
-        round(target.lat * 1e7), round(target.lon * 1e7), target.rel_alt,
-        vn, ve, vd, 0, 0, 0, target.yaw, 0)
+        t,
+        target_system,
+        target_component,
+        FRAME_GLOBAL_RELATIVE_ALT_INT,
+        mask,
+        round(target.lat * 1e7),
+        round(target.lon * 1e7),
+        target.rel_alt,
+        vn,
+        ve,
+        vd,
+        0,
+        0,
+        0,
+        target.yaw,
+        0,
+    )
 
 
 @dataclass
@@ -459,8 +512,15 @@ class _Options:
 class Vehicle:
     """A connected flight controller. Made by :func:`connect`; a context manager."""
 
-    def __init__(self, conn: Any, endpoint: Endpoint, heartbeat: Any, opts: _Options,
-                 source_system: int | None, source_component: int = COMPANION_COMPONENT) -> None:
+    def __init__(
+        self,
+        conn: Any,
+        endpoint: Endpoint,
+        heartbeat: Any,
+        opts: _Options,
+        source_system: int | None,
+        source_component: int = COMPANION_COMPONENT,
+    ) -> None:
         self._conn = conn
         self.endpoint = endpoint
         self._opts = opts
@@ -477,8 +537,9 @@ class Vehicle:
         self._cmd_lock = threading.Lock()
         self._stop = threading.Event()
         self._closed = False
-        self._state = VehicleState(autopilot=self.autopilot, system_id=self.target_system,
-                                   component_id=self.target_component)
+        self._state = VehicleState(
+            autopilot=self.autopilot, system_id=self.target_system, component_id=self.target_component
+        )
         self._acks: deque[_Ack] = deque(maxlen=64)
         self._ack_seq = 0
         self._texts: deque[StatusText] = deque(maxlen=32)
@@ -496,9 +557,10 @@ class Vehicle:
         self._intervals: deque[float] = deque(maxlen=opts.interval_history)
         self.setpoints_sent = 0
         self._handle(heartbeat, time.monotonic())
-        self._threads = [threading.Thread(target=self._receive_loop, name="fb-receiver", daemon=True),
-                         threading.Thread(target=self._housekeeping_loop, name="fb-housekeeping",
-                                          daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._receive_loop, name="fb-receiver", daemon=True),
+            threading.Thread(target=self._housekeeping_loop, name="fb-housekeeping", daemon=True),
+        ]
         for t in self._threads:
             t.start()
 
@@ -545,8 +607,9 @@ class Vehicle:
         with self._lock:
             return list(self._intervals)
 
-    def wait_for(self, predicate: Callable[[VehicleState], bool], timeout: float,
-                 what: str = "condition") -> VehicleState:
+    def wait_for(
+        self, predicate: Callable[[VehicleState], bool], timeout: float, what: str = "condition"
+    ) -> VehicleState:
         """Wait until ``predicate(state)`` is true; return that state.
 
         Raises:
@@ -562,24 +625,38 @@ class Vehicle:
                     raise BridgeError("vehicle connection closed")
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise WaitTimeout(f"{what} not reached within {timeout:g} s "
-                                      f"(mode {self._state.mode}, armed {self._state.armed}, "
-                                      f"rel_alt {self._state.rel_alt})")
+                    raise WaitTimeout(
+                        f"{what} not reached within {timeout:g} s "
+                        f"(mode {self._state.mode}, armed {self._state.armed}, "
+                        f"rel_alt {self._state.rel_alt})"
+                    )
                 self._cond.wait(min(left, 0.5))
 
     def wait_altitude(self, rel_alt: float, *, tolerance: float = 0.5, timeout: float = 60.0) -> VehicleState:
         """Wait until the altitude above home is within ``tolerance`` of ``rel_alt``."""
-        return self.wait_for(lambda s: s.rel_alt is not None and abs(s.rel_alt - rel_alt) <= tolerance,
-                             timeout, f"altitude {rel_alt:g} m")
+        return self.wait_for(
+            lambda s: s.rel_alt is not None and abs(s.rel_alt - rel_alt) <= tolerance,
+            timeout,
+            f"altitude {rel_alt:g} m",
+        )
 
-    def wait_ned(self, north: float, east: float, down: float | None = None, *,
-                 tolerance: float = 0.5, timeout: float = 60.0) -> VehicleState:
+    def wait_ned(
+        self,
+        north: float,
+        east: float,
+        down: float | None = None,
+        *,
+        tolerance: float = 0.5,
+        timeout: float = 60.0,
+    ) -> VehicleState:
         """Wait until the local position is within ``tolerance`` m of the point."""
+
         def near(s: VehicleState) -> bool:
             if s.ned is None:
                 return False
             dz = 0.0 if down is None else s.ned[2] - down
             return math.hypot(s.ned[0] - north, s.ned[1] - east, dz) <= tolerance
+
         return self.wait_for(near, timeout, f"position ({north:g}, {east:g})")
 
     # -- sending
@@ -600,15 +677,23 @@ class Vehicle:
 
     def _command_msg(self, command: int, params: Sequence[float], confirmation: int) -> Any:
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
-        return mavlink.MAVLink_command_long_message(self.target_system, self.target_component,
-                                                    command, confirmation, *p)
+        return mavlink.MAVLink_command_long_message(
+            self.target_system, self.target_component, command, confirmation, *p
+        )
 
     def send_command_nowait(self, command: int, params: Sequence[float] = ()) -> None:
         """Send a COMMAND_LONG without waiting for its ACK."""
         self._send(self._command_msg(command, params, 0))
 
-    def command(self, command: int, params: Sequence[float] = (), *, retries: int | None = None,
-                timeout: float | None = None, in_progress_timeout: float = 30.0) -> int:
+    def command(
+        self,
+        command: int,
+        params: Sequence[float] = (),
+        *,
+        retries: int | None = None,
+        timeout: float | None = None,
+        in_progress_timeout: float = 30.0,
+    ) -> int:
         """Send COMMAND_LONG ``command`` and wait for its ACCEPTED COMMAND_ACK.
 
         Each try waits ``timeout`` s (default ``command_timeout``); IN_PROGRESS keeps
@@ -643,9 +728,13 @@ class Vehicle:
                     raise CommandRejected(
                         f"{_cmd_name(command)} rejected by {self.autopilot}: {name}"
                         + (f" ({text})" if text else ""),
-                        command=command, result=ack.result, text=text)
-        raise CommandTimeout(f"{_cmd_name(command)}: no COMMAND_ACK from {self.autopilot} "
-                             f"after {tries} tries of {per_try:g} s")
+                        command=command,
+                        result=ack.result,
+                        text=text,
+                    )
+        raise CommandTimeout(
+            f"{_cmd_name(command)}: no COMMAND_ACK from {self.autopilot} after {tries} tries of {per_try:g} s"
+        )
 
     def _wait_ack(self, command: int, after_seq: int, deadline: float) -> _Ack | None:
         with self._cond:
@@ -685,10 +774,13 @@ class Vehicle:
             self.wait_for(lambda s: s.mode == key, self._opts.mode_timeout, f"mode {key}")
         except WaitTimeout:
             text = self._texts_around(time.monotonic() - self._opts.mode_timeout, grace=0.0)
-            raise CommandRejected(f"mode {key} accepted but the heartbeat still shows "
-                                  f"{self.state.mode}" + (f" ({text})" if text else ""),
-                                  command=MAV_CMD_DO_SET_MODE, result=MAV_RESULT_ACCEPTED,
-                                  text=text) from None
+            raise CommandRejected(
+                f"mode {key} accepted but the heartbeat still shows "
+                f"{self.state.mode}" + (f" ({text})" if text else ""),
+                command=MAV_CMD_DO_SET_MODE,
+                result=MAV_RESULT_ACCEPTED,
+                text=text,
+            ) from None
 
     # -- arming, takeoff, landing
     def arm(self, force: bool = False) -> None:
@@ -711,9 +803,12 @@ class Vehicle:
         try:
             self.wait_for(pred, self._opts.mode_timeout, what)
         except WaitTimeout:
-            raise CommandRejected(f"{_cmd_name(command)} accepted but the vehicle is not {what}",
-                                  command=command, result=MAV_RESULT_ACCEPTED,
-                                  text=self._texts_around(time.monotonic() - 3.0, grace=0.0)) from None
+            raise CommandRejected(
+                f"{_cmd_name(command)} accepted but the vehicle is not {what}",
+                command=command,
+                result=MAV_RESULT_ACCEPTED,
+                text=self._texts_around(time.monotonic() - 3.0, grace=0.0),
+            ) from None
 
     def home_amsl(self, timeout: float = 3.0) -> float:
         """Home altitude AMSL: HOME_POSITION, else GLOBAL_POSITION_INT alt - relative_alt.
@@ -721,8 +816,11 @@ class Vehicle:
         Raises:
             WaitTimeout: neither known within ``timeout``.
         """
-        s = self.wait_for(lambda s: s.home is not None or (s.alt_amsl is not None and s.rel_alt is not None),
-                          timeout, "home position")
+        s = self.wait_for(
+            lambda s: s.home is not None or (s.alt_amsl is not None and s.rel_alt is not None),
+            timeout,
+            "home position",
+        )
         if s.home is not None:
             return s.home[2]
         assert s.alt_amsl is not None and s.rel_alt is not None
@@ -755,8 +853,11 @@ class Vehicle:
             self.command(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, nan, nan, nan, amsl))
         if wait:
             tol = max(0.5, 0.05 * alt)
-            self.wait_for(lambda s: s.rel_alt is not None and s.rel_alt >= alt - tol, timeout,
-                          f"takeoff altitude {alt:g} m")
+            self.wait_for(
+                lambda s: s.rel_alt is not None and s.rel_alt >= alt - tol,
+                timeout,
+                f"takeoff altitude {alt:g} m",
+            )
 
     def land(self, *, wait: bool = False, timeout: float = 120.0) -> None:
         """Stop the setpoints and land where the vehicle is (PX4 AUTO.LAND, AP LAND)."""
@@ -784,8 +885,14 @@ class Vehicle:
         self.set_mode("AUTO.LOITER")
 
     # -- position control
-    def set_target_ned(self, north: float, east: float, down: float, yaw: float | None = None,
-                       velocity: Sequence[float] | None = None) -> None:
+    def set_target_ned(
+        self,
+        north: float,
+        east: float,
+        down: float,
+        yaw: float | None = None,
+        velocity: Sequence[float] | None = None,
+    ) -> None:
         """Stream SET_POSITION_TARGET_LOCAL_NED to this point (z down, EKF origin);
         yaw defaults to the current heading. Starts the streamer if needed.
 
@@ -795,8 +902,14 @@ class Vehicle:
         target = validate_local(north, east, down, self.state.yaw if yaw is None else yaw, velocity)
         self._set_target(target)
 
-    def set_target_global(self, lat: float, lon: float, rel_alt: float, yaw: float | None = None,
-                          velocity: Sequence[float] | None = None) -> None:
+    def set_target_global(
+        self,
+        lat: float,
+        lon: float,
+        rel_alt: float,
+        yaw: float | None = None,
+        velocity: Sequence[float] | None = None,
+    ) -> None:
         """Stream SET_POSITION_TARGET_GLOBAL_INT (altitude above home) to this point,
         with an optional NED velocity feed-forward (m/s) for a moving target.
 
@@ -823,8 +936,9 @@ class Vehicle:
         if not self.streaming:
             self._stream_stop = threading.Event()
             self._stream_started = time.monotonic()
-            self._stream_thread = threading.Thread(target=self._stream_loop, args=(self._stream_stop,),
-                                                   name="fb-setpoints", daemon=True)
+            self._stream_thread = threading.Thread(
+                target=self._stream_loop, args=(self._stream_stop,), name="fb-setpoints", daemon=True
+            )
             self._stream_thread.start()
 
     def stop_setpoints(self) -> None:
@@ -840,8 +954,9 @@ class Vehicle:
         with self._lock:
             self._target = None
 
-    def start_offboard(self, *, takeoff_alt: float = 2.5, stream_first: float = 1.0,
-                       timeout: float = 60.0) -> None:
+    def start_offboard(
+        self, *, takeoff_alt: float = 2.5, stream_first: float = 1.0, timeout: float = 60.0
+    ) -> None:
         """Put the vehicle under setpoint control.
 
         Takes off first if on the ground (to ``takeoff_alt``); holds the current
@@ -858,8 +973,13 @@ class Vehicle:
             assert s.ned is not None
             self.set_target_ned(*s.ned, yaw=s.yaw)
         if self.autopilot == "px4":
-            self.wait_for(lambda s: time.monotonic() - self._stream_started >= stream_first
-                          and self.setpoints_sent >= 3, stream_first + 5.0, "setpoint stream")
+            self.wait_for(
+                lambda s: (
+                    time.monotonic() - self._stream_started >= stream_first and self.setpoints_sent >= 3
+                ),
+                stream_first + 5.0,
+                "setpoint stream",
+            )
             self.set_mode("OFFBOARD")
         else:
             self.set_mode("GUIDED")
@@ -877,8 +997,12 @@ class Vehicle:
                 target = self._target
             if target is None:
                 break
-            msg = setpoint_message(target, time_boot_ms=self._boot_ms(), target_system=self.target_system,
-                                   target_component=self.target_component)
+            msg = setpoint_message(
+                target,
+                time_boot_ms=self._boot_ms(),
+                target_system=self.target_system,
+                target_component=self.target_component,
+            )
             try:
                 self._send(msg)
             except BridgeError:
@@ -904,9 +1028,15 @@ class Vehicle:
 
     def _request_telemetry(self) -> None:
         fast = self._opts.telemetry_rate_hz
-        for msg_id, rate in ((MSG_GLOBAL_POSITION_INT, fast), (MSG_LOCAL_POSITION_NED, fast),
-                             (MSG_ATTITUDE, fast), (MSG_EXTENDED_SYS_STATE, 2.0), (MSG_SYS_STATUS, 1.0),
-                             (MSG_GPS_RAW_INT, 1.0), (MSG_HOME_POSITION, 1.0)):
+        for msg_id, rate in (
+            (MSG_GLOBAL_POSITION_INT, fast),
+            (MSG_LOCAL_POSITION_NED, fast),
+            (MSG_ATTITUDE, fast),
+            (MSG_EXTENDED_SYS_STATE, 2.0),
+            (MSG_SYS_STATUS, 1.0),
+            (MSG_GPS_RAW_INT, 1.0),
+            (MSG_HOME_POSITION, 1.0),
+        ):
             self.request_message_interval(msg_id, rate)
         self.send_command_nowait(MAV_CMD_REQUEST_MESSAGE, (MSG_HOME_POSITION,))
 
@@ -984,8 +1114,11 @@ class Vehicle:
 
     def _send_companion_heartbeat(self) -> None:
         with contextlib.suppress(BridgeError):
-            self._send(mavlink.MAVLink_heartbeat_message(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID,
-                                                         0, 0, MAV_STATE_ACTIVE, 3))
+            self._send(
+                mavlink.MAVLink_heartbeat_message(
+                    MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE, 3
+                )
+            )
 
     def _handle(self, msg: Any, now: float) -> None:
         mtype = msg.get_type()
@@ -1010,14 +1143,23 @@ class Vehicle:
             if mtype == "HEARTBEAT":
                 if not is_autopilot_heartbeat(msg):
                     return
-                upd.update(armed=bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
-                           mode=decode_mode(self.autopilot, msg.custom_mode, msg.base_mode),
-                           base_mode=msg.base_mode, custom_mode=msg.custom_mode,
-                           system_status=msg.system_status, last_heartbeat_time=now)
+                upd.update(
+                    armed=bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
+                    mode=decode_mode(self.autopilot, msg.custom_mode, msg.base_mode),
+                    base_mode=msg.base_mode,
+                    custom_mode=msg.custom_mode,
+                    system_status=msg.system_status,
+                    last_heartbeat_time=now,
+                )
             elif mtype == "GLOBAL_POSITION_INT":
-                upd.update(lat=msg.lat * 1e-7, lon=msg.lon * 1e-7, alt_amsl=msg.alt * 1e-3,
-                           rel_alt=msg.relative_alt * 1e-3, time_boot_ms=msg.time_boot_ms,
-                           position_time=now)
+                upd.update(
+                    lat=msg.lat * 1e-7,
+                    lon=msg.lon * 1e-7,
+                    alt_amsl=msg.alt * 1e-3,
+                    rel_alt=msg.relative_alt * 1e-3,
+                    time_boot_ms=msg.time_boot_ms,
+                    position_time=now,
+                )
                 if now - self._local_time > 1.0:
                     upd["velocity"] = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
                 if now - self._attitude_time > 1.0 and msg.hdg != 65535:
@@ -1033,8 +1175,10 @@ class Vehicle:
             elif mtype == "EXTENDED_SYS_STATE":
                 upd["landed_state"] = msg.landed_state
             elif mtype == "SYS_STATUS":
-                upd.update(battery_remaining=msg.battery_remaining,
-                           voltage=None if msg.voltage_battery == 65535 else msg.voltage_battery * 1e-3)
+                upd.update(
+                    battery_remaining=msg.battery_remaining,
+                    voltage=None if msg.voltage_battery == 65535 else msg.voltage_battery * 1e-3,
+                )
                 if self._gps_fix is None and msg.onboard_control_sensors_present & MAV_SYS_STATUS_SENSOR_GPS:
                     upd["gps_ok"] = bool(msg.onboard_control_sensors_health & MAV_SYS_STATUS_SENSOR_GPS)
             elif mtype == "GPS_RAW_INT":
@@ -1057,10 +1201,15 @@ def _text(raw: Any) -> str:
     return str(raw).rstrip("\x00").strip()
 
 
-_CMD_NAMES = {MAV_CMD_NAV_TAKEOFF: "NAV_TAKEOFF", MAV_CMD_DO_SET_MODE: "DO_SET_MODE",
-              MAV_CMD_COMPONENT_ARM_DISARM: "COMPONENT_ARM_DISARM",
-              MAV_CMD_SET_MESSAGE_INTERVAL: "SET_MESSAGE_INTERVAL",
-              MAV_CMD_REQUEST_MESSAGE: "REQUEST_MESSAGE", 21: "NAV_LAND", 20: "NAV_RETURN_TO_LAUNCH"}
+_CMD_NAMES = {
+    MAV_CMD_NAV_TAKEOFF: "NAV_TAKEOFF",
+    MAV_CMD_DO_SET_MODE: "DO_SET_MODE",
+    MAV_CMD_COMPONENT_ARM_DISARM: "COMPONENT_ARM_DISARM",
+    MAV_CMD_SET_MESSAGE_INTERVAL: "SET_MESSAGE_INTERVAL",
+    MAV_CMD_REQUEST_MESSAGE: "REQUEST_MESSAGE",
+    21: "NAV_LAND",
+    20: "NAV_RETURN_TO_LAUNCH",
+}
 
 
 def _cmd_name(command: int) -> str:
@@ -1073,13 +1222,23 @@ def signing_timestamp() -> int:
 
 
 # --- connect ---------------------------------------------------------------------------
-def connect(url: str, *, timeout: float = 10.0, source_system: int | None = None,
-            source_component: int = COMPANION_COMPONENT, signing_key: bytes | None = None,
-            link_timeout: float = 2.0, on_link_lost: Callable[[], object] | None = None,
-            on_link_restored: Callable[[], object] | None = None, setpoint_rate_hz: float = 10.0,
-            command_retries: int = 3, command_timeout: float = 1.0,
-            telemetry_rate_hz: float = 10.0, mode_timeout: float = 3.0,
-            request_telemetry: bool = True) -> Vehicle:
+def connect(
+    url: str,
+    *,
+    timeout: float = 10.0,
+    source_system: int | None = None,
+    source_component: int = COMPANION_COMPONENT,
+    signing_key: bytes | None = None,
+    link_timeout: float = 2.0,
+    on_link_lost: Callable[[], object] | None = None,
+    on_link_restored: Callable[[], object] | None = None,
+    setpoint_rate_hz: float = 10.0,
+    command_retries: int = 3,
+    command_timeout: float = 1.0,
+    telemetry_rate_hz: float = 10.0,
+    mode_timeout: float = 3.0,
+    request_telemetry: bool = True,
+) -> Vehicle:
     """Open ``url``, wait for the autopilot's heartbeat and return the :class:`Vehicle`.
 
     The companion's own messages use ``source_system`` (default: the vehicle's sysid)
@@ -1104,17 +1263,26 @@ def connect(url: str, *, timeout: float = 10.0, source_system: int | None = None
     conn.mav.srcComponent = source_component
     try:
         if signing_key is not None:
-            conn.setup_signing(bytes(signing_key), sign_outgoing=True,
-                               allow_unsigned_callback=lambda _mav, msg_id: msg_id == MSG_RADIO_STATUS)
+            conn.setup_signing(
+                bytes(signing_key),
+                sign_outgoing=True,
+                allow_unsigned_callback=lambda _mav, msg_id: msg_id == MSG_RADIO_STATUS,
+            )
         hb = _wait_heartbeat(conn, ep, timeout, source_component)
     except BaseException:
         with contextlib.suppress(Exception):
             conn.close()
         raise
-    opts = _Options(link_timeout=link_timeout, on_link_lost=on_link_lost, on_link_restored=on_link_restored,
-                    setpoint_rate_hz=setpoint_rate_hz, command_retries=max(1, command_retries),
-                    command_timeout=command_timeout, telemetry_rate_hz=telemetry_rate_hz,
-                    mode_timeout=mode_timeout)
+    opts = _Options(
+        link_timeout=link_timeout,
+        on_link_lost=on_link_lost,
+        on_link_restored=on_link_restored,
+        setpoint_rate_hz=setpoint_rate_hz,
+        command_retries=max(1, command_retries),
+        command_timeout=command_timeout,
+        telemetry_rate_hz=telemetry_rate_hz,
+        mode_timeout=mode_timeout,
+    )
     vehicle = Vehicle(conn, ep, hb, opts, source_system, source_component)
     try:
         if request_telemetry:
@@ -1128,8 +1296,9 @@ def connect(url: str, *, timeout: float = 10.0, source_system: int | None = None
 def _wait_heartbeat(conn: Any, ep: Endpoint, timeout: float, component: int) -> Any:
     deadline = time.monotonic() + timeout
     next_hb = 0.0
-    hb = mavlink.MAVLink_heartbeat_message(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0,
-                                           MAV_STATE_ACTIVE, 3)
+    hb = mavlink.MAVLink_heartbeat_message(
+        MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE, 3
+    )
     while True:
         now = time.monotonic()
         if now >= deadline:
@@ -1146,8 +1315,11 @@ def _wait_heartbeat(conn: Any, ep: Endpoint, timeout: float, component: int) -> 
                 msg = conn.recv_msg()
                 if msg is None:
                     break
-                if (msg.get_type() == "HEARTBEAT" and is_autopilot_heartbeat(msg)
-                        and msg.get_srcComponent() != component):
+                if (
+                    msg.get_type() == "HEARTBEAT"
+                    and is_autopilot_heartbeat(msg)
+                    and msg.get_srcComponent() != component
+                ):
                     return msg
         except OSError as e:
             raise ConnectError(f"{ep}: link error while waiting for a heartbeat: {e}") from None

@@ -29,33 +29,83 @@ class UnknownMode(BridgeError, ValueError):
 
 
 # PX4 main modes and AUTO sub modes (px4_custom_mode.h)
-PX4_MAIN = {1: "MANUAL", 2: "ALTCTL", 3: "POSCTL", 4: "AUTO", 5: "ACRO", 6: "OFFBOARD",
-            7: "STABILIZED", 8: "RATTITUDE"}
-PX4_AUTO_SUB = {1: "READY", 2: "TAKEOFF", 3: "LOITER", 4: "MISSION", 5: "RTL", 6: "LAND",
-                7: "RTGS", 8: "FOLLOW_TARGET", 9: "PRECLAND", 10: "VTOL_TAKEOFF"}
+PX4_MAIN = {
+    1: "MANUAL",
+    2: "ALTCTL",
+    3: "POSCTL",
+    4: "AUTO",
+    5: "ACRO",
+    6: "OFFBOARD",
+    7: "STABILIZED",
+    8: "RATTITUDE",
+}
+PX4_AUTO_SUB = {
+    1: "READY",
+    2: "TAKEOFF",
+    3: "LOITER",
+    4: "MISSION",
+    5: "RTL",
+    6: "LAND",
+    7: "RTGS",
+    8: "FOLLOW_TARGET",
+    9: "PRECLAND",
+    10: "VTOL_TAKEOFF",
+}
 PX4_POSCTL_SUB = {0: "POSCTL", 1: "ORBIT"}
 
-PX4_MODES: dict[str, tuple[int, int]] = {
-    name: (main, 0) for main, name in PX4_MAIN.items() if main != 4
-}
+PX4_MODES: dict[str, tuple[int, int]] = {name: (main, 0) for main, name in PX4_MAIN.items() if main != 4}
 PX4_MODES.update({f"AUTO.{name}": (4, sub) for sub, name in PX4_AUTO_SUB.items()})
 PX4_MODES["POSCTL.ORBIT"] = (3, 1)
-PX4_ALIASES = {"HOLD": "AUTO.LOITER", "LOITER": "AUTO.LOITER", "RTL": "AUTO.RTL",
-               "RETURN": "AUTO.RTL", "LAND": "AUTO.LAND", "TAKEOFF": "AUTO.TAKEOFF",
-               "MISSION": "AUTO.MISSION", "POSITION": "POSCTL", "ALTITUDE": "ALTCTL",
-               "STABILIZE": "STABILIZED"}
+PX4_ALIASES = {
+    "HOLD": "AUTO.LOITER",
+    "LOITER": "AUTO.LOITER",
+    "RTL": "AUTO.RTL",
+    "RETURN": "AUTO.RTL",
+    "LAND": "AUTO.LAND",
+    "TAKEOFF": "AUTO.TAKEOFF",
+    "MISSION": "AUTO.MISSION",
+    "POSITION": "POSCTL",
+    "ALTITUDE": "ALTCTL",
+    "STABILIZE": "STABILIZED",
+}
 
 # ArduCopter mode numbers (ArduCopter/mode.h)
 ARDUCOPTER_MODES: dict[str, int] = {
-    "STABILIZE": 0, "ACRO": 1, "ALT_HOLD": 2, "AUTO": 3, "GUIDED": 4, "LOITER": 5, "RTL": 6,
-    "CIRCLE": 7, "LAND": 9, "DRIFT": 11, "SPORT": 13, "FLIP": 14, "AUTOTUNE": 15, "POSHOLD": 16,
-    "BRAKE": 17, "THROW": 18, "AVOID_ADSB": 19, "GUIDED_NOGPS": 20, "SMART_RTL": 21,
-    "FLOWHOLD": 22, "FOLLOW": 23, "ZIGZAG": 24, "SYSTEMID": 25, "AUTOROTATE": 26,
-    "AUTO_RTL": 27, "TURTLE": 28,
+    "STABILIZE": 0,
+    "ACRO": 1,
+    "ALT_HOLD": 2,
+    "AUTO": 3,
+    "GUIDED": 4,
+    "LOITER": 5,
+    "RTL": 6,
+    "CIRCLE": 7,
+    "LAND": 9,
+    "DRIFT": 11,
+    "SPORT": 13,
+    "FLIP": 14,
+    "AUTOTUNE": 15,
+    "POSHOLD": 16,
+    "BRAKE": 17,
+    "THROW": 18,
+    "AVOID_ADSB": 19,
+    "GUIDED_NOGPS": 20,
+    "SMART_RTL": 21,
+    "FLOWHOLD": 22,
+    "FOLLOW": 23,
+    "ZIGZAG": 24,
+    "SYSTEMID": 25,
+    "AUTOROTATE": 26,
+    "AUTO_RTL": 27,
+    "TURTLE": 28,
 }
 ARDUCOPTER_NAMES = {v: k for k, v in ARDUCOPTER_MODES.items()}
-ARDUCOPTER_ALIASES = {"HOLD": "LOITER", "RETURN": "RTL", "AUTO.LOITER": "LOITER",
-                      "AUTO.RTL": "RTL", "AUTO.LAND": "LAND"}
+ARDUCOPTER_ALIASES = {
+    "HOLD": "LOITER",
+    "RETURN": "RTL",
+    "AUTO.LOITER": "LOITER",
+    "AUTO.RTL": "RTL",
+    "AUTO.LAND": "LAND",
+}
 
 
 def autopilot_name(autopilot: int) -> str:

@@ -120,8 +120,7 @@ class RadioConfig:
 
     def timing(self) -> TdmTiming:
         mw = None if self.firmware == "multipoint" else self.max_window_ms
-        return tdm_timing(self.air_kbps, ecc=self.ecc, max_window_ms=mw,
-                          num_channels=self.num_channels)
+        return tdm_timing(self.air_kbps, ecc=self.ecc, max_window_ms=mw, num_channels=self.num_channels)
 
 
 class LossModel(Protocol):
@@ -179,8 +178,9 @@ class RadioStats:
 class _Radio:
     """State of one radio. Manipulated only by :class:`AirModel`."""
 
-    def __init__(self, index: int, cfg: RadioConfig, at: ATHandler | None, rng: random.Random,
-                 now: float) -> None:
+    def __init__(
+        self, index: int, cfg: RadioConfig, at: ATHandler | None, rng: random.Random, now: float
+    ) -> None:
         self.index = index
         self.at = at
         self.stats = RadioStats()
@@ -362,8 +362,12 @@ class AirModel:
     def status(self, node: int) -> dict[str, Any]:
         r = self.radios[node]
         return {
-            "rssi": r.avg_rssi, "remrssi": r.remote_rssi, "noise": r.avg_noise,
-            "remnoise": r.remote_noise, "txbuf": self._txbuf(r), "locked": r.locked,
+            "rssi": r.avg_rssi,
+            "remrssi": r.remote_rssi,
+            "noise": r.avg_noise,
+            "remnoise": r.remote_noise,
+            "txbuf": self._txbuf(r),
+            "locked": r.locked,
             **r.stats.as_dict(),
         }
 
@@ -374,15 +378,19 @@ class AirModel:
 
     def ati6(self, node: int) -> str:
         t = self.radios[node].t
-        return (f"silence_period: {t.silence_period}\r\ntx_window_width: {t.tx_window_width}\r\n"
-                f"max_data_packet_length: {t.max_data_packet_length}\r\n")
+        return (
+            f"silence_period: {t.silence_period}\r\ntx_window_width: {t.tx_window_width}\r\n"
+            f"max_data_packet_length: {t.max_data_packet_length}\r\n"
+        )
 
     def ati7(self, node: int) -> str:
         r = self.radios[node]
         s = r.stats
-        return (f"L/R RSSI: {r.avg_rssi}/{r.remote_rssi}  L/R noise: {r.avg_noise}/{r.remote_noise} "
-                f"pkts: {r.receive_count}  txe=0 rxe={s.rx_errors} stx={s.stx} srx={s.srx} "
-                f"ecc=0/0 temp=25 dco=0\r\n")
+        return (
+            f"L/R RSSI: {r.avg_rssi}/{r.remote_rssi}  L/R noise: {r.avg_noise}/{r.remote_noise} "
+            f"pkts: {r.receive_count}  txe=0 rxe={s.rx_errors} stx={s.stx} srx={s.srx} "
+            f"ecc=0/0 temp=25 dco=0\r\n"
+        )
 
     # ------------------------------------------------------------ internals
     def _push(self, t: float, kind: int, node: int, data: Any) -> None:
@@ -426,8 +434,7 @@ class AirModel:
             else:
                 r.wire.popleft()
             self._serial_arrive(r, data[:k], min(arrive, t))
-            if r.wire and r.wire[0][0] < t and self.flow_control and \
-                    r.cfg.in_buf - len(r.inbuf) <= 0:
+            if r.wire and r.wire[0][0] < t and self.flow_control and r.cfg.in_buf - len(r.inbuf) <= 0:
                 r.stalled_at = r.wire[0][0]
                 break
 
@@ -597,8 +604,13 @@ class AirModel:
         however many heartbeats a packet carried."""
         version = 0
         if buf[i] == STX_V2:
-            if len(buf) - i >= 10 and buf[i + 1] <= 9 and buf[i + 7] == 0 and buf[i + 8] == 0 \
-                    and buf[i + 9] == 0:
+            if (
+                len(buf) - i >= 10
+                and buf[i + 1] <= 9
+                and buf[i + 7] == 0
+                and buf[i + 8] == 0
+                and buf[i + 9] == 0
+            ):
                 version = 2
         elif buf[i] == STX_V1 and len(buf) - i >= 6 and buf[i + 1] == 9 and buf[i + 5] == 0:
             version = 1
@@ -614,8 +626,11 @@ class AirModel:
         end = None
         detect = PREAMBLE_BYTES * r.t.ticks_per_byte * TICK_S
         for p in self._airing:
-            if p.sender != r.index and p.t_start + detect <= t < p.t_end and \
-                    self.radios[p.sender].cfg.compatible(r.cfg):
+            if (
+                p.sender != r.index
+                and p.t_start + detect <= t < p.t_end
+                and self.radios[p.sender].cfg.compatible(r.cfg)
+            ):
                 end = p.t_end if end is None else max(end, p.t_end)
         return end
 
@@ -708,8 +723,17 @@ class AirModel:
         if window < 0:
             window = 0 if kind == "stats" else 1
         flight = r.t.flight_ticks(len(payload) + TRAILER_LEN) * TICK_S
-        pkt = Packet(r.index, payload, min(window, 0x1FFF), in_rx, command,
-                     r.cfg.node_destination if mp else BROADCAST, t, t + flight, kind)
+        pkt = Packet(
+            r.index,
+            payload,
+            min(window, 0x1FFF),
+            in_rx,
+            command,
+            r.cfg.node_destination if mp else BROADCAST,
+            t,
+            t + flight,
+            kind,
+        )
         r.tx_until = t + flight
         st = r.stats
         st.tx_packets += 1
@@ -788,11 +812,23 @@ class AirModel:
             return
         if not mp:
             self._sync(r, pkt, t)
-        if sender.cfg.key != r.cfg.key and pkt.payload and not (
-                pkt.command and pkt.payload.startswith(b"RT")):
+        if (
+            sender.cfg.key != r.cfg.key
+            and pkt.payload
+            and not (pkt.command and pkt.payload.startswith(b"RT"))
+        ):
             # encrypted with another key (or not at all): decrypts to garbage
-            pkt = Packet(pkt.sender, self.rng.randbytes(len(pkt.payload)), pkt.window,
-                         pkt.bonus, pkt.command, pkt.dest, pkt.t_start, pkt.t_end, pkt.kind)
+            pkt = Packet(
+                pkt.sender,
+                self.rng.randbytes(len(pkt.payload)),
+                pkt.window,
+                pkt.bonus,
+                pkt.command,
+                pkt.dest,
+                pkt.t_start,
+                pkt.t_end,
+                pkt.kind,
+            )
         if pkt.command:
             self._remote_at(r, pkt, t)
         elif pkt.payload and (not mp or pkt.dest in (BROADCAST, r.cfg.node_id)):
@@ -882,10 +918,24 @@ class AirModel:
         if r.cfg.mavlink == 0 or (r.at is not None and r.at.in_command_mode):
             return
         self._pull_serial(r, t)
-        payload = struct.pack("<HHBBBBB", min(r.stats.rx_errors, 0xFFFF), 0, r.avg_rssi,
-                              r.remote_rssi, self._txbuf(r), r.avg_noise, r.remote_noise)
-        frame = pack_frame(MSG_RADIO_STATUS, payload, sysid=RADIO_STATUS_SYSID,
-                           compid=RADIO_STATUS_COMPID, seq=r.rs_seq, version=int(version))
+        payload = struct.pack(
+            "<HHBBBBB",
+            min(r.stats.rx_errors, 0xFFFF),
+            0,
+            r.avg_rssi,
+            r.remote_rssi,
+            self._txbuf(r),
+            r.avg_noise,
+            r.remote_noise,
+        )
+        frame = pack_frame(
+            MSG_RADIO_STATUS,
+            payload,
+            sysid=RADIO_STATUS_SYSID,
+            compid=RADIO_STATUS_COMPID,
+            seq=r.rs_seq,
+            version=int(version),
+        )
         self._drain(r, t)
         if r.cfg.out_buf - len(r.outbuf) < len(frame):
             return  # no room: the firmware skips the report

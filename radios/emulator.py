@@ -58,8 +58,7 @@ from radios.mavlink import FrameParser
 from radios.sik.at import ATEngine
 from radios.sik.params import SikParams, spec_for, validate_user_value
 
-SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600,
-               115: 115200, 230: 230400}
+SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600, 115: 115200, 230: 230400}
 BAUD_CODE = {v: k for k, v in SERIAL_BAUD.items()}
 READ_AHEAD_S = 0.02
 STATS_EVERY_S = 2.0
@@ -98,12 +97,15 @@ class EmulatorConfig:
         if self.resolved_firmware() not in ("standard", "multipoint"):
             raise ConfigError(f"--firmware {self.firmware}: standard or multipoint")
         if self.serial_speed not in BAUD_CODE:
-            raise ConfigError(f"--serial-speed {self.serial_speed}: one of "
-                              + ", ".join(str(b) for b in sorted(BAUD_CODE)))
+            raise ConfigError(
+                f"--serial-speed {self.serial_speed}: one of " + ", ".join(str(b) for b in sorted(BAUD_CODE))
+            )
         validate_user_value(self.resolved_firmware(), "AIR_SPEED", self.air_speed)
         if len(self.netids) not in (1, self.nodes):
-            raise ConfigError(f"--netid: give one NETID for all radios or one per radio "
-                              f"({self.nodes}), not {len(self.netids)}")
+            raise ConfigError(
+                f"--netid: give one NETID for all radios or one per radio "
+                f"({self.nodes}), not {len(self.netids)}"
+            )
         for n in self.netids:
             validate_user_value(self.resolved_firmware(), "NETID", n)
         if not 0.0 <= self.loss <= 1.0:
@@ -216,8 +218,11 @@ class Emulator:
         if self.cfg.burst_loss:
             out.append(GilbertElliott.parse(self.cfg.burst_loss))
         if self.cfg.positions:
-            out.append(RangeLoss(PositionFile(self.cfg.positions),
-                                 sensitivity_dbm=sensitivity_dbm(self.cfg.air_speed)))
+            out.append(
+                RangeLoss(
+                    PositionFile(self.cfg.positions), sensitivity_dbm=sensitivity_dbm(self.cfg.air_speed)
+                )
+            )
         return out
 
     def open(self) -> list[tuple[Path, str]]:
@@ -250,8 +255,7 @@ class Emulator:
             self._capture = TlogWriter(self.cfg.capture)
         try:
             for i in range(self.cfg.nodes):
-                self.params.append(SikParams(self.firmware, stored=self._stored(i),
-                                             aes=self.cfg.aes))
+                self.params.append(SikParams(self.firmware, stored=self._stored(i), aes=self.cfg.aes))
             for i in range(self.cfg.nodes):
                 self.masters.append(-1)
                 self.slave_names.append("")
@@ -264,14 +268,19 @@ class Emulator:
             os.mkfifo(control, 0o600)
             self._control = control
             # our own writer keeps the FIFO from reporting end-of-file between writers
-            self._control_fds = [os.open(control, os.O_RDONLY | os.O_NONBLOCK),
-                                 os.open(control, os.O_WRONLY | os.O_NONBLOCK)]
+            self._control_fds = [
+                os.open(control, os.O_RDONLY | os.O_NONBLOCK),
+                os.open(control, os.O_WRONLY | os.O_NONBLOCK),
+            ]
             now = self.clock()
             self.started = now
             self.model = AirModel(
                 [self.radio_config(i) for i in range(self.cfg.nodes)],
-                seed=self.cfg.seed, losses=losses, start=now,
-                at_factory=self._make_at, on_reboot=self._on_reboot,
+                seed=self.cfg.seed,
+                losses=losses,
+                start=now,
+                at_factory=self._make_at,
+                on_reboot=self._on_reboot,
                 on_air=self._on_air if self._capture is not None else None,
                 flow_control=self.cfg.flow_control,
             )
@@ -414,7 +423,8 @@ class Emulator:
 
     def _make_at(self, i: int, _cfg: RadioConfig) -> ATEngine:
         return ATEngine(
-            self.params[i], flavour=self.firmware,
+            self.params[i],
+            flavour=self.firmware,
             board="RFD900P" if self.cfg.aes else "HM-TRP",
             ati6=lambda: self.model.ati6(i) if self.model else "",
             ati7=lambda: self.model.ati7(i) if self.model else "",
@@ -564,8 +574,14 @@ class Emulator:
             "frames_captured": self.frames_captured,
             "dropped_output_bytes": self.dropped_output,
             "radios": [
-                {"radio": i, "link": str(self.links[i]), "pty": self.slave_names[i],
-                 "connected": self.connected[i], "plugged": self.plugged[i], **model.status(i)}
+                {
+                    "radio": i,
+                    "link": str(self.links[i]),
+                    "pty": self.slave_names[i],
+                    "connected": self.connected[i],
+                    "plugged": self.plugged[i],
+                    **model.status(i),
+                }
                 for i in range(self.cfg.nodes)
             ],
         }

@@ -342,11 +342,13 @@ def open_serial(url: str) -> SerialLink:
             raise LinkOpenError(f"{target}: no such device (is the radio plugged in / the emulator running?)")
     try:
         if is_url:
-            port = serial.serial_for_url(target, baudrate=baud, rtscts=rtscts,
-                                         write_timeout=write_timeout, timeout=0)
+            port = serial.serial_for_url(
+                target, baudrate=baud, rtscts=rtscts, write_timeout=write_timeout, timeout=0
+            )
         else:
-            port = serial.Serial(target, baudrate=baud, rtscts=rtscts,
-                                 write_timeout=write_timeout, timeout=0, exclusive=False)
+            port = serial.Serial(
+                target, baudrate=baud, rtscts=rtscts, write_timeout=write_timeout, timeout=0, exclusive=False
+            )
     except (serial.SerialException, OSError, ValueError) as exc:
         raise LinkOpenError(f"cannot open {target}: {exc}") from exc
     return SerialLink(url, port)
@@ -373,8 +375,11 @@ def open_link(url: str, *, capture: str | os.PathLike[str] | None = None, **opti
         link = open_tlog_link(url, **options)
     elif url.startswith("serial:") or url.startswith(_PYSERIAL_SCHEMES) or "://" not in url:
         head = path.split("/", 1)[0]
-        if ":" in head and not url.startswith(("serial:", *_PYSERIAL_SCHEMES)) \
-                and not head.upper().startswith("COM"):
+        if (
+            ":" in head
+            and not url.startswith(("serial:", *_PYSERIAL_SCHEMES))
+            and not head.upper().startswith("COM")
+        ):
             scheme = path.split(":", 1)[0]
             raise LinkOpenError(f"{url}: unknown link scheme {scheme!r} (known: {', '.join(SCHEMES)})")
         if options:

@@ -121,8 +121,9 @@ class PositionFile:
         try:
             with open(self.path, encoding="utf-8") as fh:
                 raw = json.load(fh)
-            pos = {int(k): (float(v[0]), float(v[1]), float(v[2]) if len(v) > 2 else 0.0)
-                   for k, v in raw.items()}
+            pos = {
+                int(k): (float(v[0]), float(v[1]), float(v[2]) if len(v) > 2 else 0.0) for k, v in raw.items()
+            }
         except (OSError, ValueError, TypeError, IndexError, AttributeError) as exc:
             if self._pos:
                 return  # keep the last good positions while a writer is mid-update

@@ -287,8 +287,15 @@ class FrameBuilder:
     signing stream).
     """
 
-    def __init__(self, sysid: int, compid: int = 0, *, signing_key: bytes | None = None,
-                 link_id: int | None = None, clock: SigningClock | None = None) -> None:
+    def __init__(
+        self,
+        sysid: int,
+        compid: int = 0,
+        *,
+        signing_key: bytes | None = None,
+        link_id: int | None = None,
+        clock: SigningClock | None = None,
+    ) -> None:
         if not 1 <= sysid <= 255:
             raise FrameError(f"system id {sysid} is outside 1..255")
         if not 0 <= compid <= 255:
@@ -320,9 +327,7 @@ class FrameBuilder:
         if len(payload) > 128:
             raise FrameError(f"TUNNEL payload of {len(payload)} bytes exceeds 128")
         data = payload.ljust(128, b"\0")
-        return self.build(
-            dialect.MAVLink_tunnel_message(target_system, 0, payload_type, len(payload), data)
-        )
+        return self.build(dialect.MAVLink_tunnel_message(target_system, 0, payload_type, len(payload), data))
 
 
 _decoder = dialect.MAVLink(None)
@@ -357,9 +362,7 @@ def radio_status_fields(frame: Frame) -> dict[str, int]:
     }
 
 
-def pack_frame(
-    msgid: int, payload: bytes, *, sysid: int, compid: int, seq: int, version: int = 2
-) -> bytes:
+def pack_frame(msgid: int, payload: bytes, *, sysid: int, compid: int, seq: int, version: int = 2) -> bytes:
     """Pack an unsigned frame from raw payload bytes (used where pymavlink objects are
     overkill, e.g. the emulator's RADIO_STATUS). MAVLink 2 payloads are truncated of
     trailing zeros as the spec requires."""
@@ -367,8 +370,16 @@ def pack_frame(
     if version == 2:
         body = payload.rstrip(b"\0") or payload[:1]
         hdr = struct.pack(
-            "<BBBBBBBHB", STX_V2, len(body), 0, 0, seq & 0xFF, sysid, compid,
-            msgid & 0xFFFF, msgid >> 16,
+            "<BBBBBBBHB",
+            STX_V2,
+            len(body),
+            0,
+            0,
+            seq & 0xFF,
+            sysid,
+            compid,
+            msgid & 0xFFFF,
+            msgid >> 16,
         )
     else:
         body = payload

@@ -98,9 +98,7 @@ def _wait_unless(event: threading.Event, seconds: float) -> None:
 
 def _check_pacing(speed: float, max_gap: float) -> None:
     if not (math.isfinite(speed) and speed >= 0):
-        raise ConfigError(
-            f"speed must be a finite number >= 0 (0 = as fast as possible), not {speed}"
-        )
+        raise ConfigError(f"speed must be a finite number >= 0 (0 = as fast as possible), not {speed}")
     if math.isnan(max_gap) or max_gap < 0:
         raise ConfigError(f"max_gap must be >= 0 seconds (inf = no cap), not {max_gap}")
 
@@ -278,9 +276,7 @@ def open_tlog_link(
         except ValueError:
             raise LinkOpenError(f"{url}: {name} must be a number") from None
     if opts:
-        raise LinkOpenError(
-            f"{url}: unknown option(s) {', '.join(sorted(opts))} (known: speed, max_gap)"
-        )
+        raise LinkOpenError(f"{url}: unknown option(s) {', '.join(sorted(opts))} (known: speed, max_gap)")
     if not path:
         raise LinkOpenError(f"{url}: no capture file path")
     try:
@@ -291,9 +287,7 @@ def open_tlog_link(
         reader = read_tlog(path)
     except CaptureError as exc:
         raise LinkOpenError(str(exc)) from exc
-    return TlogLink(
-        url, reader, speed=values["speed"], max_gap=values["max_gap"], clock=clock, sleep=sleep
-    )
+    return TlogLink(url, reader, speed=values["speed"], max_gap=values["max_gap"], clock=clock, sleep=sleep)
 
 
 # -- re-feeding a port ----------------------------------------------------------------
@@ -328,7 +322,7 @@ class Player:
 
     Iterating a Player yields each record when it is due (python-can's
     ``MessageSync``); :meth:`play` writes each one to a port. ``stop`` (an event,
-    e.g. a :class:`~swarm.cliutil.StopFlag`'s) or :meth:`stop` ends it before the
+    e.g. a :class:`~swarm.cli.util.StopFlag`'s) or :meth:`stop` ends it before the
     next record; without an injected ``sleep`` a wait ends at once when stopped
     from another thread, and within a quarter second when stopped by a signal.
     ``stats`` is kept up to date as records go, so it is valid after an error too.
@@ -454,9 +448,7 @@ def decode_record(rec: TlogRecord) -> dict[str, Any]:
         out["fields"] = {}
         out["error"] = error
     else:
-        out["fields"] = {
-            k: _jsonable(v) for k, v in msg.to_dict().items() if k != "mavpackettype"
-        }
+        out["fields"] = {k: _jsonable(v) for k, v in msg.to_dict().items() if k != "mavpackettype"}
     return out
 
 

@@ -85,8 +85,7 @@ class Verifier:
 
     key: bytes
     clock: SigningClock = field(default_factory=SigningClock)
-    allow_unsigned: Callable[[Frame], bool] = \
-        lambda f: f.msgid == 109 and f.sysid == 51 and f.compid == 68
+    allow_unsigned: Callable[[Frame], bool] = lambda f: f.msgid == 109 and f.sysid == 51 and f.compid == 68
     stats: VerifyStats = field(default_factory=VerifyStats)
     _last: dict[tuple[int, int, int], int] = field(default_factory=dict)
 

@@ -104,9 +104,7 @@ class TlogWriter:
             permission, a directory in the way...).
     """
 
-    def __init__(
-        self, path: str | os.PathLike[str], *, clock: Callable[[], float] = time.time
-    ) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, clock: Callable[[], float] = time.time) -> None:
         self.path = os.fspath(path)
         self._clock = clock
         self._lock = threading.Lock()
@@ -145,9 +143,7 @@ class TlogWriter:
         """
         data = raw.raw if isinstance(raw, Frame) else bytes(raw)
         if frame_length(data) != len(data):
-            raise FrameError(
-                f"not exactly one MAVLink frame ({len(data)} bytes), not written to {self.path}"
-            )
+            raise FrameError(f"not exactly one MAVLink frame ({len(data)} bytes), not written to {self.path}")
         stamp = self._clock() if t is None else t
         usec = round(stamp * 1e6) if math.isfinite(stamp) else -1
         if not 0 <= usec < 1 << 64:
@@ -165,9 +161,7 @@ class TlogWriter:
                         continue
                     view = view[n:]
             except OSError as exc:
-                raise CaptureError(
-                    f"cannot write capture {self.path}: {exc.strerror or exc}"
-                ) from exc
+                raise CaptureError(f"cannot write capture {self.path}: {exc.strerror or exc}") from exc
             self._records += 1
             self._bytes += len(record)
 
@@ -241,9 +235,7 @@ class TlogReader:
         if not EARLIEST_T <= t < LATEST_T:
             self._damaged(f"implausible timestamp {_fmt_time(t)}")
         if self._last_t is not None and abs(t - self._last_t) > MAX_STEP:
-            self._damaged(
-                f"timestamp {_fmt_time(t)} is {t - self._last_t:+.0f} s from the previous record"
-            )
+            self._damaged(f"timestamp {_fmt_time(t)} is {t - self._last_t:+.0f} s from the previous record")
         hdr = f.read(3)
         if not hdr:
             self._damaged("truncated frame")

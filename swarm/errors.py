@@ -25,8 +25,9 @@ class VersionMismatch(DecodeError):
     """The peer speaks another version of the swarm protocol."""
 
     def __init__(self, theirs: int, ours: int) -> None:
-        super().__init__(f"peer speaks swarm protocol v{theirs}, this agent speaks v{ours}: "
-                         "upgrade one of them")
+        super().__init__(
+            f"peer speaks swarm protocol v{theirs}, this agent speaks v{ours}: upgrade one of them"
+        )
         self.theirs = theirs
         self.ours = ours
 

@@ -25,9 +25,9 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from radios.link import open_link
-from swarm.bridge import RadioBridge
-from swarm.messages import Advertize, Message, Selection
-from swarm.transport import Transport, open_session
+from swarm.core.messages import Advertize, Message, Selection
+from swarm.runtime.bridge import RadioBridge
+from swarm.runtime.transport import Transport, open_session
 
 EPOCH = 11  # marks this program's numbered messages
 
@@ -106,9 +106,13 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.5)
         with lock:
             report: dict[str, Any] = {
-                "name": args.name, "id": args.id, "sent": sent, "advertized": advertized,
+                "name": args.name,
+                "id": args.id,
+                "sent": sent,
+                "advertized": advertized,
                 "received": received,
-                "heard": sorted(names.values()), "stray": stray,
+                "heard": sorted(names.values()),
+                "stray": stray,
                 "decode_errors": transport.decode_errors,
                 "bridge": bridge.stats.as_dict() if bridge else None,
             }

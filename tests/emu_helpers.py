@@ -49,8 +49,9 @@ def wait_until(predicate: Callable[[], T], timeout: float, what: str, interval: 
         time.sleep(interval)
 
 
-def recv_until(link: Link, match: Callable[[Frame], bool], timeout: float = AIR_DEADLINE,
-               seen: list[Frame] | None = None) -> Frame | None:
+def recv_until(
+    link: Link, match: Callable[[Frame], bool], timeout: float = AIR_DEADLINE, seen: list[Frame] | None = None
+) -> Frame | None:
     """Receive frames until one matches (returned) or ``timeout`` passes (None).
     Every frame received is appended to ``seen`` if given."""
     deadline = time.monotonic() + timeout
@@ -144,8 +145,7 @@ class RunningEmulator:
         """Wait until the emulator has seen a host open each of ``radios``: bytes a
         host writes before that are discarded (see test_emulator)."""
         for i in radios:
-            wait_until(partial(self.emu.connected.__getitem__, i), AIR_DEADLINE,
-                       f"radio{i} connected")
+            wait_until(partial(self.emu.connected.__getitem__, i), AIR_DEADLINE, f"radio{i} connected")
 
     def wait_locked(self, *radios: int) -> None:
         """Wait until each of ``radios`` has locked onto its peers' hopping sequence:

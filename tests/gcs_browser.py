@@ -20,8 +20,8 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.bench.gcs_page import find_browser, launch_browser
-from swarm.procs import Child
+from swarm.cli.bench.gcs_page import find_browser, launch_browser
+from swarm.cli.procs import Child
 
 REPO = Path(__file__).resolve().parent.parent
 ARTIFACTS = REPO / "test-artifacts"
@@ -35,9 +35,12 @@ def png(width: int, height: int, rows: Sequence[bytes]) -> bytes:
         return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
 
     raw = b"".join(b"\x00" + r for r in rows)  # filter type 0 on every row
-    return (b"\x89PNG\r\n\x1a\n"
-            + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
 
 
 def tile_png(shade: int) -> bytes:
@@ -46,8 +49,8 @@ def tile_png(shade: int) -> bytes:
     line = bytes((150, 160, 150))
     plain = bytearray(ground * TILE)
     for x in range(0, TILE, 32):
-        plain[3 * x:3 * x + 3] = line
-    plain[3 * (TILE - 1):] = line
+        plain[3 * x : 3 * x + 3] = line
+    plain[3 * (TILE - 1) :] = line
     grid = line * TILE
     rows = [grid if y % 32 == 0 or y == TILE - 1 else bytes(plain) for y in range(TILE)]
     return png(TILE, TILE, rows)
@@ -55,15 +58,16 @@ def tile_png(shade: int) -> bytes:
 
 def tile_xy(lat: float, lon: float, z: int) -> tuple[int, int]:
     """The slippy-map tile holding ``lat, lon`` at zoom ``z``."""
-    n = 2 ** z
+    n = 2**z
     x = int((lon + 180.0) / 360.0 * n)
     lat_r = math.radians(lat)
     y = int((1.0 - math.asinh(math.tan(lat_r)) / math.pi) / 2.0 * n)
     return x, y
 
 
-def write_tiles(directory: Path, lat: float, lon: float, zooms: Sequence[int] = (17, 18, 19),
-                radius: int = 2) -> int:
+def write_tiles(
+    directory: Path, lat: float, lon: float, zooms: Sequence[int] = (17, 18, 19), radius: int = 2
+) -> int:
     """Write a ``{z}/{x}/{y}.png`` folder around ``lat, lon``; returns the tile count."""
     light, dark = tile_png(196), tile_png(176)
     count = 0
@@ -118,8 +122,10 @@ def poll(pred: Callable[[], Any], what: str, timeout: float, children: Sequence[
     def check() -> Any:
         for c in children:
             if c.proc.poll() is not None:
-                raise AssertionError(f"{c.name} exited with {c.proc.returncode} while waiting for "
-                                     f"{what}: {' | '.join(c.errors[-5:])}")
+                raise AssertionError(
+                    f"{c.name} exited with {c.proc.returncode} while waiting for "
+                    f"{what}: {' | '.join(c.errors[-5:])}"
+                )
         return pred()
 
     return wait_until(check, what, timeout, interval=0.2)

@@ -14,8 +14,8 @@ from typing import Any
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.gcs.station import Station
-from swarm.messages import Phase
+from swarm.core.messages import Phase
+from swarm.runtime.station import Station
 
 
 @dataclass
@@ -40,8 +40,14 @@ def live_swarm(agents: int = 2) -> Iterator[Swarm]:
         for k in range(1, agents + 1):
             crew[k] = ScriptedAgent(ep, k, phase=Phase.LEADER if k == 1 else Phase.MEMBER, leader=1)
         if agents:
-            wait_until(lambda: len(station.snapshot()["agents"]) == agents and all(
-                a["connected"] for a in station.snapshot()["agents"]), f"{agents} connected agents", 30)
+            wait_until(
+                lambda: (
+                    len(station.snapshot()["agents"]) == agents
+                    and all(a["connected"] for a in station.snapshot()["agents"])
+                ),
+                f"{agents} connected agents",
+                30,
+            )
         yield Swarm(station, crew)
     finally:
         for a in crew.values():
@@ -69,8 +75,14 @@ class Answer:
         return reason
 
 
-def request(port: int, method: str, path: str, body: bytes | None = None,
-            headers: Mapping[str, str] | None = None, timeout: float = 30.0) -> Answer:
+def request(
+    port: int,
+    method: str,
+    path: str,
+    body: bytes | None = None,
+    headers: Mapping[str, str] | None = None,
+    timeout: float = 30.0,
+) -> Answer:
     """One request to 127.0.0.1:``port`` with exactly ``headers`` (plus Host, unless given,
     and Content-Length for a body)."""
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)

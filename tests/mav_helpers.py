@@ -9,8 +9,13 @@ from collections.abc import Callable
 from pymavlink import mavutil
 
 
-def wait_msg(conn: mavutil.mavfile, types: str | list[str], cond: Callable[[object], bool],
-             timeout: float, tick: Callable[[], None] | None = None) -> object:
+def wait_msg(
+    conn: mavutil.mavfile,
+    types: str | list[str],
+    cond: Callable[[object], bool],
+    timeout: float,
+    tick: Callable[[], None] | None = None,
+) -> object:
     """The first message of ``types`` satisfying ``cond`` within ``timeout`` s; ``tick``
     runs between reads (e.g. to keep a setpoint stream going)."""
     deadline = time.monotonic() + timeout
@@ -23,8 +28,14 @@ def wait_msg(conn: mavutil.mavfile, types: str | list[str], cond: Callable[[obje
     raise AssertionError(f"no {types} matching in {timeout} s")
 
 
-def command(conn: mavutil.mavfile, cmd: int, *params: float, timeout: float,
-            tick: Callable[[], None] | None = None, texts: list[str] | None = None) -> int:
+def command(
+    conn: mavutil.mavfile,
+    cmd: int,
+    *params: float,
+    timeout: float,
+    tick: Callable[[], None] | None = None,
+    texts: list[str] | None = None,
+) -> int:
     """Send COMMAND_LONG ``cmd`` and return the COMMAND_ACK result; STATUSTEXTs seen
     meanwhile are appended to ``texts``."""
     p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]

@@ -24,23 +24,38 @@ from radios.sik.at import ATEngine
 from radios.sik.params import SikParams
 
 
-def make_engine(flavour: str = "standard", *, stored: dict[str, int] | None = None,
-                node_id: int | None = None, board: str = "HM-TRP",
-                boot_time: float | None = None) -> ATEngine:
+def make_engine(
+    flavour: str = "standard",
+    *,
+    stored: dict[str, int] | None = None,
+    node_id: int | None = None,
+    board: str = "HM-TRP",
+    boot_time: float | None = None,
+) -> ATEngine:
     """An ATEngine with fixed ATI6/ATI7 text."""
     return ATEngine(
-        SikParams(flavour, stored=stored), flavour=flavour, board=board,
+        SikParams(flavour, stored=stored),
+        flavour=flavour,
+        board=board,
         ati6=lambda: "silence_period: 260\ntx_window_width: 7140\nmax_data_packet_length: 252",
-        ati7=lambda: "L/R RSSI: 180/175  L/R noise: 40/42 pkts: 10  txe=0 rxe=0 stx=0 srx=0 "
-                     "ecc=0/0 temp=30 dco=0",
-        node_id=node_id, boot_time=boot_time)
+        ati7=lambda: (
+            "L/R RSSI: 180/175  L/R noise: 40/42 pkts: 10  txe=0 rxe=0 stx=0 srx=0 ecc=0/0 temp=30 dco=0"
+        ),
+        node_id=node_id,
+        boot_time=boot_time,
+    )
 
 
 class PtyRadio:
     """Serve ``engine`` on a pty until :meth:`close` (use as a context manager)."""
 
-    def __init__(self, engine: ATEngine | None = None, *, peer: ATEngine | None = None,
-                 start_in_command_mode: bool = False) -> None:
+    def __init__(
+        self,
+        engine: ATEngine | None = None,
+        *,
+        peer: ATEngine | None = None,
+        start_in_command_mode: bool = False,
+    ) -> None:
         self.engine = engine if engine is not None else make_engine()
         self.peer = peer
         self.master, self.slave = os.openpty()
@@ -64,8 +79,9 @@ class PtyRadio:
     def __enter__(self) -> PtyRadio:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close()
 
     def close(self) -> None:
@@ -124,7 +140,8 @@ class SilentPty:
     def __enter__(self) -> SilentPty:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         os.close(self.master)
         os.close(self.slave)

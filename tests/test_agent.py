@@ -18,13 +18,11 @@ import pytest
 from net_helpers import free_port
 from net_helpers import wait_until as _wait_until
 
-from swarm.agent import Agent, default_round_s, pose_from_state, state_dict, vehicle_messages
-from swarm.messages import AgentState, Phase
-from swarm.transport import Transport
+from swarm.core.messages import AgentState, Phase
+from swarm.runtime.agent import Agent, default_round_s, pose_from_state, state_dict, vehicle_messages
+from swarm.runtime.transport import Transport
 
 DEADLINE = 40.0  # paper profile: three 2 s windows plus discovery, with lots of margin
-
-
 
 
 def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
@@ -53,6 +51,7 @@ def trio() -> Iterator[tuple[list[Agent], dict[str, AgentState], dict[str, Agent
         def f(st: AgentState) -> None:
             with lock:
                 own[name] = st
+
         return f
 
     def observe(name: str, st: AgentState) -> None:
@@ -123,22 +122,31 @@ def test_stop_is_clean_and_safe_twice() -> None:
     a.stop()
     assert not a.running
     t = time.monotonic()
-    wait_until(lambda: not [x for x in threading.enumerate()
-                            if x.ident not in before and x.name.startswith("agent-solo")],
-               "the agent's threads to end", timeout=5)
+    wait_until(
+        lambda: (
+            not [
+                x for x in threading.enumerate() if x.ident not in before and x.name.startswith("agent-solo")
+            ]
+        ),
+        "the agent's threads to end",
+        timeout=5,
+    )
     assert time.monotonic() - t < 5
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"name": "bad name", "agent_id": 1, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "name"),
-    ({"name": "a", "agent_id": 0, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "id"),
-    ({"name": "a", "agent_id": 251, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "id"),
-    ({"name": "a", "agent_id": 1}, "radio or at least one Zenoh endpoint"),
-    ({"name": "a", "agent_id": 1, "radio": "x", "zenoh_listen": ["tcp/127.0.0.1:1"]}, "either"),
-    ({"name": "a", "agent_id": 1, "radio": "x", "vote": "loudest"}, "vote"),
-    ({"name": "a", "agent_id": 1, "radio": "x", "profile": "slow"}, "profile"),
-    ({"name": "a", "agent_id": 1, "radio": "x", "round_s": 0.0}, "round_s"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"name": "bad name", "agent_id": 1, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "name"),
+        ({"name": "a", "agent_id": 0, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "id"),
+        ({"name": "a", "agent_id": 251, "zenoh_listen": ["tcp/127.0.0.1:1"]}, "id"),
+        ({"name": "a", "agent_id": 1}, "radio or at least one Zenoh endpoint"),
+        ({"name": "a", "agent_id": 1, "radio": "x", "zenoh_listen": ["tcp/127.0.0.1:1"]}, "either"),
+        ({"name": "a", "agent_id": 1, "radio": "x", "vote": "loudest"}, "vote"),
+        ({"name": "a", "agent_id": 1, "radio": "x", "profile": "slow"}, "profile"),
+        ({"name": "a", "agent_id": 1, "radio": "x", "round_s": 0.0}, "round_s"),
+    ],
+)
 def test_bad_arguments(kwargs: dict[str, Any], match: str) -> None:
     name, agent_id = kwargs.pop("name"), kwargs.pop("agent_id")
     with pytest.raises(ValueError, match=match):
@@ -177,12 +185,22 @@ def test_round_and_helpers() -> None:
     S.lat = None  # type: ignore[assignment]
     assert pose_from_state(S(), 3.0) is None and len(vehicle_messages(S())) == 1
     d = state_dict("a1", AgentState(1, Phase.LEADER, 1, 1, 5, 9, True, frozenset({1, 2}), frozenset({2})))
-    assert d == {"name": "a1", "id": 1, "phase": "LEADER", "leader": 1, "pool": [1, 2], "locked": True,
-                 "members": [2], "candidate": 1, "weight": 5, "epoch": 9}
+    assert d == {
+        "name": "a1",
+        "id": 1,
+        "phase": "LEADER",
+        "leader": 1,
+        "pool": [1, 2],
+        "locked": True,
+        "members": [2],
+        "candidate": 1,
+        "weight": 5,
+        "epoch": 9,
+    }
 
 
 def test_two_agents_over_signed_radios_with_the_fast_profile(tmp_path: Any) -> None:
-    from swarm.procs import start_emulator
+    from swarm.cli.procs import start_emulator
 
     key = tmp_path / "swarm.key"
     key.write_text("correct horse battery staple\n")
@@ -192,8 +210,17 @@ def test_two_agents_over_signed_radios_with_the_fast_profile(tmp_path: Any) -> N
     try:
         t0 = time.monotonic()
         for i in (1, 2):
-            agents.append(Agent(f"agent{i}", i, radio=paths[i - 1], key_file=str(key), profile="fast",
-                                vote="link", on_state=partial(own.__setitem__, f"agent{i}")).start())
+            agents.append(
+                Agent(
+                    f"agent{i}",
+                    i,
+                    radio=paths[i - 1],
+                    key_file=str(key),
+                    profile="fast",
+                    vote="link",
+                    on_state=partial(own.__setitem__, f"agent{i}"),
+                ).start()
+            )
         assert agents[0].profile.vote_window == pytest.approx(1.5 * default_round_s(2))
         leader = wait_until(lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the radios")
         print(f"fast profile, signed pair: leader agent{leader} after {time.monotonic() - t0:.2f} s")
@@ -206,17 +233,23 @@ def test_two_agents_over_signed_radios_with_the_fast_profile(tmp_path: Any) -> N
         emu.stop()
 
 
-@pytest.mark.parametrize("argv, match", [
-    (["--name", "a b", "--id", "1", "--radio", "x"], "invalid agent name"),
-    (["--name", "a1", "--id", "251", "--radio", "x"], "1..250"),
-    (["--name", "a1", "--id", "1", "--radio", "/nonexistent/radio0"], "/nonexistent/radio0"),
-    (["--name", "a1", "--id", "1", "--radio", "/nonexistent/radio0", "--key", "/nonexistent/key"],
-     "signing key"),
-    (["--name", "a1", "--id", "1"], "--radio"),
-])
-def test_cli_bad_input_exits_2_with_one_line(argv: list[str], match: str,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
-    from swarm.commands.agent import main
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["--name", "a b", "--id", "1", "--radio", "x"], "invalid agent name"),
+        (["--name", "a1", "--id", "251", "--radio", "x"], "1..250"),
+        (["--name", "a1", "--id", "1", "--radio", "/nonexistent/radio0"], "/nonexistent/radio0"),
+        (
+            ["--name", "a1", "--id", "1", "--radio", "/nonexistent/radio0", "--key", "/nonexistent/key"],
+            "signing key",
+        ),
+        (["--name", "a1", "--id", "1"], "--radio"),
+    ],
+)
+def test_cli_bad_input_exits_2_with_one_line(
+    argv: list[str], match: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from swarm.cli.commands.agent import main
 
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -224,8 +257,8 @@ def test_cli_bad_input_exits_2_with_one_line(argv: list[str], match: str,
 
 
 def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
-    from swarm.messages import PoseReport
-    from swarm.procs import Child
+    from swarm.cli.procs import Child
+    from swarm.core.messages import PoseReport
 
     base = free_port()
     sim = Child(["sim", "--vehicles", "1", "--profile", "ardupilot", "--base-port", str(base)], name="sim")
@@ -233,8 +266,10 @@ def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
     poses: list[PoseReport] = []
     try:
         url = sim.wait_lines(1, 30)[0].split(" -> ")[1].split()[0]
-        with Agent("flyer", 3, zenoh_listen=[ep], fc=url, vote="battery", pose_hz=10) as a, \
-                Transport.open("observer", connect=[ep]) as obs:
+        with (
+            Agent("flyer", 3, zenoh_listen=[ep], fc=url, vote="battery", pose_hz=10) as a,
+            Transport.open("observer", connect=[ep]) as obs,
+        ):
             obs.on_pose("flyer", lambda _n, p: poses.append(p))
             wait_until(lambda: poses, "a pose on swarm/flyer/pose")
             assert a.core is not None and a.core.has_fc

@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from radios.link import open_link
-from swarm.bridge import RadioBridge
-from swarm.messages import AgentState, Phase
-from swarm.procs import Child, start_emulator
-from swarm.transport import Transport, open_session
+from swarm.cli.procs import Child, start_emulator
+from swarm.core.messages import AgentState, Phase
+from swarm.runtime.bridge import RadioBridge
+from swarm.runtime.transport import Transport, open_session
 
 N = 5
 ELECT_DEADLINE = 90.0  # radios' hop lock plus three 2 s windows: ~8 s seen; bounds a failure
@@ -38,8 +38,10 @@ def wait_until(pred: Callable[[], Any], what: str, timeout: float, children: lis
             return v
         for c in children:
             if c.proc.poll() is not None:
-                raise AssertionError(f"{c.name} exited with {c.proc.returncode} while waiting for "
-                                     f"{what}: {' | '.join(c.errors[-5:])}")
+                raise AssertionError(
+                    f"{c.name} exited with {c.proc.returncode} while waiting for "
+                    f"{what}: {' | '.join(c.errors[-5:])}"
+                )
         if time.monotonic() > deadline:
             tails = {c.name: c.lines[-1:] for c in children}
             raise AssertionError(f"timed out after {timeout} s waiting for {what}; last lines: {tails}")
@@ -105,25 +107,39 @@ def test_five_agent_processes_elect_fail_over_and_stop(tmp_path: Path) -> None:
 
         t_spawn = time.monotonic()
         for k in range(1, N + 1):
-            children.append(Child(["agent", "--name", f"agent{k}", "--id", str(k),
-                                   "--radio", paths[k - 1], "--json"], name=f"agent{k}"))
+            children.append(
+                Child(
+                    ["agent", "--name", f"agent{k}", "--id", str(k), "--radio", paths[k - 1], "--json"],
+                    name=f"agent{k}",
+                )
+            )
         for c in children:
             ready = json.loads(c.wait_lines(1, 30)[0])
             assert ready["event"] == "ready" and ready["name"] == c.name
         t_ready = time.monotonic()
 
-        leader = wait_until(lambda: stdout_leader(children), "five agents to agree on a leader",
-                            ELECT_DEADLINE, children)
+        leader = wait_until(
+            lambda: stdout_leader(children), "five agents to agree on a leader", ELECT_DEADLINE, children
+        )
         t_elected = time.monotonic()
         names = [c.name for c in children]
-        assert wait_until(lambda: keyspace_leader(names), "swarm/<name>/state of all five on the air",
-                          ELECT_DEADLINE, children) == leader
+        assert (
+            wait_until(
+                lambda: keyspace_leader(names),
+                "swarm/<name>/state of all five on the air",
+                ELECT_DEADLINE,
+                children,
+            )
+            == leader
+        )
         with lock:
             lead_state = seen[f"agent{leader}"]
         assert lead_state.phase == Phase.LEADER
         assert lead_state.members == frozenset(range(1, N + 1)) - {leader}
-        print(f"\nelected agent{leader}: {t_elected - t_ready:.2f} s after all were ready "
-              f"({t_elected - t_spawn:.2f} s after spawning)")
+        print(
+            f"\nelected agent{leader}: {t_elected - t_ready:.2f} s after all were ready "
+            f"({t_elected - t_spawn:.2f} s after spawning)"
+        )
 
         # the leader crashes: the survivors elect another
         gone = children[leader - 1]
@@ -140,11 +156,16 @@ def test_five_agent_processes_elect_fail_over_and_stop(tmp_path: Path) -> None:
             others = {int(c.name[5:]) for c in survivors} - {lead}
             return lead if s is not None and set(s["members"]) == others else None
 
-        leader2 = wait_until(new_leader, "the survivors to agree on a new leader",
-                             FAILOVER_DEADLINE, survivors)
+        leader2 = wait_until(
+            new_leader, "the survivors to agree on a new leader", FAILOVER_DEADLINE, survivors
+        )
         print(f"agent{leader} killed: agent{leader2} leads {time.monotonic() - t_crash:.2f} s later")
-        assert wait_until(lambda: keyspace_leader([c.name for c in survivors]) == leader2,
-                          "the new leader on swarm/<name>/state", FAILOVER_DEADLINE, survivors)
+        assert wait_until(
+            lambda: keyspace_leader([c.name for c in survivors]) == leader2,
+            "the new leader on swarm/<name>/state",
+            FAILOVER_DEADLINE,
+            survivors,
+        )
 
         # SIGTERM: every survivor exits 0, promptly
         t_term = time.monotonic()

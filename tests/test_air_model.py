@@ -222,8 +222,9 @@ def test_frames_never_return_to_their_sender() -> None:
         n = len(conf)
         b = AirBench(conf, seed=1)
         fbs = [FrameBuilder(i + 1, 1) for i in range(n)]
-        feed = feeders(*(periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 40), 0.2, start=0.05 * i)
-                         for i in range(n)))
+        feed = feeders(
+            *(periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 40), 0.2, start=0.05 * i) for i in range(n))
+        )
         b.run(6.0, feed)
         for i in range(n):
             heard = {f.sysid for f in b.frames(i)}
@@ -233,12 +234,17 @@ def test_frames_never_return_to_their_sender() -> None:
 
 def test_netid_separation() -> None:
     """Two pairs on NETIDs 25 and 26 share the air: each hears only its partner."""
-    conf = [RadioConfig(netid=25, num_channels=1), RadioConfig(netid=25, num_channels=1),
-            RadioConfig(netid=26, num_channels=1), RadioConfig(netid=26, num_channels=1)]
+    conf = [
+        RadioConfig(netid=25, num_channels=1),
+        RadioConfig(netid=25, num_channels=1),
+        RadioConfig(netid=26, num_channels=1),
+        RadioConfig(netid=26, num_channels=1),
+    ]
     b = AirBench(conf, seed=2)
     fbs = [FrameBuilder(i + 1, 1) for i in range(4)]
-    feed = feeders(*(periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 60), 0.25, start=0.03 * i)
-                     for i in range(4)))
+    feed = feeders(
+        *(periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 60), 0.25, start=0.03 * i) for i in range(4))
+    )
     b.run(8.0, feed)
     partner = {0: 2, 1: 1, 2: 4, 3: 3}  # node -> the sysid it should hear
     for i in range(4):
@@ -247,14 +253,17 @@ def test_netid_separation() -> None:
         assert set(heard) == {partner[i]}
 
 
-@pytest.mark.parametrize("other", [{"air_kbps": 128}, {"netid": 26}, {"ecc": True}],
-                         ids=["air_speed", "netid", "ecc"])
+@pytest.mark.parametrize(
+    "other", [{"air_kbps": 128}, {"netid": 26}, {"ecc": True}], ids=["air_speed", "netid", "ecc"]
+)
 def test_incompatible_radios_never_hear_each_other(other: dict[str, Any]) -> None:
     conf = [RadioConfig(num_channels=1), RadioConfig(num_channels=1, **other)]
     b = AirBench(conf, seed=0)
     fbs = [FrameBuilder(1, 1), FrameBuilder(2, 1)]
-    feed = feeders(periodic(0, lambda: numbered(fbs[0], 0, 40), 0.2),
-                   periodic(1, lambda: numbered(fbs[1], 0, 40), 0.2, start=0.1))
+    feed = feeders(
+        periodic(0, lambda: numbered(fbs[0], 0, 40), 0.2),
+        periodic(1, lambda: numbered(fbs[1], 0, 40), 0.2, start=0.1),
+    )
     b.run(5.0, feed)
     for i in (0, 1):
         st = b.status(i)
@@ -422,8 +431,7 @@ def test_radio_status_txbuf_falls_when_the_input_buffer_fills() -> None:
     b = AirBench(cfgs(2, num_channels=1, serial_baud=115200), seed=0, flow_control=True)
     fb = FrameBuilder(1, 1)
     count = iter(range(1, 10**9))
-    b.run(15.0, saturate(0, lambda: fb.heartbeat() if next(count) % 40 == 0 else
-                         tunnel_of_length(fb, 145)))
+    b.run(15.0, saturate(0, lambda: fb.heartbeat() if next(count) % 40 == 0 else tunnel_of_length(fb, 145)))
     reports = [radio_status_fields(f)["txbuf"] for f in radio_statuses(b, 0)]
     assert len(reports) >= 5
     assert max(reports[1:]) < 20
@@ -459,8 +467,12 @@ def test_flooding_host_loses_only_its_own_bytes_multipoint() -> None:
         sent2.append(numbered(f2, len(sent2), 40))
         return sent2[-1]
 
-    b.run(15.0, feeders(saturate(0, lambda: tunnel_of_length(f0, 145)),
-                        periodic(2, from2, 0.5, start=0.5, until=14.0)))
+    b.run(
+        15.0,
+        feeders(
+            saturate(0, lambda: tunnel_of_length(f0, 145)), periodic(2, from2, 0.5, start=0.5, until=14.0)
+        ),
+    )
     assert b.status(0)["srx"] > 10_000
     assert b.status(1)["srx"] == 0
     assert b.status(2)["srx"] == 0
@@ -481,8 +493,12 @@ def test_flooding_host_loses_only_its_own_bytes_pair() -> None:
         sent1.append(numbered(f1, len(sent1), 40))
         return sent1[-1]
 
-    b.run(12.0, feeders(saturate(0, lambda: tunnel_of_length(f0, 145)),
-                        periodic(1, from1, 0.3, start=0.5, until=11.0)))
+    b.run(
+        12.0,
+        feeders(
+            saturate(0, lambda: tunnel_of_length(f0, 145)), periodic(1, from1, 0.3, start=0.5, until=11.0)
+        ),
+    )
     assert b.status(0)["srx"] > 0
     assert b.status(1)["srx"] == 0
     assert [f.raw for f in b.frames(0) if f.sysid == 2] == sent1
@@ -495,8 +511,12 @@ def test_host_that_never_reads_does_not_break_the_model() -> None:
     conf = cfgs(2, num_channels=1, serial_baud=115200)
     b = AirBench(conf, seed=0, flow_control=True, take_output=[True, False])
     f0, f1 = FrameBuilder(1, 1), FrameBuilder(2, 1)
-    b.run(10.0, feeders(saturate(0, lambda: tunnel_of_length(f0, 145)),
-                        periodic(1, lambda: numbered(f1, 0, 40), 0.5)))
+    b.run(
+        10.0,
+        feeders(
+            saturate(0, lambda: tunnel_of_length(f0, 145)), periodic(1, lambda: numbered(f1, 0, 40), 0.5)
+        ),
+    )
     assert b.status(1)["rx_bytes"] > 10_000
     assert len([f for f in b.frames(0) if f.sysid == 2]) >= 15  # the other way still works
 
@@ -565,8 +585,11 @@ def _framing_run(mavlink: int, seed: int = 0) -> tuple[AirBench, list[bytes]]:
 def _packet_is_whole_frames(p: AirPacket) -> bool:
     parser = FrameParser()
     frames = parser.feed(p.payload)
-    return parser.pending == 0 and parser.stats.bytes_skipped == 0 and \
-        sum(len(f) for f in frames) == len(p.payload)
+    return (
+        parser.pending == 0
+        and parser.stats.bytes_skipped == 0
+        and sum(len(f) for f in frames) == len(p.payload)
+    )
 
 
 def test_mavlink_framing_keeps_frames_whole_per_packet() -> None:
@@ -628,9 +651,10 @@ def test_multipoint_slots(n: int) -> None:
     conf = mp_cfgs(n, num_channels=1, serial_baud=115200)
     b = AirBench(conf, seed=0, flow_control=True)
     fbs = [FrameBuilder(i + 1, 1) for i in range(n)]
-    feed = feeders(saturate(0, lambda: tunnel_of_length(fbs[0], 145)),
-                   *(periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 60), 0.13 * i, start=0.01 * i)
-                     for i in range(1, n)))
+    feed = feeders(
+        saturate(0, lambda: tunnel_of_length(fbs[0], 145)),
+        *(periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 60), 0.13 * i, start=0.01 * i) for i in range(1, n)),
+    )
     b.run(8.0, feed)
     t = conf[0].timing()
     w, s = t.tx_window_width, t.silence_period
@@ -651,12 +675,24 @@ def test_multipoint_slots(n: int) -> None:
 
 def test_multipoint_broadcast_and_unicast() -> None:
     n = 4
-    conf = [RadioConfig(firmware="multipoint", node_id=i, node_count=n, num_channels=1,
-                        node_destination=2 if i == 0 else 0xFFFF) for i in range(n)]
+    conf = [
+        RadioConfig(
+            firmware="multipoint",
+            node_id=i,
+            node_count=n,
+            num_channels=1,
+            node_destination=2 if i == 0 else 0xFFFF,
+        )
+        for i in range(n)
+    ]
     b = AirBench(conf, seed=0)
     fbs = [FrameBuilder(i + 1, 1) for i in range(n)]
-    feed = feeders(*(periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 40), 1.0, start=0.5 + 0.1 * i,
-                              until=5.5) for i in range(n)))
+    feed = feeders(
+        *(
+            periodic(i, lambda fb=fbs[i]: numbered(fb, 0, 40), 1.0, start=0.5 + 0.1 * i, until=5.5)
+            for i in range(n)
+        )
+    )
     b.run(8.0, feed)
     heard = [sorted({f.sysid for f in b.frames(i)}) for i in range(n)]
     counts = [[f.sysid for f in b.frames(i)].count for i in range(n)]
@@ -698,12 +734,16 @@ def test_three_standard_radios_collide() -> None:
 
 def _scenario(seed: int) -> tuple[list[bytes], list[dict[str, Any]], list[AirPacket]]:
     conf = cfgs(3, serial_baud=115200)
-    b = AirBench(conf, seed=seed, losses=[UniformLoss(0.1), GilbertElliott(0.02, 0.4)],
-                 flow_control=True)
+    b = AirBench(conf, seed=seed, losses=[UniformLoss(0.1), GilbertElliott(0.02, 0.4)], flow_control=True)
     fbs = [FrameBuilder(i + 1, 1) for i in range(3)]
-    b.run(12.0, feeders(saturate(0, lambda: tunnel_of_length(fbs[0], 97)),
-                        periodic(1, fbs[1].heartbeat, 1.0),
-                        periodic(2, lambda: numbered(fbs[2], 0, 50), 0.3)))
+    b.run(
+        12.0,
+        feeders(
+            saturate(0, lambda: tunnel_of_length(fbs[0], 97)),
+            periodic(1, fbs[1].heartbeat, 1.0),
+            periodic(2, lambda: numbered(fbs[2], 0, 50), 0.3),
+        ),
+    )
     return [bytes(r) for r in b.raw], [b.status(i) for i in range(3)], b.air
 
 

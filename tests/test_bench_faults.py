@@ -11,8 +11,8 @@ import signal
 import pytest
 from net_helpers import wait_until
 
-from swarm.bench.faults import FAULTS_QUICK, run_faults
-from swarm.procs import Child
+from swarm.cli.bench.faults import FAULTS_QUICK, run_faults
+from swarm.cli.procs import Child
 
 
 @pytest.mark.timeout(900)
@@ -60,8 +60,12 @@ def test_sigterm_stops_the_bench_and_every_process_it_started() -> None:
     bench = Child(["bench", "faults", "--json"], name="bench")
     try:
         # the emulator, the vehicles, the agents: wait until a few are running
-        started = wait_until(lambda: len(_children(bench.pid)) >= 3 and _children(bench.pid),
-                             "the bench to start its processes", 120.0, 0.2)
+        started = wait_until(
+            lambda: len(_children(bench.pid)) >= 3 and _children(bench.pid),
+            "the bench to start its processes",
+            120.0,
+            0.2,
+        )
         bench.proc.send_signal(signal.SIGTERM)
         assert bench.proc.wait(60) == 130
         wait_until(lambda: not any(_alive(p) for p in started), "its processes gone", 30.0, 0.2)

@@ -8,13 +8,25 @@ import json
 import subprocess
 import sys
 
-FIELDS = ("air_speed_kbps", "goodput_bytes_per_s", "model_goodput_bytes_per_s", "latency_ms_p50",
-          "latency_ms_p99", "round_s", "emulator_cpu_percent")
+FIELDS = (
+    "air_speed_kbps",
+    "goodput_bytes_per_s",
+    "model_goodput_bytes_per_s",
+    "latency_ms_p50",
+    "latency_ms_p99",
+    "round_s",
+    "emulator_cpu_percent",
+)
 
 
 def test_bench_radio_quick_prints_all_fields() -> None:
-    out = subprocess.run([sys.executable, "-m", "swarm.cli", "bench", "radio", "--json", "--quick"],
-                         capture_output=True, text=True, timeout=170, check=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "swarm.cli", "bench", "radio", "--json", "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=170,
+        check=True,
+    )
     result = json.loads(out.stdout)
     for key in FIELDS:
         assert key in result, key

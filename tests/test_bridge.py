@@ -7,7 +7,7 @@ streams under the sender's name, no loops (each message delivered once per
 receiver, frames out bounded by what the node itself sent), multicast merging,
 priority under a saturated pose/telemetry load, back-off on RADIO_STATUS, bad
 input through ``handle_frame`` (never an exception), signing, and the frames of a
-capture decoding with pymavlink and ``swarm.messages.decode``.
+capture decoding with pymavlink and ``swarm.core.messages.decode``.
 
 Nothing sleeps to hope that something happened: waits poll for an outcome until a
 generous deadline; fixed pauses only watch that nothing *more* arrives.
@@ -33,8 +33,8 @@ from net_helpers import wait_until as _wait_until
 from radios.link import Link, open_link
 from radios.mavlink import MSG_TUNNEL, Frame, FrameBuilder, pack_frame, parse_one
 from radios.signing import key_from_passphrase
-from swarm.bridge import COMP_ID, PAYLOAD_TYPE_BASE, BridgeConfig, Kind, RadioBridge
-from swarm.messages import (
+from swarm.cli.procs import start_emulator
+from swarm.core.messages import (
     Advertize,
     AgentState,
     Heartbeat,
@@ -50,8 +50,9 @@ from swarm.messages import (
     decode,
     encode,
 )
-from swarm.procs import start_emulator
-from swarm.transport import Transport, open_session
+from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
+from swarm.runtime.bridge import BridgeConfig, RadioBridge
+from swarm.runtime.transport import Transport, open_session
 
 DEADLINE = 20.0  # anything crossing the emulated air (a TDM round is 0.24-0.4 s)
 LOCK_DEADLINE = 60.0  # radios find each other's hopping sequence
@@ -61,7 +62,6 @@ KEY = key_from_passphrase("swarm test key")
 NAMES = ("a1", "a2", "a3")
 
 POSE = Pose(48.8566, 2.3522, 135.0, heading=90.0, vn=1.0, ve=-0.5, t=1.0)
-
 
 
 def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
@@ -79,14 +79,18 @@ class Recorder:
     def _on(self, sample: Any) -> None:
         att = sample.attachment
         with self._lock:
-            self.samples.append((str(sample.key_expr), sample.payload.to_bytes(), att is not None,
-                                 time.monotonic()))
+            self.samples.append(
+                (str(sample.key_expr), sample.payload.to_bytes(), att is not None, time.monotonic())
+            )
 
     def from_radio(self, payload: bytes | None = None, key: str | None = None) -> list[tuple[str, bytes]]:
         """(key, payload) of the samples the bridge published, optionally filtered."""
         with self._lock:
-            return [(k, p) for k, p, radio, _t in self.samples
-                    if radio and (payload is None or p == payload) and (key is None or k == key)]
+            return [
+                (k, p)
+                for k, p, radio, _t in self.samples
+                if radio and (payload is None or p == payload) and (key is None or k == key)
+            ]
 
     def times(self, payload: bytes) -> list[float]:
         with self._lock:
@@ -133,8 +137,12 @@ class Net:
 
 
 @contextmanager
-def bridged(directory: Path, n: int = 3, *emu_args: str,
-            config: Callable[[int], BridgeConfig] = lambda _i: BridgeConfig()) -> Iterator[Net]:
+def bridged(
+    directory: Path,
+    n: int = 3,
+    *emu_args: str,
+    config: Callable[[int], BridgeConfig] = lambda _i: BridgeConfig(),
+) -> Iterator[Net]:
     """An emulator of ``n`` radios and a bridged, isolated Zenoh node on each."""
     with ExitStack() as stack:
         emu, paths = start_emulator(n, directory, "--seed", FAST_LOCK_SEED, *emu_args)
@@ -163,19 +171,23 @@ def net(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Net]:
         yield n
 
 
-def tunnel_frame(sysid: int, kind: Kind, payload: bytes, *, target: int = 0,
-                 key: bytes | None = None) -> Frame:
+def tunnel_frame(
+    sysid: int, kind: Kind, payload: bytes, *, target: int = 0, key: bytes | None = None
+) -> Frame:
     raw = FrameBuilder(sysid, COMP_ID, signing_key=key).tunnel(
-        payload, target_system=target, payload_type=PAYLOAD_TYPE_BASE + int(kind))
+        payload, target_system=target, payload_type=PAYLOAD_TYPE_BASE + int(kind)
+    )
     return parse_one(raw)
 
 
 def radio_status(txbuf: int) -> Frame:
-    return parse_one(pack_frame(109, struct.pack("<HHBBBBB", 0, 0, 200, 190, txbuf, 40, 41),
-                                sysid=51, compid=68, seq=0))
+    return parse_one(
+        pack_frame(109, struct.pack("<HHBBBBB", 0, 0, 200, 190, txbuf, 40, 41), sysid=51, compid=68, seq=0)
+    )
 
 
 # -- the shared three-bridge network ------------------------------------------------
+
 
 def test_advertize_teaches_every_bridge_the_table(net: Net) -> None:
     for x in net.nodes:
@@ -221,8 +233,9 @@ def test_pose_stream_arrives_under_the_senders_name(net: Net) -> None:
 
 
 def test_no_loops_each_message_once_and_frames_bounded(net: Net) -> None:
-    before = [(x.bridge.stats.frames_out, x.bridge.stats.heartbeats, x.bridge.stats.published)
-              for x in net.nodes]
+    before = [
+        (x.bridge.stats.frames_out, x.bridge.stats.heartbeats, x.bridge.stats.published) for x in net.nodes
+    ]
     expected: dict[str, list[bytes]] = {x.name: [] for x in net.nodes}
     own_items = {x.name: 0 for x in net.nodes}
     for i, src in enumerate(net.nodes):
@@ -250,8 +263,9 @@ def test_no_loops_each_message_once_and_frames_bounded(net: Net) -> None:
             assert len(x.rec.from_radio(data)) == 1, f"{x.name} got {decode(data)} more than once"
         s = x.bridge.stats
         sent = (s.frames_out - out0) - (s.heartbeats - hb0)
-        assert sent <= own_items[x.name] + 1, \
+        assert sent <= own_items[x.name] + 1, (
             f"{x.name} sent {sent} frames for {own_items[x.name]} messages of its own: a loop"
+        )
         assert s.published - pub0 == len(expected[x.name]), f"{x.name} published exactly what it got"
 
 
@@ -280,6 +294,7 @@ def test_protocol_gets_through_a_saturated_pose_and_telemetry_load(net: Net) -> 
 
 
 # -- multicast and capture -------------------------------------------------------
+
 
 def _slow_protocol(_i: int) -> BridgeConfig:
     # a protocol budget of ~1 frame at a time, so that a message queued for two peers
@@ -335,8 +350,14 @@ def test_capture_frames_decode_with_pymavlink(capture_net: tuple[Net, Path]) -> 
     a1.transport.send("a3", decode(sent[0]))
     a2.transport.send("a1", decode(sent[1]))
     a3.transport.publish_pose(PoseReport(POSE))
-    wait_until(lambda: a3.rec.from_radio(sent[0]) and a1.rec.from_radio(sent[1])
-               and a1.rec.from_radio(encode(PoseReport(POSE))), "the captured traffic delivered")
+    wait_until(
+        lambda: (
+            a3.rec.from_radio(sent[0])
+            and a1.rec.from_radio(sent[1])
+            and a1.rec.from_radio(encode(PoseReport(POSE)))
+        ),
+        "the captured traffic delivered",
+    )
     net.emu.stop()  # closes the capture
     conn = mavutil.mavlink_connection(str(tlog))
     tunnels: list[tuple[int, int, bytes]] = []
@@ -350,7 +371,7 @@ def test_capture_frames_decode_with_pymavlink(capture_net: tuple[Net, Path]) -> 
     for _src, ptype, payload in tunnels:
         assert PAYLOAD_TYPE_BASE <= ptype < PAYLOAD_TYPE_BASE + len(Kind)
         if ptype - PAYLOAD_TYPE_BASE == Kind.MULTI:
-            payload = payload[1 + payload[0]:]
+            payload = payload[1 + payload[0] :]
         assert isinstance(decode(payload), Message)
         decoded.append(payload)
     for data in (*sent, encode(PoseReport(POSE)), encode(Advertize(1, "a1"))):
@@ -358,6 +379,7 @@ def test_capture_frames_decode_with_pymavlink(capture_net: tuple[Net, Path]) -> 
 
 
 # -- back-off and bad input, through handle_frame on an in-memory link ------------
+
 
 class MemoryLink(Link):
     """Records what the bridge writes; receives nothing (frames go in by handle_frame)."""
@@ -382,8 +404,12 @@ class MemoryLink(Link):
     def tunnels(self, kind: Kind | None = None) -> list[Frame]:
         with self._lock:
             frames = list(self.written)
-        return [f for f in frames if f.msgid == MSG_TUNNEL and
-                (kind is None or f.payload[0] | f.payload[1] << 8 == PAYLOAD_TYPE_BASE + int(kind))]
+        return [
+            f
+            for f in frames
+            if f.msgid == MSG_TUNNEL
+            and (kind is None or f.payload[0] | f.payload[1] << 8 == PAYLOAD_TYPE_BASE + int(kind))
+        ]
 
 
 @pytest.fixture
@@ -394,8 +420,9 @@ def solo() -> Iterator[tuple[RadioBridge, MemoryLink, Transport, Recorder]]:
         stack.callback(session.close)
         link = MemoryLink()
         stack.callback(link.close)
-        bridge = RadioBridge(session, link, name="a1", agent_id=1,
-                             config=BridgeConfig(radio_status_stale_s=60.0)).start()
+        bridge = RadioBridge(
+            session, link, name="a1", agent_id=1, config=BridgeConfig(radio_status_stale_s=60.0)
+        ).start()
         stack.callback(bridge.close)
         transport = Transport("a1", session)
         stack.callback(transport.close)
@@ -481,26 +508,32 @@ def test_bad_input_is_counted_never_raised(solo: tuple[RadioBridge, MemoryLink, 
     assert s.frames_in > 400
 
 
-def test_name_collision_counted_and_reported(solo: tuple[RadioBridge, MemoryLink, Transport, Recorder]
-                                             ) -> None:
+def test_name_collision_counted_and_reported(
+    solo: tuple[RadioBridge, MemoryLink, Transport, Recorder],
+) -> None:
     bridge, link, _t, rec = solo
     bridge.handle_frame(tunnel_frame(5, Kind.ADVERTIZE, encode(Advertize(5, "a5"))))
     assert bridge.peers()["a5"] == 5
     bridge.handle_frame(tunnel_frame(6, Kind.ADVERTIZE, encode(Advertize(6, "a5"))))  # same name
     assert bridge.stats.conflicts == 1
     assert bridge.peers()["a5"] == 5, "the first claim stands"
-    wait_until(lambda: [p for k, p in rec.from_radio(key="swarm/a1")
-                        if isinstance(decode(p), NameConflict)], "NameConflict in the local inbox")
+    wait_until(
+        lambda: [p for k, p in rec.from_radio(key="swarm/a1") if isinstance(decode(p), NameConflict)],
+        "NameConflict in the local inbox",
+    )
     note = decode(rec.from_radio(key="swarm/a1")[-1][1])
     assert isinstance(note, NameConflict) and note.name == "a5" and note.other_id == 5
 
     def told() -> set[int]:
-        out = {f.payload[2] for f in link.tunnels(Kind.P2P)
-               if isinstance(decode(f.payload[5:5 + f.payload[4]]), NameConflict)}
+        out = {
+            f.payload[2]
+            for f in link.tunnels(Kind.P2P)
+            if isinstance(decode(f.payload[5 : 5 + f.payload[4]]), NameConflict)
+        }
         for f in link.tunnels(Kind.MULTI):  # the same note to both: one multicast frame
-            data = f.payload[5:5 + f.payload[4]]
-            if isinstance(decode(data[1 + data[0]:]), NameConflict):
-                out |= set(data[1:1 + data[0]])
+            data = f.payload[5 : 5 + f.payload[4]]
+            if isinstance(decode(data[1 + data[0] :]), NameConflict):
+                out |= set(data[1 : 1 + data[0]])
         return out
 
     wait_until(lambda: told() >= {5, 6}, "NameConflict sent to both claimants")
@@ -528,8 +561,11 @@ def test_replayed_signed_frame_counted() -> None:
         # Zenoh may deliver even a local put on another thread: wait for it
         wait_until(lambda: rec.from_radio(encode(StartPool(9))), "the first copy published")
         bridge.handle_frame(tunnel_frame(9, Kind.P2P, encode(StartPool(8)), target=1))
-        bridge.handle_frame(tunnel_frame(9, Kind.P2P, encode(StartPool(7)), target=1,
-                                         key=key_from_passphrase("not the swarm key")))
+        bridge.handle_frame(
+            tunnel_frame(
+                9, Kind.P2P, encode(StartPool(7)), target=1, key=key_from_passphrase("not the swarm key")
+            )
+        )
         assert (bridge.stats.unsigned, bridge.stats.bad_signature) == (1, 1)
         bridge.handle_frame(radio_status(33))  # the local radio's ids, unsigned: past signing
         assert bridge.stats.unsigned == 1
@@ -540,6 +576,7 @@ def test_replayed_signed_frame_counted() -> None:
 
 
 # -- signing over the air ----------------------------------------------------------
+
 
 def test_signed_swarm_flows_and_drops_unsigned_and_forged(tmp_path: Path) -> None:
     with bridged(tmp_path, 3, config=lambda i: BridgeConfig(signing_key=KEY, link_id=i)) as net:
@@ -554,21 +591,22 @@ def test_signed_swarm_flows_and_drops_unsigned_and_forged(tmp_path: Path) -> Non
         # inject, from a3's radio, an unsigned frame and one signed with another key
         unsigned = encode(StartPool(3))
         forged = encode(Selection(3, 3, 666, 5))
-        raw = (FrameBuilder(3, COMP_ID).tunnel(unsigned, target_system=0,
-                                               payload_type=PAYLOAD_TYPE_BASE + Kind.P2P)
-               + FrameBuilder(3, COMP_ID, signing_key=key_from_passphrase("intruder")).tunnel(
-                   forged, target_system=0, payload_type=PAYLOAD_TYPE_BASE + Kind.P2P))
+        raw = FrameBuilder(3, COMP_ID).tunnel(
+            unsigned, target_system=0, payload_type=PAYLOAD_TYPE_BASE + Kind.P2P
+        ) + FrameBuilder(3, COMP_ID, signing_key=key_from_passphrase("intruder")).tunnel(
+            forged, target_system=0, payload_type=PAYLOAD_TYPE_BASE + Kind.P2P
+        )
         fd = os.open(net.paths[2], os.O_WRONLY | os.O_NOCTTY)
         try:
             os.write(fd, raw)
         finally:
             os.close(fd)
+
         def dropped_both(x: Node) -> bool:
             return x.bridge.stats.unsigned >= 1 and x.bridge.stats.bad_signature >= 1
 
         for x in (a1, a2):
-            wait_until(partial(dropped_both, x),
-                       f"{x.name} dropping the unsigned and the forged frame")
+            wait_until(partial(dropped_both, x), f"{x.name} dropping the unsigned and the forged frame")
         # and the swarm still talks afterwards
         after = encode(Selection(2, 1, 778, 5))
         a2.transport.send("a1", decode(after))

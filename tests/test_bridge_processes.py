@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from swarm.procs import start_emulator
+from swarm.cli.procs import start_emulator
 
 NODE = Path(__file__).resolve().parent / "bridge_node.py"
 ROOT = NODE.parent.parent
@@ -37,10 +37,27 @@ def nodes(per_node_args: Sequence[Sequence[str]]) -> Iterator[list[subprocess.Po
         for i, extra in enumerate(per_node_args):
             name = NAMES[i]
             peers = ",".join(n for n in NAMES if n != name)
-            procs.append(subprocess.Popen(
-                [sys.executable, str(NODE), "--name", name, "--id", str(i + 1), "--peers", peers,
-                 "--seconds", str(SECONDS), *extra],
-                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+            procs.append(
+                subprocess.Popen(
+                    [
+                        sys.executable,
+                        str(NODE),
+                        "--name",
+                        name,
+                        "--id",
+                        str(i + 1),
+                        "--peers",
+                        peers,
+                        "--seconds",
+                        str(SECONDS),
+                        *extra,
+                    ],
+                    cwd=ROOT,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                )
+            )
         yield procs
     finally:
         for p in procs:
@@ -72,8 +89,7 @@ def check(rep: dict[str, dict[str, Any]], min_fraction: float) -> None:
             assert sent > 0, f"{peer} never sent to {name}: {rep[peer]}"
             assert len(got) == len(set(got)), f"{name} got duplicates from {peer}: {sorted(got)}"
             assert len(got) <= sent
-            assert len(got) > min_fraction * sent, \
-                f"{name} got {len(got)} of {sent} messages from {peer}"
+            assert len(got) > min_fraction * sent, f"{name} got {len(got)} of {sent} messages from {peer}"
 
 
 def test_three_processes_over_zenoh_on_ip() -> None:

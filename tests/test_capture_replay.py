@@ -436,8 +436,9 @@ def mixed_capture(path: Path) -> list[bytes]:
         b2.tunnel(b"\x01\x02payload"),
         b1.build(dialect.MAVLink_attitude_message(1234, math.nan, 0.5, -0.25, 0, 0, 0)),
         b2.build(dialect.MAVLink_statustext_message(4, b"low battery")),
-        pack_frame(MSG_RADIO_STATUS, bytes([1, 0, 0, 0, 200, 190, 80, 40, 35]),
-                   sysid=51, compid=68, seq=9, version=1),
+        pack_frame(
+            MSG_RADIO_STATUS, bytes([1, 0, 0, 0, 200, 190, 80, 40, 35]), sysid=51, compid=68, seq=9, version=1
+        ),
         b2.heartbeat(),
     ]
     with TlogWriter(path) as w:
@@ -502,9 +503,7 @@ def test_pymavlink_reads_the_same_capture(tmp_path: Path, monkeypatch: pytest.Mo
     assert [m._timestamp for m in theirs] == pytest.approx([d["t"] for d in ours])
 
 
-def test_pymavlink_reads_a_capture_link_file(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_pymavlink_reads_a_capture_link_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "loop.tlog"
     b = FrameBuilder(9, 1)
     with loop_capture(path) as link:
@@ -528,8 +527,7 @@ def test_capture_stats(tmp_path: Path) -> None:
     json.dumps(s, allow_nan=False)
     assert s["frames"] == 6 and s["bytes"] == sum(map(len, frames))
     assert s["duration"] == pytest.approx(2.5)
-    assert s["messages"] == {"HEARTBEAT": 2, "TUNNEL": 1, "ATTITUDE": 1, "STATUSTEXT": 1,
-                             "RADIO_STATUS": 1}
+    assert s["messages"] == {"HEARTBEAT": 2, "TUNNEL": 1, "ATTITUDE": 1, "STATUSTEXT": 1, "RADIO_STATUS": 1}
     by_id = {sy["sysid"]: sy for sy in s["systems"]}
     assert sorted(by_id) == [1, 2, 51]
     assert by_id[2]["frames"] == 3

@@ -14,18 +14,8 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from swarm.gcs.station import (
-    CARRIED_OUT,
-    NO_ANSWER,
-    RESULTS,
-    CommandRefused,
-    CommandSpec,
-    StationConfig,
-    StationCore,
-    StOut,
-)
-from swarm.gslink import FLAG_ARMED, FLAG_FC_OK, CommandLog, answer_command, mode_code, remembered
-from swarm.messages import (
+from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, CommandLog, answer_command, mode_code, remembered
+from swarm.core.messages import (
     AckResult,
     Command,
     CommandAck,
@@ -37,13 +27,24 @@ from swarm.messages import (
     Pose,
     Telemetry,
 )
-from swarm.pilot import Pilot, PilotConfig, Role
+from swarm.core.pilot import Pilot, PilotConfig, Role
+from swarm.core.station import (
+    CARRIED_OUT,
+    NO_ANSWER,
+    RESULTS,
+    CommandRefused,
+    CommandSpec,
+    StationConfig,
+    StationCore,
+    StOut,
+)
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)
 
 
-def tm(sender: int, *, mode: str = "POSCTL", flags: int = FLAG_FC_OK, phase: Phase = Phase.IDLE,
-       leader: int = 0) -> Telemetry:
+def tm(
+    sender: int, *, mode: str = "POSCTL", flags: int = FLAG_FC_OK, phase: Phase = Phase.IDLE, leader: int = 0
+) -> Telemetry:
     return Telemetry(sender, POSE, mode_code(mode), flags, phase, leader, 80, 180, 170, 0.0)
 
 
@@ -57,14 +58,23 @@ def station(*ids: int, leader: int = 0, mode: str = "POSCTL", flags: int = FLAG_
         out = core.handle(GSAdvertize(i, f"agent{i}"), 0.0)
         (c,) = [o for o in out if isinstance(o.msg, GSConnect)]
         core.handle(GSConnectAck(i, c.msg.seq, 1000), 0.0)
-        core.handle(tm(i, mode=mode, flags=flags, phase=Phase.LEADER if i == leader else
-                       Phase.MEMBER if leader else Phase.IDLE, leader=leader), 0.0)
+        core.handle(
+            tm(
+                i,
+                mode=mode,
+                flags=flags,
+                phase=Phase.LEADER if i == leader else Phase.MEMBER if leader else Phase.IDLE,
+                leader=leader,
+            ),
+            0.0,
+        )
     core.take_events()
     return core
 
 
-def run(core: StationCore, t0: float, t1: float, step: float = 0.1,
-        telemetry: dict[int, Telemetry] | None = None) -> list[tuple[float, StOut]]:
+def run(
+    core: StationCore, t0: float, t1: float, step: float = 0.1, telemetry: dict[int, Telemetry] | None = None
+) -> list[tuple[float, StOut]]:
     """Tick from t0 to t1 (agents keep sending ``telemetry`` every second); what was sent."""
     sent = []
     t = t0
@@ -78,6 +88,7 @@ def run(core: StationCore, t0: float, t1: float, step: float = 0.1,
 
 
 # -- the station ----------------------------------------------------------------------
+
 
 def test_retries_back_off_over_twelve_seconds_then_no_answer() -> None:
     core = station(3)
@@ -99,8 +110,10 @@ def test_an_answer_on_the_fifth_try_is_accepted() -> None:
     sent = run(core, 0.0, 6.6)
     assert len(sent) == 4  # 0.5, 1.5, 3.5, 6.5
     core.handle(CommandAck(3, out[0].msg.seq, AckResult.ACCEPTED), 6.7)
-    assert req.done and req.body() == {"ok": True, "results": [
-        {"agent": 3, "result": "ACCEPTED", "reason": ""}]}
+    assert req.done and req.body() == {
+        "ok": True,
+        "results": [{"agent": 3, "result": "ACCEPTED", "reason": ""}],
+    }
 
 
 def test_a_return_carried_out_whose_answers_were_all_lost_is_carried_out() -> None:
@@ -112,16 +125,24 @@ def test_a_return_carried_out_whose_answers_were_all_lost_is_carried_out() -> No
     assert req.done and req.status == 200
     body = req.body()
     assert body["ok"] is True
-    assert body["results"] == [{"agent": 3, "result": CARRIED_OUT,
-                                "reason": "no answer after 6 tries in 12 s, but it shows mode AUTO.RTL"}]
+    assert body["results"] == [
+        {
+            "agent": 3,
+            "result": CARRIED_OUT,
+            "reason": "no answer after 6 tries in 12 s, but it shows mode AUTO.RTL",
+        }
+    ]
 
 
-@pytest.mark.parametrize(("kind", "before", "after", "shown"), [
-    (CommandKind.ARM, tm(3), tm(3, flags=FLAG_FC_OK | FLAG_ARMED), "armed"),
-    (CommandKind.DISARM, tm(3, flags=FLAG_FC_OK | FLAG_ARMED), tm(3), "disarmed"),
-    (CommandKind.LAND, tm(3), tm(3, mode="LAND"), "mode LAND"),
-    (CommandKind.TAKEOFF, tm(3), tm(3, mode="AUTO.TAKEOFF"), "mode AUTO.TAKEOFF"),
-])
+@pytest.mark.parametrize(
+    ("kind", "before", "after", "shown"),
+    [
+        (CommandKind.ARM, tm(3), tm(3, flags=FLAG_FC_OK | FLAG_ARMED), "armed"),
+        (CommandKind.DISARM, tm(3, flags=FLAG_FC_OK | FLAG_ARMED), tm(3), "disarmed"),
+        (CommandKind.LAND, tm(3), tm(3, mode="LAND"), "mode LAND"),
+        (CommandKind.TAKEOFF, tm(3), tm(3, mode="AUTO.TAKEOFF"), "mode AUTO.TAKEOFF"),
+    ],
+)
 def test_evidence_per_command(kind: CommandKind, before: Telemetry, after: Telemetry, shown: str) -> None:
     core = station(3)
     core.handle(before, 0.0)
@@ -153,8 +174,10 @@ def test_a_swarm_follow_sent_before_an_election_reaches_the_new_leader() -> None
     sent = run(core, 0.3, 0.6)
     assert [(o.to, o.msg.seq, o.msg.target) for _, o in sent] == [(3, seq, 0)]
     core.handle(CommandAck(3, seq, AckResult.ACCEPTED), 0.7)
-    assert req.done and req.body() == {"ok": True, "results": [
-        {"agent": 3, "result": "ACCEPTED", "reason": "", "swarm": True}]}
+    assert req.done and req.body() == {
+        "ok": True,
+        "results": [{"agent": 3, "result": "ACCEPTED", "reason": "", "swarm": True}],
+    }
 
 
 def test_not_the_leader_is_not_final_while_time_remains() -> None:
@@ -179,8 +202,9 @@ def test_a_refusal_that_stays_is_the_result_at_give_up() -> None:
         core.handle(CommandAck(2, o.msg.seq, AckResult.NO_LEADER, "no leader elected yet"), t + 0.05)
     assert not req.done
     run(core, 12.0, 12.0)
-    assert req.body()["results"] == [{"agent": 2, "result": "NO_LEADER", "reason": "no leader elected yet",
-                                      "swarm": True}]
+    assert req.body()["results"] == [
+        {"agent": 2, "result": "NO_LEADER", "reason": "no leader elected yet", "swarm": True}
+    ]
 
 
 def test_the_old_leaders_late_accept_counts_and_later_answers_are_duplicates() -> None:
@@ -207,8 +231,18 @@ def test_config_refuses_a_bad_back_off() -> None:
 
 
 def test_result_names_are_stable() -> None:
-    assert RESULTS == ("ACCEPTED", "REJECTED", "UNKNOWN_AGENT", "NOT_CONNECTED", "NO_LEADER",
-                       "BAD_ARGUMENT", "FAILED", "IN_PROGRESS", "CARRIED_OUT", "NO_ANSWER")
+    assert RESULTS == (
+        "ACCEPTED",
+        "REJECTED",
+        "UNKNOWN_AGENT",
+        "NOT_CONNECTED",
+        "NO_LEADER",
+        "BAD_ARGUMENT",
+        "FAILED",
+        "IN_PROGRESS",
+        "CARRIED_OUT",
+        "NO_ANSWER",
+    )
 
 
 def test_a_restarted_station_does_not_reuse_its_seqs() -> None:
@@ -222,10 +256,12 @@ def test_a_restarted_station_does_not_reuse_its_seqs() -> None:
 
 # -- the agent's answers ------------------------------------------------------------------
 
+
 def decide_counting(runs: list[Command]):  # type: ignore[no-untyped-def]
     def decide(c: Command) -> tuple[AckResult, str, list[str]]:
         runs.append(c)
         return AckResult.ACCEPTED, "", ["takeoff"]
+
     return decide
 
 
@@ -276,6 +312,7 @@ def test_the_log_forgets_the_oldest() -> None:
 
 # -- a lossy campaign ---------------------------------------------------------------------
 
+
 @dataclass
 class SimAgent:
     """The agent side as the runtime has it: the answer log and a real pilot."""
@@ -309,8 +346,11 @@ def campaign(seed: int, n: int, loss: float) -> dict[str, int]:
     for k in range(n):
         if k % 7 == 6:  # an election: the lead moves, the station hears of it a bit later
             leader = leader % 3 + 1
-        spec = (CommandSpec(None, CommandKind.FOLLOW, heading=float(k % 360)) if k % 2 == 0
-                else CommandSpec(None, CommandKind.STOP))
+        spec = (
+            CommandSpec(None, CommandKind.FOLLOW, heading=float(k % 360))
+            if k % 2 == 0
+            else CommandSpec(None, CommandKind.STOP)
+        )
         try:
             req, out = core.submit(spec, t)
         except CommandRefused:  # no leader or nobody connected this instant: nothing sent
@@ -338,11 +378,16 @@ def campaign(seed: int, n: int, loss: float) -> dict[str, int]:
                 ag = agents[to]
                 pilot = ag.pilot
                 assert pilot is not None
-                role = Role(Phase.LEADER if to == leader else Phase.MEMBER, leader,
-                            frozenset(agents) - {to} if to == leader else frozenset(), {})
+                role = Role(
+                    Phase.LEADER if to == leader else Phase.MEMBER,
+                    leader,
+                    frozenset(agents) - {to} if to == leader else frozenset(),
+                    {},
+                )
                 now_t = t
-                ack, _, repeat = answer_command(ag.log, msg, to, False,
-                                                lambda c, r=role, p=pilot, n=now_t: p.command(c, r, n), t)
+                ack, _, repeat = answer_command(
+                    ag.log, msg, to, False, lambda c, r=role, p=pilot, n=now_t: p.command(c, r, n), t
+                )
                 if not repeat and ack.result == AckResult.ACCEPTED:
                     ag.carried_out.append((msg.seq, ag.id))
                 send(0, ack)
@@ -354,9 +399,16 @@ def campaign(seed: int, n: int, loss: float) -> dict[str, int]:
                     send(0, again)
         reports += [(p.msg.seq, p.result or "", p.agent) for p in req.pending]
     done = {seq for a in agents.values() for seq, _ in a.carried_out}
-    out = {"sent": len(reports), "refused_at_station": refused_here, "accepted": 0,
-           "carried_out_unacked": 0, "refused": 0, "no_answer": 0, "silently_lost": 0,
-           "wrongly_reported": 0}
+    out = {
+        "sent": len(reports),
+        "refused_at_station": refused_here,
+        "accepted": 0,
+        "carried_out_unacked": 0,
+        "refused": 0,
+        "no_answer": 0,
+        "silently_lost": 0,
+        "wrongly_reported": 0,
+    }
     for seq, result, agent in reports:
         if result == "ACCEPTED":
             out["accepted"] += 1

@@ -15,9 +15,10 @@ from gcs_browser import browser
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.gcs.server import GcsServer, ServerConfig
-from swarm.gcs.station import Station, StationConfig
-from swarm.messages import Command, CommandKind, Phase
+from swarm.core.messages import Command, CommandKind, Phase
+from swarm.core.station import StationConfig
+from swarm.runtime.server import GcsServer, ServerConfig
+from swarm.runtime.station import Station
 
 
 class HomingAgent(ScriptedAgent):
@@ -54,11 +55,13 @@ def live() -> Iterator[tuple[str, HomingAgent]]:
 
 
 def test_a_return_done_but_unanswered_is_carried_out_on_the_api_and_the_page(
-        live: tuple[str, HomingAgent]) -> None:
+    live: tuple[str, HomingAgent],
+) -> None:
     url, agent = live
     data = json.dumps({"target": 1, "kind": "return"}).encode()
-    req = urllib.request.Request(url + "api/command", data=data, method="POST",
-                                 headers={"Content-Type": "application/json"})
+    req = urllib.request.Request(
+        url + "api/command", data=data, method="POST", headers={"Content-Type": "application/json"}
+    )
     with urllib.request.urlopen(req, timeout=30) as r:
         status, body = r.status, json.loads(r.read())
     assert status == 200 and body["ok"] is True, body
@@ -74,6 +77,7 @@ def test_a_return_done_but_unanswered_is_carried_out_on_the_api_and_the_page(
         page.click('#agents [data-agent-id="1"]')
         page.select_option("#cmd-target", "selected")
         page.click('#commands button[data-kind="return"]')
-        page.wait_for_function("() => /carried out/.test(document.querySelector('#cmd-status').textContent)",
-                               timeout=20000)
+        page.wait_for_function(
+            "() => /carried out/.test(document.querySelector('#cmd-status').textContent)", timeout=20000
+        )
         assert "ok" in str(page.get_attribute("#cmd-status", "class"))

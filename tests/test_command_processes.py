@@ -1,7 +1,7 @@
 """Issue 11, item 5, through real processes: ``swarm radio-emu --loss 0.2``, a ``swarm gcs``
 and two ``swarm agent`` processes on emulated radios; swarm commands in a row (FOLLOW
 and STOP) end with none silently lost and none wrongly reported, each outcome checked
-against the agents' own logs (:mod:`swarm.bench.commands`). 20 commands here; the
+against the agents' own logs (:mod:`swarm.cli.bench.commands`). 20 commands here; the
 100-command campaign is marked slow (``pytest -m slow``) and is ``run()`` of the bench."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from swarm.bench.commands import run
+from swarm.cli.bench.commands import run
 
 
 def check(figures: dict[str, Any], n: int) -> None:

@@ -14,21 +14,43 @@ from pathlib import Path
 import pytest
 
 from radios.tlog import TlogWriter
-from swarm.commands.replay import main as replay_main
-from swarm.tracks import analyse
+from swarm.cli.commands.replay import main as replay_main
+from swarm.sim.tracks import analyse
 
 
 def run_swarm(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "swarm.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "swarm.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, object], Path]:
     d = tmp_path_factory.mktemp("demo")
     # a short route, and a formation threshold with room for a loaded CI machine
-    p = run_swarm("demo", "--agents", "3", "--leg", "80", "--settle", "10", "--max-rms", "2.0", "--headless",
-                  "--no-gcs", "--json", "--dir", str(d), "--duration", "300", timeout=400)
+    p = run_swarm(
+        "demo",
+        "--agents",
+        "3",
+        "--leg",
+        "80",
+        "--settle",
+        "10",
+        "--max-rms",
+        "2.0",
+        "--headless",
+        "--no-gcs",
+        "--json",
+        "--dir",
+        str(d),
+        "--duration",
+        "300",
+        timeout=400,
+    )
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     return json.loads(p.stdout), d
 
@@ -48,8 +70,9 @@ def test_demo_elects_flies_in_formation_and_summarises(demo: tuple[dict[str, obj
     assert set(s["per_member"]) == {str(k) for k in (1, 2, 3) if k != s["leader"]}  # type: ignore[arg-type]
 
 
-def test_replay_plots_the_demo_capture(demo: tuple[dict[str, object], Path], tmp_path: Path,
-                                       capsys: pytest.CaptureFixture[str]) -> None:
+def test_replay_plots_the_demo_capture(
+    demo: tuple[dict[str, object], Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     s, _d = demo
     out = tmp_path / "tracks.png"
     assert replay_main([str(s["capture"]), "--plot", str(out), "--json"]) == 0
@@ -99,9 +122,23 @@ def test_sigterm_stops_the_demo_and_everything_it_started(tmp_path: Path) -> Non
     import signal
     import time
 
-    p = subprocess.Popen([sys.executable, "-m", "swarm.cli", "demo", "--agents", "2", "--headless",
-                          "--no-gcs",
-                          "--dir", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "swarm.cli",
+            "demo",
+            "--agents",
+            "2",
+            "--headless",
+            "--no-gcs",
+            "--dir",
+            str(tmp_path),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert p.stdout is not None
         for line in p.stdout:

@@ -37,8 +37,11 @@ def make_sim() -> Iterator[Any]:
     started: list[Any] = []
 
     def make(profile: str, speedup: float = SPEEDUP) -> tuple[Any, str]:
-        sim = sim_mod.VehicleSim(sim_mod.SimConfig(vehicles=1, profile=profile, speedup=speedup, seed=0,
-                                                   base_port=free_port(profile)))
+        sim = sim_mod.VehicleSim(
+            sim_mod.SimConfig(
+                vehicles=1, profile=profile, speedup=speedup, seed=0, base_port=free_port(profile)
+            )
+        )
         endpoints = sim.start()
         started.append(sim)
         return sim, endpoints[0]
@@ -55,8 +58,7 @@ def _connect(endpoint: str, **kw: Any) -> drv.Vehicle:
 
 
 def _wait_telemetry(v: drv.Vehicle) -> drv.VehicleState:
-    return v.wait_for(lambda s: s.ned is not None and s.rel_alt is not None and s.gps_ok, 15.0,
-                      "telemetry")
+    return v.wait_for(lambda s: s.ned is not None and s.rel_alt is not None and s.gps_ok, 15.0, "telemetry")
 
 
 @pytest.mark.parametrize("profile", PROFILES)

@@ -41,11 +41,21 @@ class FakeAutopilot:
     """Sends HEARTBEATs to the driver's udpin port and answers commands with ``ack``
     (None = never answer); records every message it receives."""
 
-    def __init__(self, port: int, *, autopilot: int = 12, sysid: int = 1, custom_mode: int = 0,
-                 ack: Callable[[Any], int | None] | None = None, text: str = "",
-                 gcs_first: bool = False, signing_key: bytes | None = None) -> None:
-        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=sysid,
-                                               source_component=1)
+    def __init__(
+        self,
+        port: int,
+        *,
+        autopilot: int = 12,
+        sysid: int = 1,
+        custom_mode: int = 0,
+        ack: Callable[[Any], int | None] | None = None,
+        text: str = "",
+        gcs_first: bool = False,
+        signing_key: bytes | None = None,
+    ) -> None:
+        self.conn = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=sysid, source_component=1
+        )
         if signing_key is not None:
             self.conn.setup_signing(signing_key, sign_outgoing=True)
         self.autopilot, self.custom_mode, self.ack, self.text = autopilot, custom_mode, ack, text
@@ -80,8 +90,9 @@ class FakeAutopilot:
                         continue
                     if result != 0 and self.text:
                         self.conn.mav.statustext_send(3, self.text.encode())
-                    self.conn.mav.command_ack_send(m.command, result, 0, 0, m.get_srcSystem(),
-                                                   m.get_srcComponent())
+                    self.conn.mav.command_ack_send(
+                        m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()
+                    )
 
     def of_type(self, name: str) -> list[Any]:
         return [m for m in list(self.received) if m.get_type() == name]
@@ -107,25 +118,42 @@ def fake_factory():
 
 
 # --- connection strings ---------------------------------------------------------------
-@pytest.mark.parametrize(("url", "expected"), [
-    ("serial:/dev/ttyAMA0:921600", drv.Endpoint("serial", device="/dev/ttyAMA0", baud=921600)),
-    ("serial:/dev/ttyUSB0", drv.Endpoint("serial", device="/dev/ttyUSB0", baud=57600)),
-    ("/dev/ttyACM0:115200", drv.Endpoint("serial", device="/dev/ttyACM0", baud=115200)),
-    ("udp:127.0.0.1:14540", drv.Endpoint("udpin", host="127.0.0.1", port=14540)),
-    ("udpin:0.0.0.0:14541", drv.Endpoint("udpin", host="0.0.0.0", port=14541)),
-    ("udp://:14540", drv.Endpoint("udpin", host="0.0.0.0", port=14540)),
-    ("udpout:10.0.0.2:14550", drv.Endpoint("udpout", host="10.0.0.2", port=14550)),
-    ("tcp:127.0.0.1:5760", drv.Endpoint("tcp", host="127.0.0.1", port=5760)),
-])
+@pytest.mark.parametrize(
+    ("url", "expected"),
+    [
+        ("serial:/dev/ttyAMA0:921600", drv.Endpoint("serial", device="/dev/ttyAMA0", baud=921600)),
+        ("serial:/dev/ttyUSB0", drv.Endpoint("serial", device="/dev/ttyUSB0", baud=57600)),
+        ("/dev/ttyACM0:115200", drv.Endpoint("serial", device="/dev/ttyACM0", baud=115200)),
+        ("udp:127.0.0.1:14540", drv.Endpoint("udpin", host="127.0.0.1", port=14540)),
+        ("udpin:0.0.0.0:14541", drv.Endpoint("udpin", host="0.0.0.0", port=14541)),
+        ("udp://:14540", drv.Endpoint("udpin", host="0.0.0.0", port=14540)),
+        ("udpout:10.0.0.2:14550", drv.Endpoint("udpout", host="10.0.0.2", port=14550)),
+        ("tcp:127.0.0.1:5760", drv.Endpoint("tcp", host="127.0.0.1", port=5760)),
+    ],
+)
 def test_parse_url(url: str, expected: drv.Endpoint) -> None:
     assert drv.parse_url(url) == expected
 
 
-@pytest.mark.parametrize("url", [
-    "", "   ", "nonsense", "ftp:host:21", "udp:127.0.0.1", "udp:127.0.0.1:port", "udp:127.0.0.1:0",
-    "udp:127.0.0.1:70000", "tcp::5760", "tcp:127.0.0.1", "serial:", "serial:/dev/ttyS0:fast",
-    "serial:/dev/ttyS0:-5", "udpout::14550",
-])
+@pytest.mark.parametrize(
+    "url",
+    [
+        "",
+        "   ",
+        "nonsense",
+        "ftp:host:21",
+        "udp:127.0.0.1",
+        "udp:127.0.0.1:port",
+        "udp:127.0.0.1:0",
+        "udp:127.0.0.1:70000",
+        "tcp::5760",
+        "tcp:127.0.0.1",
+        "serial:",
+        "serial:/dev/ttyS0:fast",
+        "serial:/dev/ttyS0:-5",
+        "udpout::14550",
+    ],
+)
 def test_parse_url_rejects(url: str) -> None:
     with pytest.raises(ConnectError):
         drv.parse_url(url)
@@ -184,10 +212,18 @@ def test_silent_udpout_peer_times_out() -> None:
 
 
 # --- modes ---------------------------------------------------------------------------------
-@pytest.mark.parametrize(("name", "custom"), [
-    ("OFFBOARD", 393216), ("POSCTL", 196608), ("AUTO.TAKEOFF", 33816576), ("AUTO.LOITER", 50593792),
-    ("AUTO.MISSION", 67371008), ("AUTO.RTL", 84148224), ("AUTO.LAND", 100925440),
-])
+@pytest.mark.parametrize(
+    ("name", "custom"),
+    [
+        ("OFFBOARD", 393216),
+        ("POSCTL", 196608),
+        ("AUTO.TAKEOFF", 33816576),
+        ("AUTO.LOITER", 50593792),
+        ("AUTO.MISSION", 67371008),
+        ("AUTO.RTL", 84148224),
+        ("AUTO.LAND", 100925440),
+    ],
+)
 def test_px4_modes(name: str, custom: int) -> None:
     assert custom_mode_of("px4", name) == custom
     assert decode_mode("px4", custom, 1 | 128) == name
@@ -195,10 +231,21 @@ def test_px4_modes(name: str, custom: int) -> None:
     assert p1 == 1 and (int(p2) << 16 | int(p3) << 24) == custom and p2 < 256
 
 
-@pytest.mark.parametrize(("name", "number"), [
-    ("STABILIZE", 0), ("ALT_HOLD", 2), ("AUTO", 3), ("GUIDED", 4), ("LOITER", 5), ("RTL", 6),
-    ("LAND", 9), ("POSHOLD", 16), ("SMART_RTL", 21), ("FOLLOW", 23),
-])
+@pytest.mark.parametrize(
+    ("name", "number"),
+    [
+        ("STABILIZE", 0),
+        ("ALT_HOLD", 2),
+        ("AUTO", 3),
+        ("GUIDED", 4),
+        ("LOITER", 5),
+        ("RTL", 6),
+        ("LAND", 9),
+        ("POSHOLD", 16),
+        ("SMART_RTL", 21),
+        ("FOLLOW", 23),
+    ],
+)
 def test_ardupilot_modes(name: str, number: int) -> None:
     assert custom_mode_of("ardupilot", name) == number
     assert decode_mode("ardupilot", number, 1) == name
@@ -221,12 +268,24 @@ def test_mode_aliases_and_unknown() -> None:
 
 # --- setpoints ----------------------------------------------------------------------------
 BAD_LOCAL = [
-    (math.nan, 0, -5, 0), (0, math.inf, -5, 0), (0, 0, -math.inf, 0), (0, 0, -5, math.nan),
-    (10_001, 0, -5, 0), (0, -10_001, -5, 0), (0, 0, -20_000, 0), (0, 0, 5_000, 0), ("x", 0, 0, 0),
+    (math.nan, 0, -5, 0),
+    (0, math.inf, -5, 0),
+    (0, 0, -math.inf, 0),
+    (0, 0, -5, math.nan),
+    (10_001, 0, -5, 0),
+    (0, -10_001, -5, 0),
+    (0, 0, -20_000, 0),
+    (0, 0, 5_000, 0),
+    ("x", 0, 0, 0),
 ]
 BAD_GLOBAL = [
-    (math.nan, 8.5, 10, 0), (47.3, math.inf, 10, 0), (91, 8.5, 10, 0), (47.3, -181, 10, 0),
-    (47.3, 8.5, 50_000, 0), (47.3, 8.5, -5_000, 0), (47.3, 8.5, 10, math.inf),
+    (math.nan, 8.5, 10, 0),
+    (47.3, math.inf, 10, 0),
+    (91, 8.5, 10, 0),
+    (47.3, -181, 10, 0),
+    (47.3, 8.5, 50_000, 0),
+    (47.3, 8.5, -5_000, 0),
+    (47.3, 8.5, 10, math.inf),
 ]
 
 
@@ -255,8 +314,9 @@ def _roundtrip(msg: Any) -> Any:
 
 
 def test_local_setpoint_message() -> None:
-    msg = drv.setpoint_message(drv.validate_local(20, -3, -10, 1.0), time_boot_ms=1234,
-                               target_system=1, target_component=1)
+    msg = drv.setpoint_message(
+        drv.validate_local(20, -3, -10, 1.0), time_boot_ms=1234, target_system=1, target_component=1
+    )
     got = _roundtrip(msg)
     assert got.get_type() == "SET_POSITION_TARGET_LOCAL_NED"
     assert got.coordinate_frame == 1 and got.type_mask == 2552
@@ -266,8 +326,12 @@ def test_local_setpoint_message() -> None:
 
 
 def test_global_setpoint_message() -> None:
-    msg = drv.setpoint_message(drv.validate_global(47.397742, 8.545594, 10, -0.5), time_boot_ms=2**32 + 5,
-                               target_system=3, target_component=1)
+    msg = drv.setpoint_message(
+        drv.validate_global(47.397742, 8.545594, 10, -0.5),
+        time_boot_ms=2**32 + 5,
+        target_system=3,
+        target_component=1,
+    )
     got = _roundtrip(msg)
     assert got.get_type() == "SET_POSITION_TARGET_GLOBAL_INT"
     assert got.coordinate_frame == 6 and got.type_mask == 2552
@@ -317,8 +381,7 @@ def test_command_never_acknowledged(fake_factory) -> None:
 
 def test_command_rejected_carries_text(fake_factory) -> None:
     port = free_udp_port()
-    fake_factory(port, ack=lambda m: 1 if m.command == 400 else 0,
-                 text="Arming denied: no GPS fix")
+    fake_factory(port, ack=lambda m: 1 if m.command == 400 else 0, text="Arming denied: no GPS fix")
     with drv.connect(f"udpin:127.0.0.1:{port}", timeout=5) as v, pytest.raises(CommandRejected) as info:
         v.arm()
     assert info.value.result == 1 and info.value.command == 400
@@ -337,10 +400,12 @@ def test_in_progress_keeps_waiting(fake_factory) -> None:
 
     fake = fake_factory(port, ack=ack)
     with drv.connect(f"udpin:127.0.0.1:{port}", timeout=5, command_timeout=0.3) as v:
+
         def finish() -> None:
             time.sleep(0.6)  # longer than one try: still waiting thanks to IN_PROGRESS
             fake.conn.mav.command_ack_send(400, 0, 0, 0, v.target_system, 191)
             fake.conn.mav.heartbeat_send(2, 12, 1 | 128, 0, 4)
+
         threading.Thread(target=finish, daemon=True).start()
         v.arm()
         assert calls["n"] == 1
@@ -385,8 +450,13 @@ def test_link_lost_and_restored(fake_factory) -> None:
     port = free_udp_port()
     fake = fake_factory(port)
     lost, restored = threading.Event(), threading.Event()
-    with drv.connect(f"udpin:127.0.0.1:{port}", timeout=5, link_timeout=0.5,
-                     on_link_lost=lost.set, on_link_restored=restored.set) as v:
+    with drv.connect(
+        f"udpin:127.0.0.1:{port}",
+        timeout=5,
+        link_timeout=0.5,
+        on_link_lost=lost.set,
+        on_link_restored=restored.set,
+    ) as v:
         assert v.link_ok
         fake.heartbeats = False
         assert lost.wait(5) and not v.link_ok
@@ -441,8 +511,14 @@ def test_setpoint_with_velocity_feed_forward() -> None:
     got = _roundtrip(drv.setpoint_message(t, time_boot_ms=1, target_system=1, target_component=1))
     assert got.type_mask == 2496  # position, velocity and yaw used
     assert (got.vx, got.vy, got.vz) == (5.0, -1.0, 0.0)
-    loc = _roundtrip(drv.setpoint_message(drv.validate_local(1, 2, -3, 0.0, velocity=(0, 1, 0)),
-                                          time_boot_ms=1, target_system=1, target_component=1))
+    loc = _roundtrip(
+        drv.setpoint_message(
+            drv.validate_local(1, 2, -3, 0.0, velocity=(0, 1, 0)),
+            time_boot_ms=1,
+            target_system=1,
+            target_component=1,
+        )
+    )
     assert loc.type_mask == 2496 and loc.vy == 1.0
     for bad in ((math.nan, 0, 0), (0, 0), (40.0, 0, 0)):
         with pytest.raises(drv.SetpointError):

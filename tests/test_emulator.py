@@ -60,8 +60,9 @@ def mav_connect(path: str, sysid: int) -> Any:
 
 
 def send_heartbeat(conn: Any) -> None:
-    conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
-                            mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    conn.mav.heartbeat_send(
+        mavutil.mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+    )
 
 
 def mav_recv_until(conn: Any, match: Any, timeout: float, seen: list[Any] | None = None) -> Any:
@@ -85,8 +86,7 @@ def from_sys(sysid: int, kind: str = "HEARTBEAT") -> Any:
 # -- delivery -----------------------------------------------------------------------------------
 
 
-def test_heartbeat_reaches_the_peer_only_and_the_sender_gets_radio_status(
-        tmp_path: Path, mav20: Any) -> None:
+def test_heartbeat_reaches_the_peer_only_and_the_sender_gets_radio_status(tmp_path: Path, mav20: Any) -> None:
     with running_emulator(tmp_path, 2) as emu:
         m0, m1 = mav_connect(emu.paths[0], 1), mav_connect(emu.paths[1], 2)
         try:
@@ -131,8 +131,7 @@ def test_radio_status_uses_the_heartbeat_s_mavlink_version(tmp_path: Path, versi
 
 
 def test_different_netids_never_hear_each_other(tmp_path: Path) -> None:
-    with running_emulator(tmp_path, 2, netids=[25, 26]) as emu, \
-            opened(emu.open(0), emu.open(1)) as (l0, l1):
+    with running_emulator(tmp_path, 2, netids=[25, 26]) as emu, opened(emu.open(0), emu.open(1)) as (l0, l1):
         emu.wait_connected(0, 1)
         seen: list[Frame] = []
         for k in range(5):
@@ -155,8 +154,9 @@ def test_multipoint_frame_reaches_every_other_radio(tmp_path: Path, mav20: Any) 
             emu.wait_ready(0, 1, 2)
             send_heartbeat(conns[0])
             for i in (1, 2):
-                assert mav_recv_until(conns[i], from_sys(10), AIR_DEADLINE) is not None, \
+                assert mav_recv_until(conns[i], from_sys(10), AIR_DEADLINE) is not None, (
                     f"radio{i} never heard radio0"
+                )
             assert emu.radio(0)["rx_bytes"] == 0  # not delivered back to the sender
         finally:
             for c in conns:
@@ -174,8 +174,9 @@ def test_bytes_written_right_after_opening_the_port_are_delivered(tmp_path: Path
         with opened(emu.open(0)) as (l0,):
             l0.send(raw)
             got = recv_until(l1, lambda f: True, 5.0)
-            assert got is not None and got.raw == raw, \
+            assert got is not None and got.raw == raw, (
                 f"lost: radio0 serial_in={emu.radio(0)['serial_in']} (the emulator never read it)"
+            )
 
 
 # -- bad input ------------------------------------------------------------------------------
@@ -197,9 +198,11 @@ def test_garbage_and_flood_on_one_port_hurt_only_that_radio(tmp_path: Path) -> N
     line takes them, never reading radio0: the emulator survives, radio1 keeps
     talking to radio2, and only radio0 loses bytes (its input buffer overflows)."""
     flood = garbage(20_000, seed=5) + _bad_frames()
-    with running_emulator(tmp_path, 3) as emu, \
-            opened(emu.open(1), emu.open(2)) as (l1, l2), \
-            opened(open_link(emu.paths[0] + "?write_timeout=60")) as (l0,):
+    with (
+        running_emulator(tmp_path, 3) as emu,
+        opened(emu.open(1), emu.open(2)) as (l1, l2),
+        opened(open_link(emu.paths[0] + "?write_timeout=60")) as (l0,),
+    ):
         emu.wait_ready(0, 1, 2)
         done = threading.Event()
         errors: list[BaseException] = []
@@ -220,8 +223,9 @@ def test_garbage_and_flood_on_one_port_hurt_only_that_radio(tmp_path: Path) -> N
             while not done.is_set() or k < 2:
                 raw = tunnel(2, b"still here", seq=k)
                 l1.send(raw)
-                assert recv_until(l2, is_raw(raw)) is not None, \
+                assert recv_until(l2, is_raw(raw)) is not None, (
                     f"radio2 missed frame {k} from radio1 during the flood"
+                )
                 assert emu.alive
                 delivered += 1
                 k += 1
@@ -235,8 +239,9 @@ def test_garbage_and_flood_on_one_port_hurt_only_that_radio(tmp_path: Path) -> N
         assert emu.alive
         assert l2.stats.bytes_skipped > 0  # radio2 did hear radio0's garbage, skipped it
         # the last bytes written may still sit in the pty: wait until radio0 has them all
-        wait_until(lambda: emu.radio(0)["serial_in"] == len(flood), AIR_DEADLINE,
-                   "the whole flood to reach radio0")
+        wait_until(
+            lambda: emu.radio(0)["serial_in"] == len(flood), AIR_DEADLINE, "the whole flood to reach radio0"
+        )
         r = [emu.radio(i) for i in range(3)]
         assert r[0]["srx"] > 0, "radio0's host wrote faster than the air carries: it must lose bytes"
         assert r[1]["srx"] == r[2]["srx"] == 0
@@ -250,8 +255,10 @@ def test_capture_holds_every_frame_sent_and_pymavlink_reads_it(tmp_path: Path, m
     b0, b1 = FrameBuilder(1), FrameBuilder(2)
     sent: list[bytes] = []
     t_start = time.time()
-    with running_emulator(tmp_path, 2, capture=str(tlog)) as emu, \
-            opened(emu.open(0), emu.open(1)) as (l0, l1):
+    with (
+        running_emulator(tmp_path, 2, capture=str(tlog)) as emu,
+        opened(emu.open(0), emu.open(1)) as (l0, l1),
+    ):
         emu.wait_ready(0, 1)
         for k in range(4):
             for src, dst, b in ((l0, l1, b0), (l1, l0, b1)):
@@ -273,8 +280,12 @@ def test_capture_holds_every_frame_sent_and_pymavlink_reads_it(tmp_path: Path, m
     finally:
         log.close()
     assert [bytes(m.get_msgbuf()) for m in msgs] == sent
-    assert [(m.get_srcSystem(), m.get_type()) for m in msgs[:4]] == \
-        [(1, "HEARTBEAT"), (2, "HEARTBEAT"), (1, "TUNNEL"), (2, "TUNNEL")]
+    assert [(m.get_srcSystem(), m.get_type()) for m in msgs[:4]] == [
+        (1, "HEARTBEAT"),
+        (2, "HEARTBEAT"),
+        (1, "TUNNEL"),
+        (2, "TUNNEL"),
+    ]
     assert all(t_start - 1 <= m._timestamp <= t_end + 1 for m in msgs)
 
 
@@ -298,8 +309,14 @@ def test_stats_report_round_and_utilisation(tmp_path: Path) -> None:
 
 
 def swarm(*args: str, **kw: Any) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "swarm.cli", *args], cwd=ROOT, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "swarm.cli", *args],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        **kw,
+    )
 
 
 def read_lines(proc: subprocess.Popen[str], n: int, timeout: float) -> list[str]:
@@ -361,13 +378,13 @@ def test_radio_emu_bad_input_exits_2_with_a_message(tmp_path: Path) -> None:
         "missing --dir": (["--nodes", "2"], "--dir"),
         "missing directory": (["--nodes", "2", "--dir", str(tmp_path / "nope")], "nope"),
         "capture into a missing directory": (
-            ["--nodes", "2", "--dir", d, "--capture", str(tmp_path / "nope" / "c.tlog")], "nope"),
-        "capture onto a directory": (["--nodes", "2", "--dir", d, "--capture", str(tmp_path)],
-                                     "--capture"),
+            ["--nodes", "2", "--dir", d, "--capture", str(tmp_path / "nope" / "c.tlog")],
+            "nope",
+        ),
+        "capture onto a directory": (["--nodes", "2", "--dir", d, "--capture", str(tmp_path)], "--capture"),
         "3 netids for 2 radios": (["--nodes", "2", "--dir", d, "--netid", "1", "2", "3"], "--netid"),
         "unknown parameter": (["--nodes", "2", "--dir", d, "--param", "NOPE=1"], "NOPE"),
-        "value out of range": (["--nodes", "2", "--dir", d, "--param", "AIR_SPEED=999"],
-                               "AIR_SPEED"),
+        "value out of range": (["--nodes", "2", "--dir", d, "--param", "AIR_SPEED=999"], "AIR_SPEED"),
     }
     procs = {name: swarm("radio-emu", *args) for name, (args, _) in cases.items()}
     try:
@@ -389,8 +406,13 @@ def test_radio_emu_bad_input_exits_2_with_a_message(tmp_path: Path) -> None:
 
 
 def radio_config(*args: str) -> dict[str, int]:
-    r = subprocess.run([sys.executable, "-m", "swarm.cli", "radio-config", *args, "--json"],
-                       cwd=ROOT, capture_output=True, text=True, timeout=90)
+    r = subprocess.run(
+        [sys.executable, "-m", "swarm.cli", "radio-config", *args, "--json"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=90,
+    )
     assert r.returncode == 0, r.stderr
     values: dict[str, int] = json.loads(r.stdout)
     return values
@@ -406,8 +428,9 @@ def test_radio_config_reads_and_writes_the_emulated_radio(tmp_path: Path) -> Non
 
         after = radio_config(emu.paths[0], "--set", "NETID=30")
         assert after["NETID"] == 30
-        assert {k: v for k, v in after.items() if k != "NETID"} == \
-            {k: v for k, v in shown.items() if k != "NETID"}
+        assert {k: v for k, v in after.items() if k != "NETID"} == {
+            k: v for k, v in shown.items() if k != "NETID"
+        }
         assert emu.emu.radio_config(0).netid == 30  # saved and rebooted into it
 
         with opened(emu.open(0), emu.open(1)) as (l0, l1):
@@ -420,4 +443,3 @@ def test_radio_config_reads_and_writes_the_emulated_radio(tmp_path: Path) -> Non
             assert seen == []
             assert emu.radio(0)["tx_bytes"] > tx0  # radio0 did transmit them
             assert emu.radio(1)["rx_bytes"] == rx1  # radio1 (NETID 25) heard none
-

@@ -8,8 +8,7 @@ import math
 
 import pytest
 
-from swarm.flightsim import FlightScenario, FlightSim
-from swarm.formation import (
+from swarm.core.formation import (
     AgeEstimator,
     FormationConfig,
     Route,
@@ -23,8 +22,9 @@ from swarm.formation import (
     slot_error,
     slot_offset,
 )
-from swarm.messages import AckResult, Assignment, Command, CommandKind, Phase, Pose, Side, Task, TaskKind
-from swarm.pilot import Mode, Pilot, PilotConfig, Role
+from swarm.core.messages import AckResult, Assignment, Command, CommandKind, Phase, Pose, Side, Task, TaskKind
+from swarm.core.pilot import Mode, Pilot, PilotConfig, Role
+from swarm.sim.flightsim import FlightScenario, FlightSim
 
 HOME = Pose(47.397742, 8.545594, 508.0)
 
@@ -35,6 +35,7 @@ def at(n: float, e: float, *, alt: float = 508.0, vn: float = 0.0, ve: float = 0
 
 
 # -- geometry -------------------------------------------------------------------------
+
 
 def test_slot_offsets_are_behind_and_to_the_side() -> None:
     assert slot_offset(0.0, Side.RIGHT, 10, 5) == pytest.approx((-10.0, 5.0))
@@ -140,6 +141,7 @@ def test_pose_age_from_wrapped_sample_times() -> None:
 
 # -- the pilot's rules -----------------------------------------------------------------
 
+
 def flying(me: int, n: float = 0.0, e: float = 0.0) -> Pilot:
     p = Pilot(me, PilotConfig())
     p.set_own(at(n, e, alt=528.0), True)
@@ -160,10 +162,16 @@ def test_follow_is_refused_without_a_leader_by_a_member_and_with_a_bad_heading()
     assert res == AckResult.ACCEPTED and lead.task.kind == TaskKind.FOLLOW and lead.task.heading == 90.0
     assert {a.member for a in lead.task.assignments} == {2, 3}
     on_ground = Pilot(3)
-    assert on_ground.command(Command(255, 3, 3, CommandKind.GOTO, 47.4, 8.5, 520.0),
-                             Role(Phase.MEMBER, 1), 0.0)[0] == AckResult.REJECTED
-    assert on_ground.command(Command(255, 4, 3, CommandKind.TAKEOFF, alt=500.0),
-                             Role(Phase.MEMBER, 1), 0.0)[0] == AckResult.BAD_ARGUMENT
+    assert (
+        on_ground.command(Command(255, 3, 3, CommandKind.GOTO, 47.4, 8.5, 520.0), Role(Phase.MEMBER, 1), 0.0)[
+            0
+        ]
+        == AckResult.REJECTED
+    )
+    assert (
+        on_ground.command(Command(255, 4, 3, CommandKind.TAKEOFF, alt=500.0), Role(Phase.MEMBER, 1), 0.0)[0]
+        == AckResult.BAD_ARGUMENT
+    )
 
 
 def member_following(me: int = 2) -> Pilot:
@@ -227,6 +235,7 @@ def test_swarm_stop_holds_everyone_and_a_new_follow_brings_members_back() -> Non
 
 
 # -- flights in virtual time -------------------------------------------------------------
+
 
 def test_five_agents_form_a_v_and_hold_it_through_the_route() -> None:
     sim = FlightSim(FlightScenario(agents=5, loss=0.1, pose_hz=4.0, leg_m=100.0), seed=11)

@@ -1,6 +1,6 @@
 """The station's HTTP API and WebSocket with a real server on a free port, a real
 station over Zenoh, and scripted agents (each a Transport running the real agent-side
-connection core, swarm.gslink, and answering commands as the test says). Then replay:
+connection core, swarm.core.gslink, and answering commands as the test says). Then replay:
 a capture written here, played with a manual clock, and served."""
 
 from __future__ import annotations
@@ -21,12 +21,8 @@ from net_helpers import free_port, wait_until
 
 from radios.mavlink import FrameBuilder, dialect
 from radios.tlog import TlogWriter
-from swarm.bridge import COMP_ID, PAYLOAD_TYPE_BASE, Kind
-from swarm.gcs.replay import ReplayStation, load_capture
-from swarm.gcs.server import LEAFLET_DIR, STATIC_DIR, GcsServer, ServerConfig, ServerError
-from swarm.gcs.station import CommandRefused, Station
-from swarm.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.messages import (
+from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+from swarm.core.messages import (
     AckResult,
     AgentState,
     Command,
@@ -40,7 +36,12 @@ from swarm.messages import (
     Telemetry,
     encode,
 )
-from swarm.transport import Transport
+from swarm.core.station import CommandRefused
+from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
+from swarm.runtime.replay import ReplayStation, load_capture
+from swarm.runtime.server import LEAFLET_DIR, STATIC_DIR, GcsServer, ServerConfig, ServerError
+from swarm.runtime.station import Station
+from swarm.runtime.transport import Transport
 
 HOME = (47.397742, 8.545594)
 
@@ -69,8 +70,18 @@ class ScriptedAgent:
         return Pose(HOME[0] + self.id * 1e-4, HOME[1], 500.0, 30.0 * self.id)
 
     def telemetry(self) -> Telemetry:
-        return Telemetry(self.id, self.pose(), mode_code(self.mode), FLAG_ARMED | FLAG_FC_OK, self.phase,
-                         self.leader, 80, 150, 140, 1.5)
+        return Telemetry(
+            self.id,
+            self.pose(),
+            mode_code(self.mode),
+            FLAG_ARMED | FLAG_FC_OK,
+            self.phase,
+            self.leader,
+            80,
+            150,
+            140,
+            1.5,
+        )
 
     def _inbox(self, m: Message) -> None:
         with self.lock:
@@ -104,10 +115,16 @@ class ScriptedAgent:
                 self._send(self.gs.tick(_now(), self.telemetry))
                 if k % 4 == 0:
                     self.tr.publish_pose(PoseReport(self.pose()))
-                    self.tr.publish_state(AgentState(self.id, self.phase, leader=self.leader,
-                                                     pool=frozenset({1, 2, 3}),
-                                                     members=frozenset({2, 3}) if self.phase == Phase.LEADER
-                                                     else frozenset(), locked=True))
+                    self.tr.publish_state(
+                        AgentState(
+                            self.id,
+                            self.phase,
+                            leader=self.leader,
+                            pool=frozenset({1, 2, 3}),
+                            members=frozenset({2, 3}) if self.phase == Phase.LEADER else frozenset(),
+                            locked=True,
+                        )
+                    )
             k += 1
 
     def close(self) -> None:
@@ -120,11 +137,13 @@ def _now() -> float:
     return time.monotonic()
 
 
-def http(base: str, method: str, path: str, body: Any = None, raw: bytes | None = None,
-         timeout: float = 30.0) -> tuple[int, Any, bytes]:
+def http(
+    base: str, method: str, path: str, body: Any = None, raw: bytes | None = None, timeout: float = 30.0
+) -> tuple[int, Any, bytes]:
     data = raw if raw is not None else (json.dumps(body).encode() if body is not None else None)
-    req = urllib.request.Request(base.rstrip("/") + path, data=data, method=method,
-                                 headers={"Content-Type": "application/json"})
+    req = urllib.request.Request(
+        base.rstrip("/") + path, data=data, method=method, headers={"Content-Type": "application/json"}
+    )
     try:
         with urllib.request.urlopen(req, timeout=timeout) as r:
             content = r.read()
@@ -147,15 +166,24 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     station = Station("gcs", zenoh_listen=[ep]).start()
     server = GcsServer(station, ServerConfig(port=free_port(), tiles_dir=tiles, ws_hz=5.0)).start()
-    agents = {1: ScriptedAgent(ep, 1, phase=Phase.LEADER, leader=1), 2: ScriptedAgent(ep, 2),
-              3: ScriptedAgent(ep, 3)}
+    agents = {
+        1: ScriptedAgent(ep, 1, phase=Phase.LEADER, leader=1),
+        2: ScriptedAgent(ep, 2),
+        3: ScriptedAgent(ep, 3),
+    }
     agents[1].answers.pop(CommandKind.LAND)  # agent 1 never answers LAND
     agents[2].answers[CommandKind.GOTO] = AckResult.REJECTED
     base = server.url
     try:
-        wait_until(lambda: station.snapshot()["leader"] == 1 and all(
-            a["connected"] for a in station.snapshot()["agents"]) and len(station.snapshot()["agents"]) == 3,
-            "three connected agents and leader 1", 30)
+        wait_until(
+            lambda: (
+                station.snapshot()["leader"] == 1
+                and all(a["connected"] for a in station.snapshot()["agents"])
+                and len(station.snapshot()["agents"]) == 3
+            ),
+            "three connected agents and leader 1",
+            30,
+        )
         yield {"base": base, "station": station, "server": server, "agents": agents, "png": png}
     finally:
         for a in agents.values():
@@ -199,12 +227,16 @@ def test_commands_acked_rejected_and_unanswered(live: dict[str, Any]) -> None:
     assert body == {"ok": True, "results": [{"agent": 3, "result": "ACCEPTED", "reason": "scripted"}]}
     cmd = agents[3].commands[-1]
     assert (cmd.sender, cmd.target, cmd.kind, cmd.alt) == (255, 3, CommandKind.TAKEOFF, 12.5)
-    st, body, _ = http(base, "POST", "/api/command",
-                       {"target": 2, "kind": "goto", "lat": 47.4, "lon": 8.55, "alt": 510})
+    st, body, _ = http(
+        base, "POST", "/api/command", {"target": 2, "kind": "goto", "lat": 47.4, "lon": 8.55, "alt": 510}
+    )
     assert st == 200 and body["ok"] is False and body["results"][0]["result"] == "REJECTED"
     st, body, _ = http(base, "POST", "/api/command", {"target": "swarm", "kind": "follow", "heading": 270})
-    assert st == 200 and body["ok"] is True and body["results"] == [
-        {"agent": 1, "result": "ACCEPTED", "reason": "scripted", "swarm": True}]
+    assert (
+        st == 200
+        and body["ok"] is True
+        and body["results"] == [{"agent": 1, "result": "ACCEPTED", "reason": "scripted", "swarm": True}]
+    )
     follow = agents[1].commands[-1]
     assert (follow.target, follow.kind, follow.heading) == (0, CommandKind.FOLLOW, 270.0)
     st, body, _ = http(base, "POST", "/api/command", {"target": "swarm", "kind": "arm"})
@@ -218,19 +250,23 @@ def test_commands_acked_rejected_and_unanswered(live: dict[str, Any]) -> None:
     assert any(e["kind"] == "command" and "LAND" in e["text"] and "NO_ANSWER" in e["text"] for e in events)
 
 
-@pytest.mark.parametrize(("raw", "status", "reason"), [
-    (b"{not json", 400, "malformed JSON"),
-    (b"[1, 2]", 400, "a command is a JSON object"),
-    (b'{"target": 1, "kind": "jump"}', 400, "unknown command kind"),
-    (b'{"target": 1, "kind": "takeoff"}', 400, "takeoff needs 'alt'"),
-    (b'{"target": 1, "kind": "goto", "lat": 47, "lon": 200, "alt": 500}', 400, "'lon' 200 outside"),
-    (b'{"target": "swarm", "kind": "follow", "heading": -5}', 400, "'heading' -5 outside"),
-    (b'{"target": 1, "kind": "follow", "heading": 5}', 400, "swarm command"),
-    (b'{"target": 42, "kind": "arm"}', 404, "unknown agent 42"),
-    (b"\xff\xfe", 400, "malformed JSON"),
-])
-def test_bad_commands_are_refused_with_a_reason(live: dict[str, Any], raw: bytes, status: int,
-                                                reason: str) -> None:
+@pytest.mark.parametrize(
+    ("raw", "status", "reason"),
+    [
+        (b"{not json", 400, "malformed JSON"),
+        (b"[1, 2]", 400, "a command is a JSON object"),
+        (b'{"target": 1, "kind": "jump"}', 400, "unknown command kind"),
+        (b'{"target": 1, "kind": "takeoff"}', 400, "takeoff needs 'alt'"),
+        (b'{"target": 1, "kind": "goto", "lat": 47, "lon": 200, "alt": 500}', 400, "'lon' 200 outside"),
+        (b'{"target": "swarm", "kind": "follow", "heading": -5}', 400, "'heading' -5 outside"),
+        (b'{"target": 1, "kind": "follow", "heading": 5}', 400, "swarm command"),
+        (b'{"target": 42, "kind": "arm"}', 404, "unknown agent 42"),
+        (b"\xff\xfe", 400, "malformed JSON"),
+    ],
+)
+def test_bad_commands_are_refused_with_a_reason(
+    live: dict[str, Any], raw: bytes, status: int, reason: str
+) -> None:
     n = sum(len(a.commands) for a in live["agents"].values())
     st, body, _ = http(live["base"], "POST", "/api/command", raw=raw)
     assert st == status and reason in body["error"]
@@ -241,9 +277,16 @@ def test_files_tiles_and_traversal(live: dict[str, Any]) -> None:
     base = live["base"]
     st, _, content = http(base, "GET", "/tiles/3/4/5.png")
     assert st == 200 and content == live["png"]
-    for path in ("/tiles/3/4/6.png", "/tiles/../../etc/passwd", "/tiles/3/4/%2e%2e%2f5.png",
-                 "/static/../station.py", "/static/%2e%2e/station.py", "/static/..%2fstation.py",
-                 "/vendor/leaflet/../../package.json", "/static/nope.js"):
+    for path in (
+        "/tiles/3/4/6.png",
+        "/tiles/../../etc/passwd",
+        "/tiles/3/4/%2e%2e%2f5.png",
+        "/static/../station.py",
+        "/static/%2e%2e/station.py",
+        "/static/..%2fstation.py",
+        "/vendor/leaflet/../../package.json",
+        "/static/nope.js",
+    ):
         st, err, _ = http(base, "GET", path)
         assert st == 404 and err is not None and "error" in err, path
     st, _, content = http(base, "GET", "/")
@@ -295,8 +338,9 @@ async def _ws_session(base: str) -> dict[str, Any]:
         await ws.send_str(json.dumps({"type": "command", "id": "c3", "target": 77, "kind": "arm"}))
         loop = asyncio.get_running_loop()
         deadline = loop.time() + 30
-        while loop.time() < deadline and not (len(got["results"]) == 3 and got["events"]
-                                               and len(got["errors"]) == 5 and got["states"] >= 3):
+        while loop.time() < deadline and not (
+            len(got["results"]) == 3 and got["events"] and len(got["errors"]) == 5 and got["states"] >= 3
+        ):
             m = await ws.receive_json(timeout=max(0.1, deadline - loop.time()))
             kind = m["type"]
             if kind == "state":
@@ -353,16 +397,28 @@ def write_capture(path: Path) -> None:
             pose = Pose(HOME[0] + k * 1e-5, HOME[1], 510.0, 90.0)
             w.write(tun(a1, Kind.P2P, Telemetry(1, pose, phase=Phase.LEADER, leader=1), 255), t)
             if k % 5 == 0:
-                w.write(tun(a1, Kind.STATE, AgentState(1, Phase.LEADER, leader=1,
-                                                       members=frozenset({2}))), t)
+                w.write(tun(a1, Kind.STATE, AgentState(1, Phase.LEADER, leader=1, members=frozenset({2}))), t)
         w.write(tun(gcs, Kind.P2P, Command(255, 7, 1, CommandKind.LAND), 1), T0 + 5.0)
         w.write(tun(a1, Kind.P2P, CommandAck(1, 7, AckResult.ACCEPTED), 255), T0 + 5.1)
         for k in range(0, 21):  # agent 2's vehicle, 1 Hz
             t = T0 + k
             w.write(v2.build(dialect.MAVLink_heartbeat_message(2, 12, 0x80 | 1, 3 << 16, 4, 3)), t)
-            w.write(v2.build(dialect.MAVLink_global_position_int_message(
-                k * 1000, int((HOME[0] - 1e-3) * 1e7), int((HOME[1] + k * 1e-5) * 1e7), 520_000,
-                20_000, 0, 100, 0, 4500)), t + 0.01)
+            w.write(
+                v2.build(
+                    dialect.MAVLink_global_position_int_message(
+                        k * 1000,
+                        int((HOME[0] - 1e-3) * 1e7),
+                        int((HOME[1] + k * 1e-5) * 1e7),
+                        520_000,
+                        20_000,
+                        0,
+                        100,
+                        0,
+                        4500,
+                    )
+                ),
+                t + 0.01,
+            )
 
 
 class FakeClock:
@@ -422,9 +478,13 @@ def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path) -> None:
     rp.step()  # runs to the end and stops there
     assert rp.status()["playing"] is False and rp.status()["position_s"] == pytest.approx(20.01)
     assert rp.control("play")["position_s"] == 0.0  # play at the end starts again
-    for action, value, reason in [("fly", None, "unknown replay action"), ("seek", 99, "seek 99"),
-                                  ("seek", "x", "needs a number"), ("speed", 0, "speed 0"),
-                                  ("speed", 1000, "speed 1000")]:
+    for action, value, reason in [
+        ("fly", None, "unknown replay action"),
+        ("seek", 99, "seek 99"),
+        ("seek", "x", "needs a number"),
+        ("speed", 0, "speed 0"),
+        ("speed", 1000, "speed 1000"),
+    ]:
         with pytest.raises(CommandRefused, match=reason):
             rp.control(action, value)
 

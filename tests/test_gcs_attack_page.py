@@ -20,8 +20,8 @@ import pytest
 from gcs_security_helpers import Swarm, live_swarm
 from net_helpers import free_port, wait_until
 
-from swarm.bench.gcs_page import BROWSER_ARGS, find_browser
-from swarm.gcs.server import GcsServer, ServerConfig
+from swarm.cli.bench.gcs_page import BROWSER_ARGS, find_browser
+from swarm.runtime.server import GcsServer, ServerConfig
 
 TOKEN = "page-test-token-0123456789abcdef"
 DEADLINE = 30.0
@@ -109,8 +109,9 @@ def chromium() -> Iterator[Any]:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=path, headless=True,
-                               args=[*BROWSER_ARGS, f"--host-resolver-rules={RESOLVE}"])
+        b = pw.chromium.launch(
+            executable_path=path, headless=True, args=[*BROWSER_ARGS, f"--host-resolver-rules={RESOLVE}"]
+        )
         try:
             yield b
         finally:
@@ -142,8 +143,9 @@ def assert_nothing_reached(swarm: Swarm, before: int, out: dict[str, Any]) -> No
 
 
 @pytest.mark.parametrize("attacker_host", ["attacker.test", "127.0.0.1"])
-def test_another_origin_cannot_command_a_loopback_station(swarm: Swarm, attacker: int, ctx: Any,
-                                                          attacker_host: str) -> None:
+def test_another_origin_cannot_command_a_loopback_station(
+    swarm: Swarm, attacker: int, ctx: Any, attacker_host: str
+) -> None:
     server = GcsServer(swarm.station, ServerConfig(port=free_port(), tiles=None)).start()
     try:
         before = swarm.commands()
@@ -159,15 +161,21 @@ def login(ctx: Any, base: str) -> Any:
     page.on("pageerror", lambda exc: page.errors.append(str(exc)))
     page.goto(f"{base}?token={TOKEN}")
     page.wait_for_function("() => window.gcs && window.gcs.ready", timeout=DEADLINE * 1000)
-    wait_until(lambda: page.evaluate("window.gcs.wsStatus === 'live' && window.gcs.stateCount > 0"),
-               "the page live", DEADLINE, interval=0.2)
+    wait_until(
+        lambda: page.evaluate("window.gcs.wsStatus === 'live' && window.gcs.stateCount > 0"),
+        "the page live",
+        DEADLINE,
+        interval=0.2,
+    )
     return page
 
 
-def test_the_token_flow_in_the_browser_and_a_same_site_page_still_fails(swarm: Swarm, attacker: int,
-                                                                        ctx: Any) -> None:
-    server = GcsServer(swarm.station, ServerConfig(host="0.0.0.0", port=free_port(), tiles=None,
-                                                   token=TOKEN)).start()
+def test_the_token_flow_in_the_browser_and_a_same_site_page_still_fails(
+    swarm: Swarm, attacker: int, ctx: Any
+) -> None:
+    server = GcsServer(
+        swarm.station, ServerConfig(host="0.0.0.0", port=free_port(), tiles=None, token=TOKEN)
+    ).start()
     base = f"http://127.0.0.1:{server.port}/"
     try:
         # no token: the page asks for it, the API refuses
@@ -197,8 +205,9 @@ def test_the_token_flow_in_the_browser_and_a_same_site_page_still_fails(swarm: S
         assert st == 200
         # a reload without the token: the cookie carries it
         page.goto(base)
-        page.wait_for_function("() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0",
-                               timeout=DEADLINE * 1000)
+        page.wait_for_function(
+            "() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0", timeout=DEADLINE * 1000
+        )
         assert page.errors == []
         page.close()
         # a page of another port on the same host: the cookie is sent (same site), the
@@ -213,15 +222,18 @@ def test_the_token_flow_in_the_browser_and_a_same_site_page_still_fails(swarm: S
 
 
 def test_the_login_form_and_an_allowed_name(swarm: Swarm, ctx: Any) -> None:
-    server = GcsServer(swarm.station, ServerConfig(host="0.0.0.0", port=free_port(), tiles=None, token=TOKEN,
-                                                   allow_hosts=("gcs.field",))).start()
+    server = GcsServer(
+        swarm.station,
+        ServerConfig(host="0.0.0.0", port=free_port(), tiles=None, token=TOKEN, allow_hosts=("gcs.field",)),
+    ).start()
     try:
         page = ctx.new_page()
         assert page.goto(f"http://gcs.field:{server.port}/").status == 401
         page.fill('input[name="token"]', TOKEN)
         page.click('button[type="submit"]')
-        page.wait_for_function("() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0",
-                               timeout=DEADLINE * 1000)
+        page.wait_for_function(
+            "() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0", timeout=DEADLINE * 1000
+        )
         assert "token" not in page.url
         page.close()
     finally:

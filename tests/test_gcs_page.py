@@ -35,7 +35,7 @@ from gcs_browser import (
 
 from radios.errors import CaptureDamagedError
 from radios.tlog import TlogWriter, read_tlog
-from swarm.procs import Child, start_emulator
+from swarm.cli.procs import Child, start_emulator
 
 N = 3
 HOME = (47.397742, 8.545594)  # the simulator's default home (PX4 SITL's)
@@ -87,19 +87,37 @@ def bench(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Bench]:
     emu, paths = start_emulator(N + 1, radios, "--capture", str(capture))
     children: list[Child] = []
     try:
-        sim = Child(["sim", "--vehicles", str(N), "--spacing", str(SPACING_M),
-                     "--base-port", str(free_udp_base(N))], name="sim")
+        sim = Child(
+            ["sim", "--vehicles", str(N), "--spacing", str(SPACING_M), "--base-port", str(free_udp_base(N))],
+            name="sim",
+        )
         children.append(sim)
         fcs = [line.split(" -> ")[1].split()[0] for line in sim.wait_lines(N + 1, START_DEADLINE)[:N]]
         agents = []
         for k in range(1, N + 1):
-            agents.append(Child(["agent", "--name", f"agent{k}", "--id", str(k), "--radio", paths[k - 1],
-                                 "--fc", fcs[k - 1], "--json"], name=f"agent{k}"))
+            agents.append(
+                Child(
+                    [
+                        "agent",
+                        "--name",
+                        f"agent{k}",
+                        "--id",
+                        str(k),
+                        "--radio",
+                        paths[k - 1],
+                        "--fc",
+                        fcs[k - 1],
+                        "--json",
+                    ],
+                    name=f"agent{k}",
+                )
+            )
         children += agents
         for a in agents:
             assert json.loads(a.wait_lines(1, START_DEADLINE)[0])["event"] == "ready"
-        station, url = start_station(["--radio", paths[N], "--http", f"127.0.0.1:{free_port()}",
-                                      "--tiles-dir", str(tiles)])
+        station, url = start_station(
+            ["--radio", paths[N], "--http", f"127.0.0.1:{free_port()}", "--tiles-dir", str(tiles)]
+        )
         children.append(station)
         yield Bench(url, capture, station, agents, children)
     finally:
@@ -156,15 +174,23 @@ def test_page_shows_every_agent_its_telemetry_and_the_leader(bench: Bench, page:
     assert f"agent{leader}" in page.inner_text("#election [data-field='leader']")
 
     # the offline tiles were drawn
-    poll(lambda: page.evaluate(
-        "Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))"
-        ".some(i => i.src.includes('/tiles/'))"), "an offline tile drawn", UI_DEADLINE)
+    poll(
+        lambda: page.evaluate(
+            "Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))"
+            ".some(i => i.src.includes('/tiles/'))"
+        ),
+        "an offline tile drawn",
+        UI_DEADLINE,
+    )
 
     # select in the list: the telemetry panel fills in
     page.click('#agents [data-agent-id="2"]')
     assert page.get_attribute("#telemetry", "data-agent-id") == "2"
-    poll(lambda: all(field(page, f) != "—" for f in ("mode", "alt", "heading", "battery", "last_seen")),
-         "agent2's telemetry", UI_DEADLINE)
+    poll(
+        lambda: all(field(page, f) != "—" for f in ("mode", "alt", "heading", "battery", "last_seen")),
+        "agent2's telemetry",
+        UI_DEADLINE,
+    )
     assert "m" in field(page, "alt") and "%" in field(page, "battery")
     assert field(page, "armed") in ("armed", "disarmed")
     assert "s ago" in field(page, "last_seen")
@@ -173,8 +199,11 @@ def test_page_shows_every_agent_its_telemetry_and_the_leader(bench: Bench, page:
 
     # select on the map
     page.click('.agent-marker[data-agent-id="3"]')
-    poll(lambda: page.get_attribute("#telemetry", "data-agent-id") == "3", "agent3 selected from its marker",
-         UI_DEADLINE)
+    poll(
+        lambda: page.get_attribute("#telemetry", "data-agent-id") == "3",
+        "agent3 selected from its marker",
+        UI_DEADLINE,
+    )
     assert "agent3" in page.inner_text("#telemetry-title")
     shot = screenshot(page, "gcs_page.png")
     assert shot.stat().st_size > 10_000
@@ -199,8 +228,12 @@ def test_goto_from_the_page_moves_the_agent_on_the_map(bench: Bench, page: Any) 
     page.click('#commands [data-kind="takeoff"]')
     poll(lambda: accepted("takeoff"), "takeoff accepted", MOVE_DEADLINE, bench.children)
     # take-off done: the agent holds its position under setpoint control (PX4 OFFBOARD)
-    poll(lambda: "airborne" in field(page, "alt") and field(page, "mode") == "OFFBOARD",
-         "agent1 airborne in OFFBOARD", MOVE_DEADLINE, bench.children)
+    poll(
+        lambda: "airborne" in field(page, "alt") and field(page, "mode") == "OFFBOARD",
+        "agent1 airborne in OFFBOARD",
+        MOVE_DEADLINE,
+        bench.children,
+    )
 
     # click on the map 80 px north of the agent: the go-to fields fill in
     start = gcs(page, "markerLatLng(1)")
@@ -237,29 +270,50 @@ def whole_records(src: Path, dst: Path) -> int:
 
 def test_replay_of_the_bench_capture_with_pause_and_speed(bench: Bench, page: Any, tmp_path: Path) -> None:
     # the air so far: agents electing, connecting to the station, flying
-    poll(lambda: bench.capture.exists() and bench.capture.stat().st_size > 10_000, "a capture",
-         SHOW_DEADLINE, bench.children)
+    poll(
+        lambda: bench.capture.exists() and bench.capture.stat().st_size > 10_000,
+        "a capture",
+        SHOW_DEADLINE,
+        bench.children,
+    )
     capture = tmp_path / "flight.tlog"
     assert whole_records(bench.capture, capture) > 0
-    station, url = start_station(["--replay", str(capture), "--http", f"127.0.0.1:{free_port()}",
-                                  "--tiles", "none", "--speed", "4"])
+    station, url = start_station(
+        ["--replay", str(capture), "--http", f"127.0.0.1:{free_port()}", "--tiles", "none", "--speed", "4"]
+    )
     try:
         open_page(page, url)
         assert gcs(page, "config")["replay"] is True
         assert page.locator("#replay").is_visible()
         poll(lambda: gcs(page, "markers") >= 1, "agents of the capture on the map", UI_DEADLINE, [station])
-        poll(lambda: page.get_attribute("#replay-play", "data-playing") in ("0", "1"), "the replay status",
-             UI_DEADLINE, [station])
+        poll(
+            lambda: page.get_attribute("#replay-play", "data-playing") in ("0", "1"),
+            "the replay status",
+            UI_DEADLINE,
+            [station],
+        )
         if page.get_attribute("#replay-play", "data-playing") == "1":
             page.click("#replay-play")  # pause
-            poll(lambda: page.get_attribute("#replay-play", "data-playing") == "0", "paused", UI_DEADLINE,
-                 [station])
+            poll(
+                lambda: page.get_attribute("#replay-play", "data-playing") == "0",
+                "paused",
+                UI_DEADLINE,
+                [station],
+            )
         page.select_option("#replay-speed", "2")
-        poll(lambda: page.evaluate("fetch('/api/replay').then(r => r.json())")["speed"] == 2,
-             "speed 2 at the station", UI_DEADLINE, [station])
+        poll(
+            lambda: page.evaluate("fetch('/api/replay').then(r => r.json())")["speed"] == 2,
+            "speed 2 at the station",
+            UI_DEADLINE,
+            [station],
+        )
         page.click("#replay-play")  # play
-        poll(lambda: page.evaluate("fetch('/api/replay').then(r => r.json())")["playing"] is True,
-             "playing at the station", UI_DEADLINE, [station])
+        poll(
+            lambda: page.evaluate("fetch('/api/replay').then(r => r.json())")["playing"] is True,
+            "playing at the station",
+            UI_DEADLINE,
+            [station],
+        )
         # nothing to command in a replay
         assert page.locator('#commands [data-kind="land"]').is_disabled()
         assert page.locator("#goto-go").is_disabled()
@@ -276,15 +330,23 @@ def test_disconnected_agent_is_greyed_and_a_command_to_it_refused(bench: Bench, 
     k = N
     gone.stop(grace=3)
     marker = f'.agent-marker[data-agent-id="{k}"]'
-    poll(lambda: page.locator(f'{marker}.disconnected[data-connected="0"]').count() == 1,
-         f"agent{k} greyed on the map", DROP_DEADLINE, [bench.station])
+    poll(
+        lambda: page.locator(f'{marker}.disconnected[data-connected="0"]').count() == 1,
+        f"agent{k} greyed on the map",
+        DROP_DEADLINE,
+        [bench.station],
+    )
     assert page.locator(f'#agents [data-agent-id="{k}"].disconnected').count() == 1
     page.click(f'#agents [data-agent-id="{k}"]')
     page.fill("#goto-lat", f"{HOME[0] + 0.0005:.7f}")
     page.fill("#goto-lon", f"{HOME[1]:.7f}")
     page.click("#goto-go")
-    poll(lambda: "not connected" in page.inner_text("#cmd-status"), "the refusal's reason on the page",
-         UI_DEADLINE, [bench.station])
+    poll(
+        lambda: "not connected" in page.inner_text("#cmd-status"),
+        "the refusal's reason on the page",
+        UI_DEADLINE,
+        [bench.station],
+    )
     assert "refused" in (page.get_attribute("#cmd-status", "class") or "")
     assert page.locator("#log li.refused", has_text="not connected").count() >= 1
     screenshot(page, "gcs_page_refused.png")
@@ -293,22 +355,36 @@ def test_disconnected_agent_is_greyed_and_a_command_to_it_refused(bench: Bench, 
 
 def test_station_without_tiles_or_agents_still_works_and_reconnects(tmp_path: Path, page: Any) -> None:
     port = free_port()
-    argv = ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--http", f"127.0.0.1:{port}",
-            "--tiles", "none"]
+    argv = [
+        "--zenoh-listen",
+        f"tcp/127.0.0.1:{free_port()}",
+        "--http",
+        f"127.0.0.1:{port}",
+        "--tiles",
+        "none",
+    ]
     station, url = start_station(argv)
     try:
         open_page(page, url)
         assert gcs(page, "config")["tiles"] is None
         assert "no-tiles" in (page.get_attribute("#map", "class") or "")
         assert page.locator("img.leaflet-tile").count() == 0
-        poll(lambda: gcs(page, "wsStatus") == "live" and gcs(page, "stateCount") > 0, "live state",
-             UI_DEADLINE, [station])
+        poll(
+            lambda: gcs(page, "wsStatus") == "live" and gcs(page, "stateCount") > 0,
+            "live state",
+            UI_DEADLINE,
+            [station],
+        )
         assert page.locator("#agents .empty").count() == 1
         # follow in V with no leader: refused, and the reason is on the page
         page.select_option("#cmd-target", "swarm")
         page.click('#commands [data-kind="follow"]')
-        poll(lambda: "no leader" in page.inner_text("#cmd-status"), "the follow refusal on the page",
-             UI_DEADLINE, [station])
+        poll(
+            lambda: "no leader" in page.inner_text("#cmd-status"),
+            "the follow refusal on the page",
+            UI_DEADLINE,
+            [station],
+        )
         assert page.locator("#log li.refused", has_text="no leader").count() >= 1
         screenshot(page, "gcs_page_no_tiles.png")
 
@@ -318,8 +394,12 @@ def test_station_without_tiles_or_agents_still_works_and_reconnects(tmp_path: Pa
         station, url2 = start_station(argv)
         assert url2 == url
         count = gcs(page, "stateCount")
-        poll(lambda: gcs(page, "wsStatus") == "live" and gcs(page, "stateCount") > count,
-             "the page live again", UI_DEADLINE * 2, [station])
+        poll(
+            lambda: gcs(page, "wsStatus") == "live" and gcs(page, "stateCount") > count,
+            "the page live again",
+            UI_DEADLINE * 2,
+            [station],
+        )
         assert page.errors == []
     finally:
         station.stop()

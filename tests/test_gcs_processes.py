@@ -17,8 +17,8 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.commands.gcs import main as gcs_main
-from swarm.procs import Child, start_emulator
+from swarm.cli.commands.gcs import main as gcs_main
+from swarm.cli.procs import Child, start_emulator
 
 DEADLINE = 40.0
 
@@ -53,8 +53,9 @@ def alive(*children: Child) -> None:
 
 
 def post(url: str, body: Any) -> tuple[int, Any]:
-    req = urllib.request.Request(url, data=json.dumps(body).encode(), method="POST",
-                                 headers={"Content-Type": "application/json"})
+    req = urllib.request.Request(
+        url, data=json.dumps(body).encode(), method="POST", headers={"Content-Type": "application/json"}
+    )
     try:
         with urllib.request.urlopen(req, timeout=30) as r:
             return r.status, json.loads(r.read())
@@ -64,8 +65,10 @@ def post(url: str, body: Any) -> tuple[int, Any]:
 
 def test_agents_connect_answer_commands_drop_when_killed_and_reconnect(tmp_path: Path) -> None:
     ep, ep1 = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
-    gcs = Child(["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_port()}", "--tiles", "none",
-                 "--json"], name="gcs")
+    gcs = Child(
+        ["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_port()}", "--tiles", "none", "--json"],
+        name="gcs",
+    )
     children = [gcs]
     try:
         r = ready(gcs)
@@ -85,32 +88,43 @@ def test_agents_connect_answer_commands_drop_when_killed_and_reconnect(tmp_path:
 
         wait_until(lambda: connected() == {1, 2}, "both agents connected", DEADLINE)
         # the event lines on stdout follow the state the API shows: wait for them too
-        wait_until(lambda: {"agent1 (1) connected", "agent2 (2) connected"} <= {
-            e["text"] for e in logs(gcs)}, "both connect events on stdout", DEADLINE)
+        wait_until(
+            lambda: {"agent1 (1) connected", "agent2 (2) connected"} <= {e["text"] for e in logs(gcs)},
+            "both connect events on stdout",
+            DEADLINE,
+        )
         leader = wait_until(lambda: state()["leader"], "the station to see a leader", DEADLINE)
         # real agents answer: the leader takes the swarm's FOLLOW; an agent with no
         # flight controller fails ARM with its reason
         st, body = post(r["url"] + "api/command", {"target": "swarm", "kind": "follow", "heading": 90})
-        assert st == 200 and body["results"] == [{"agent": leader, "result": "ACCEPTED", "reason": "",
-                                                  "swarm": True}], body
+        assert st == 200 and body["results"] == [
+            {"agent": leader, "result": "ACCEPTED", "reason": "", "swarm": True}
+        ], body
         st, body = post(r["url"] + "api/command", {"target": 2, "kind": "arm"})
         assert st == 200 and body["ok"] is False
-        assert body["results"] == [{"agent": 2, "result": "FAILED",
-                                    "reason": "no flight controller on this agent"}]
+        assert body["results"] == [
+            {"agent": 2, "result": "FAILED", "reason": "no flight controller on this agent"}
+        ]
         a2.proc.send_signal(signal.SIGKILL)
         a2.proc.wait(10)
         children.remove(a2)
         wait_until(lambda: connected() == {1}, "agent2 disconnected", DEADLINE)
-        drop = wait_until(lambda: [e for e in logs(gcs) if e["kind"] == "disconnect"],
-                          "the disconnect event on stdout", DEADLINE)
+        drop = wait_until(
+            lambda: [e for e in logs(gcs) if e["kind"] == "disconnect"],
+            "the disconnect event on stdout",
+            DEADLINE,
+        )
         assert [e["text"].split(" (silent")[0] for e in drop] == ["agent2 (2) disconnected"]
         st, body = post(r["url"] + "api/command", {"target": 2, "kind": "land"})
         assert st == 409 and body["error"] == "agent2 (2) is not connected"
         again = agent("agent2", 2, "--zenoh-connect", ep, ep1)
         children.append(again)
         wait_until(lambda: connected() == {1, 2}, "agent2 connected again", DEADLINE)
-        wait_until(lambda: any(e["text"] == "agent2 (2) connected again" for e in logs(gcs)),
-                   "the reconnect event on stdout", DEADLINE)
+        wait_until(
+            lambda: any(e["text"] == "agent2 (2) connected again" for e in logs(gcs)),
+            "the reconnect event on stdout",
+            DEADLINE,
+        )
         one = get(r["url"] + "api/agents/2")
         assert one["name"] == "agent2" and one["connected"] is True and one["phase"] is not None
         st, body = post(r["url"] + "api/command", {"target": 7, "kind": "arm"})
@@ -128,8 +142,19 @@ def test_over_the_radio_with_a_capture_then_replayed(tmp_path: Path) -> None:
     cap = tmp_path / "gcs.tlog"
     children: list[Child] = []
     try:
-        gcs = Child(["gcs", "--radio", links[1], "--capture", str(cap), "--http",
-                     f"127.0.0.1:{free_port()}", "--json"], name="gcs")
+        gcs = Child(
+            [
+                "gcs",
+                "--radio",
+                links[1],
+                "--capture",
+                str(cap),
+                "--http",
+                f"127.0.0.1:{free_port()}",
+                "--json",
+            ],
+            name="gcs",
+        )
         children.append(gcs)
         r = ready(gcs)
         assert r["link"] == f"radio={links[1]}"
@@ -139,8 +164,11 @@ def test_over_the_radio_with_a_capture_then_replayed(tmp_path: Path) -> None:
             alive(*children)
             return dict(get(r["url"] + "api/state"))
 
-        wait_until(lambda: any(a["connected"] and a["id"] == 1 and a["phase"] for a in state()["agents"]),
-                   "agent1 connected over the radio", 60)
+        wait_until(
+            lambda: any(a["connected"] and a["id"] == 1 and a["phase"] for a in state()["agents"]),
+            "agent1 connected over the radio",
+            60,
+        )
         gcs.proc.send_signal(signal.SIGTERM)
         assert gcs.proc.wait(10) == 0
     finally:
@@ -148,8 +176,10 @@ def test_over_the_radio_with_a_capture_then_replayed(tmp_path: Path) -> None:
             c.stop(grace=3)
         emu.stop()
     assert cap.stat().st_size > 0
-    play = Child(["gcs", "--replay", str(cap), "--speed", "20", "--http", f"127.0.0.1:{free_port()}",
-                  "--json"], name="replay")
+    play = Child(
+        ["gcs", "--replay", str(cap), "--speed", "20", "--http", f"127.0.0.1:{free_port()}", "--json"],
+        name="replay",
+    )
     try:
         rr = ready(play)
         assert rr["replay"] is True and rr["records"] > 0 and rr["link"] == f"replay={cap}"
@@ -167,25 +197,32 @@ def test_over_the_radio_with_a_capture_then_replayed(tmp_path: Path) -> None:
         assert play.stop() == 0
 
 
-@pytest.mark.parametrize(("argv", "reason"), [
-    ([], "give one of --radio URL"),
-    (["--radio", "/dev/no-such-radio"], "/dev/no-such-radio"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--radio", "x"], "give one of"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--tiles-dir", "/no/such/dir"], "/no/such/dir: not a directory"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--tiles", "nothing"], "an http(s) URL template"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--http", "localhost:http"], "HOST:PORT"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--http", "127.0.0.1:70000"], "outside 0..65535"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--speed", "2"], "--speed and --paused are for --replay"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--capture", "x.tlog"], "it needs --radio"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--id", "7"], "--id 7: ground stations use 251..255"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--name", "bad name"], "--name"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--ws-hz", "50"], "--ws-hz 50"),
-    (["--zenoh-listen", "tcp/127.0.0.1:1", "--center", "91,0"], "--center"),
-    (["--zenoh-listen", "not an endpoint"], "Zenoh"),
-    (["--replay", "/no/such.tlog"], "/no/such.tlog"),
-])
-def test_bad_input_is_one_line_and_exit_2(argv: list[str], reason: str,
-                                          capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    ("argv", "reason"),
+    [
+        ([], "give one of --radio URL"),
+        (["--radio", "/dev/no-such-radio"], "/dev/no-such-radio"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--radio", "x"], "give one of"),
+        (
+            ["--zenoh-listen", "tcp/127.0.0.1:1", "--tiles-dir", "/no/such/dir"],
+            "/no/such/dir: not a directory",
+        ),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--tiles", "nothing"], "an http(s) URL template"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--http", "localhost:http"], "HOST:PORT"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--http", "127.0.0.1:70000"], "outside 0..65535"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--speed", "2"], "--speed and --paused are for --replay"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--capture", "x.tlog"], "it needs --radio"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--id", "7"], "--id 7: ground stations use 251..255"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--name", "bad name"], "--name"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--ws-hz", "50"], "--ws-hz 50"),
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--center", "91,0"], "--center"),
+        (["--zenoh-listen", "not an endpoint"], "Zenoh"),
+        (["--replay", "/no/such.tlog"], "/no/such.tlog"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(
+    argv: list[str], reason: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert gcs_main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("swarm gcs: error: ") and reason in err[0], err
@@ -210,7 +247,8 @@ def test_truncated_capture_and_port_in_use(tmp_path: Path, capsys: pytest.Captur
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        assert gcs_main(["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--http",
-                         f"127.0.0.1:{port}"]) == 2
+        assert (
+            gcs_main(["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--http", f"127.0.0.1:{port}"]) == 2
+        )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"cannot listen on 127.0.0.1:{port}" in err[0], err

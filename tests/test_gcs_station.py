@@ -1,6 +1,6 @@
 """The station's protocol core in virtual time: advertising, connecting with retries,
 heartbeats, heartbeat loss -> disconnect -> reconnect (also against the real agent-side
-core, swarm.gslink, over a lossy fake channel), command acks, retries, dedupe and
+core, swarm.core.gslink, over a lossy fake channel), command acks, retries, dedupe and
 refusals, the leader, trails, and the passive (replay) mode."""
 
 from __future__ import annotations
@@ -11,17 +11,8 @@ from typing import Any
 
 import pytest
 
-from swarm.gcs.station import (
-    NO_ANSWER,
-    CommandRefused,
-    CommandSpec,
-    StationConfig,
-    StationCore,
-    StOut,
-    parse_command,
-)
-from swarm.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.messages import (
+from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+from swarm.core.messages import (
     AckResult,
     AgentState,
     Command,
@@ -38,6 +29,15 @@ from swarm.messages import (
     decode,
     encode,
 )
+from swarm.core.station import (
+    NO_ANSWER,
+    CommandRefused,
+    CommandSpec,
+    StationConfig,
+    StationCore,
+    StOut,
+    parse_command,
+)
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)
 
@@ -46,8 +46,15 @@ def msgs(outs: list[StOut], cls: type) -> list[StOut]:
     return [o for o in outs if isinstance(o.msg, cls)]
 
 
-def tm(sender: int, *, pose: Pose = POSE, phase: Phase = Phase.IDLE, leader: int = 0,
-       flags: int = 0, battery: int = 255) -> Telemetry:
+def tm(
+    sender: int,
+    *,
+    pose: Pose = POSE,
+    phase: Phase = Phase.IDLE,
+    leader: int = 0,
+    flags: int = 0,
+    battery: int = 255,
+) -> Telemetry:
     return Telemetry(sender, pose, mode_code("POSCTL"), flags, phase, leader, battery, 180, 170, 2.5)
 
 
@@ -146,7 +153,7 @@ def test_connect_attempts_stop_when_the_agent_is_gone() -> None:
 
 
 class Channel:
-    """Station core <-> agent cores (swarm.gslink) with seeded loss, in virtual time."""
+    """Station core <-> agent cores (swarm.core.gslink) with seeded loss, in virtual time."""
 
     def __init__(self, core: StationCore, agents: list[GsLink], loss: float, seed: int) -> None:
         self.core = core
@@ -204,11 +211,15 @@ def test_against_the_agent_side_core_with_loss_crash_and_restart(seed: int) -> N
     ch.up[2] = True
     run_until(lambda: core.agents[2].connected, 15)
     kinds = [(e.kind, e.text) for e in core.events if "agent2" in e.text]
-    assert kinds == [("connect", "agent2 (2) connected"), ("disconnect", kinds[1][1]),
-                     ("connect", "agent2 (2) connected again")]
+    assert kinds == [
+        ("connect", "agent2 (2) connected"),
+        ("disconnect", kinds[1][1]),
+        ("connect", "agent2 (2) connected again"),
+    ]
 
 
 # -- commands ------------------------------------------------------------------------
+
 
 def station_with(*ids: int, leader: int = 0) -> StationCore:
     core = StationCore()
@@ -268,16 +279,17 @@ def test_a_retried_command_answered_on_the_second_try_and_rejections() -> None:
     assert msgs(core.tick(1.0), Command)[0].msg.seq == seq
     core.handle(CommandAck(3, seq, AckResult.REJECTED, "not armed"), 1.1)
     assert req.done and req.status == 200
-    assert req.body() == {"ok": False, "results": [{"agent": 3, "result": "REJECTED",
-                                                    "reason": "not armed"}]}
+    assert req.body() == {"ok": False, "results": [{"agent": 3, "result": "REJECTED", "reason": "not armed"}]}
 
 
 def test_refusals_send_nothing() -> None:
     core = station_with(3)
     core.handle(GSAdvertize(5, "agent5"), 0.0)  # known, never connected
-    cases = [(CommandSpec(9, CommandKind.ARM), 404, "unknown agent 9"),
-             (CommandSpec(5, CommandKind.ARM), 409, "agent5 (5) is not connected"),
-             (CommandSpec(None, CommandKind.FOLLOW, heading=90.0), 409, "no leader elected yet")]
+    cases = [
+        (CommandSpec(9, CommandKind.ARM), 404, "unknown agent 9"),
+        (CommandSpec(5, CommandKind.ARM), 409, "agent5 (5) is not connected"),
+        (CommandSpec(None, CommandKind.FOLLOW, heading=90.0), 409, "no leader elected yet"),
+    ]
     for spec, status, reason in cases:
         with pytest.raises(CommandRefused) as ei:
             core.submit(spec, 1.0)
@@ -293,8 +305,9 @@ def test_swarm_commands_go_to_the_leader_and_fan_out() -> None:
     core = station_with(1, 2, 3, leader=2)
     assert core.leader == 2
     _, out = core.submit(CommandSpec(None, CommandKind.FOLLOW, heading=45.0), 1.0)
-    assert [(o.to, o.msg.target, o.msg.kind, o.msg.heading) for o in out] == \
-        [(2, 0, CommandKind.FOLLOW, 45.0)]
+    assert [(o.to, o.msg.target, o.msg.kind, o.msg.heading) for o in out] == [
+        (2, 0, CommandKind.FOLLOW, 45.0)
+    ]
     req, out = core.submit(CommandSpec(None, CommandKind.STOP), 1.0)
     assert [(o.to, o.msg.target) for o in out] == [(2, 0), (1, 1), (2, 2), (3, 3)]
     assert len({o.msg.seq for o in out}) == 4
@@ -331,11 +344,21 @@ def test_leader_follows_the_majority_and_changes_are_events() -> None:
     for i in (1, 2, 3):
         core.handle(tm(i, phase=Phase.LEADER if i == 3 else Phase.MEMBER, leader=3), 1.0)
     assert core.leader == 3
-    core.handle(AgentState(3, Phase.LEADER, leader=3, pool=frozenset({1, 2, 3}),
-                           members=frozenset({1, 2}), locked=True), 1.0, "agent3")
+    core.handle(
+        AgentState(
+            3, Phase.LEADER, leader=3, pool=frozenset({1, 2, 3}), members=frozenset({1, 2}), locked=True
+        ),
+        1.0,
+        "agent3",
+    )
     a = core.agents[3].as_dict(1.0)
-    assert (a["phase"], a["leader"], a["pool"], a["members"], a["locked"]) == \
-        ("LEADER", 3, [1, 2, 3], [1, 2], True)
+    assert (a["phase"], a["leader"], a["pool"], a["members"], a["locked"]) == (
+        "LEADER",
+        3,
+        [1, 2, 3],
+        [1, 2],
+        True,
+    )
     events = [e for e in core.take_events() if e.kind == "leader"]
     assert [e.text for e in events] == ["agent3 (3) is the leader"]
     for i in (1, 2):
@@ -401,28 +424,31 @@ def test_passive_core_sends_nothing_and_counts_anything_heard() -> None:
     assert ei.value.status == 409
 
 
-@pytest.mark.parametrize(("body", "reason"), [
-    ([], "a command is a JSON object"),
-    ({"target": 3}, "unknown command kind None"),
-    ({"target": 3, "kind": "fly"}, "unknown command kind 'fly'"),
-    ({"kind": "arm"}, "a command needs a 'target'"),
-    ({"target": "all", "kind": "arm"}, "target 'all'"),
-    ({"target": True, "kind": "arm"}, "target True"),
-    ({"target": 0, "kind": "arm"}, "target 0 is not an agent id"),
-    ({"target": 251, "kind": "arm"}, "target 251 is not an agent id"),
-    ({"target": 3, "kind": "takeoff"}, "takeoff needs 'alt'"),
-    ({"target": 3, "kind": "takeoff", "alt": 0}, "'alt' 0 outside 1..120"),
-    ({"target": 3, "kind": "takeoff", "alt": "10"}, "'alt' must be a number"),
-    ({"target": 3, "kind": "takeoff", "alt": 121}, "'alt' 121 outside"),
-    ({"target": "swarm", "kind": "waypoint", "lat": 47, "lon": 8, "alt": 5}, "waypoint is for one agent"),
-    ({"target": 3, "kind": "goto", "lat": 47.0, "lon": 8.0}, "goto needs 'alt'"),
-    ({"target": 3, "kind": "goto", "lat": 91, "lon": 8.0, "alt": 500}, "'lat' 91 outside"),
-    ({"target": 3, "kind": "goto", "lat": 47, "lon": 8.0, "alt": float("nan")}, "must be a number"),
-    ({"target": "swarm", "kind": "goto", "lat": 47, "lon": 8, "alt": 5}, "goto is for one agent"),
-    ({"target": 3, "kind": "follow", "heading": 10}, "follow is a swarm command"),
-    ({"target": "swarm", "kind": "follow"}, "follow needs 'heading'"),
-    ({"target": "swarm", "kind": "follow", "heading": 361}, "'heading' 361 outside"),
-])
+@pytest.mark.parametrize(
+    ("body", "reason"),
+    [
+        ([], "a command is a JSON object"),
+        ({"target": 3}, "unknown command kind None"),
+        ({"target": 3, "kind": "fly"}, "unknown command kind 'fly'"),
+        ({"kind": "arm"}, "a command needs a 'target'"),
+        ({"target": "all", "kind": "arm"}, "target 'all'"),
+        ({"target": True, "kind": "arm"}, "target True"),
+        ({"target": 0, "kind": "arm"}, "target 0 is not an agent id"),
+        ({"target": 251, "kind": "arm"}, "target 251 is not an agent id"),
+        ({"target": 3, "kind": "takeoff"}, "takeoff needs 'alt'"),
+        ({"target": 3, "kind": "takeoff", "alt": 0}, "'alt' 0 outside 1..120"),
+        ({"target": 3, "kind": "takeoff", "alt": "10"}, "'alt' must be a number"),
+        ({"target": 3, "kind": "takeoff", "alt": 121}, "'alt' 121 outside"),
+        ({"target": "swarm", "kind": "waypoint", "lat": 47, "lon": 8, "alt": 5}, "waypoint is for one agent"),
+        ({"target": 3, "kind": "goto", "lat": 47.0, "lon": 8.0}, "goto needs 'alt'"),
+        ({"target": 3, "kind": "goto", "lat": 91, "lon": 8.0, "alt": 500}, "'lat' 91 outside"),
+        ({"target": 3, "kind": "goto", "lat": 47, "lon": 8.0, "alt": float("nan")}, "must be a number"),
+        ({"target": "swarm", "kind": "goto", "lat": 47, "lon": 8, "alt": 5}, "goto is for one agent"),
+        ({"target": 3, "kind": "follow", "heading": 10}, "follow is a swarm command"),
+        ({"target": "swarm", "kind": "follow"}, "follow needs 'heading'"),
+        ({"target": "swarm", "kind": "follow", "heading": 361}, "'heading' 361 outside"),
+    ],
+)
 def test_parse_command_rejects(body: Any, reason: str) -> None:
     with pytest.raises(CommandRefused) as ei:
         parse_command(body)
@@ -430,14 +456,17 @@ def test_parse_command_rejects(body: Any, reason: str) -> None:
 
 
 def test_parse_command_accepts() -> None:
-    assert parse_command({"target": "swarm", "kind": "FOLLOW", "heading": 360}) == \
-        CommandSpec(None, CommandKind.FOLLOW, heading=0.0)
-    assert parse_command({"target": 7, "kind": "goto", "lat": -33.5, "lon": 151, "alt": 40.5,
-                          "id": "x"}) == CommandSpec(7, CommandKind.GOTO, lat=-33.5, lon=151.0, alt=40.5)
+    assert parse_command({"target": "swarm", "kind": "FOLLOW", "heading": 360}) == CommandSpec(
+        None, CommandKind.FOLLOW, heading=0.0
+    )
+    assert parse_command(
+        {"target": 7, "kind": "goto", "lat": -33.5, "lon": 151, "alt": 40.5, "id": "x"}
+    ) == CommandSpec(7, CommandKind.GOTO, lat=-33.5, lon=151.0, alt=40.5)
     assert parse_command({"target": "swarm", "kind": "takeoff", "alt": 12}).alt == 12.0
     assert parse_command({"target": 1, "kind": "stop"}) == CommandSpec(1, CommandKind.STOP)
-    assert parse_command({"target": 2, "kind": "waypoint", "lat": 1, "lon": 2, "alt": 3}) == \
-        CommandSpec(2, CommandKind.WAYPOINT, lat=1.0, lon=2.0, alt=3.0)
+    assert parse_command({"target": 2, "kind": "waypoint", "lat": 1, "lon": 2, "alt": 3}) == CommandSpec(
+        2, CommandKind.WAYPOINT, lat=1.0, lon=2.0, alt=3.0
+    )
 
 
 def test_a_heartbeat_round_is_one_payload_for_every_agent() -> None:

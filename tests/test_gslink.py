@@ -10,9 +10,8 @@ from collections.abc import Iterator
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.agent import Agent
-from swarm.gslink import MODES, CommandLog, GsConfig, GsLink, mode_code, mode_name
-from swarm.messages import (
+from swarm.core.gslink import MODES, CommandLog, GsConfig, GsLink, mode_code, mode_name
+from swarm.core.messages import (
     AckResult,
     CommandAck,
     GSAdvertize,
@@ -25,7 +24,8 @@ from swarm.messages import (
     Pose,
     Telemetry,
 )
-from swarm.transport import Transport
+from swarm.runtime.agent import Agent
+from swarm.runtime.transport import Transport
 
 POSE = Pose(47.0, 8.0, 500.0)
 
@@ -66,8 +66,11 @@ def test_telemetry_is_the_heartbeat_and_silence_drops_the_station() -> None:
         out = g.tick(t, tm)
         if dropped_at is None and not g.connected:
             dropped_at = t
-        if dropped_at is not None and advertised_at is None and any(
-                isinstance(o.msg, GSAdvertize) for o in out):
+        if (
+            dropped_at is not None
+            and advertised_at is None
+            and any(isinstance(o.msg, GSAdvertize) for o in out)
+        ):
             advertised_at = t
         t += 0.1
     assert g.connected == [] and g.counters.drops == 1
@@ -97,7 +100,7 @@ def test_mode_codes_round_trip() -> None:
 
 
 def test_command_log_replays_answers_and_sends_new_ones_again() -> None:
-    from swarm.messages import Command, CommandKind
+    from swarm.core.messages import Command, CommandKind
 
     log = CommandLog(size=2)
     c1, c2, c3 = (Command(255, s, 3, CommandKind.ARM) for s in (1, 2, 3))
@@ -113,6 +116,7 @@ def test_command_log_replays_answers_and_sends_new_ones_again() -> None:
 
 
 # -- a real agent over Zenoh ---------------------------------------------------------
+
 
 @pytest.fixture
 def agent_and_station() -> Iterator[tuple[Agent, Transport, list[Message]]]:
@@ -136,16 +140,21 @@ def agent_and_station() -> Iterator[tuple[Agent, Transport, list[Message]]]:
 
 
 def test_real_agent_connects_sends_telemetry_and_drops_a_silent_station(
-        agent_and_station: tuple[Agent, Transport, list[Message]]) -> None:
+    agent_and_station: tuple[Agent, Transport, list[Message]],
+) -> None:
     agent, station, got = agent_and_station
-    wait_until(lambda: any(isinstance(m, GSAdvertize) and m.sender == 3 and m.name == "agent3"
-                           for m in got), "the agent's GSAdvertize", 20)
+    wait_until(
+        lambda: any(isinstance(m, GSAdvertize) and m.sender == 3 and m.name == "agent3" for m in got),
+        "the agent's GSAdvertize",
+        20,
+    )
 
     def connect(seq: int) -> None:
         def acked() -> bool:
             station.gs_advertise(GSAdvertize(255, "gcs"))
             station.send("agent3", GSConnect(255, seq))
             return any(isinstance(m, GSConnectAck) and m.seq == seq for m in got)
+
         wait_until(acked, f"GSConnectAck {seq}", 20, 0.5)
 
     connect(1)
@@ -178,8 +187,9 @@ def test_real_agent_connects_sends_telemetry_and_drops_a_silent_station(
 
 
 def test_real_agent_answers_commands_with_reasons_once_per_sequence_number(
-        agent_and_station: tuple[Agent, Transport, list[Message]]) -> None:
-    from swarm.messages import Command, CommandKind
+    agent_and_station: tuple[Agent, Transport, list[Message]],
+) -> None:
+    from swarm.core.messages import Command, CommandKind
 
     agent, station, got = agent_and_station
 
@@ -188,6 +198,7 @@ def test_real_agent_answers_commands_with_reasons_once_per_sequence_number(
             station.gs_advertise(GSAdvertize(255, "gcs"))  # the agent learns whom to answer
             station.send("agent3", cmd)
             return next((m for m in list(got) if isinstance(m, CommandAck) and m.seq == cmd.seq), None)
+
         ack: CommandAck = wait_until(answered, f"an answer to {cmd.kind.name}", 20, 0.5)
         return ack
 

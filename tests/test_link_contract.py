@@ -298,8 +298,11 @@ class FakeClock:
         self.t += seconds
 
 
-RECORDED = [(1_700_000_000.0, heartbeat(1)), (1_700_000_000.5, tunnel(2, b"second")),
-            (1_700_000_002.5, FrameBuilder(3).heartbeat())]
+RECORDED = [
+    (1_700_000_000.0, heartbeat(1)),
+    (1_700_000_000.5, tunnel(2, b"second")),
+    (1_700_000_002.5, FrameBuilder(3).heartbeat()),
+]
 
 
 @pytest.fixture
@@ -312,8 +315,7 @@ def capture_file(tmp_path: Path) -> Path:
 
 
 @pytest.mark.parametrize("url_form", ["plain", "tlog:"])
-def test_replay_yields_recorded_frames_in_order_with_their_gaps(capture_file: Path,
-                                                               url_form: str) -> None:
+def test_replay_yields_recorded_frames_in_order_with_their_gaps(capture_file: Path, url_form: str) -> None:
     clock = FakeClock()
     url = str(capture_file) if url_form == "plain" else f"tlog:{capture_file}"
     with open_link(url, clock=clock.now, sleep=clock.sleep) as link:
@@ -321,8 +323,7 @@ def test_replay_yields_recorded_frames_in_order_with_their_gaps(capture_file: Pa
         got = [link.recv() for _ in RECORDED]
         assert [f.raw for f in got if f is not None] == [raw for _, raw in RECORDED]
         assert clock.sleeps == pytest.approx([0.5, 2.0])
-        assert (link.stats.frames_in, link.stats.bytes_in) == \
-            (3, sum(len(raw) for _, raw in RECORDED))
+        assert (link.stats.frames_in, link.stats.bytes_in) == (3, sum(len(raw) for _, raw in RECORDED))
         with pytest.raises(LinkClosedError, match="end of capture"):
             link.recv(0)
 
@@ -374,8 +375,12 @@ def test_missing_device_names_the_path(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("query", "message"),
-    [("baud=abc", "baud must be an integer"), ("baud=0", "baud must be positive"),
-     ("bogus=1", "unknown option.*bogus"), ("write_timeout=x", "write_timeout must be a number")],
+    [
+        ("baud=abc", "baud must be an integer"),
+        ("baud=0", "baud must be positive"),
+        ("bogus=1", "unknown option.*bogus"),
+        ("write_timeout=x", "write_timeout must be a number"),
+    ],
 )
 def test_bad_serial_options(query: str, message: str) -> None:
     master, path = raw_pty()
@@ -387,11 +392,14 @@ def test_bad_serial_options(query: str, message: str) -> None:
 
 
 def test_other_bad_urls(tmp_path: Path) -> None:
-    for url, message in [("", "empty"), ("serial:", "no device path"),
-                         (str(tmp_path / "none.tlog"), "none.tlog"),
-                         (f"tlog:{tmp_path / 'x.tlog'}?pace=2", "unknown option.*pace"),
-                         ("tlog:", "no capture file path"),
-                         ("loop://?baud=x", "baud must be an integer")]:
+    for url, message in [
+        ("", "empty"),
+        ("serial:", "no device path"),
+        (str(tmp_path / "none.tlog"), "none.tlog"),
+        (f"tlog:{tmp_path / 'x.tlog'}?pace=2", "unknown option.*pace"),
+        ("tlog:", "no capture file path"),
+        ("loop://?baud=x", "baud must be an integer"),
+    ]:
         with pytest.raises(LinkOpenError, match=message):
             open_link(url)
     with pytest.raises(LinkOpenError, match="unexpected options"):

@@ -72,8 +72,14 @@ HB1 = _hb_v1()
 SIGNED = _signed()
 LARGE = _largest()
 LARGE_SIGNED = _largest(signed=True)
-RS1 = pack_frame(MSG_RADIO_STATUS, struct.pack("<HHBBBBB", 3, 0, 180, 170, 90, 40, 41),
-                 sysid=51, compid=68, seq=9, version=1)
+RS1 = pack_frame(
+    MSG_RADIO_STATUS,
+    struct.pack("<HHBBBBB", 3, 0, 180, 170, 90, 40, 41),
+    sysid=51,
+    compid=68,
+    seq=9,
+    version=1,
+)
 SAMPLES = [HB, TUN, HB1, SIGNED, LARGE, RS1, LARGE_SIGNED]
 STREAM = b"".join(SAMPLES)
 
@@ -108,8 +114,12 @@ def test_whole_input() -> None:
     p = FrameParser()
     out = p.feed(STREAM)
     assert [f.raw for f in out] == SAMPLES
-    assert (p.stats.frames, p.stats.bytes, p.stats.bytes_skipped, p.pending) == \
-        (len(SAMPLES), len(STREAM), 0, 0)
+    assert (p.stats.frames, p.stats.bytes, p.stats.bytes_skipped, p.pending) == (
+        len(SAMPLES),
+        len(STREAM),
+        0,
+        0,
+    )
     assert (p.stats.crc_errors, p.stats.unknown_msgid) == (0, 0)
 
 
@@ -161,8 +171,11 @@ def test_garbage_with_false_starts_does_not_swallow_real_frames() -> None:
     # at least that long to prove them false (LARGE alone is 267 bytes)
     frames = [HB, LARGE, TUN, HB1, SIGNED]
     data = g + b"".join(frames)
-    for chunks in ([data], [data[k : k + 1] for k in range(len(data))],
-                   [data[k : k + 61] for k in range(0, len(data), 61)]):
+    for chunks in (
+        [data],
+        [data[k : k + 1] for k in range(len(data))],
+        [data[k : k + 61] for k in range(0, len(data), 61)],
+    ):
         p = FrameParser()
         out = feed_all(p, chunks)
         assert out == frames
@@ -264,8 +277,14 @@ def test_mavlink1_frames() -> None:
     out = p.feed(HB1 + RS1)
     assert [f.raw for f in out] == [HB1, RS1]
     hb, rs = out
-    assert (hb.version, hb.sysid, hb.compid, hb.msgid, hb.name, hb.payload_len) == \
-        (1, 2, 1, 0, "HEARTBEAT", 9)
+    assert (hb.version, hb.sysid, hb.compid, hb.msgid, hb.name, hb.payload_len) == (
+        1,
+        2,
+        1,
+        0,
+        "HEARTBEAT",
+        9,
+    )
     assert not hb.signed
     assert (rs.version, rs.sysid, rs.compid, rs.seq, rs.msgid) == (1, 51, 68, 9, MSG_RADIO_STATUS)
 
@@ -328,10 +347,14 @@ def test_arbitrary_bytes_never_raise_and_chunking_does_not_matter(data: bytes, c
 
 
 @SETTINGS
-@given(parts=st.lists(st.tuples(NO_STX, FRAME), max_size=8), tail=NO_STX,
-       cuts=st.lists(st.integers(0, 4000), max_size=10))
+@given(
+    parts=st.lists(st.tuples(NO_STX, FRAME), max_size=8),
+    tail=NO_STX,
+    cuts=st.lists(st.integers(0, 4000), max_size=10),
+)
 def test_frames_between_garbage_without_start_bytes_are_all_recovered(
-        parts: list[tuple[bytes, bytes]], tail: bytes, cuts: list[int]) -> None:
+    parts: list[tuple[bytes, bytes]], tail: bytes, cuts: list[int]
+) -> None:
     data = b"".join(g + f for g, f in parts) + tail
     p = FrameParser()
     assert feed_all(p, _split(data, cuts)) == [f for _, f in parts]
@@ -340,10 +363,13 @@ def test_frames_between_garbage_without_start_bytes_are_all_recovered(
 
 
 @SETTINGS
-@given(parts=st.lists(st.tuples(st.binary(max_size=400), FRAME), min_size=1, max_size=5),
-       cuts=st.lists(st.integers(0, 4000), max_size=10))
+@given(
+    parts=st.lists(st.tuples(st.binary(max_size=400), FRAME), min_size=1, max_size=5),
+    cuts=st.lists(st.integers(0, 4000), max_size=10),
+)
 def test_arbitrary_garbage_cannot_swallow_frames_it_cannot_reach(
-        parts: list[tuple[bytes, bytes]], cuts: list[int]) -> None:
+    parts: list[tuple[bytes, bytes]], cuts: list[int]
+) -> None:
     """No frame is longer than 280 bytes, so a false start inside garbage followed by
     280 bytes with no start byte is resolved before the next real frame begins: that
     frame must come out. (Garbage may itself hold valid frames; those come out too.)"""
@@ -392,8 +418,16 @@ def test_parse_one_accepts_exactly_one_valid_frame() -> None:
         (b"\x00" + HB[1:], "not exactly one"),
         (HB[:-1] + bytes((HB[-1] ^ 1,)), "bad CRC"),
     ],
-    ids=["oversize", "oversize-by-one", "two-frames", "trailing-byte", "truncated", "empty",
-         "no-start-byte", "bad-crc"],
+    ids=[
+        "oversize",
+        "oversize-by-one",
+        "two-frames",
+        "trailing-byte",
+        "truncated",
+        "empty",
+        "no-start-byte",
+        "bad-crc",
+    ],
 )
 def test_parse_one_errors(data: bytes, message: str) -> None:
     with pytest.raises(FrameError, match=message):
@@ -407,20 +441,19 @@ def test_frame_error_is_a_value_error() -> None:
 
 # -- pack_frame and RADIO_STATUS --------------------------------------------------------------
 
-FIELDS = {"rxerrors": 513, "fixed": 7, "rssi": 180, "remrssi": 175, "txbuf": 93,
-          "noise": 41, "remnoise": 39}
+FIELDS = {"rxerrors": 513, "fixed": 7, "rssi": 180, "remrssi": 175, "txbuf": 93, "noise": 41, "remnoise": 39}
 
 
 def _rs_payload(fields: dict[str, int]) -> bytes:
     f = fields
-    return struct.pack("<HHBBBBB", f["rxerrors"], f["fixed"], f["rssi"], f["remrssi"],
-                       f["txbuf"], f["noise"], f["remnoise"])
+    return struct.pack(
+        "<HHBBBBB", f["rxerrors"], f["fixed"], f["rssi"], f["remrssi"], f["txbuf"], f["noise"], f["remnoise"]
+    )
 
 
 @pytest.mark.parametrize("version", [1, 2])
 def test_pack_frame_radio_status_decodes_with_pymavlink(version: int) -> None:
-    raw = pack_frame(MSG_RADIO_STATUS, _rs_payload(FIELDS), sysid=51, compid=68, seq=300,
-                     version=version)
+    raw = pack_frame(MSG_RADIO_STATUS, _rs_payload(FIELDS), sysid=51, compid=68, seq=300, version=version)
     dialect = v1 if version == 1 else v2
     msg = dialect.MAVLink(None).decode(bytearray(raw))
     assert msg.get_type() == "RADIO_STATUS"
@@ -436,9 +469,17 @@ def test_pack_frame_v2_truncates_trailing_zeros_as_pymavlink_does() -> None:
     raw = pack_frame(MSG_RADIO_STATUS, _rs_payload(fields), sysid=51, compid=68, seq=1)
     mav = v2.MAVLink(None, srcSystem=51, srcComponent=68)
     mav.seq = 1
-    ref = bytes(v2.MAVLink_radio_status_message(
-        fields["rssi"], fields["remrssi"], fields["txbuf"], fields["noise"],
-        fields["remnoise"], fields["rxerrors"], fields["fixed"]).pack(mav))
+    ref = bytes(
+        v2.MAVLink_radio_status_message(
+            fields["rssi"],
+            fields["remrssi"],
+            fields["txbuf"],
+            fields["noise"],
+            fields["remnoise"],
+            fields["rxerrors"],
+            fields["fixed"],
+        ).pack(mav)
+    )
     assert raw == ref
     assert raw[1] == 7
     assert radio_status_fields(parse_one(raw)) == fields

@@ -9,8 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarm.errors import DecodeError, MessageError, VersionMismatch
-from swarm.messages import (
+from swarm.core.messages import (
     AckResult,
     Advertize,
     AgentState,
@@ -43,6 +42,7 @@ from swarm.messages import (
     message_types,
     pool_digest,
 )
+from swarm.errors import DecodeError, MessageError, VersionMismatch
 
 ids = st.integers(1, 250)
 pools = st.frozensets(ids, max_size=60)
@@ -60,27 +60,54 @@ poses = st.builds(
 )
 tasks = st.one_of(
     st.builds(Task, kind=st.sampled_from([TaskKind.NONE, TaskKind.HOLD])),
-    st.builds(Task, kind=st.just(TaskKind.FOLLOW),
-              heading=st.integers(0, 35999).map(lambda v: v / 100.0),
-              back_m=st.integers(0, 255).map(lambda v: v / 4.0),
-              side_m=st.integers(0, 255).map(lambda v: v / 4.0),
-              assignments=st.lists(st.builds(Assignment, ids, ids, st.sampled_from(Side)),
-                                   max_size=20).map(tuple),
-              gen=st.integers(0, 255), turn_rate=st.integers(-127, 127).map(lambda v: v / 2.0)),
+    st.builds(
+        Task,
+        kind=st.just(TaskKind.FOLLOW),
+        heading=st.integers(0, 35999).map(lambda v: v / 100.0),
+        back_m=st.integers(0, 255).map(lambda v: v / 4.0),
+        side_m=st.integers(0, 255).map(lambda v: v / 4.0),
+        assignments=st.lists(st.builds(Assignment, ids, ids, st.sampled_from(Side)), max_size=20).map(tuple),
+        gen=st.integers(0, 255),
+        turn_rate=st.integers(-127, 127).map(lambda v: v / 2.0),
+    ),
 )
 headings = st.integers(0, 35999).map(lambda v: v / 100.0)
 commands = st.one_of(
-    st.builds(Command, st.integers(1, 255), st.integers(0, 65535), st.integers(0, 250),
-              st.sampled_from([CommandKind.ARM, CommandKind.DISARM, CommandKind.LAND,
-                               CommandKind.RETURN, CommandKind.STOP])),
-    st.builds(Command, st.integers(1, 255), st.integers(0, 65535), st.integers(0, 250),
-              st.just(CommandKind.TAKEOFF), alt=st.integers(0, 65535).map(lambda v: v / 10.0)),
-    st.builds(Command, st.integers(1, 255), st.integers(0, 65535), st.integers(0, 250),
-              st.just(CommandKind.FOLLOW), heading=headings),
-    st.builds(Command, st.integers(1, 255), st.integers(0, 65535), st.integers(0, 250),
-              st.just(CommandKind.GOTO), lat=st.integers(-900_000_000, 900_000_000).map(lambda v: v / 1e7),
-              lon=st.integers(-1_800_000_000, 1_800_000_000).map(lambda v: v / 1e7),
-              alt=st.integers(0, 65535).map(lambda v: v / 10.0 - 1000.0)),
+    st.builds(
+        Command,
+        st.integers(1, 255),
+        st.integers(0, 65535),
+        st.integers(0, 250),
+        st.sampled_from(
+            [CommandKind.ARM, CommandKind.DISARM, CommandKind.LAND, CommandKind.RETURN, CommandKind.STOP]
+        ),
+    ),
+    st.builds(
+        Command,
+        st.integers(1, 255),
+        st.integers(0, 65535),
+        st.integers(0, 250),
+        st.just(CommandKind.TAKEOFF),
+        alt=st.integers(0, 65535).map(lambda v: v / 10.0),
+    ),
+    st.builds(
+        Command,
+        st.integers(1, 255),
+        st.integers(0, 65535),
+        st.integers(0, 250),
+        st.just(CommandKind.FOLLOW),
+        heading=headings,
+    ),
+    st.builds(
+        Command,
+        st.integers(1, 255),
+        st.integers(0, 65535),
+        st.integers(0, 250),
+        st.just(CommandKind.GOTO),
+        lat=st.integers(-900_000_000, 900_000_000).map(lambda v: v / 1e7),
+        lon=st.integers(-1_800_000_000, 1_800_000_000).map(lambda v: v / 1e7),
+        alt=st.integers(0, 65535).map(lambda v: v / 10.0 - 1000.0),
+    ),
 )
 messages = st.one_of(
     st.builds(Advertize, ids, names, st.integers(0, 255)),
@@ -93,17 +120,36 @@ messages = st.one_of(
     st.builds(SyncPoolAck, ids, st.booleans(), st.booleans(), pools),
     st.builds(Selection, ids, ids, st.integers(0, 2**32 - 1), st.integers(0, 65535)),
     st.builds(PoseReport, poses),
-    st.builds(AgentState, ids, st.sampled_from(Phase), st.integers(0, 250), st.integers(0, 250),
-              st.integers(0, 2**32 - 1), st.integers(0, 65535), st.booleans(), pools, pools),
+    st.builds(
+        AgentState,
+        ids,
+        st.sampled_from(Phase),
+        st.integers(0, 250),
+        st.integers(0, 250),
+        st.integers(0, 2**32 - 1),
+        st.integers(0, 65535),
+        st.booleans(),
+        pools,
+        pools,
+    ),
     st.builds(GSConnect, st.integers(1, 255), st.integers(0, 65535)),
     st.builds(GSConnectAck, ids, st.integers(0, 65535), st.integers(0, 65535)),
-    st.builds(Telemetry, ids, poses, st.integers(0, 255), st.integers(0, 255), st.sampled_from(Phase),
-              st.integers(0, 250), st.integers(0, 255), st.integers(0, 255), st.integers(0, 255),
-              st.integers(0, 255).map(lambda v: v / 4.0)),
+    st.builds(
+        Telemetry,
+        ids,
+        poses,
+        st.integers(0, 255),
+        st.integers(0, 255),
+        st.sampled_from(Phase),
+        st.integers(0, 250),
+        st.integers(0, 255),
+        st.integers(0, 255),
+        st.integers(0, 255),
+        st.integers(0, 255).map(lambda v: v / 4.0),
+    ),
     st.builds(GSHeartbeat, st.integers(1, 255), st.integers(0, 255)),
     commands,
-    st.builds(CommandAck, ids, st.integers(0, 65535), st.sampled_from(AckResult),
-              st.text(max_size=8)),
+    st.builds(CommandAck, ids, st.integers(0, 65535), st.sampled_from(AckResult), st.text(max_size=8)),
     st.builds(NameConflict, ids, names, ids),
 )
 
@@ -136,6 +182,7 @@ def test_truncated_or_extended_messages_are_rejected(msg: object, data: st.DataO
 
 
 # -- canonical encoding: one message, one byte string ---------------------------------
+
 
 @given(messages, st.data())
 @settings(max_examples=1500)
@@ -172,25 +219,42 @@ def _bitmap(ids: list[int]) -> bytes:
     return b"\x80" + bytes(bits)
 
 
-@pytest.mark.parametrize(("what", "raw"), [
-    ("a small pool sent as a bitmap", _start_pool_ack(_bitmap([1, 2, 3]))),
-    ("a bitmap pool holding id 0", _start_pool_ack(_bitmap([0, *range(1, 40)]))),
-    ("a bitmap pool holding id 251", _start_pool_ack(_bitmap([*range(1, 40), 251]))),
-    ("a bitmap pool holding the station's 255", _start_pool_ack(_bitmap([*range(1, 40), 255]))),
-    ("a list pool holding id 0", _start_pool_ack(bytes([2, 0, 5]))),
-    ("a list pool holding id 253", _start_pool_ack(bytes([2, 5, 253]))),
-    ("a leader id of 252 in AgentState", encode(AgentState(3, Phase.MEMBER, 1, 0, 0, 0, False,
-                                                            frozenset(), frozenset()))[:3]
-     + bytes([252]) + encode(AgentState(3, Phase.MEMBER, 1, 0, 0, 0, False,
-                                        frozenset(), frozenset()))[4:]),
-    ("a command to the station's own id", encode(Command(255, 1, 7, CommandKind.LAND))[:4]
-     + bytes([255]) + encode(Command(255, 1, 7, CommandKind.LAND))[5:]),
-    ("a turn rate of -128 (the encoder writes -127..127)",
-     encode(Heartbeat(1, 2, 3, frozenset({1}), Task(TaskKind.FOLLOW)))[:-2] + b"\x80\x00"),
-    ("a formation slot following agent 0",
-     encode(Heartbeat(1, 2, 3, frozenset({1}), Task(TaskKind.FOLLOW, assignments=(
-         Assignment(2, 1, Side.LEFT),))))[:-2] + b"\x00\xff"),
-])
+@pytest.mark.parametrize(
+    ("what", "raw"),
+    [
+        ("a small pool sent as a bitmap", _start_pool_ack(_bitmap([1, 2, 3]))),
+        ("a bitmap pool holding id 0", _start_pool_ack(_bitmap([0, *range(1, 40)]))),
+        ("a bitmap pool holding id 251", _start_pool_ack(_bitmap([*range(1, 40), 251]))),
+        ("a bitmap pool holding the station's 255", _start_pool_ack(_bitmap([*range(1, 40), 255]))),
+        ("a list pool holding id 0", _start_pool_ack(bytes([2, 0, 5]))),
+        ("a list pool holding id 253", _start_pool_ack(bytes([2, 5, 253]))),
+        (
+            "a leader id of 252 in AgentState",
+            encode(AgentState(3, Phase.MEMBER, 1, 0, 0, 0, False, frozenset(), frozenset()))[:3]
+            + bytes([252])
+            + encode(AgentState(3, Phase.MEMBER, 1, 0, 0, 0, False, frozenset(), frozenset()))[4:],
+        ),
+        (
+            "a command to the station's own id",
+            encode(Command(255, 1, 7, CommandKind.LAND))[:4]
+            + bytes([255])
+            + encode(Command(255, 1, 7, CommandKind.LAND))[5:],
+        ),
+        (
+            "a turn rate of -128 (the encoder writes -127..127)",
+            encode(Heartbeat(1, 2, 3, frozenset({1}), Task(TaskKind.FOLLOW)))[:-2] + b"\x80\x00",
+        ),
+        (
+            "a formation slot following agent 0",
+            encode(
+                Heartbeat(
+                    1, 2, 3, frozenset({1}), Task(TaskKind.FOLLOW, assignments=(Assignment(2, 1, Side.LEFT),))
+                )
+            )[:-2]
+            + b"\x00\xff",
+        ),
+    ],
+)
 def test_non_canonical_or_out_of_range_ids_are_refused(what: str, raw: bytes) -> None:
     with pytest.raises(DecodeError):
         decode(raw)
@@ -260,16 +324,19 @@ def test_version_mismatch_is_clear() -> None:
         decode(bytes(raw))
 
 
-@pytest.mark.parametrize("bad", [
-    lambda: encode(Advertize(3, "bad/name")),
-    lambda: encode(Advertize(0, "agent")),
-    lambda: encode(Advertize(251, "agent")),
-    lambda: Pose(math.nan, 0.0, 0.0),
-    lambda: Pose(91.0, 0.0, 0.0),
-    lambda: encode(Command(255, 1, 0, CommandKind.FOLLOW, heading=400.0)),
-    lambda: encode(Command(255, 1, 0, CommandKind.FOLLOW, heading=math.inf)),
-    lambda: encode(CommandAck(3, 1, AckResult.REJECTED, "x" * 97)),
-])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        lambda: encode(Advertize(3, "bad/name")),
+        lambda: encode(Advertize(0, "agent")),
+        lambda: encode(Advertize(251, "agent")),
+        lambda: Pose(math.nan, 0.0, 0.0),
+        lambda: Pose(91.0, 0.0, 0.0),
+        lambda: encode(Command(255, 1, 0, CommandKind.FOLLOW, heading=400.0)),
+        lambda: encode(Command(255, 1, 0, CommandKind.FOLLOW, heading=math.inf)),
+        lambda: encode(CommandAck(3, 1, AckResult.REJECTED, "x" * 97)),
+    ],
+)
 def test_our_own_bad_messages_raise_message_error(bad: object) -> None:
     with pytest.raises(MessageError):
         bad()  # type: ignore[operator]

@@ -1,5 +1,5 @@
 """Leader selection in virtual time: the pure core alone (manual clock), and N cores
-over the SiK air model (swarm.simulate) in the scenarios the issue names. No test
+over the SiK air model (swarm.sim.simulate) in the scenarios the issue names. No test
 sleeps: time is a number the test advances."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import random
 
 import pytest
 
-from swarm.messages import (
+from swarm.core.messages import (
     Advertize,
     Heartbeat,
     HeartbeatAck,
@@ -21,8 +21,8 @@ from swarm.messages import (
     SyncPool,
     pool_digest,
 )
-from swarm.protocol import ADVERTIZE, PAPER, Core, fast_profile, paper_profile
-from swarm.simulate import Scenario, Sim, campaign
+from swarm.core.protocol import ADVERTIZE, PAPER, Core, fast_profile, paper_profile
+from swarm.sim.simulate import Scenario, Sim, campaign
 
 POSE = Pose(47.4, 8.5, 500.0)
 
@@ -36,6 +36,7 @@ class FixedVote:
 
 
 # -- the core alone -------------------------------------------------------------
+
 
 def test_idle_agent_advertises_and_answers_start_pool_with_success() -> None:
     c = Core(1, "a1")
@@ -148,7 +149,7 @@ def test_member_expelled_while_deaf_leaves_although_it_hears_the_leaders_poses()
     m.handle(Heartbeat(1, 0, 1, frozenset({2, 3})), 1.0)
     t = 1.0
     limit = 1.0 + PAPER.leader_timeout * 3
-    while t < limit - 0.2:  # poses only: the expelled member is no longer addressed
+    while t + 0.25 < limit:  # poses only: the expelled member is no longer addressed
         t += 0.25
         m.note_pose(1, POSE, t)
         m.tick(t)
@@ -166,7 +167,7 @@ def test_an_agent_that_hears_a_leader_is_not_alone() -> None:
     hear the swarm but not be heard; expelled, it formed a swarm of one after the alone
     timeout, and the swarm had two leaders for the rest of the flood. An agent that hears
     a leader's Advertize keeps asking to join it instead."""
-    from swarm.protocol import FLAG_LEADER
+    from swarm.core.protocol import FLAG_LEADER
 
     a = Core(4)
     a.start(0.0)
@@ -234,9 +235,15 @@ def test_garbage_and_out_of_order_messages_never_raise() -> None:
     rng = random.Random(7)
     c = Core(1)
     c.start(0.0)
-    msgs = [StartPool(2), StartPoolAck(3, PoolStatus.SUCCESS, True, frozenset({3, 9})),
-            SyncPool(4, 123, True, None), Selection(5, 77, 3, 9), Heartbeat(6, 1, 2, frozenset()),
-            HeartbeatAck(7, 3, POSE), Advertize(1, "me")]
+    msgs = [
+        StartPool(2),
+        StartPoolAck(3, PoolStatus.SUCCESS, True, frozenset({3, 9})),
+        SyncPool(4, 123, True, None),
+        Selection(5, 77, 3, 9),
+        Heartbeat(6, 1, 2, frozenset()),
+        HeartbeatAck(7, 3, POSE),
+        Advertize(1, "me"),
+    ]
     t = 0.0
     for _ in range(500):
         t += rng.random()
@@ -254,6 +261,7 @@ def test_profiles_stretch_with_the_radio_round() -> None:
 
 
 # -- N cores over the air model --------------------------------------------------
+
 
 @pytest.mark.parametrize("n", [2, 3, 5, 10, 20])
 def test_swarm_converges_for_n_agents(n: int) -> None:
@@ -325,6 +333,7 @@ def test_campaign_paper_n10_loss10_500_seeds() -> None:
 
 
 # -- a leader that cannot fly hands over (issue 11, item 7) ------------------------------
+
 
 def _leader_of(members: set[int], *, has_fc: bool = True) -> Core:
     lead = Core(1, policy=FixedVote(99), has_fc=has_fc)

@@ -31,10 +31,10 @@ from net_helpers import free_port
 
 from radios.errors import LinkClosedError, LinkOpenError
 from radios.link import open_link
-from swarm.bridge import RadioBridge
-from swarm.messages import Advertize, Selection, encode
-from swarm.procs import Child, start_emulator
-from swarm.transport import Transport, open_session
+from swarm.cli.procs import Child, start_emulator
+from swarm.core.messages import Advertize, Selection, encode
+from swarm.runtime.bridge import RadioBridge
+from swarm.runtime.transport import Transport, open_session
 
 DEADLINE = 60.0  # a failing wait only; radios lock in seconds, elections take a few windows
 OUTAGE_S = 3.0
@@ -50,6 +50,7 @@ def control(directory: Path, line: str) -> None:
 
 
 # -- the emulator and the link ----------------------------------------------------------
+
 
 def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Path) -> None:
     events: list[str] = []
@@ -85,8 +86,10 @@ def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Pat
         wait_until(lambda: Path(run.paths[0]).exists(), AIR_DEADLINE, "radio0 back by itself")
         wait_until(lambda: len(events) >= 5, AIR_DEADLINE, "an event line for each")
     assert events[0] == "radio1 unplugged" and events[1].startswith("radio1 plugged back: ")
-    assert sorted(events[2:4]) == ["control: 'unplug seven': expected unplug I [FOR_S] | replug I | loss P",
-                                   "radio0 unplugged for 1.5 s"], events
+    assert sorted(events[2:4]) == [
+        "control: 'unplug seven': expected unplug I [FOR_S] | replug I | loss P",
+        "radio0 unplugged for 1.5 s",
+    ], events
     assert events[4].startswith("radio0 plugged back: ")
     assert not (tmp_path / "control").exists() and os.listdir(tmp_path) == []
 
@@ -96,9 +99,9 @@ class _Node:
         self.bridge, self.t, self.inbox = bridge, transport, inbox
 
 
-def _two_bridged_nodes(run: Any, stack: ExitStack,
-                       link_options: Callable[[str], dict[str, Any]] = lambda _name: {}
-                       ) -> tuple[_Node, _Node]:
+def _two_bridged_nodes(
+    run: Any, stack: ExitStack, link_options: Callable[[str], dict[str, Any]] = lambda _name: {}
+) -> tuple[_Node, _Node]:
     """Two radio bridges ("a1", "a2") on the emulator's radios 0 and 1, each with its own
     Zenoh session and transport, that have learnt each other's names."""
     nodes = []
@@ -139,9 +142,12 @@ def test_bridge_lends_its_radio_for_an_at_check_and_takes_it_back(tmp_path: Path
         assert report.ok and report.values["NETID"] == 25
         wait_until(lambda: b2.stats.radio_reopens == 1, AIR_DEADLINE, "a2's radio taken back")
         assert not b2.link_lost and heard[0] == ("paused", "radio check") and heard[1][0] == "back"
-        wait_until(lambda: (t1.send("a2", Selection(1, 2, 9, 3)),
-                            any(m == Selection(1, 2, 9, 3) for m in in2))[1],
-                   AIR_DEADLINE, "a1 -> a2 after the check", 0.5)
+        wait_until(
+            lambda: (t1.send("a2", Selection(1, 2, 9, 3)), any(m == Selection(1, 2, 9, 3) for m in in2))[1],
+            AIR_DEADLINE,
+            "a1 -> a2 after the check",
+            0.5,
+        )
         assert "a1" in b2.peers()  # the name table survived
         b2.cfg.reopen_radio = False  # --exit-on-radio-loss: a lend is not a loss
         with pytest.raises(ValueError):  # what the borrower raises comes out; the radio comes back
@@ -201,13 +207,14 @@ def test_a_link_that_cannot_be_reopened_says_so(tmp_path: Path) -> None:
 
 # -- the bridge -----------------------------------------------------------------------
 
-def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytest.LogCaptureFixture
-                                                   ) -> None:
-    caplog.set_level(logging.WARNING, logger="swarm.bridge")
+
+def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge")
     heard: list[tuple[str, str]] = []
     with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
         n1, n2 = _two_bridged_nodes(
-            run, stack, link_options=lambda name: {"capture": str(tmp_path / f"{name}.tlog")})
+            run, stack, link_options=lambda name: {"capture": str(tmp_path / f"{name}.tlog")}
+        )
         t1, in1 = n1.t, n1.inbox
         b2, t2, in2 = n2.bridge, n2.t, n2.inbox
         b2.add_listener(lambda what, text: heard.append((what, text)))
@@ -222,11 +229,16 @@ def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytes
         # traffic both ways again, and the name table survived (no new Advertize)
         t2.send("a1", Selection(2, 1, 8, 3))
         wait_until(lambda: any(m == Selection(2, 1, 8, 3) for m in in1), AIR_DEADLINE, "a2 -> a1")
-        wait_until(lambda: (t1.send("a2", Selection(1, 2, 9, 3)),
-                            any(m == Selection(1, 2, 9, 3) for m in in2))[1],
-                   AIR_DEADLINE, "a1 -> a2", 0.5)
+        wait_until(
+            lambda: (t1.send("a2", Selection(1, 2, 9, 3)), any(m == Selection(1, 2, 9, 3) for m in in2))[1],
+            AIR_DEADLINE,
+            "a1 -> a2",
+            0.5,
+        )
         wait_until(lambda: b2.stats.radio_status_accepted > 0, AIR_DEADLINE, "RADIO_STATUS again")
-    lines = [r.getMessage() for r in caplog.records if r.name == "swarm.bridge" and "a2" in r.getMessage()]
+    lines = [
+        r.getMessage() for r in caplog.records if r.name == "swarm.runtime.bridge" and "a2" in r.getMessage()
+    ]
     assert sum("lost" in x for x in lines) == 1 and sum("back after" in x for x in lines) == 1, lines
     waiting = [x for x in lines if "still away" in x]
     assert len(waiting) <= away + 1, f"about one line a second while waiting, not a flood: {lines}"
@@ -240,6 +252,7 @@ def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytes
 
 
 # -- real processes --------------------------------------------------------------------
+
 
 def last(child: Child, event: str) -> dict[str, Any] | None:
     for line in reversed(list(child.lines)):
@@ -257,6 +270,7 @@ def up(*children: Child) -> Callable[[], None]:
     def check() -> None:
         for c in children:
             assert c.proc.poll() is None, f"{c.name} exited {c.proc.returncode}: {c.errors[-5:]}"
+
     return check
 
 
@@ -285,8 +299,10 @@ def test_agent_and_station_stay_up_and_return_after_an_unplug(tmp_path: Path) ->
     try:
         a1 = Child(["agent", "--name", "agent1", "--id", "1", "--radio", paths[0], "--json"], name="agent1")
         a2 = Child(["agent", "--name", "agent2", "--id", "2", "--radio", paths[1], "--json"], name="agent2")
-        gcs = Child(["gcs", "--radio", paths[2], "--http", f"127.0.0.1:{free_port()}", "--tiles", "none",
-                     "--json"], name="gcs")
+        gcs = Child(
+            ["gcs", "--radio", paths[2], "--http", f"127.0.0.1:{free_port()}", "--tiles", "none", "--json"],
+            name="gcs",
+        )
         children += [a1, a2, gcs]
         alive = up(*children)
         url = json.loads(gcs.wait_lines(1, 30)[0])["url"]
@@ -310,15 +326,25 @@ def test_agent_and_station_stay_up_and_return_after_an_unplug(tmp_path: Path) ->
         wait_until(lambda: len(events(a2, "radio")) >= 2, DEADLINE, "agent2: radio back", 0.1)
         assert events(a2, "radio")[1]["state"] == "back"
         after = wait_until(swarm, DEADLINE, "agent1 and agent2 to agree again", 0.1)
-        print(f"\nbefore the unplug: leader {before[0]} members {set(before[1])}; "
-              f"after: leader {after[0]} members {set(after[1])}")
+        print(
+            f"\nbefore the unplug: leader {before[0]} members {set(before[1])}; "
+            f"after: leader {after[0]} members {set(after[1])}"
+        )
         assert after == before or set(after[1]) | {after[0]} == {1, 2}
         # the station's radio next
         control(tmp_path, f"unplug 2 {OUTAGE_S}")
-        wait_until(lambda: (alive(), [e for e in events(gcs, "log") if e["kind"] == "radio"])[1],
-                   DEADLINE, "gcs: radio lost", 0.1)
-        wait_until(lambda: len([e for e in events(gcs, "log") if e["kind"] == "radio"]) >= 2,
-                   DEADLINE, "gcs: radio back", 0.1)
+        wait_until(
+            lambda: (alive(), [e for e in events(gcs, "log") if e["kind"] == "radio"])[1],
+            DEADLINE,
+            "gcs: radio lost",
+            0.1,
+        )
+        wait_until(
+            lambda: len([e for e in events(gcs, "log") if e["kind"] == "radio"]) >= 2,
+            DEADLINE,
+            "gcs: radio back",
+            0.1,
+        )
         radio = [e["text"] for e in events(gcs, "log") if e["kind"] == "radio"]
         assert radio[0].startswith("radio lost: ") and radio[1].startswith("radio back after "), radio
         wait_until(lambda: connected() == {1, 2}, DEADLINE, "the station to see both agents again", 0.2)
@@ -337,10 +363,23 @@ def test_exit_on_radio_loss_exits_1_with_one_line(tmp_path: Path) -> None:
     emu, paths = start_emulator(2, tmp_path, "--seed", "16")
     children: list[Child] = []
     try:
-        agent = Child(["agent", "--name", "agent1", "--id", "1", "--radio", paths[0],
-                       "--exit-on-radio-loss"], name="agent1")
-        gcs = Child(["gcs", "--radio", paths[1], "--http", f"127.0.0.1:{free_port()}", "--tiles", "none",
-                     "--exit-on-radio-loss"], name="gcs")
+        agent = Child(
+            ["agent", "--name", "agent1", "--id", "1", "--radio", paths[0], "--exit-on-radio-loss"],
+            name="agent1",
+        )
+        gcs = Child(
+            [
+                "gcs",
+                "--radio",
+                paths[1],
+                "--http",
+                f"127.0.0.1:{free_port()}",
+                "--tiles",
+                "none",
+                "--exit-on-radio-loss",
+            ],
+            name="gcs",
+        )
         children += [agent, gcs]
         for c in children:
             c.wait_lines(1, 30)
@@ -349,8 +388,9 @@ def test_exit_on_radio_loss_exits_1_with_one_line(tmp_path: Path) -> None:
         for c, prog in ((agent, "swarm agent"), (gcs, "swarm gcs")):
             assert c.proc.wait(30) == 1, c.errors
             c.stop()
-            assert c.errors == [c.errors[0]] and c.errors[0].startswith(f"{prog}: error: radio link lost"), \
+            assert c.errors == [c.errors[0]] and c.errors[0].startswith(f"{prog}: error: radio link lost"), (
                 c.errors
+            )
     finally:
         for c in children:
             c.stop(grace=3)
@@ -358,15 +398,16 @@ def test_exit_on_radio_loss_exits_1_with_one_line(tmp_path: Path) -> None:
 
 
 def test_exit_on_radio_loss_needs_a_radio(capsys: pytest.CaptureFixture[str]) -> None:
-    from swarm.commands.agent import main as agent_main
-    from swarm.commands.gcs import main as gcs_main
+    from swarm.cli.commands.agent import main as agent_main
+    from swarm.cli.commands.gcs import main as gcs_main
 
     assert gcs_main(["--zenoh-listen", "tcp/127.0.0.1:1", "--exit-on-radio-loss"]) == 2
-    assert agent_main(["--name", "a", "--id", "1", "--zenoh-listen", "tcp/127.0.0.1:1",
-                       "--exit-on-radio-loss"]) == 2
+    assert (
+        agent_main(["--name", "a", "--id", "1", "--zenoh-listen", "tcp/127.0.0.1:1", "--exit-on-radio-loss"])
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["swarm gcs: error: --exit-on-radio-loss is for a station on a radio (--radio)",
-                   "swarm agent: error: --exit-on-radio-loss is for an agent on a radio (--radio)"]
-
-
-
+    assert err == [
+        "swarm gcs: error: --exit-on-radio-loss is for a station on a radio (--radio)",
+        "swarm agent: error: --exit-on-radio-loss is for an agent on a radio (--radio)",
+    ]

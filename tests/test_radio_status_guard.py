@@ -3,7 +3,7 @@
 A SiK radio injects RADIO_STATUS (sysid 51, compid 68, unsigned) into its host's
 serial output once per HEARTBEAT from that host; a foreign radio on the same NETID
 can put identical bytes on the air and ours forwards them. The pure rule
-(:class:`swarm.radio_guard.RadioStatusGuard`) is tested on a manual clock; then end
+(:class:`swarm.core.radio_guard.RadioStatusGuard`) is tested on a manual clock; then end
 to end: a ``swarm radio-emu`` process (real ptys, the SiK air model), three bridged
 nodes streaming poses at 4 Hz, an observer measuring them, and a rogue radio on the
 same NETID sending forged RADIO_STATUS at 10 Hz with txbuf 0.
@@ -25,11 +25,11 @@ from net_helpers import wait_until
 
 from radios.link import open_link
 from radios.mavlink import pack_frame
-from swarm.bridge import RadioBridge
-from swarm.messages import Advertize, Pose, PoseReport
-from swarm.procs import start_emulator
-from swarm.radio_guard import RadioState, RadioStatusGuard
-from swarm.transport import Transport, open_session
+from swarm.cli.procs import start_emulator
+from swarm.core.messages import Advertize, Pose, PoseReport
+from swarm.core.radio_guard import RadioState, RadioStatusGuard
+from swarm.runtime.bridge import RadioBridge
+from swarm.runtime.transport import Transport, open_session
 
 LOCAL = (51, 68)
 
@@ -46,6 +46,7 @@ def busy_guard(t: float = 0.0) -> RadioStatusGuard:
 
 
 # -- the pure rule ------------------------------------------------------------------
+
 
 def test_one_report_per_heartbeat_from_the_radios_ids() -> None:
     g = busy_guard()
@@ -116,8 +117,7 @@ def test_forged_stream_at_any_rate_costs_at_most_a_fifth_of_the_poses() -> None:
         events: list[tuple[float, str]] = []
         for k in range(120):
             events += [(k + 0.0, "hb"), (k + 0.15, "radio")]
-        events += [(k / forged_hz + rng.random() / forged_hz, "forged")
-                   for k in range(int(120 * forged_hz))]
+        events += [(k / forged_hz + rng.random() / forged_hz, "forged") for k in range(int(120 * forged_hz))]
         events += [(k / 4 + 0.001, "pose") for k in range(480)]
         sent = 0
         for t, what in sorted(events):
@@ -181,8 +181,16 @@ class PoseRecorder:
 
 
 def forged_status(rng: random.Random, seq: int, txbuf: int) -> bytes:
-    payload = struct.pack("<HHBBBBB", 0, 0, rng.randrange(256), rng.randrange(256), txbuf,
-                          rng.randrange(256), rng.randrange(256))
+    payload = struct.pack(
+        "<HHBBBBB",
+        0,
+        0,
+        rng.randrange(256),
+        rng.randrange(256),
+        txbuf,
+        rng.randrange(256),
+        rng.randrange(256),
+    )
     return pack_frame(109, payload, sysid=51, compid=68, seq=seq & 0xFF)
 
 
@@ -224,7 +232,8 @@ def swarm(tmp_path: Path) -> Iterator[tuple[list[RadioBridge], PoseRecorder, Any
 # txbuf 45 (reports rejected only as second reports) takes another 34 s: with the slow ones
 @pytest.mark.parametrize("txbuf", [0, pytest.param(45, marks=pytest.mark.slow)])
 def test_rogue_radio_status_stream_slows_poses_by_at_most_a_fifth(
-        swarm: tuple[list[RadioBridge], PoseRecorder, Any, list[Transport]], txbuf: int) -> None:
+    swarm: tuple[list[RadioBridge], PoseRecorder, Any, list[Transport]], txbuf: int
+) -> None:
     """txbuf 0 claims more bytes waiting than a node streaming poses writes; 45 does
     not, so those forgeries meet the radio's own reports in contested windows."""
     bridges, rec, rogue, transports = swarm
@@ -268,12 +277,14 @@ def test_rogue_radio_status_stream_slows_poses_by_at_most_a_fifth(
     rate0, gap0 = rec.measure(t0, t1)
     rate1, gap1 = rec.measure(t2, t3)
     rejected = [b.stats.radio_status_rejected for b in bridges]
-    print(f"\nposes without the rogue: {rate0:.2f}/s, longest gap {gap0:.2f} s; with forged "
-          f"RADIO_STATUS at 10 Hz, txbuf {txbuf}: {rate1:.2f}/s, longest gap {gap1:.2f} s; "
-          f"rejected {rejected}, "
-          f"accepted {[b.stats.radio_status_accepted for b in bridges]}, "
-          f"thinned {[b.stats.poses_thinned for b in bridges]}; why rejected (a1): "
-          f"{ {k: v for k, v in vars(bridges[0].guard.stats).items() if k not in ('accepted', 'rejected')} }")
+    print(
+        f"\nposes without the rogue: {rate0:.2f}/s, longest gap {gap0:.2f} s; with forged "
+        f"RADIO_STATUS at 10 Hz, txbuf {txbuf}: {rate1:.2f}/s, longest gap {gap1:.2f} s; "
+        f"rejected {rejected}, "
+        f"accepted {[b.stats.radio_status_accepted for b in bridges]}, "
+        f"thinned {[b.stats.poses_thinned for b in bridges]}; why rejected (a1): "
+        f"{ {k: v for k, v in vars(bridges[0].guard.stats).items() if k not in ('accepted', 'rejected')} }"
+    )
     assert rate0 > 0.5 * POSE_HZ * len(AGENTS), "the baseline itself carried the poses"
     assert rate1 >= 0.8 * rate0, f"pose rate fell from {rate0:.2f}/s to {rate1:.2f}/s"
     # held poses arrive late in a burst (the count alone hides it: 11.4/s against 12/s

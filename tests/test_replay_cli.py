@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from radios.mavlink import FrameBuilder, FrameParser
 from radios.tlog import TlogWriter
 from swarm import cli
-from swarm.commands.replay import main
+from swarm.cli.commands.replay import main
 
 T0 = 1_700_000_000.0
 TIME_RE = r"\d\d:\d\d:\d\d\.\d{3}"
@@ -129,8 +129,10 @@ def test_damaged_file_prints_whole_records_then_fails(
         code, out, err = run(capsys, str(path), *extra)
         assert code == 1
         assert len(out.splitlines()) == 5
-        assert err == (f"swarm replay: error: {path}: damaged record at byte {last} "
-                       "(truncated frame) after 5 whole records\n")
+        assert err == (
+            f"swarm replay: error: {path}: damaged record at byte {last} "
+            "(truncated frame) after 5 whole records\n"
+        )
         assert "Traceback" not in err
 
 
@@ -255,9 +257,7 @@ def test_to_json_summary_and_damage(
     assert "damaged record" in err
 
 
-def test_to_a_receive_only_link_is_refused(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_to_a_receive_only_link_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "flight.tlog"
     make_capture(path)
     code, out, err = run(capsys, str(path), "--to", f"tlog:{path}")

@@ -15,14 +15,15 @@ from sik_pty_radio import PtyRadio
 from radios.errors import ConfigError
 from radios.sik.at import ATEngine
 from radios.sik.params import ENCRYPTION_LEVEL, NETID, SikParams, validate_key_hex
-from swarm.commands.radio_config import main
+from swarm.cli.commands.radio_config import main
 
 KEY = "00112233445566778899aabbccddeeff"
 
 
 def aes_engine(*, aes: bool = True) -> ATEngine:
-    return ATEngine(SikParams(aes=aes), board="RFD900P" if aes else "HM-TRP",
-                    ati6=lambda: "", ati7=lambda: "")
+    return ATEngine(
+        SikParams(aes=aes), board="RFD900P" if aes else "HM-TRP", ati6=lambda: "", ati7=lambda: ""
+    )
 
 
 def run(e: ATEngine, line: str) -> bytes:
@@ -58,8 +59,12 @@ def test_no_at_e_without_aes_and_only_on_aes_boards() -> None:
 def test_validate_key_hex() -> None:
     assert validate_key_hex(1, KEY) == bytes.fromhex(KEY)
     assert len(validate_key_hex(3, "ab" * 32)) == 32
-    for level, key, message in [(1, KEY[:-2], "32 hex digits"), (1, "zz" * 16, "hex digits only"),
-                                (0, KEY, "1, 2 or 3"), (2, KEY, "48 hex digits")]:
+    for level, key, message in [
+        (1, KEY[:-2], "32 hex digits"),
+        (1, "zz" * 16, "hex digits only"),
+        (0, KEY, "1, 2 or 3"),
+        (2, KEY, "48 hex digits"),
+    ]:
         with pytest.raises(ConfigError, match=message) as info:
             validate_key_hex(level, key)
         assert KEY not in str(info.value)
@@ -77,7 +82,8 @@ def _assert_key_hidden(text: str) -> None:
 
 
 def test_radio_config_sets_level_and_key_never_printed(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     with PtyRadio(aes_engine(), start_in_command_mode=True) as radio:
         code = main([radio.path, "--set", "ENCRYPTION_LEVEL=1", "--aes-key", _key_file(tmp_path)])
         captured = capsys.readouterr()
@@ -90,16 +96,19 @@ def test_radio_config_sets_level_and_key_never_printed(
             assert p.active_key() == bytes.fromhex(KEY)
 
 
-@pytest.mark.parametrize(("extra", "message"), [
-    (["--set", "ENCRYPTION_LEVEL=1"], "needs --aes-key"),
-    (["--set", "ENCRYPTION_LEVEL=2", "--aes-key", "KEYFILE"], "48 hex digits"),
-    (["--aes-key", "KEYFILE"], "needs --set ENCRYPTION_LEVEL"),
-    (["--set", "ENCRYPTION_LEVEL=1", "--aes-key", "KEYFILE", "--remote"], "unencrypted"),
-    (["--set", "ENCRYPTION_LEVEL=1", "--aes-key", "/nonexistent/key"], "cannot read"),
-])
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--set", "ENCRYPTION_LEVEL=1"], "needs --aes-key"),
+        (["--set", "ENCRYPTION_LEVEL=2", "--aes-key", "KEYFILE"], "48 hex digits"),
+        (["--aes-key", "KEYFILE"], "needs --set ENCRYPTION_LEVEL"),
+        (["--set", "ENCRYPTION_LEVEL=1", "--aes-key", "KEYFILE", "--remote"], "unencrypted"),
+        (["--set", "ENCRYPTION_LEVEL=1", "--aes-key", "/nonexistent/key"], "cannot read"),
+    ],
+)
 def test_radio_config_key_refusals_write_nothing(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str],
-        message: str) -> None:
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str
+) -> None:
     key = _key_file(tmp_path)
     argv = [key if a == "KEYFILE" else a for a in extra]
     with PtyRadio(aes_engine(), start_in_command_mode=True) as radio:
@@ -111,11 +120,9 @@ def test_radio_config_key_refusals_write_nothing(
         assert radio.received == b""  # refused before the port was opened
 
 
-def test_radio_config_refuses_a_radio_without_aes(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_radio_config_refuses_a_radio_without_aes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with PtyRadio(aes_engine(aes=False), start_in_command_mode=True) as radio:
-        assert main([radio.path, "--set", "ENCRYPTION_LEVEL=1",
-                     "--aes-key", _key_file(tmp_path)]) == 2
+        assert main([radio.path, "--set", "ENCRYPTION_LEVEL=1", "--aes-key", _key_file(tmp_path)]) == 2
         captured = capsys.readouterr()
         assert "no AES" in captured.err
         _assert_key_hidden(captured.out + captured.err)
@@ -139,8 +146,7 @@ def _rogue(path: str) -> None:
             time.sleep(0.6)
 
 
-def test_keyed_radios_ignore_a_rogue_on_ptys(tmp_path: Path,
-                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_keyed_radios_ignore_a_rogue_on_ptys(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     key = _key_file(tmp_path)
     with running_emulator(tmp_path, 3, firmware="standard", aes=True) as emu:
         for i in (0, 1):

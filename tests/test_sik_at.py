@@ -19,10 +19,23 @@ ATI6 = "silence_period: 260\ntx_window_width: 7140\nmax_data_packet_length: 252"
 ATI7 = "L/R RSSI: 180/175  L/R noise: 40/42 pkts: 10  txe=0 rxe=0 stx=0 srx=0 ecc=0/0"
 
 
-def engine(flavour: str = "standard", *, boot_time: float | None = 0.0, board: str = "HM-TRP",
-           node_id: int | None = None, band: int = 915) -> ATEngine:
-    return ATEngine(SikParams(flavour, band=band), flavour=flavour, board=board,
-                    ati6=lambda: ATI6, ati7=lambda: ATI7, node_id=node_id, boot_time=boot_time)
+def engine(
+    flavour: str = "standard",
+    *,
+    boot_time: float | None = 0.0,
+    board: str = "HM-TRP",
+    node_id: int | None = None,
+    band: int = 915,
+) -> ATEngine:
+    return ATEngine(
+        SikParams(flavour, band=band),
+        flavour=flavour,
+        board=board,
+        ati6=lambda: ATI6,
+        ati7=lambda: ATI7,
+        node_id=node_id,
+        boot_time=boot_time,
+    )
 
 
 def enter(e: ATEngine, t: float = 10.0) -> float:
@@ -39,7 +52,7 @@ def cmd(e: ATEngine, line: bytes, t: float = 20.0) -> bytes:
     out = e.feed(line + b"\r", t)
     echo = line.upper() + b"\r\n"
     assert out.to_host.startswith(echo), out.to_host
-    return out.to_host[len(echo):]
+    return out.to_host[len(echo) :]
 
 
 @pytest.fixture
@@ -199,41 +212,44 @@ def test_overflow_quirk_needs_a_fresh_idle_second(at: ATEngine) -> None:
 # -- commands -----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("line", "reply"), [
-    (b"AT", b"OK\r\n"),
-    (b"ATI", b"SiK 2.2 on HM-TRP\r\n"),
-    (b"ATI0", b"SiK 2.2 on HM-TRP\r\n"),
-    (b"ATI1", b"2.2\r\n"),
-    (b"ATI2", b"78\r\n"),
-    (b"ATI3", b"145\r\n"),
-    (b"ATI4", b"2\r\n"),
-    (b"ATI6", ATI6.replace("\n", "\r\n").encode() + b"\r\n"),
-    (b"ATI7", ATI7.encode() + b"\r\n"),
-    (b"ATI8", b"ERROR\r\n"),
-    (b"ATI9", b"ERROR\r\n"),
-    (b"ATS2?", b"64\r\n"),
-    (b"ATS?", b"26\r\n"),  # no number is S0
-    (b"ATS258?", b"64\r\n"),  # the register number is a uint8_t: 258 is S2
-    (b"ATS15?", b"131\r\n"),
-    (b"ATS16?", b"ERROR\r\n"),
-    (b"ATS16=1", b"ERROR\r\n"),
-    (b"ATS0=26", b"ERROR\r\n"),
-    (b"ATS1=56", b"ERROR\r\n"),
-    (b"ATS2=257", b"ERROR\r\n"),
-    (b"ATS2", b"ERROR\r\n"),
-    (b"ATS2!", b"ERROR\r\n"),
-    (b"ATS1=115", b"OK\r\n"),
-    (b"AT&W", b"OK\r\n"),
-    (b"AT&F", b"OK\r\n"),
-    (b"AT&T", b""),
-    (b"AT&T=RSSI", b""),
-    (b"AT&T=TDM", b""),
-    (b"AT&T=FOO", b"ERROR\r\n"),
-    (b"AT&X", b"ERROR\r\n"),
-    (b"AT&UPDATE", b"ERROR\r\n"),
-    (b"AT+P=1", b"ERROR\r\n"),
-    (b"ATQ", b"ERROR\r\n"),
-])
+@pytest.mark.parametrize(
+    ("line", "reply"),
+    [
+        (b"AT", b"OK\r\n"),
+        (b"ATI", b"SiK 2.2 on HM-TRP\r\n"),
+        (b"ATI0", b"SiK 2.2 on HM-TRP\r\n"),
+        (b"ATI1", b"2.2\r\n"),
+        (b"ATI2", b"78\r\n"),
+        (b"ATI3", b"145\r\n"),
+        (b"ATI4", b"2\r\n"),
+        (b"ATI6", ATI6.replace("\n", "\r\n").encode() + b"\r\n"),
+        (b"ATI7", ATI7.encode() + b"\r\n"),
+        (b"ATI8", b"ERROR\r\n"),
+        (b"ATI9", b"ERROR\r\n"),
+        (b"ATS2?", b"64\r\n"),
+        (b"ATS?", b"26\r\n"),  # no number is S0
+        (b"ATS258?", b"64\r\n"),  # the register number is a uint8_t: 258 is S2
+        (b"ATS15?", b"131\r\n"),
+        (b"ATS16?", b"ERROR\r\n"),
+        (b"ATS16=1", b"ERROR\r\n"),
+        (b"ATS0=26", b"ERROR\r\n"),
+        (b"ATS1=56", b"ERROR\r\n"),
+        (b"ATS2=257", b"ERROR\r\n"),
+        (b"ATS2", b"ERROR\r\n"),
+        (b"ATS2!", b"ERROR\r\n"),
+        (b"ATS1=115", b"OK\r\n"),
+        (b"AT&W", b"OK\r\n"),
+        (b"AT&F", b"OK\r\n"),
+        (b"AT&T", b""),
+        (b"AT&T=RSSI", b""),
+        (b"AT&T=TDM", b""),
+        (b"AT&T=FOO", b"ERROR\r\n"),
+        (b"AT&X", b"ERROR\r\n"),
+        (b"AT&UPDATE", b"ERROR\r\n"),
+        (b"AT+P=1", b"ERROR\r\n"),
+        (b"ATQ", b"ERROR\r\n"),
+    ],
+)
 def test_command_replies(at: ATEngine, line: bytes, reply: bytes) -> None:
     assert cmd(at, line) == reply
     assert at.in_command_mode
@@ -249,10 +265,15 @@ def test_ati5_lists_ram_values(at: ATEngine) -> None:
     assert lines[15] == "S15:MAX_WINDOW=131"
 
 
-@pytest.mark.parametrize(("board", "band", "ati2", "ati3"), [
-    ("RFD900A", 915, b"67", b"145"), ("3DR1060", 433, b"81", b"67"),
-    ("RFD900P", 868, b"130", b"134"), ("HB1060", 470, b"80", b"71"),
-])
+@pytest.mark.parametrize(
+    ("board", "band", "ati2", "ati3"),
+    [
+        ("RFD900A", 915, b"67", b"145"),
+        ("3DR1060", 433, b"81", b"67"),
+        ("RFD900P", 868, b"130", b"134"),
+        ("HB1060", 470, b"80", b"71"),
+    ],
+)
 def test_board_and_band(board: str, band: int, ati2: bytes, ati3: bytes) -> None:
     e = engine(board=board, band=band)
     enter(e)

@@ -21,7 +21,7 @@ from sik_pty_radio import PtyRadio, SilentPty, make_engine
 from radios.errors import ATError, ATTimeoutError, ConfigError, LinkOpenError
 from radios.sik import config as config_module
 from radios.sik.config import SikConfigurator, open_port, parse_param_lines, strip_node
-from swarm.commands.radio_config import main
+from swarm.cli.commands.radio_config import main
 
 
 @pytest.fixture
@@ -56,6 +56,7 @@ def test_open_port_not_a_tty(tmp_path: Path) -> None:
 
 def test_open_port_permission(monkeypatch: pytest.MonkeyPatch) -> None:
     with SilentPty() as pty:
+
         def deny(*_args: Any, **_kwargs: Any) -> int:
             raise PermissionError(13, "Permission denied")
 
@@ -79,8 +80,7 @@ def test_open_port_in_use() -> None:
 
 def test_parse_param_lines_accepts_both_formats() -> None:
     lines = ["S0:FORMAT=26", "S1: SERIAL_SPEED=57", "[2] S2:AIR_SPEED=64", "junk", "S3:NETID="]
-    assert parse_param_lines(lines) == {
-        "FORMAT": (0, 26), "SERIAL_SPEED": (1, 57), "AIR_SPEED": (2, 64)}
+    assert parse_param_lines(lines) == {"FORMAT": (0, 26), "SERIAL_SPEED": (1, 57), "AIR_SPEED": (2, 64)}
     assert strip_node("[12] OK") == "OK"
     assert strip_node("OK") == "OK"
 
@@ -245,10 +245,8 @@ def test_cli_json(radio: PtyRadio, capsys: pytest.CaptureFixture[str]) -> None:
     assert captured.out.count("\n") == 1
 
 
-def test_cli_set_saves_reboots_and_reads_back(radio: PtyRadio,
-                                              capsys: pytest.CaptureFixture[str]) -> None:
-    code = main([radio.path, "--set", "AIR_SPEED=100", "--set", "txpower=10",
-                 "--set", "NETID=77", "--json"])
+def test_cli_set_saves_reboots_and_reads_back(radio: PtyRadio, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main([radio.path, "--set", "AIR_SPEED=100", "--set", "txpower=10", "--set", "NETID=77", "--json"])
     assert code == 0
     values = json.loads(capsys.readouterr().out)
     assert values["AIR_SPEED"] == 128  # as the radio runs it after the reboot
@@ -262,14 +260,18 @@ def test_cli_set_saves_reboots_and_reads_back(radio: PtyRadio,
         assert radio.engine.params.active_value("NETID") == 77
 
 
-@pytest.mark.parametrize(("setting", "message"), [
-    ("BOGUS=1", "unknown standard SiK parameter 'BOGUS'"),
-    ("AIR_SPEED=999", "out of range"),
-    ("SERIAL_SPEED=56", "use one of"),
-    ("NETID", "expects NAME=VALUE"),
-])
-def test_cli_bad_setting_exits_2_and_writes_nothing(radio: PtyRadio, setting: str, message: str,
-                                                    capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("BOGUS=1", "unknown standard SiK parameter 'BOGUS'"),
+        ("AIR_SPEED=999", "out of range"),
+        ("SERIAL_SPEED=56", "use one of"),
+        ("NETID", "expects NAME=VALUE"),
+    ],
+)
+def test_cli_bad_setting_exits_2_and_writes_nothing(
+    radio: PtyRadio, setting: str, message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main([radio.path, "--set", "NETID=5", "--set", setting]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
@@ -310,8 +312,7 @@ def test_cli_firmware_mismatch(capsys: pytest.CaptureFixture[str]) -> None:
         assert "--firmware multipoint" in capsys.readouterr().err
         assert radio.engine.params.ram[3] == 25
     with PtyRadio(make_engine("multipoint"), start_in_command_mode=True) as radio:
-        assert main([radio.path, "--firmware", "multipoint", "--set", "NODECOUNT=4",
-                     "--json"]) == 0
+        assert main([radio.path, "--firmware", "multipoint", "--set", "NODECOUNT=4", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["NODECOUNT"] == 4
 
 

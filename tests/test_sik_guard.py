@@ -26,8 +26,8 @@ from radios.sik.guard import (
     split_radio_url,
 )
 from radios.sik.params import NETID
-from swarm.commands import agent as agent_cmd
-from swarm.procs import Child, json_events
+from swarm.cli.commands import agent as agent_cmd
+from swarm.cli.procs import Child, json_events
 
 SWARM = {"NETID": 25, "AIR_SPEED": 64}
 
@@ -44,13 +44,16 @@ def test_parse_expected_list_and_files(tmp_path: Path) -> None:
     assert parse_expected("ENCRYPTION_LEVEL=1") == {"ENCRYPTION_LEVEL": 1}
 
 
-@pytest.mark.parametrize("spec, message", [
-    ("NETID=", "not a whole number"),
-    ("NETID=70000", "out of range"),
-    ("FOO=1", "unknown"),
-    ("NETID=25,,", "expected NAME=VALUE"),
-    ("/nonexistent/radio.json", "radio parameters file"),
-])
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("NETID=", "not a whole number"),
+        ("NETID=70000", "out of range"),
+        ("FOO=1", "unknown"),
+        ("NETID=25,,", "expected NAME=VALUE"),
+        ("/nonexistent/radio.json", "radio parameters file"),
+    ],
+)
 def test_parse_expected_rejects(spec: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         parse_expected(spec)
@@ -76,8 +79,7 @@ def test_parse_expected_rejects_bad_files(tmp_path: Path) -> None:
 
 
 def test_compare_and_describe() -> None:
-    found = compare({"NETID": 25, "AIR_SPEED": 64, "ENCRYPTION_LEVEL": 1},
-                    {"NETID": 77, "AIR_SPEED": 64})
+    found = compare({"NETID": 25, "AIR_SPEED": 64, "ENCRYPTION_LEVEL": 1}, {"NETID": 77, "AIR_SPEED": 64})
     assert found == [Mismatch("NETID", 25, 77), Mismatch("ENCRYPTION_LEVEL", 1, None)]
     assert describe(found) == "NETID=77 (expected 25), ENCRYPTION_LEVEL missing (expected 1)"
     assert compare(SWARM, {"NETID": 25, "AIR_SPEED": 64, "ECC": 0}) == []
@@ -107,7 +109,8 @@ def _rogue_moves_radio0(path1: str) -> None:
 
 
 def test_guard_detects_and_restores_a_radio_moved_by_a_rogue(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     with running_emulator(tmp_path, 2) as emu:
         emu.wait_locked(0, 1)
         _rogue_moves_radio0(emu.paths[1])
@@ -117,8 +120,9 @@ def test_guard_detects_and_restores_a_radio_moved_by_a_rogue(
         assert report.mismatches == [Mismatch("NETID", 25, 77)] and not report.ok
 
         # the agent refuses to start on it, in one line, before opening the bridge
-        code = agent_cmd.main(["--name", "a1", "--id", "1", "--radio", emu.paths[0],
-                               "--radio-params", "NETID=25,AIR_SPEED=64"])
+        code = agent_cmd.main(
+            ["--name", "a1", "--id", "1", "--radio", emu.paths[0], "--radio-params", "NETID=25,AIR_SPEED=64"]
+        )
         err = capsys.readouterr().err
         assert code == 1
         assert err.count("\n") == 1 and "NETID=77 (expected 25)" in err
@@ -134,12 +138,10 @@ def test_agent_radio_params_usage_errors(capsys: pytest.CaptureFixture[str]) -> 
     base = ["--name", "a1", "--id", "1"]
     cases: list[tuple[list[str], str]] = [
         ([*base, "--radio", "/dev/null", "--radio-params", "NETID=x"], "whole number"),
-        ([*base, "--zenoh-listen", "tcp/127.0.0.1:7447", "--radio-params", "NETID=25"],
-         "--radio"),
+        ([*base, "--zenoh-listen", "tcp/127.0.0.1:7447", "--radio-params", "NETID=25"], "--radio"),
         ([*base, "--radio", "/dev/null", "--restore-radio"], "need --radio-params"),
         ([*base, "--radio", "/dev/null", "--radio-recheck", "30"], "need --radio-params"),
-        ([*base, "--radio", "/dev/null", "--radio-params", "NETID=25", "--radio-recheck", "-1"],
-         "seconds"),
+        ([*base, "--radio", "/dev/null", "--radio-params", "NETID=25", "--radio-recheck", "-1"], "seconds"),
     ]
     for argv, message in cases:
         assert agent_cmd.main(argv) == 2, argv
@@ -147,10 +149,10 @@ def test_agent_radio_params_usage_errors(capsys: pytest.CaptureFixture[str]) -> 
         assert message in err and "Traceback" not in err
 
 
-def test_guard_on_a_port_that_is_not_a_radio(tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
-    code = agent_cmd.main(["--name", "a1", "--id", "1", "--radio", str(tmp_path / "nope"),
-                           "--radio-params", "NETID=25"])
+def test_guard_on_a_port_that_is_not_a_radio(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = agent_cmd.main(
+        ["--name", "a1", "--id", "1", "--radio", str(tmp_path / "nope"), "--radio-params", "NETID=25"]
+    )
     assert code == 2
     assert "no such device" in capsys.readouterr().err
 
@@ -165,18 +167,37 @@ def test_isolated_agent_rechecks_and_restores_its_radio(tmp_path: Path) -> None:
     # right after one check; the next check puts it back.
     with running_emulator(tmp_path, 2) as emu:
         emu.wait_locked(0, 1)
-        agent = Child(["agent", "--name", "a1", "--id", "1", "--radio", emu.paths[0], "--json",
-                       "--radio-params", "NETID=25,AIR_SPEED=64", "--restore-radio",
-                       "--radio-recheck", "12"], name="agent")
+        agent = Child(
+            [
+                "agent",
+                "--name",
+                "a1",
+                "--id",
+                "1",
+                "--radio",
+                emu.paths[0],
+                "--json",
+                "--radio-params",
+                "NETID=25,AIR_SPEED=64",
+                "--restore-radio",
+                "--radio-recheck",
+                "12",
+            ],
+            name="agent",
+        )
         try:
-            wait_until(lambda: _events(agent, "radio-checked") or agent.proc.poll() is not None,
-                       90.0, "the agent's first re-check")
+            wait_until(
+                lambda: _events(agent, "radio-checked") or agent.proc.poll() is not None,
+                90.0,
+                "the agent's first re-check",
+            )
             assert agent.proc.poll() is None, agent.errors
             emu.wait_locked(0, 1)
             _rogue_moves_radio0(emu.paths[1])
             assert emu.emu.params[0].eeprom[NETID] == 77
-            restored = wait_until(lambda: _events(agent, "radio-restored")
-                                  or agent.proc.poll() is not None, 90.0, "the restore")
+            restored = wait_until(
+                lambda: _events(agent, "radio-restored") or agent.proc.poll() is not None, 90.0, "the restore"
+            )
             assert agent.proc.poll() is None, agent.errors
             assert restored[0]["differed"] == {"NETID": 77}
             p = emu.emu.params[0]

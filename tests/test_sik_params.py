@@ -20,9 +20,22 @@ from radios.sik.params import (
 )
 
 STANDARD_DEFAULTS = {
-    "FORMAT": 26, "SERIAL_SPEED": 57, "AIR_SPEED": 64, "NETID": 25, "TXPOWER": 20, "ECC": 0,
-    "MAVLINK": 1, "OPPRESEND": 0, "MIN_FREQ": 0, "MAX_FREQ": 0, "NUM_CHANNELS": 0,
-    "DUTY_CYCLE": 100, "LBT_RSSI": 0, "MANCHESTER": 0, "RTSCTS": 0, "MAX_WINDOW": 131,
+    "FORMAT": 26,
+    "SERIAL_SPEED": 57,
+    "AIR_SPEED": 64,
+    "NETID": 25,
+    "TXPOWER": 20,
+    "ECC": 0,
+    "MAVLINK": 1,
+    "OPPRESEND": 0,
+    "MIN_FREQ": 0,
+    "MAX_FREQ": 0,
+    "NUM_CHANNELS": 0,
+    "DUTY_CYCLE": 100,
+    "LBT_RSSI": 0,
+    "MANCHESTER": 0,
+    "RTSCTS": 0,
+    "MAX_WINDOW": 131,
 }
 
 
@@ -35,7 +48,13 @@ def test_standard_table_matches_sik_2_2() -> None:
     applies = {s.name: s.applies for s in PARAMS_STANDARD}
     assert applies["FORMAT"] == "readonly"
     assert {n for n, a in applies.items() if a == "now"} == {
-        "TXPOWER", "MAVLINK", "OPPRESEND", "DUTY_CYCLE", "LBT_RSSI", "RTSCTS"}
+        "TXPOWER",
+        "MAVLINK",
+        "OPPRESEND",
+        "DUTY_CYCLE",
+        "LBT_RSSI",
+        "RTSCTS",
+    }
 
 
 def test_multipoint_table() -> None:
@@ -59,10 +78,24 @@ def test_params_for_and_spec_for() -> None:
         params_for("rfd")
 
 
-@pytest.mark.parametrize(("value", "expected"), [
-    (0, 2), (1, 2), (2, 2), (3, 4), (17, 19), (20, 24), (64, 64), (65, 96), (100, 128),
-    (129, 192), (200, 250), (250, 250), (256, 250),
-])
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        (0, 2),
+        (1, 2),
+        (2, 2),
+        (3, 4),
+        (17, 19),
+        (20, 24),
+        (64, 64),
+        (65, 96),
+        (100, 128),
+        (129, 192),
+        (200, 250),
+        (250, 250),
+        (256, 250),
+    ],
+)
 def test_air_speed_rounded_up_at_boot(value: int, expected: int) -> None:
     p = SikParams()
     assert p.set(2, value)
@@ -273,24 +306,26 @@ def test_validate_accepts_and_converts() -> None:
     assert validate_user_value("standard", "SERIAL_SPEED", 115) == 115
 
 
-@pytest.mark.parametrize(("flavour", "name", "value", "message"), [
-    ("standard", "BOGUS", 1, "unknown standard SiK parameter 'BOGUS'"),
-    ("standard", "NODEID", 1, "multipoint parameter"),
-    ("multipoint", "MAX_WINDOW", 33, "multipoint firmware has no such parameter"),
-    ("standard", "FORMAT", 26, "read-only"),
-    ("standard", "NETID", "x", "not a whole number"),
-    ("standard", "NETID", "1.5", "not a whole number"),
-    ("standard", "NETID", True, "not a whole number"),
-    ("standard", "NETID", 65536, r"NETID=65536 is out of range 0\.\.65535"),
-    ("standard", "AIR_SPEED", 300, r"AIR_SPEED=300 is out of range 0\.\.256"),
-    ("standard", "AIR_SPEED", -1, "out of range"),
-    ("standard", "TXPOWER", 30, r"0\.\.20"),
-    ("standard", "SERIAL_SPEED", 56, "use one of 1, 2, 4, 9, 19, 38, 57, 115, 230"),
-    ("standard", "DUTY_CYCLE", 101, "out of range"),
-    ("multipoint", "NODECOUNT", 1, "out of range"),
-    ("rfd", "NETID", 1, "flavour"),
-])
-def test_validate_rejects_with_clear_message(flavour: str, name: str, value: int | str,
-                                             message: str) -> None:
+@pytest.mark.parametrize(
+    ("flavour", "name", "value", "message"),
+    [
+        ("standard", "BOGUS", 1, "unknown standard SiK parameter 'BOGUS'"),
+        ("standard", "NODEID", 1, "multipoint parameter"),
+        ("multipoint", "MAX_WINDOW", 33, "multipoint firmware has no such parameter"),
+        ("standard", "FORMAT", 26, "read-only"),
+        ("standard", "NETID", "x", "not a whole number"),
+        ("standard", "NETID", "1.5", "not a whole number"),
+        ("standard", "NETID", True, "not a whole number"),
+        ("standard", "NETID", 65536, r"NETID=65536 is out of range 0\.\.65535"),
+        ("standard", "AIR_SPEED", 300, r"AIR_SPEED=300 is out of range 0\.\.256"),
+        ("standard", "AIR_SPEED", -1, "out of range"),
+        ("standard", "TXPOWER", 30, r"0\.\.20"),
+        ("standard", "SERIAL_SPEED", 56, "use one of 1, 2, 4, 9, 19, 38, 57, 115, 230"),
+        ("standard", "DUTY_CYCLE", 101, "out of range"),
+        ("multipoint", "NODECOUNT", 1, "out of range"),
+        ("rfd", "NETID", 1, "flavour"),
+    ],
+)
+def test_validate_rejects_with_clear_message(flavour: str, name: str, value: int | str, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         validate_user_value(flavour, name, value)

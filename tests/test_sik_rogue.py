@@ -32,14 +32,23 @@ class AtBench:
         self.params = params
         self.t = 0.0
         self.out = [bytearray() for _ in params]
-        self.model = AirModel([radio_config_of(p) for p in params], seed=seed,
-                              at_factory=self._at, on_reboot=lambda i: radio_config_of(params[i]))
+        self.model = AirModel(
+            [radio_config_of(p) for p in params],
+            seed=seed,
+            at_factory=self._at,
+            on_reboot=lambda i: radio_config_of(params[i]),
+        )
 
     def _at(self, i: int, _cfg: RadioConfig) -> ATEngine:
         p = self.params[i]
-        return ATEngine(p, flavour=p.flavour, board="RFD900P" if p.aes else "HM-TRP",
-                        ati6=str, ati7=str,
-                        node_id=i if p.flavour == "multipoint" else None)
+        return ATEngine(
+            p,
+            flavour=p.flavour,
+            board="RFD900P" if p.aes else "HM-TRP",
+            ati6=str,
+            ati7=str,
+            node_id=i if p.flavour == "multipoint" else None,
+        )
 
     def run(self, seconds: float, step: float = 0.01) -> None:
         end = self.t + seconds
@@ -70,8 +79,12 @@ class AtBench:
 
 def aes_radio(key: str | None, level: int = 1) -> SikParams:
     """An AES build that booted with ``key`` at ``level`` (None: encryption off)."""
-    p = SikParams("standard", aes=True, stored={"ENCRYPTION_LEVEL": level if key else 0},
-                  stored_key=bytes.fromhex(key) if key else None)
+    p = SikParams(
+        "standard",
+        aes=True,
+        stored={"ENCRYPTION_LEVEL": level if key else 0},
+        stored_key=bytes.fromhex(key) if key else None,
+    )
     return p
 
 
@@ -108,8 +121,7 @@ def test_rogue_moves_a_standard_radio_without_encryption() -> None:
 
 
 def test_a_rogue_on_another_netid_changes_nothing() -> None:
-    params = [SikParams("standard"), SikParams("standard"),
-              SikParams("standard", stored={"NETID": 26})]
+    params = [SikParams("standard"), SikParams("standard"), SikParams("standard", stored={"NETID": 26})]
     bench = AtBench(params)
     bench.run(30.0)
     attack(bench, rogue=2)

@@ -46,8 +46,15 @@ def free_tcp_base(n: int) -> int:
 
 @pytest.fixture
 def sim() -> Iterator[VehicleSim]:
-    s = VehicleSim(SimConfig(vehicles=2, profile="ardupilot", speedup=SPEEDUP,
-                             home=(-35.363261, 149.165230, 584.0), base_port=free_tcp_base(2)))
+    s = VehicleSim(
+        SimConfig(
+            vehicles=2,
+            profile="ardupilot",
+            speedup=SPEEDUP,
+            home=(-35.363261, 149.165230, 584.0),
+            base_port=free_tcp_base(2),
+        )
+    )
     s.start()
     yield s
     s.stop()
@@ -61,14 +68,23 @@ def conn(sim: VehicleSim) -> Iterator[mavutil.mavfile]:
     c.close()
 
 
-def wait_msg(conn: mavutil.mavfile, types: str | list[str],
-             cond: Callable[[object], bool] = lambda m: True, timeout: float = DEADLINE,
-             tick: Callable[[], None] | None = None) -> object:
+def wait_msg(
+    conn: mavutil.mavfile,
+    types: str | list[str],
+    cond: Callable[[object], bool] = lambda m: True,
+    timeout: float = DEADLINE,
+    tick: Callable[[], None] | None = None,
+) -> object:
     return mav_helpers.wait_msg(conn, types, cond, timeout, tick)
 
 
-def command(conn: mavutil.mavfile, cmd: int, *params: float, tick: Callable[[], None] | None = None,
-            texts: list[str] | None = None) -> int:
+def command(
+    conn: mavutil.mavfile,
+    cmd: int,
+    *params: float,
+    tick: Callable[[], None] | None = None,
+    texts: list[str] | None = None,
+) -> int:
     return mav_helpers.command(conn, cmd, *params, timeout=DEADLINE, tick=tick, texts=texts)
 
 
@@ -105,14 +121,14 @@ def take_off(sim: VehicleSim, c: mavutil.mavfile, alt: float = 10.0) -> None:
 
 def test_heartbeat_and_no_streams_until_requested(sim: VehicleSim, conn: mavutil.mavfile) -> None:
     hb = wait_msg(conn, "HEARTBEAT")
-    assert hb.autopilot == 3 and hb.type == 2 and hb.custom_mode == 0        # STABILIZE
+    assert hb.autopilot == 3 and hb.type == 2 and hb.custom_mode == 0  # STABILIZE
     assert hb.base_mode & 1 and hb.base_mode & 64 and hb.system_status == 3
     c2 = mavutil.mavlink_connection(sim.endpoints[1], source_system=255)
     assert c2.wait_heartbeat(timeout=DEADLINE).get_srcSystem() == 2
     c2.close()
     seen: set[str] = set()
     t0 = time.monotonic()
-    while time.monotonic() - t0 < 1.0:                 # 5 simulated s
+    while time.monotonic() - t0 < 1.0:  # 5 simulated s
         m = conn.recv_match(blocking=True, timeout=0.1)
         if m is not None:
             seen.add(m.get_type())
@@ -133,9 +149,9 @@ def test_request_message_and_data_stream(sim: VehicleSim, conn: mavutil.mavfile)
     hp = wait_msg(conn, "HOME_POSITION")
     assert abs(hp.latitude / 1e7 + 35.363261) < 1e-6 and abs(hp.altitude - 584000) < 10
     wait_msg(conn, "COMMAND_ACK", lambda m: m.command == 512 and m.result == 0)
-    assert command(conn, 512, 49) == 0                  # GPS_GLOBAL_ORIGIN
-    assert command(conn, 512, 148) == 0                 # AUTOPILOT_VERSION
-    conn.mav.request_data_stream_send(1, 1, 6, 4, 1)    # POSITION at 4 Hz
+    assert command(conn, 512, 49) == 0  # GPS_GLOBAL_ORIGIN
+    assert command(conn, 512, 148) == 0  # AUTOPILOT_VERSION
+    conn.mav.request_data_stream_send(1, 1, 6, 4, 1)  # POSITION at 4 Hz
     lp = wait_msg(conn, "LOCAL_POSITION_NED")
     assert abs(lp.x) < 0.1 and lp.z == 0.0
 
@@ -145,18 +161,18 @@ def test_guided_takeoff_and_go_north(sim: VehicleSim, conn: mavutil.mavfile) -> 
     conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, POS_MASK, 20, 0, -10, 0, 0, 0, 0, 0, 0, 0, 0)
     settle(sim, (20.0, 0.0, -10.0), 0.5)
     st = sim.vehicle(0).state
-    assert abs(st.yaw) < 0.2          # auto-yaw faced the direction of travel (north)
+    assert abs(st.yaw) < 0.2  # auto-yaw faced the direction of travel (north)
     assert command(conn, 511, 85, 200000) == 0
     echo = wait_msg(conn, "POSITION_TARGET_LOCAL_NED")
     assert abs(echo.x - 20.0) < 1e-3 and echo.type_mask & 1024
-    assert command(conn, 400, 0) == 4                   # disarm in the air: FAILED
-    assert command(conn, 21) == 0                       # LAND
+    assert command(conn, 400, 0) == 4  # disarm in the air: FAILED
+    assert command(conn, 21) == 0  # LAND
     wait_state(sim, lambda s: not s.armed, "disarmed after landing", timeout=DEADLINE * 2)
 
 
 def test_setpoint_outside_guided_ignored(sim: VehicleSim, conn: mavutil.mavfile) -> None:
     take_off(sim, conn, 5.0)
-    assert command(conn, 176, 1, 5) == 0                # LOITER
+    assert command(conn, 176, 1, 5) == 0  # LOITER
     for _ in range(10):
         conn.mav.set_position_target_local_ned_send(0, 1, 1, 1, POS_MASK, 20, 0, -5, 0, 0, 0, 0, 0, 0, 0, 0)
         time.sleep(0.05)
@@ -178,7 +194,7 @@ def test_guided_velocity_times_out(sim: VehicleSim, conn: mavutil.mavfile) -> No
 def test_takeoff_refused_when_disarmed_and_outside_guided(sim: VehicleSim, conn: mavutil.mavfile) -> None:
     texts: list[str] = []
     assert command(conn, 22, 0, 0, 0, 0, 0, 0, 10, texts=texts) == 4
-    assert command(conn, 400, 1) == 0                   # armed in STABILIZE
+    assert command(conn, 400, 1) == 0  # armed in STABILIZE
     assert command(conn, 22, 0, 0, 0, 0, 0, 0, 10, texts=texts) == 4
     assert texts and all("Takeoff" in t for t in texts)
     # landed in GUIDED: targets do not spin up motors
@@ -194,7 +210,7 @@ def test_arm_rejected_without_gps_and_guided_needs_position(sim: VehicleSim, con
     assert command(conn, 400, 1, texts=texts) == 4
     assert any(t.startswith("PreArm:") for t in texts), texts
     assert command(conn, 176, *GUIDED, texts=texts) == 4
-    conn.mav.set_mode_send(1, 1, 4)                     # SET_MODE is acked as command 11
+    conn.mav.set_mode_send(1, 1, 4)  # SET_MODE is acked as command 11
     ack = wait_msg(conn, "COMMAND_ACK", lambda m: m.command == 11)
     assert ack.result == 4
     sim.vehicle(0).fail_gps(False)

@@ -12,8 +12,12 @@ from pymavlink import mavutil
 
 
 def run(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "swarm.cli", "sim", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "swarm.cli", "sim", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def free_port(kind: int) -> int:
@@ -61,11 +65,13 @@ def test_bad_input_exit_2_without_traceback() -> None:
     held.bind(("127.0.0.1", base))
     held.listen(1)
     try:
-        for args in (["--vehicles", "2", "--home", "91,8,400"],
-                     ["--vehicles", "2", "--home", "nope"],
-                     ["--vehicles", "0"],
-                     ["--vehicles", "1", "--speedup", "0"],
-                     ["--vehicles", "1", "--profile", "ardupilot", "--base-port", str(base)]):
+        for args in (
+            ["--vehicles", "2", "--home", "91,8,400"],
+            ["--vehicles", "2", "--home", "nope"],
+            ["--vehicles", "0"],
+            ["--vehicles", "1", "--speedup", "0"],
+            ["--vehicles", "1", "--profile", "ardupilot", "--base-port", str(base)],
+        ):
             p = run(*args)
             _, err = p.communicate(timeout=20)
             assert p.returncode == 2, (args, err)

@@ -21,8 +21,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_bridge.sim import Autopilot, SimConfig, VehicleSim
 
 SPEEDUP = 5.0
-DEADLINE = 20.0          # wall seconds, only bounds a failing test
-OFFBOARD = (1, 6, 0)     # DO_SET_MODE params 1-3
+DEADLINE = 20.0  # wall seconds, only bounds a failing test
+OFFBOARD = (1, 6, 0)  # DO_SET_MODE params 1-3
 HOLD = (1, 4, 3)
 POS_MASK = 3576
 M = mavlink
@@ -73,14 +73,23 @@ def connect(endpoint: str) -> mavutil.mavfile:
     return conn
 
 
-def wait_msg(conn: mavutil.mavfile, types: str | list[str],
-             cond: Callable[[object], bool] = lambda m: True, timeout: float = DEADLINE,
-             tick: Callable[[], None] | None = None) -> object:
+def wait_msg(
+    conn: mavutil.mavfile,
+    types: str | list[str],
+    cond: Callable[[object], bool] = lambda m: True,
+    timeout: float = DEADLINE,
+    tick: Callable[[], None] | None = None,
+) -> object:
     return mav_helpers.wait_msg(conn, types, cond, timeout, tick)
 
 
-def command(conn: mavutil.mavfile, cmd: int, *params: float, tick: Callable[[], None] | None = None,
-            texts: list[str] | None = None) -> int:
+def command(
+    conn: mavutil.mavfile,
+    cmd: int,
+    *params: float,
+    tick: Callable[[], None] | None = None,
+    texts: list[str] | None = None,
+) -> int:
     return mav_helpers.command(conn, cmd, *params, timeout=DEADLINE, tick=tick, texts=texts)
 
 
@@ -97,12 +106,17 @@ class Streamer:
             self.last = now
             x, y, z = self.sp
             self.conn.mav.set_position_target_local_ned_send(
-                0, self.conn.target_system, 1, self.frame, POS_MASK & ~1024, x, y, z,
-                0, 0, 0, 0, 0, 0, 0.0, 0)
+                0, self.conn.target_system, 1, self.frame, POS_MASK & ~1024, x, y, z, 0, 0, 0, 0, 0, 0, 0.0, 0
+            )
 
 
-def settle(sim: VehicleSim, target: tuple[float, float, float], tol: float,
-           tick: Callable[[], None] | None = None, conn: mavutil.mavfile | None = None) -> None:
+def settle(
+    sim: VehicleSim,
+    target: tuple[float, float, float],
+    tol: float,
+    tick: Callable[[], None] | None = None,
+    conn: mavutil.mavfile | None = None,
+) -> None:
     """Wait until the vehicle stays within ``tol`` of ``target`` for 2 simulated s."""
     v = sim.vehicle(0)
     deadline = time.monotonic() + DEADLINE * 2
@@ -130,7 +144,7 @@ def test_heartbeat_fields(sim: VehicleSim) -> None:
         hb = wait_msg(c, "HEARTBEAT")
         assert hb.get_srcSystem() == i + 1 and hb.get_srcComponent() == 1
         assert hb.autopilot == 12 and hb.type == 2
-        assert hb.custom_mode == 50593792            # AUTO.LOITER: 4<<16 | 3<<24
+        assert hb.custom_mode == 50593792  # AUTO.LOITER: 4<<16 | 3<<24
         assert hb.base_mode & 1 and not hb.base_mode & 128
         assert hb.system_status == 3
         assert c.mavlink20()
@@ -145,7 +159,7 @@ def test_arm_rejected_without_gps(sim: VehicleSim) -> None:
     c = connect(sim.endpoints[0])
     sim.vehicle(0).fail_gps(True)
     texts: list[str] = []
-    assert command(c, 400, 1, texts=texts) == 1               # TEMPORARILY_REJECTED
+    assert command(c, 400, 1, texts=texts) == 1  # TEMPORARILY_REJECTED
     assert any("Preflight Fail" in t for t in texts), texts
     assert not sim.vehicle(0).state.armed
     sim.vehicle(0).fail_gps(False)
@@ -155,7 +169,7 @@ def test_arm_rejected_without_gps(sim: VehicleSim) -> None:
 def test_unknown_command_unsupported_and_other_sysid_ignored(sim: VehicleSim) -> None:
     c = connect(sim.endpoints[0])
     assert command(c, 31337, 1) == 3
-    c.mav.command_long_send(7, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)    # not us
+    c.mav.command_long_send(7, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # not us
     assert c.recv_match(type="COMMAND_ACK", blocking=True, timeout=1.0) is None
     assert not sim.vehicle(0).state.armed
 
@@ -192,7 +206,7 @@ def test_offboard_rules_flight_and_failsafe(slow_sim: VehicleSim) -> None:
     txt = wait_msg(c, "STATUSTEXT", lambda m: "Failsafe" in m.text)
     assert "offboard" in txt.text
     hb = wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 50593792)
-    assert hb.system_status == 5                              # CRITICAL: armed + failsafe
+    assert hb.system_status == 5  # CRITICAL: armed + failsafe
     assert sim.vehicle(0).state.mode == "AUTO.LOITER"
     assert sim.vehicle(0).state.time - t0 < 1.0 + 2.0
     # disarm in the air refused without force
@@ -226,8 +240,8 @@ def test_nav_takeoff_amsl_then_land(sim: VehicleSim) -> None:
     c = connect(sim.endpoints[0])
     assert command(c, 400, 1) == 0
     assert command(c, 22, 0, 0, 0, math.nan, math.nan, math.nan, 488.0 + 6.0) == 0
-    wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 33816576)          # AUTO.TAKEOFF
-    wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 50593792)          # then AUTO.LOITER
+    wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 33816576)  # AUTO.TAKEOFF
+    wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 50593792)  # then AUTO.LOITER
     assert abs(sim.vehicle(0).state.position[2] + 6.0) < 0.3
     assert command(c, 21) == 0
     wait_msg(c, "HEARTBEAT", lambda m: not m.base_mode & 128, timeout=DEADLINE * 2)
@@ -237,7 +251,7 @@ def test_nav_takeoff_amsl_then_land(sim: VehicleSim) -> None:
 def test_drop_link_silences_heartbeats(sim: VehicleSim) -> None:
     c = connect(sim.endpoints[0])
     wait_msg(c, "HEARTBEAT")
-    sim.vehicle(0).drop_link(4.0)                   # simulated s = 0.8 s wall
+    sim.vehicle(0).drop_link(4.0)  # simulated s = 0.8 s wall
     t0 = time.monotonic()
     last = t0
     gap = 0.0
@@ -248,12 +262,12 @@ def test_drop_link_silences_heartbeats(sim: VehicleSim) -> None:
             gap = max(gap, now - last)
             last = now
     assert gap >= 0.5, gap
-    assert time.monotonic() - last < 0.8            # heartbeats came back
+    assert time.monotonic() - last < 0.8  # heartbeats came back
 
 
 def test_latency_delays_replies(sim: VehicleSim) -> None:
     c = connect(sim.endpoints[0])
-    sim.vehicle(0).set_latency(2.5)                 # 0.5 s wall
+    sim.vehicle(0).set_latency(2.5)  # 0.5 s wall
     t0 = time.monotonic()
     assert command(c, 31337) == 3
     assert time.monotonic() - t0 >= 0.3
@@ -288,7 +302,7 @@ def _fly_script(seed: int) -> tuple[list[tuple[float, ...]], list[bytes]]:
         for m in ap.handle(_roundtrip(cl, msg), t):
             wire.append(m.pack(enc))
 
-    for step in range(600):                       # 30 simulated s at 20 Hz
+    for step in range(600):  # 30 simulated s at 20 Hz
         t = step * 0.05
         sp = (0.0, 0.0, -10.0) if t < 12 else (20.0, 5.0, -10.0)
         feed(cl.set_position_target_local_ned_encode(0, 1, 1, 1, POS_MASK, *sp, 0, 0, 0, 0, 0, 0, 0, 0))
@@ -309,32 +323,57 @@ def test_determinism_same_seed_same_trajectory_and_telemetry() -> None:
     assert a == b and wa == wb
     assert math.dist(a[-1][:3], (20.0, 5.0, -10.0)) < 0.5
     _, wc = _fly_script(4)
-    assert wc != wa                                 # the seed drives the telemetry noise
+    assert wc != wa  # the seed drives the telemetry noise
 
 
 def test_core_setpoint_parsing_px4() -> None:
     ap = Autopilot("px4", 1, HOME)
     cl = _client()
     # FORCE with acceleration: rejected, no proof of life
-    ap.handle(_roundtrip(cl, cl.set_position_target_local_ned_encode(
-        0, 1, 1, 1, 3135 | 512, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)), 0.1)
+    ap.handle(
+        _roundtrip(
+            cl,
+            cl.set_position_target_local_ned_encode(0, 1, 1, 1, 3135 | 512, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0),
+        ),
+        0.1,
+    )
     assert ap.ob_sp is None
     # nothing set: invalid
-    ap.handle(_roundtrip(cl, cl.set_position_target_local_ned_encode(
-        0, 1, 1, 1, 0xFFF, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)), 0.2)
+    ap.handle(
+        _roundtrip(
+            cl, cl.set_position_target_local_ned_encode(0, 1, 1, 1, 0xFFF, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+        ),
+        0.2,
+    )
     assert ap.ob_sp is None
     # addressed to another system: ignored
-    ap.handle(_roundtrip(cl, cl.set_position_target_local_ned_encode(
-        0, 9, 1, 1, POS_MASK, 1, 2, -3, 0, 0, 0, 0, 0, 0, 0, 0)), 0.3)
+    ap.handle(
+        _roundtrip(
+            cl,
+            cl.set_position_target_local_ned_encode(0, 9, 1, 1, POS_MASK, 1, 2, -3, 0, 0, 0, 0, 0, 0, 0, 0),
+        ),
+        0.3,
+    )
     assert ap.ob_sp is None
     # BODY_NED velocity, position ignored
-    ap.handle(_roundtrip(cl, cl.set_position_target_local_ned_encode(
-        0, 1, 1, 8, 3520, 5, 5, 5, 1, 0, 0, 0, 0, 0, 0, 0)), 0.4)
+    ap.handle(
+        _roundtrip(
+            cl, cl.set_position_target_local_ned_encode(0, 1, 1, 8, 3520, 5, 5, 5, 1, 0, 0, 0, 0, 0, 0, 0)
+        ),
+        0.4,
+    )
     assert ap.ob_sp is not None and all(math.isnan(x) for x in ap.ob_sp.pos)
     assert ap.ob_sp.vel[0] == pytest.approx(1.0)
     # global relative-alt frame projected to local NED
-    ap.handle(_roundtrip(cl, cl.set_position_target_global_int_encode(
-        0, 1, 1, 6, POS_MASK, int(HOME[0] * 1e7), int(HOME[1] * 1e7), 7.0, 0, 0, 0, 0, 0, 0, 0, 0)), 0.5)
+    ap.handle(
+        _roundtrip(
+            cl,
+            cl.set_position_target_global_int_encode(
+                0, 1, 1, 6, POS_MASK, int(HOME[0] * 1e7), int(HOME[1] * 1e7), 7.0, 0, 0, 0, 0, 0, 0, 0, 0
+            ),
+        ),
+        0.5,
+    )
     assert ap.ob_sp.pos[2] == pytest.approx(-7.0) and abs(ap.ob_sp.pos[0]) < 0.02
     # the packed custom_mode in param2 is cast to uint8: accepted no-op (a PX4 pitfall)
     out = ap.handle(_roundtrip(cl, cl.command_long_encode(1, 1, 176, 0, 1, 393216, 0, 0, 0, 0, 0)), 0.6)
@@ -348,8 +387,15 @@ def test_offboard_loss_action_land() -> None:
     t = 0.0
     for step in range(200):
         t = step * 0.05
-        ap.handle(_roundtrip(cl, cl.set_position_target_local_ned_encode(
-            0, 1, 1, 1, POS_MASK, 0, 0, -5, 0, 0, 0, 0, 0, 0, 0, 0)), t)
+        ap.handle(
+            _roundtrip(
+                cl,
+                cl.set_position_target_local_ned_encode(
+                    0, 1, 1, 1, POS_MASK, 0, 0, -5, 0, 0, 0, 0, 0, 0, 0, 0
+                ),
+            ),
+            t,
+        )
         if step == 2:
             ap.handle(_roundtrip(cl, cl.command_long_encode(1, 1, 176, 0, *OFFBOARD, 0, 0, 0, 0)), t)
             ap.handle(_roundtrip(cl, cl.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)), t)

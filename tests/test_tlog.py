@@ -29,8 +29,7 @@ def sample_frames(n: int) -> list[bytes]:
         if i % 4 == 0:
             out.append(b.heartbeat())
         elif i % 4 == 3:
-            out.append(pack_frame(MSG_RADIO_STATUS, bytes(range(9)), sysid=51, compid=68,
-                                  seq=i, version=1))
+            out.append(pack_frame(MSG_RADIO_STATUS, bytes(range(9)), sysid=51, compid=68, seq=i, version=1))
         else:
             out.append(b.tunnel(bytes([i % 256]) * (i % 50)))
     return out
@@ -211,9 +210,7 @@ def test_truncated_at_every_byte_of_the_last_record(tmp_path: Path) -> None:
         assert damage.offset == last
         assert damage.records == 5
         reason = "truncated timestamp" if cut - last < 8 else "truncated frame"
-        assert str(damage) == (
-            f"{cut_path}: damaged record at byte {last} ({reason}) after 5 whole records"
-        )
+        assert str(damage) == (f"{cut_path}: damaged record at byte {last} ({reason}) after 5 whole records")
 
 
 def test_every_flipped_frame_byte_in_the_middle_is_caught(tmp_path: Path) -> None:
@@ -331,9 +328,7 @@ def test_large_capture_streams(tmp_path: Path) -> None:
 _GOOD = sample_frames(8)
 
 
-@settings(
-    max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     cut=st.integers(min_value=0, max_value=2000),
     flips=st.lists(st.tuples(st.integers(0, 2000), st.integers(1, 255)), max_size=4),

@@ -17,8 +17,7 @@ import pytest
 from net_helpers import free_port
 from net_helpers import wait_until as _wait_until
 
-from swarm.errors import MessageError, TransportError
-from swarm.messages import (
+from swarm.core.messages import (
     Advertize,
     AgentState,
     GSAdvertize,
@@ -29,12 +28,11 @@ from swarm.messages import (
     Selection,
     StartPool,
 )
-from swarm.transport import Transport, inbox_key, open_session
+from swarm.errors import MessageError, TransportError
+from swarm.runtime.transport import Transport, inbox_key, open_session
 
 DEADLINE = 20.0
 QUIET = 0.5  # how long "nothing else arrives" is watched after the expected did
-
-
 
 
 def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
@@ -122,10 +120,17 @@ def test_p2p_reaches_only_the_addressee(trio: list[Transport]) -> None:
     for t in trio:
         t.on_inbox(boxes[t.name].add)
     for t in trio:
-        prime(partial(a1.send, t.name, SENTINEL), partial(boxes[t.name].count, SENTINEL),
-              f"the new inbox subscriber of {t.name}")
-    sent = {(src.name, dst.name): Selection(i + 1, candidate=j + 1, weight=1000 + 10 * i + j, epoch=1)
-            for i, src in enumerate(trio) for j, dst in enumerate(trio) if src is not dst}
+        prime(
+            partial(a1.send, t.name, SENTINEL),
+            partial(boxes[t.name].count, SENTINEL),
+            f"the new inbox subscriber of {t.name}",
+        )
+    sent = {
+        (src.name, dst.name): Selection(i + 1, candidate=j + 1, weight=1000 + 10 * i + j, epoch=1)
+        for i, src in enumerate(trio)
+        for j, dst in enumerate(trio)
+        if src is not dst
+    }
     for (src, dst), msg in sent.items():
         next(t for t in trio if t.name == src).send(dst, msg)
     for (_src, dst), msg in sent.items():
@@ -146,10 +151,16 @@ def test_advertize_and_gs_advertize_reach_everyone(trio: list[Transport]) -> Non
         t.on_gs_advertize(gs[t.name].add)
     sentinel_adv, sentinel_gs = Advertize(250, "sentinel"), GSAdvertize(250, "sentinel")
     for src in trio:
-        prime(partial(src.advertise, sentinel_adv),
-              lambda: all(adv[t.name].count(sentinel_adv) for t in trio), "advertize subscribers")
-        prime(partial(src.gs_advertise, sentinel_gs),
-              lambda: all(gs[t.name].count(sentinel_gs) for t in trio), "GSAdvertize subscribers")
+        prime(
+            partial(src.advertise, sentinel_adv),
+            lambda: all(adv[t.name].count(sentinel_adv) for t in trio),
+            "advertize subscribers",
+        )
+        prime(
+            partial(src.gs_advertise, sentinel_gs),
+            lambda: all(gs[t.name].count(sentinel_gs) for t in trio),
+            "GSAdvertize subscribers",
+        )
     for t in trio:
         adv[t.name].clear()
         gs[t.name].clear()
@@ -158,8 +169,10 @@ def test_advertize_and_gs_advertize_reach_everyone(trio: list[Transport]) -> Non
     trio[2].gs_advertise(GSAdvertize(255, "gcs"))
     for t in trio:
         for i, other in enumerate(trio):
-            wait_until(partial(adv[t.name].count, Advertize(i + 1, other.name, 1)),
-                       f"{other.name}'s Advertize at {t.name}")
+            wait_until(
+                partial(adv[t.name].count, Advertize(i + 1, other.name, 1)),
+                f"{other.name}'s Advertize at {t.name}",
+            )
         wait_until(partial(gs[t.name].count, GSAdvertize(255, "gcs")), f"GSAdvertize at {t.name}")
     time.sleep(QUIET)
     for t in trio:
@@ -174,14 +187,22 @@ def test_pose_and_state_streams_with_wildcards(trio: list[Transport]) -> None:
     a2.on_pose("*", poses_all.add)
     a3.on_pose("a1", poses_a1.add)
     a3.on_state("*", states.add)
-    prime(lambda: a1.publish_pose(SENTINEL_POSE),
-          lambda: poses_all.count(("a1", SENTINEL_POSE)) and poses_a1.count(("a1", SENTINEL_POSE)),
-          "pose subscribers")
-    prime(lambda: a3.publish_pose(SENTINEL_POSE), lambda: poses_all.count(("a3", SENTINEL_POSE)),
-          "a2's pose subscriber from a3")
+    prime(
+        lambda: a1.publish_pose(SENTINEL_POSE),
+        lambda: poses_all.count(("a1", SENTINEL_POSE)) and poses_a1.count(("a1", SENTINEL_POSE)),
+        "pose subscribers",
+    )
+    prime(
+        lambda: a3.publish_pose(SENTINEL_POSE),
+        lambda: poses_all.count(("a3", SENTINEL_POSE)),
+        "a2's pose subscriber from a3",
+    )
     sentinel_state = AgentState(250, Phase.IDLE)
-    prime(lambda: a2.publish_state(sentinel_state), lambda: states.count(("a2", sentinel_state)),
-          "state subscriber")
+    prime(
+        lambda: a2.publish_state(sentinel_state),
+        lambda: states.count(("a2", sentinel_state)),
+        "state subscriber",
+    )
     for box in (poses_all, poses_a1, states):
         box.clear()
     p1 = PoseReport(Pose(48.85, 2.35, 120.0, heading=90.0, t=1.0))

@@ -18,10 +18,10 @@ from typing import Any
 from gcs_browser import browser
 from net_helpers import free_port, wait_until
 
-from swarm.gcs.station import StationCore
-from swarm.gslink import FLAG_ARMED, FLAG_FC_OK, mode_code
-from swarm.messages import GSAdvertize, GSConnect, GSConnectAck, Phase, Pose, Telemetry
-from swarm.procs import Child
+from swarm.cli.procs import Child
+from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, mode_code
+from swarm.core.messages import GSAdvertize, GSConnect, GSConnectAck, Phase, Pose, Telemetry
+from swarm.core.station import StationCore
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)
 
@@ -89,15 +89,19 @@ def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> No
     sim_argv = ["sim", "--vehicles", "1", "--base-port", str(port)]
     children: list[Child] = []
     try:
-        gcs = Child(["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_port()}", "--tiles", "none",
-                     "--json"], name="gcs")
+        gcs = Child(
+            ["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_port()}", "--tiles", "none", "--json"],
+            name="gcs",
+        )
         children.append(gcs)
         url = json.loads(gcs.wait_lines(1, 30)[0])["url"]
         sim = Child(sim_argv, name="sim")
         children.append(sim)
         fc = sim.wait_lines(2, 30)[0].split("-> ", 1)[1].split()[0]
-        agent = Child(["agent", "--name", "agent1", "--id", "1", "--zenoh-connect", ep, "--fc", fc, "--json"],
-                      name="agent1")
+        agent = Child(
+            ["agent", "--name", "agent1", "--id", "1", "--zenoh-connect", ep, "--fc", fc, "--json"],
+            name="agent1",
+        )
         children.append(agent)
 
         def view() -> dict[str, Any]:
@@ -114,26 +118,39 @@ def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> No
         wait_until(lambda: view()["vehicle_link"] is False, "the station sees the link lost", 30)
         v = view()
         assert v["mode"] is None and v["armed"] is None and v["connected"] is True
-        wait_until(lambda: any(e.get("kind") == "vehicle" and "vehicle link lost" in e["text"]
-                               for e in _json_lines(gcs, "log")), "the station's event", 30)
+        wait_until(
+            lambda: any(
+                e.get("kind") == "vehicle" and "vehicle link lost" in e["text"]
+                for e in _json_lines(gcs, "log")
+            ),
+            "the station's event",
+            30,
+        )
         with browser() as ctx:  # the page says it in the agent's entry and its telemetry
             page = ctx.new_page()
             page.goto(url)
             page.wait_for_function("() => window.gcs && window.gcs.ready", timeout=15000)
             badge = '#agents [data-agent-id="1"] .badge'
-            page.wait_for_function(f"() => (document.querySelector('{badge}') || {{}}).textContent"
-                                   " === 'vehicle link lost'", timeout=15000)
+            page.wait_for_function(
+                f"() => (document.querySelector('{badge}') || {{}}).textContent === 'vehicle link lost'",
+                timeout=15000,
+            )
             page.click('#agents [data-agent-id="1"]')
-            page.wait_for_function("() => document.querySelector('#telemetry [data-field=\"mode\"]')"
-                                   ".textContent === 'unknown (vehicle link lost)'", timeout=15000)
+            page.wait_for_function(
+                "() => document.querySelector('#telemetry [data-field=\"mode\"]')"
+                ".textContent === 'unknown (vehicle link lost)'",
+                timeout=15000,
+            )
             assert "lost" in page.inner_text("#log")
         sim = Child(sim_argv, name="sim again")
         children.append(sim)
         wait_until(lambda: len(_json_lines(agent, "vehicle")) >= 2, "the vehicle back on the agent", 60)
         assert _json_lines(agent, "vehicle")[1]["link"] is True
         wait_until(lambda: view()["vehicle_link"] is True and view()["mode"], "the station sees it back", 30)
-        assert any(e.get("kind") == "vehicle" and e["text"] == "agent1 (1): vehicle link back"
-                   for e in _json_lines(gcs, "log"))
+        assert any(
+            e.get("kind") == "vehicle" and e["text"] == "agent1 (1): vehicle link back"
+            for e in _json_lines(gcs, "log")
+        )
         assert not [e for c in children for e in c.errors if "Traceback" in e]
     finally:
         for c in children:
@@ -151,13 +168,22 @@ def test_the_leader_whose_vehicle_simulator_dies_hands_over() -> None:
     ep = f"tcp/127.0.0.1:{free_port()}"
     children: list[Child] = []
     try:
-        sims = {i: Child(["sim", "--vehicles", "1", "--base-port", str(ports[i - 1]), "--seed", str(i)],
-                         name=f"sim{i}") for i in (1, 2)}
+        sims = {
+            i: Child(
+                ["sim", "--vehicles", "1", "--base-port", str(ports[i - 1]), "--seed", str(i)], name=f"sim{i}"
+            )
+            for i in (1, 2)
+        }
         children += sims.values()
         fcs = {i: sims[i].wait_lines(2, 30)[0].split("-> ", 1)[1].split()[0] for i in (1, 2)}
         link = {1: ["--zenoh-listen", ep], 2: ["--zenoh-connect", ep]}
-        agents = {i: Child(["agent", "--name", f"agent{i}", "--id", str(i), *link[i], "--fc", fcs[i],
-                            "--json"], name=f"agent{i}") for i in (1, 2)}
+        agents = {
+            i: Child(
+                ["agent", "--name", f"agent{i}", "--id", str(i), *link[i], "--fc", fcs[i], "--json"],
+                name=f"agent{i}",
+            )
+            for i in (1, 2)
+        }
         children += agents.values()
 
         def phases() -> dict[int, tuple[str, int]]:
@@ -172,8 +198,11 @@ def test_the_leader_whose_vehicle_simulator_dies_hands_over() -> None:
 
         def agreed() -> int | None:
             p = phases()
-            if len(p) == 2 and {ph for ph, _ in p.values()} == {"LEADER", "MEMBER"} \
-                    and len({lead for _, lead in p.values()}) == 1:
+            if (
+                len(p) == 2
+                and {ph for ph, _ in p.values()} == {"LEADER", "MEMBER"}
+                and len({lead for _, lead in p.values()}) == 1
+            ):
                 return p[1][1]
             return None
 

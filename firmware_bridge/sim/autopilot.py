@@ -39,30 +39,30 @@ ON_GROUND, IN_AIR, TAKEOFF, LANDING = 1, 2, 3, 4
 FORCE_MAGIC = 21196
 AP_FORCE_ARM = 2989
 
-COM_OF_LOSS_T = 1.0          # PX4 offboard stream timeout, s
-PRE_TAKEOFF_DISARM = 10.0    # COM_DISARM_PRFLT / DISARM_DELAY, s
-GUID_TIMEOUT = 3.0           # ArduCopter guided velocity/accel target timeout, s
-MIS_TAKEOFF_ALT = 2.5        # PX4 default take-off altitude above home, m
-RTL_ALT = 15.0               # return altitude above home, m (AP RTL_ALT; PX4 shortened (I))
+COM_OF_LOSS_T = 1.0  # PX4 offboard stream timeout, s
+PRE_TAKEOFF_DISARM = 10.0  # COM_DISARM_PRFLT / DISARM_DELAY, s
+GUID_TIMEOUT = 3.0  # ArduCopter guided velocity/accel target timeout, s
+MIS_TAKEOFF_ALT = 2.5  # PX4 default take-off altitude above home, m
+RTL_ALT = 15.0  # return altitude above home, m (AP RTL_ALT; PX4 shortened (I))
 
-PX4_STREAMS: dict[int, float] = {   # msg id -> interval (simulated s), onboard link (reduced)
-    33: 0.1,    # GLOBAL_POSITION_INT 10 Hz
-    32: 0.1,    # LOCAL_POSITION_NED 10 Hz
-    30: 0.1,    # ATTITUDE 10 Hz
-    85: 0.1,    # POSITION_TARGET_LOCAL_NED 10 Hz
-    1: 1.0,     # SYS_STATUS 1 Hz
-    245: 1.0,   # EXTENDED_SYS_STATE 1 Hz
-    24: 1.0,    # GPS_RAW_INT 1 Hz
-    147: 1.0,   # BATTERY_STATUS 1 Hz
-    242: 2.0,   # HOME_POSITION 0.5 Hz
+PX4_STREAMS: dict[int, float] = {  # msg id -> interval (simulated s), onboard link (reduced)
+    33: 0.1,  # GLOBAL_POSITION_INT 10 Hz
+    32: 0.1,  # LOCAL_POSITION_NED 10 Hz
+    30: 0.1,  # ATTITUDE 10 Hz
+    85: 0.1,  # POSITION_TARGET_LOCAL_NED 10 Hz
+    1: 1.0,  # SYS_STATUS 1 Hz
+    245: 1.0,  # EXTENDED_SYS_STATE 1 Hz
+    24: 1.0,  # GPS_RAW_INT 1 Hz
+    147: 1.0,  # BATTERY_STATUS 1 Hz
+    242: 2.0,  # HOME_POSITION 0.5 Hz
 }
 #: ArduPilot REQUEST_DATA_STREAM groups -> message ids (I: which group holds what)
 AP_GROUPS: dict[int, tuple[int, ...]] = {
-    2: (1, 24, 85, 245),   # EXTENDED_STATUS
-    6: (33, 32),           # POSITION
-    10: (30,),             # EXTRA1
-    11: (74,),             # EXTRA2 (VFR_HUD)
-    12: (147,),            # EXTRA3
+    2: (1, 24, 85, 245),  # EXTENDED_STATUS
+    6: (33, 32),  # POSITION
+    10: (30,),  # EXTRA1
+    11: (74,),  # EXTRA2 (VFR_HUD)
+    12: (147,),  # EXTRA3
 }
 STREAMABLE = frozenset({1, 24, 30, 32, 33, 49, 74, 85, 147, 242, 245})
 REQUESTABLE = STREAMABLE | {0, 148}
@@ -74,15 +74,15 @@ class VehicleState:
     """A snapshot of one simulated vehicle (true state, not telemetry)."""
 
     sysid: int
-    time: float                              # simulated seconds since start
-    position: tuple[float, float, float]     # NED m from the start point (EKF origin)
-    velocity: tuple[float, float, float]     # NED m/s
-    yaw: float                               # rad
+    time: float  # simulated seconds since start
+    position: tuple[float, float, float]  # NED m from the start point (EKF origin)
+    velocity: tuple[float, float, float]  # NED m/s
+    yaw: float  # rad
     armed: bool
     mode: str
-    landed_state: int                        # MAV_LANDED_STATE 1 ground .. 4 landing
-    battery: float                           # percent remaining
-    home: tuple[float, float, float]         # NED m of home (arming point)
+    landed_state: int  # MAV_LANDED_STATE 1 ground .. 4 landing
+    battery: float  # percent remaining
+    home: tuple[float, float, float]  # NED m of home (arming point)
     gps_ok: bool
     failsafe: bool
 
@@ -94,9 +94,17 @@ def _f(x: float) -> bool:
 class Autopilot:
     """One simulated PX4 or ArduCopter vehicle. See the module docstring."""
 
-    def __init__(self, profile: str, sysid: int, origin: tuple[float, float, float], *,
-                 rng: random.Random | None = None, offboard_loss_action: str = "hold",
-                 dt: float = 0.02, noise: float = 0.01) -> None:
+    def __init__(
+        self,
+        profile: str,
+        sysid: int,
+        origin: tuple[float, float, float],
+        *,
+        rng: random.Random | None = None,
+        offboard_loss_action: str = "hold",
+        dt: float = 0.02,
+        noise: float = 0.01,
+    ) -> None:
         if profile not in ("px4", "ardupilot"):
             raise ValueError(f"unknown profile {profile!r} (px4 or ardupilot)")
         if offboard_loss_action not in ("hold", "land", "rtl"):
@@ -109,10 +117,10 @@ class Autopilot:
         self.loss_action = offboard_loss_action
         self.dt = dt
         self.noise = noise
-        self.mav = mavlink.MAVLink(None, sysid, 1)     # encoder only, never writes
+        self.mav = mavlink.MAVLink(None, sysid, 1)  # encoder only, never writes
         self.lim = Limits() if self.px4 else Limits(v_xy=10.0, v_up=2.5, v_down=1.5, a_xy=2.5)
         self.body = Body()
-        self.t = 0.0                    # physics time
+        self.t = 0.0  # physics time
         self._steps = 0
         self.armed = False
         self.mode = "AUTO.LOITER" if self.px4 else "STABILIZE"
@@ -125,7 +133,7 @@ class Autopilot:
         self.touchdown_time: float | None = None
         self.hold_point = (0.0, 0.0, 0.0)
         self.hold_yaw = 0.0
-        self.target: Target | None = None            # what the controller tracks now
+        self.target: Target | None = None  # what the controller tracks now
         # PX4 offboard
         self.ob_sp: Target | None = None
         self.ob_time = -math.inf
@@ -138,7 +146,7 @@ class Autopilot:
         self.g_auto_yaw = False
         self.rtl_phase = "climb"
         self.streams: dict[int, list[float]] = {}
-        for mid, iv in (PX4_STREAMS.items() if self.px4 else ()):
+        for mid, iv in PX4_STREAMS.items() if self.px4 else ():
             self._set_stream(mid, iv, 0.0)
         self.next_hb = 0.0
         self._out: list[Msg] = []
@@ -151,7 +159,7 @@ class Autopilot:
         t = msg.get_type()
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         if src == (self.sysid, 1):
-            pass                                        # our own echo
+            pass  # our own echo
         elif t in ("COMMAND_LONG", "COMMAND_INT"):
             self._on_command(msg, src)
         elif t == "SET_MODE":
@@ -178,10 +186,19 @@ class Autopilot:
     def snapshot(self) -> VehicleState:
         b = self.body
         return VehicleState(
-            sysid=self.sysid, time=self.t, position=(b.pos[0], b.pos[1], b.pos[2]),
-            velocity=(b.vel[0], b.vel[1], b.vel[2]), yaw=b.yaw, armed=self.armed,
-            mode=self.mode, landed_state=self._landed_state, battery=self.battery,
-            home=self.home, gps_ok=self.gps_ok, failsafe=self.failsafe)
+            sysid=self.sysid,
+            time=self.t,
+            position=(b.pos[0], b.pos[1], b.pos[2]),
+            velocity=(b.vel[0], b.vel[1], b.vel[2]),
+            yaw=b.yaw,
+            armed=self.armed,
+            mode=self.mode,
+            landed_state=self._landed_state,
+            battery=self.battery,
+            home=self.home,
+            gps_ok=self.gps_ok,
+            failsafe=self.failsafe,
+        )
 
     def set_gps(self, ok: bool) -> None:
         """Fault hook: a failed GPS gives no position, refuses arming and position modes."""
@@ -193,8 +210,12 @@ class Autopilot:
             if self.armed and not self.body.on_ground and self.mode in modes.NEEDS_POSITION:
                 self._enter_mode("AUTO.LAND" if self.px4 else "LAND")
                 self.failsafe = True
-                self._text(2, "Failsafe activated: no position, landing" if self.px4
-                           else "EKF Failsafe: changed to LAND Mode")
+                self._text(
+                    2,
+                    "Failsafe activated: no position, landing"
+                    if self.px4
+                    else "EKF Failsafe: changed to LAND Mode",
+                )
 
     # --------------------------------------------------------------- time step
     def _advance(self, now: float) -> None:
@@ -266,8 +287,7 @@ class Autopilot:
 
     def _check_timeouts(self) -> None:
         if self.px4:
-            if (self.mode == "OFFBOARD" and self.armed
-                    and self.t - self.ob_time > COM_OF_LOSS_T):
+            if self.mode == "OFFBOARD" and self.armed and self.t - self.ob_time > COM_OF_LOSS_T:
                 action = {"hold": "AUTO.LOITER", "land": "AUTO.LAND", "rtl": "AUTO.RTL"}[self.loss_action]
                 if action != "AUTO.LOITER" and not self.gps_ok:
                     action = "AUTO.LAND"
@@ -293,12 +313,19 @@ class Autopilot:
         if kind == "offboard":
             return self.ob_sp if self.ob_sp is not None else self._hold_target()
         if kind == "takeoff":
-            return Target(pos=(self.hold_point[0], self.hold_point[1], self.takeoff_z),
-                          yaw=self.hold_yaw, v_up=1.5 if self.px4 else 2.5)
+            return Target(
+                pos=(self.hold_point[0], self.hold_point[1], self.takeoff_z),
+                yaw=self.hold_yaw,
+                v_up=1.5 if self.px4 else 2.5,
+            )
         if kind == "land":
             v = 1.5 if -b.pos[2] > 10.0 else (0.7 if self.px4 else 0.5)
-            return Target(pos=(self.hold_point[0], self.hold_point[1], NAN),
-                          vel=(NAN, NAN, v), yaw=self.hold_yaw, v_down=v)
+            return Target(
+                pos=(self.hold_point[0], self.hold_point[1], NAN),
+                vel=(NAN, NAN, v),
+                yaw=self.hold_yaw,
+                v_down=v,
+            )
         if kind == "rtl":
             hx, hy, _ = self.home
             if b.on_ground and self.rtl_phase != "land":
@@ -306,16 +333,21 @@ class Autopilot:
             if self.rtl_phase == "climb":
                 return Target(pos=(self.hold_point[0], self.hold_point[1], self._rtl_z()), yaw=b.yaw)
             if self.rtl_phase == "return":
-                return Target(pos=(hx, hy, self._rtl_z()), yaw=math.atan2(hy - b.pos[1], hx - b.pos[0])
-                              if math.hypot(hx - b.pos[0], hy - b.pos[1]) > 2.0 else b.yaw)
+                return Target(
+                    pos=(hx, hy, self._rtl_z()),
+                    yaw=math.atan2(hy - b.pos[1], hx - b.pos[0])
+                    if math.hypot(hx - b.pos[0], hy - b.pos[1]) > 2.0
+                    else b.yaw,
+                )
             v = 1.5 if -b.pos[2] > 10.0 else (0.7 if self.px4 else 0.5)
             return Target(pos=(hx, hy, NAN), vel=(NAN, NAN, v), yaw=b.yaw, v_down=v)
         if kind == "guided":
             if self.g_sub == "idle" or (b.on_ground and self.g_sub != "takeoff"):
                 return self._hold_target() if b.on_ground else Target(pos=(b.pos[0], b.pos[1], b.pos[2]))
             if self.g_sub == "takeoff":
-                return Target(pos=(self.hold_point[0], self.hold_point[1], self.takeoff_z),
-                              yaw=self.hold_yaw, v_up=2.5)
+                return Target(
+                    pos=(self.hold_point[0], self.hold_point[1], self.takeoff_z), yaw=self.hold_yaw, v_up=2.5
+                )
             tg = self.g_target
             if self.g_auto_yaw:
                 yaw = b.yaw
@@ -417,9 +449,16 @@ class Autopilot:
             rel = alt - self._geo(*self.home)[2]
             hdg = round(math.degrees(b.yaw) * 100.0) % 36000
             return m.global_position_int_encode(
-                self._boot_ms(), round(lat * 1e7), round(lon * 1e7), round(alt * 1000),
-                round(rel * 1000), round(b.vel[0] * 100), round(b.vel[1] * 100),
-                round(b.vel[2] * 100), hdg)
+                self._boot_ms(),
+                round(lat * 1e7),
+                round(lon * 1e7),
+                round(alt * 1000),
+                round(rel * 1000),
+                round(b.vel[0] * 100),
+                round(b.vel[1] * 100),
+                round(b.vel[2] * 100),
+                hdg,
+            )
         if mid == 32:
             if not self.gps_ok:
                 return None
@@ -430,45 +469,68 @@ class Autopilot:
             c, s = math.cos(b.yaw), math.sin(b.yaw)
             fwd, right = a[0] * c + a[1] * s, -a[0] * s + a[1] * c
             g = 9.80665
-            return m.attitude_encode(self._boot_ms(), math.atan2(right, g), -math.atan2(fwd, g),
-                                     b.yaw, 0.0, 0.0, b.yaw_rate)
+            return m.attitude_encode(
+                self._boot_ms(), math.atan2(right, g), -math.atan2(fwd, g), b.yaw, 0.0, 0.0, b.yaw_rate
+            )
         if mid == 85:
             return self._target_echo()
         if mid == 1:
-            sensors = 32 | 1 | 2 | 4 | 8    # GPS, gyro, accel, mag, baro
+            sensors = 32 | 1 | 2 | 4 | 8  # GPS, gyro, accel, mag, baro
             health = sensors if self.gps_ok else sensors & ~32
             volt, cur = self._battery_vi()
-            return m.sys_status_encode(sensors, sensors, health, 250, int(volt * 1000), int(cur * 100),
-                                       int(self.battery), 0, 0, 0, 0, 0, 0)
+            return m.sys_status_encode(
+                sensors,
+                sensors,
+                health,
+                250,
+                int(volt * 1000),
+                int(cur * 100),
+                int(self.battery),
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
         if mid == 245:
             return m.extended_sys_state_encode(0, self._landed_state)
         if mid == 24:
             fix = 3 if self.gps_ok else 0
             lat, lon, alt = self._geo(b.pos[0], b.pos[1], b.pos[2]) if self.gps_ok else (0.0, 0.0, 0.0)
-            return m.gps_raw_int_encode(int(self.t * 1e6), fix, round(lat * 1e7), round(lon * 1e7),
-                                        round(alt * 1000), 80 if fix else 9999, 120 if fix else 9999,
-                                        int(math.hypot(b.vel[0], b.vel[1]) * 100), 0, 12 if fix else 0)
+            return m.gps_raw_int_encode(
+                int(self.t * 1e6),
+                fix,
+                round(lat * 1e7),
+                round(lon * 1e7),
+                round(alt * 1000),
+                80 if fix else 9999,
+                120 if fix else 9999,
+                int(math.hypot(b.vel[0], b.vel[1]) * 100),
+                0,
+                12 if fix else 0,
+            )
         if mid == 147:
             volt, cur = self._battery_vi()
             cells = [int(volt * 250)] * 4 + [65535] * 6
-            return m.battery_status_encode(0, 1, 3, 32767, cells, int(cur * 100), -1, -1,
-                                           int(self.battery))
+            return m.battery_status_encode(0, 1, 3, 32767, cells, int(cur * 100), -1, -1, int(self.battery))
         if mid == 242:
             return self._home_position()
         if mid == 49:
             lat, lon, alt = self.origin
-            return m.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7),
-                                              round(alt * 1000), int(self.t * 1e6))
+            return m.gps_global_origin_encode(
+                round(lat * 1e7), round(lon * 1e7), round(alt * 1000), int(self.t * 1e6)
+            )
         if mid == 74:
             _, _, alt = self._geo(*b.pos)
             hdg = round(math.degrees(b.yaw)) % 360
-            return m.vfr_hud_encode(0.0, math.hypot(b.vel[0], b.vel[1]), hdg,
-                                    0 if not self.armed else 50, alt, -b.vel[2])
+            return m.vfr_hud_encode(
+                0.0, math.hypot(b.vel[0], b.vel[1]), hdg, 0 if not self.armed else 50, alt, -b.vel[2]
+            )
         if mid == 148:
-            caps = 4 | 8 | 128 | 256 | 8192    # MISSION_INT, COMMAND_INT, SET_POS_TARGET_*, MAVLINK2
+            caps = 4 | 8 | 128 | 256 | 8192  # MISSION_INT, COMMAND_INT, SET_POS_TARGET_*, MAVLINK2
             ver = (1 << 24 | 14 << 16) if self.px4 else (4 << 24 | 6 << 16)
-            return m.autopilot_version_encode(caps, ver, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
-                                              self.sysid)
+            return m.autopilot_version_encode(caps, ver, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.sysid)
         return None
 
     def _battery_vi(self) -> tuple[float, float]:
@@ -484,9 +546,19 @@ class Autopilot:
     def _home_position(self) -> Msg | None:
         lat, lon, alt = self._geo(*self.home)
         h = self.home
-        return self.mav.home_position_encode(round(lat * 1e7), round(lon * 1e7),
-                                             round(alt * 1000), h[0], h[1], h[2],
-                                             [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(self.t * 1e6))
+        return self.mav.home_position_encode(
+            round(lat * 1e7),
+            round(lon * 1e7),
+            round(alt * 1000),
+            h[0],
+            h[1],
+            h[2],
+            [1.0, 0.0, 0.0, 0.0],
+            0.0,
+            0.0,
+            0.0,
+            int(self.t * 1e6),
+        )
 
     def _target_echo(self) -> Msg | None:
         if not self.px4 and self.mode != "GUIDED":
@@ -523,9 +595,15 @@ class Autopilot:
             return
         cmd = msg.command
         if msg.get_type() == "COMMAND_INT":
-            params = (msg.param1, msg.param2, msg.param3, msg.param4,
-                      msg.x / 1e7 if msg.frame not in (1, 7, 8, 9) else float(msg.x),
-                      msg.y / 1e7 if msg.frame not in (1, 7, 8, 9) else float(msg.y), msg.z)
+            params = (
+                msg.param1,
+                msg.param2,
+                msg.param3,
+                msg.param4,
+                msg.x / 1e7 if msg.frame not in (1, 7, 8, 9) else float(msg.x),
+                msg.y / 1e7 if msg.frame not in (1, 7, 8, 9) else float(msg.y),
+                msg.z,
+            )
             frame: int | None = msg.frame
         else:
             params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
@@ -598,8 +676,11 @@ class Autopilot:
                 return ACCEPTED, None
             skip = not self.px4 and int(p[1]) == AP_FORCE_ARM
             if not self.gps_ok and not skip:
-                return self._reject("Arming denied: Preflight Fail: no global position" if self.px4
-                                    else "PreArm: Need Position Estimate")
+                return self._reject(
+                    "Arming denied: Preflight Fail: no global position"
+                    if self.px4
+                    else "PreArm: Need Position Estimate"
+                )
             if self.px4 and self.mode == "OFFBOARD" and not self._stream_fresh():
                 return self._reject("Arming denied: no offboard signal")
             if not self.px4 and self.mode in modes.AP_NOT_ARMABLE and not skip:
@@ -645,9 +726,9 @@ class Autopilot:
         if not int(p[0]) & 1:
             return DENIED, "Mode change denied: custom mode flag not set"
         if self.px4:
-            main, sub = int(p[1]) & 0xFF, int(p[2]) & 0xFF     # PX4 casts to uint8
+            main, sub = int(p[1]) & 0xFF, int(p[2]) & 0xFF  # PX4 casts to uint8
             if main == 0:
-                return ACCEPTED, None                          # accepted no-op, as PX4 does
+                return ACCEPTED, None  # accepted no-op, as PX4 does
             return self._px4_mode_by_number(main, sub)
         name = modes.AP_BY_NUMBER.get(int(p[1]))
         if name is None:
@@ -668,11 +749,12 @@ class Autopilot:
         if self.px4:
             cm = msg.custom_mode
             result, text = self._px4_mode_by_number((cm >> 16) & 0xFF, (cm >> 24) & 0xFF)
-            cmd = 176                                          # (I) PX4 acks as DO_SET_MODE
+            cmd = 176  # (I) PX4 acks as DO_SET_MODE
         else:
             name = modes.AP_BY_NUMBER.get(msg.custom_mode)
-            result, text = (FAILED, f"Unknown mode {msg.custom_mode}") if name is None \
-                else self._change_mode(name)
+            result, text = (
+                (FAILED, f"Unknown mode {msg.custom_mode}") if name is None else self._change_mode(name)
+            )
             cmd = 11
         if text:
             self._text(4 if result else 6, text)
@@ -729,7 +811,7 @@ class Autopilot:
     def _reposition(self, p: tuple[float, ...], frame: int | None) -> tuple[int, str | None]:
         b = self.body
         if not self.px4 and frame is None:
-            return UNSUPPORTED, None                      # ArduCopter: COMMAND_INT only
+            return UNSUPPORTED, None  # ArduCopter: COMMAND_INT only
         if not self.gps_ok or not self.armed or b.on_ground:
             return self._reject("Reposition denied: not flying")
         lat, lon, alt = p[4], p[5], p[6]
@@ -758,8 +840,10 @@ class Autopilot:
         mask = msg.type_mask
         pos = [NAN if mask & bit else v for bit, v in zip((1, 2, 4), xyz, strict=True)]
         vel = [NAN if mask & bit else v for bit, v in zip((8, 16, 32), (msg.vx, msg.vy, msg.vz), strict=True)]
-        acc = [NAN if mask & bit else v
-               for bit, v in zip((64, 128, 256), (msg.afx, msg.afy, msg.afz), strict=True)]
+        acc = [
+            NAN if mask & bit else v
+            for bit, v in zip((64, 128, 256), (msg.afx, msg.afy, msg.afz), strict=True)
+        ]
         return pos, vel, acc
 
     def _px4_accept(self, msg: Msg, pos: list[float], vel: list[float], acc: list[float]) -> None:
@@ -768,15 +852,19 @@ class Autopilot:
             return
         has_acc = (mask & 448) != 448
         if (mask & 512) and has_acc:
-            return                                   # FORCE with acceleration: rejected
+            return  # FORCE with acceleration: rejected
         if (mask & 7) == 7 and (mask & 56) == 56 and not has_acc:
-            return                                   # nothing set: invalid
+            return  # nothing set: invalid
         yaw = NAN if mask & 1024 else msg.yaw
         yaw_rate = NAN if mask & 2048 else msg.yaw_rate
-        self.ob_sp = Target(pos=(pos[0], pos[1], pos[2]), vel=(vel[0], vel[1], vel[2]),
-                            acc=(acc[0], acc[1], acc[2]),
-                            yaw=yaw if _f(yaw) else NAN, yaw_rate=yaw_rate if _f(yaw_rate) else NAN)
-        self.ob_time = self.t                        # proof of life, in any mode
+        self.ob_sp = Target(
+            pos=(pos[0], pos[1], pos[2]),
+            vel=(vel[0], vel[1], vel[2]),
+            acc=(acc[0], acc[1], acc[2]),
+            yaw=yaw if _f(yaw) else NAN,
+            yaw_rate=yaw_rate if _f(yaw_rate) else NAN,
+        )
+        self.ob_time = self.t  # proof of life, in any mode
 
     def _on_local_sp(self, msg: Msg) -> None:
         frame = msg.coordinate_frame
@@ -792,7 +880,7 @@ class Autopilot:
             self._px4_accept(msg, pos, vel, acc)
             return
         if self.mode != "GUIDED":
-            return                                   # ArduCopter: ignored outside GUIDED
+            return  # ArduCopter: ignored outside GUIDED
         b = self.body
         yaw_off = 0.0
         if frame in (7, 8, 9):
@@ -815,7 +903,7 @@ class Autopilot:
                 self._text(4, f"GLOBAL_INT coordinate frame {frame} unsupported")
                 return
             if not self.gps_ok:
-                return                               # no global reference: dropped silently
+                return  # no global reference: dropped silently
         elif self.mode != "GUIDED":
             return
         elif frame not in (0, 5, 3, 6, 10, 11):
@@ -827,7 +915,7 @@ class Autopilot:
         elif frame in (3, 6):
             d = self.home[2] - msg.alt
         else:
-            d = -msg.alt                             # flat terrain at the origin's altitude
+            d = -msg.alt  # flat terrain at the origin's altitude
         pos, vel, acc = self._fields(msg, (float(n), float(e), float(d)))
         if self.px4:
             self._px4_accept(msg, pos, vel, acc)
@@ -847,10 +935,11 @@ class Autopilot:
         self.g_target = Target(pos=(b.pos[0], b.pos[1], b.pos[2]), yaw=b.yaw)
         self.g_auto_yaw = False
 
-    def _ap_target(self, msg: Msg, pos: list[float], vel: list[float], acc: list[float],
-                   yaw_off: float, *, terrain: bool) -> None:
+    def _ap_target(
+        self, msg: Msg, pos: list[float], vel: list[float], acc: list[float], yaw_off: float, *, terrain: bool
+    ) -> None:
         if self.body.on_ground and self.g_sub != "takeoff":
-            return                                   # landed: guided targets don't spin up motors
+            return  # landed: guided targets don't spin up motors
         mask = msg.type_mask
         pos_i, vel_i, acc_i = (mask & 7) == 7, (mask & 56) == 56, (mask & 448) == 448
         used = ([] if pos_i else pos) + ([] if vel_i else vel) + ([] if acc_i else acc)
@@ -858,7 +947,7 @@ class Autopilot:
             self._ap_hold()
             return
         if not pos_i and vel_i and not acc_i:
-            self._ap_hold()                          # pos + acc without vel
+            self._ap_hold()  # pos + acc without vel
             return
         if pos_i and vel_i and acc_i:
             self._ap_hold()
@@ -869,12 +958,15 @@ class Autopilot:
         yaw_set = not mask & 1024 and _f(msg.yaw)
         rate_set = not mask & 2048 and _f(msg.yaw_rate)
         self.g_auto_yaw = bool(mask & 1024 and mask & 2048)
-        tg = Target(pos=(NAN, NAN, NAN) if pos_i else (pos[0], pos[1], pos[2]),
-                    vel=(NAN, NAN, NAN) if vel_i else (vel[0], vel[1], vel[2]),
-                    acc=(NAN, NAN, NAN) if acc_i else (acc[0], acc[1], acc[2]),
-                    yaw=wrap_pi(msg.yaw + yaw_off) if yaw_set else (NAN if rate_set or self.g_auto_yaw
-                                                                     else self.body.yaw),
-                    yaw_rate=msg.yaw_rate if rate_set and not yaw_set else NAN)
+        tg = Target(
+            pos=(NAN, NAN, NAN) if pos_i else (pos[0], pos[1], pos[2]),
+            vel=(NAN, NAN, NAN) if vel_i else (vel[0], vel[1], vel[2]),
+            acc=(NAN, NAN, NAN) if acc_i else (acc[0], acc[1], acc[2]),
+            yaw=wrap_pi(msg.yaw + yaw_off)
+            if yaw_set
+            else (NAN if rate_set or self.g_auto_yaw else self.body.yaw),
+            yaw_rate=msg.yaw_rate if rate_set and not yaw_set else NAN,
+        )
         self.g_target = tg
         self.g_sub = "pos" if not pos_i else "vel"
         self.g_time = self.t

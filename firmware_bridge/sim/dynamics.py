@@ -29,16 +29,16 @@ NAN = float("nan")
 class Limits:
     """Controller gains and limits of one autopilot profile (SI units)."""
 
-    kp_xy: float = 0.95          # MPC_XY_P
-    kp_z: float = 1.0            # MPC_Z_P
-    v_xy: float = 12.0           # MPC_XY_VEL_MAX (PX4) / WPNAV_SPEED (AP)
-    v_up: float = 3.0            # MPC_Z_VEL_MAX_UP / WPNAV_SPEED_UP
-    v_down: float = 1.5          # MPC_Z_VEL_MAX_DN / WPNAV_SPEED_DN
-    a_xy: float = G * math.tan(math.radians(45.0))   # MPC_TILTMAX_AIR 45 deg
-    a_z: float = 4.0             # MPC_ACC_UP_MAX
-    tau: float = 0.4             # velocity response time constant
+    kp_xy: float = 0.95  # MPC_XY_P
+    kp_z: float = 1.0  # MPC_Z_P
+    v_xy: float = 12.0  # MPC_XY_VEL_MAX (PX4) / WPNAV_SPEED (AP)
+    v_up: float = 3.0  # MPC_Z_VEL_MAX_UP / WPNAV_SPEED_UP
+    v_down: float = 1.5  # MPC_Z_VEL_MAX_DN / WPNAV_SPEED_DN
+    a_xy: float = G * math.tan(math.radians(45.0))  # MPC_TILTMAX_AIR 45 deg
+    a_z: float = 4.0  # MPC_ACC_UP_MAX
+    tau: float = 0.4  # velocity response time constant
     yaw_rate_max: float = math.radians(90.0)
-    yaw_p: float = 2.8           # MC_YAW_P
+    yaw_p: float = 2.8  # MC_YAW_P
 
 
 @dataclass
@@ -86,8 +86,7 @@ class Body:
         vc = [0.0, 0.0, 0.0]
         ex = target.pos[0] - p[0] if math.isfinite(target.pos[0]) else NAN
         ey = target.pos[1] - p[1] if math.isfinite(target.pos[1]) else NAN
-        for i, (e, kp) in enumerate(((ex, lim.kp_xy), (ey, lim.kp_xy),
-                                      (target.pos[2] - p[2], lim.kp_z))):
+        for i, (e, kp) in enumerate(((ex, lim.kp_xy), (ey, lim.kp_xy), (target.pos[2] - p[2], lim.kp_z))):
             ff = target.vel[i]
             if math.isfinite(e):
                 vc[i] = (ff if math.isfinite(ff) else 0.0) + kp * e

@@ -53,10 +53,25 @@ BEHAVIOUR: dict[str, str] = {
     "SMART_RTL": "rtl",
 }
 
-NEEDS_POSITION: frozenset[str] = frozenset({
-    "POSCTL", "OFFBOARD", "AUTO.TAKEOFF", "AUTO.LOITER", "AUTO.MISSION", "AUTO.RTL",
-    "GUIDED", "AUTO", "LOITER", "RTL", "CIRCLE", "POSHOLD", "BRAKE", "SMART_RTL", "FOLLOW",
-})
+NEEDS_POSITION: frozenset[str] = frozenset(
+    {
+        "POSCTL",
+        "OFFBOARD",
+        "AUTO.TAKEOFF",
+        "AUTO.LOITER",
+        "AUTO.MISSION",
+        "AUTO.RTL",
+        "GUIDED",
+        "AUTO",
+        "LOITER",
+        "RTL",
+        "CIRCLE",
+        "POSHOLD",
+        "BRAKE",
+        "SMART_RTL",
+        "FOLLOW",
+    }
+)
 
 #: ArduCopter modes from which MAVLink arming is refused ("Arm: Mode not armable")
 AP_NOT_ARMABLE: frozenset[str] = frozenset({"RTL", "LAND", "SMART_RTL", "CIRCLE"})
@@ -74,7 +89,7 @@ def px4_custom_mode(mode: str) -> int:
 def px4_base_flags(mode: str) -> int:
     """MAV_MODE_FLAG bits PX4 sets besides CUSTOM_MODE_ENABLED and SAFETY_ARMED."""
     if mode in ("MANUAL", "ACRO"):
-        return 64                       # MANUAL_INPUT
+        return 64  # MANUAL_INPUT
     if mode in ("ALTCTL", "POSCTL", "STABILIZED"):
-        return 64 | 16                  # MANUAL_INPUT | STABILIZE
-    return 4 | 8 | 16                   # AUTO | GUIDED | STABILIZE (auto modes, offboard)
+        return 64 | 16  # MANUAL_INPUT | STABILIZE
+    return 4 | 8 | 16  # AUTO | GUIDED | STABILIZE (auto modes, offboard)

@@ -53,14 +53,14 @@ class SimConfig:
 
     vehicles: int = 1
     profile: str = "px4"
-    home: tuple[float, float, float] = (47.397742, 8.545594, 488.0)   # lat, lon deg, alt m AMSL
-    spacing: float = 5.0          # vehicle i starts i*spacing metres east of home
-    speedup: float = 1.0          # simulated seconds per wall second
+    home: tuple[float, float, float] = (47.397742, 8.545594, 488.0)  # lat, lon deg, alt m AMSL
+    spacing: float = 5.0  # vehicle i starts i*spacing metres east of home
+    speedup: float = 1.0  # simulated seconds per wall second
     seed: int = 0
     base_port: int | None = None  # px4: 14540, ardupilot: 5760
-    serial: str | None = None     # vehicle 0 on a serial device, or "pty"
+    serial: str | None = None  # vehicle 0 on a serial device, or "pty"
     host: str = "127.0.0.1"
-    offboard_loss_action: str = "hold"   # PX4 COM_OBL_RC_ACT: hold (5), land (4) or rtl (3)
+    offboard_loss_action: str = "hold"  # PX4 COM_OBL_RC_ACT: hold (5), land (4) or rtl (3)
 
     def validate(self) -> None:
         """Raise :class:`ConnectError` (a :class:`BridgeError`) for impossible values."""
@@ -76,10 +76,14 @@ class SimConfig:
         if not 0.0 <= self.spacing <= 10000.0:
             raise ConnectError(f"spacing must be 0..10000 m, got {self.spacing}")
         if self.offboard_loss_action not in ("hold", "land", "rtl"):
-            raise ConnectError(f"offboard_loss_action must be hold, land or rtl, "
-                               f"got {self.offboard_loss_action!r}")
-        base = self.base_port if self.base_port is not None else \
-            (PX4_BASE_PORT if self.profile == "px4" else AP_BASE_PORT)
+            raise ConnectError(
+                f"offboard_loss_action must be hold, land or rtl, got {self.offboard_loss_action!r}"
+            )
+        base = (
+            self.base_port
+            if self.base_port is not None
+            else (PX4_BASE_PORT if self.profile == "px4" else AP_BASE_PORT)
+        )
         last = base + (self.vehicles - 1) * (1 if self.profile == "px4" else 10)
         if not base >= 1 or last > 65535:
             raise ConnectError(f"ports {base}..{last} out of range")
@@ -127,7 +131,7 @@ class _UdpTransport(_Transport):
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
-                break                     # e.g. ICMP port unreachable from an earlier send
+                break  # e.g. ICMP port unreachable from an earlier send
             self.peer = (addr[0], addr[1])
             out.append(data)
         return out
@@ -195,11 +199,11 @@ class _TcpTransport(_Transport):
     def send(self, data: bytes) -> None:
         for c in list(self.clients):
             try:
-                c.send(data)              # a full buffer drops this frame, like a slow link
+                c.send(data)  # a full buffer drops this frame, like a slow link
             except (BlockingIOError, InterruptedError):
                 pass
             except OSError:
-                pass                      # closed: noticed on the next read
+                pass  # closed: noticed on the next read
 
     def close(self, sel: selectors.BaseSelector) -> None:
         for c in list(self.clients):
@@ -227,7 +231,7 @@ class _SerialTransport(_Transport):
 
         dev, baud = url, 921600
         if dev.startswith("serial:"):
-            dev = dev[len("serial:"):]
+            dev = dev[len("serial:") :]
         head, _, tail = dev.rpartition(":")
         if head and tail.isdigit():
             dev, baud = head, int(tail)
@@ -247,7 +251,7 @@ class _SerialTransport(_Transport):
         except (BlockingIOError, InterruptedError):
             return []
         except OSError:
-            return []                     # pty with no client side open (EIO)
+            return []  # pty with no client side open (EIO)
         return [data] if data else []
 
     def send(self, data: bytes) -> None:
@@ -271,8 +275,14 @@ class Vehicle:
     All durations are in simulated seconds.
     """
 
-    def __init__(self, sim: VehicleSim, index: int, core: Autopilot, transport: _Transport,
-                 start_geo: tuple[float, float, float]) -> None:
+    def __init__(
+        self,
+        sim: VehicleSim,
+        index: int,
+        core: Autopilot,
+        transport: _Transport,
+        start_geo: tuple[float, float, float],
+    ) -> None:
         self._sim = sim
         self.index = index
         self.sysid = core.sysid
@@ -284,7 +294,7 @@ class Vehicle:
         self.mav.robust_parsing = True
         self.link_down_until = -1.0
         self.latency = 0.0
-        self.queue: list[tuple[float, int, bytes]] = []   # (release sim time, seq, bytes)
+        self.queue: list[tuple[float, int, bytes]] = []  # (release sim time, seq, bytes)
         self._qseq = 0
 
     @property
@@ -373,8 +383,11 @@ class VehicleSim:
             return self.endpoints
         cfg = self.config
         sel = selectors.DefaultSelector()
-        base = cfg.base_port if cfg.base_port is not None else \
-            (PX4_BASE_PORT if cfg.profile == "px4" else AP_BASE_PORT)
+        base = (
+            cfg.base_port
+            if cfg.base_port is not None
+            else (PX4_BASE_PORT if cfg.profile == "px4" else AP_BASE_PORT)
+        )
         transports: list[_Transport] = []
         try:
             for i in range(cfg.vehicles):
@@ -398,8 +411,13 @@ class VehicleSim:
         for i, tr in enumerate(transports):
             lat, lon, alt = pymap3d.ned2geodetic(0.0, i * cfg.spacing, 0.0, *cfg.home)
             start = (float(lat), float(lon), float(alt))
-            core = Autopilot(cfg.profile, i + 1, start, rng=random.Random(cfg.seed * 1009 + i),
-                             offboard_loss_action=cfg.offboard_loss_action)
+            core = Autopilot(
+                cfg.profile,
+                i + 1,
+                start,
+                rng=random.Random(cfg.seed * 1009 + i),
+                offboard_loss_action=cfg.offboard_loss_action,
+            )
             v = Vehicle(self, i, core, tr, start)
             self._vehicles.append(v)
             for fo in tr.fileobjs():
@@ -452,8 +470,9 @@ class VehicleSim:
         self.start()
         return self
 
-    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()
 
     # ------------------------------------------------------------------ loop
@@ -468,7 +487,7 @@ class VehicleSim:
     def _run(self) -> None:
         try:
             self._loop()
-        except Exception as exc:   # keep the reason for whoever looks; never raise in a thread
+        except Exception as exc:  # keep the reason for whoever looks; never raise in a thread
             self.error = BridgeError(f"vehicle simulator stopped: {exc!r}")
             self.error.__cause__ = exc
 

@@ -175,17 +175,28 @@ class ATEngine:
     board is unknown, or ``params`` is an AES build on a board never built with AES.
     """
 
-    def __init__(self, params: SikParams, *, flavour: str = "standard", board: str = "HM-TRP",
-                 version: str = "2.2", ati6: Callable[[], str], ati7: Callable[[], str],
-                 node_id: int | None = None, boot_time: float | None = None) -> None:
+    def __init__(
+        self,
+        params: SikParams,
+        *,
+        flavour: str = "standard",
+        board: str = "HM-TRP",
+        version: str = "2.2",
+        ati6: Callable[[], str],
+        ati7: Callable[[], str],
+        node_id: int | None = None,
+        boot_time: float | None = None,
+    ) -> None:
         if check_flavour(flavour) != params.flavour:
-            raise ConfigError(f"ATEngine flavour {flavour!r} does not match the parameters' "
-                              f"flavour {params.flavour!r}")
+            raise ConfigError(
+                f"ATEngine flavour {flavour!r} does not match the parameters' flavour {params.flavour!r}"
+            )
         if board not in BOARD_IDS:
             raise ConfigError(f"unknown SiK board {board!r}: use one of " + ", ".join(BOARD_IDS))
         if getattr(params, "aes", False) and board not in AES_BOARDS:
-            raise ConfigError(f"SiK firmware with AES was only built for "
-                              f"{' and '.join(sorted(AES_BOARDS))}, not {board}")
+            raise ConfigError(
+                f"SiK firmware with AES was only built for {' and '.join(sorted(AES_BOARDS))}, not {board}"
+            )
         self.params = params
         self.max_line = AT_CMD_MAXLEN_SI103X if board in SI103X_BOARDS else AT_CMD_MAXLEN
         self.flavour = params.flavour
@@ -395,8 +406,7 @@ class ATEngine:
         if which == "4":
             return [str(BOOTLOADER_VERSION)]
         if which == "5":
-            return [f"S{spec.index}:{spec.name}={self.params.ram[spec.index]}"
-                    for spec in self.params.specs]
+            return [f"S{spec.index}:{spec.name}={self.params.ram[spec.index]}" for spec in self.params.specs]
         if which == "6":
             return self._text_lines(self._ati6)
         if which == "7":
@@ -457,8 +467,7 @@ class ATEngine:
         return f"[{node}] "
 
     def _format(self, lines: list[str]) -> bytes:
-        return "".join(f"{self._prefix()}{line}\r\n" for line in lines).encode(
-            "ascii", "replace")
+        return "".join(f"{self._prefix()}{line}\r\n" for line in lines).encode("ascii", "replace")
 
     @staticmethod
     def _text_lines(source: Callable[[], str]) -> list[str]:

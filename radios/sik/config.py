@@ -58,8 +58,7 @@ _NODE_PREFIX = re.compile(r"^\[\d+\]\s*")
 _PARAM_LINE = re.compile(r"^S(\d+):\s*([A-Z0-9_]+)=(\d+)$")
 
 # SERIAL_SPEED code -> baud rate.
-SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600,
-               115: 115200, 230: 230400}
+SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600, 115: 115200, 230: 230400}
 
 
 class SerialPort(Protocol):
@@ -89,8 +88,9 @@ def open_port(path: str, baud: int = 57600) -> Any:
     try:
         mode = os.stat(path).st_mode
     except FileNotFoundError:
-        raise LinkOpenError(f"{path}: no such device (radio unplugged, wrong path, or "
-                            "emulator not running?)") from None
+        raise LinkOpenError(
+            f"{path}: no such device (radio unplugged, wrong path, or emulator not running?)"
+        ) from None
     except PermissionError:
         raise LinkOpenError(f"{path}: permission denied") from None
     if not stat.S_ISCHR(mode):
@@ -98,8 +98,9 @@ def open_port(path: str, baud: int = 57600) -> Any:
     try:
         fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     except PermissionError:
-        raise LinkOpenError(f"{path}: permission denied (on Linux, add your user to the "
-                            "'dialout' group and log in again)") from None
+        raise LinkOpenError(
+            f"{path}: permission denied (on Linux, add your user to the 'dialout' group and log in again)"
+        ) from None
     except OSError as exc:
         raise LinkOpenError(f"cannot open {path}: {exc.strerror or exc}") from None
     try:
@@ -147,8 +148,15 @@ class SikConfigurator:
     node in multipoint). Raises :class:`ConfigError` for an unknown flavour.
     """
 
-    def __init__(self, port: SerialPort, *, flavour: str = "standard", remote: bool = False,
-                 remote_node: int | None = None, port_name: str | None = None) -> None:
+    def __init__(
+        self,
+        port: SerialPort,
+        *,
+        flavour: str = "standard",
+        remote: bool = False,
+        remote_node: int | None = None,
+        port_name: str | None = None,
+    ) -> None:
         self.port = port
         self.flavour = check_flavour(flavour)
         self.remote = remote
@@ -220,8 +228,10 @@ class SikConfigurator:
                 self.in_command_mode = True
                 return
         baud = getattr(self.port, "baudrate", "?")
-        raise ATTimeoutError(f"no answer to +++ on {self.port_name} at {baud} baud: wrong baud "
-                             "rate, port in use, or not a SiK radio")
+        raise ATTimeoutError(
+            f"no answer to +++ on {self.port_name} at {baud} baud: wrong baud "
+            "rate, port in use, or not a SiK radio"
+        )
 
     def exit_command_mode(self) -> None:
         """``ATO``: back to data mode (always the local radio).
@@ -233,8 +243,9 @@ class SikConfigurator:
 
     # -- commands -----------------------------------------------------------------------
 
-    def command(self, cmd: str, timeout: float | None = None, *, lines: int | None = None,
-                expect_reply: bool = True) -> list[str]:
+    def command(
+        self, cmd: str, timeout: float | None = None, *, lines: int | None = None, expect_reply: bool = True
+    ) -> list[str]:
         """Send one command line and return its reply lines (echo and blank lines removed).
 
         ``timeout`` is the wait for the first reply line (default 1 s, 2 s for ``RT``
@@ -287,8 +298,10 @@ class SikConfigurator:
         if reply:
             return reply
         if not echoed:
-            raise ATTimeoutError(f"no answer to {text} on {self.port_name}: the radio is not "
-                                 "in command mode (or not a SiK radio)")
+            raise ATTimeoutError(
+                f"no answer to {text} on {self.port_name}: the radio is not "
+                "in command mode (or not a SiK radio)"
+            )
         if is_remote:
             raise ATTimeoutError(f"remote radio did not answer {text} (link down?)")
         raise ATTimeoutError(f"no reply to {text} on {self.port_name}")
@@ -354,18 +367,20 @@ class SikConfigurator:
         it, :class:`ATTimeoutError` without an answer.
         """
         if self.remote:
-            raise ConfigError("an AES key is never sent to a remote radio: RT commands "
-                              "cross the air unencrypted")
+            raise ConfigError(
+                "an AES key is never sent to a remote radio: RT commands cross the air unencrypted"
+            )
         try:
             lines = self.command("AT&E=" + key.hex().upper())
         except ATTimeoutError:
             raise ATTimeoutError(f"no answer to AT&E=<key> on {self.port_name}") from None
         status = [strip_node(line) for line in lines]
-        if "OK" in status and any(line.lower().startswith("key len")
-                                  for line in status):
+        if "OK" in status and any(line.lower().startswith("key len") for line in status):
             return
-        raise ATError(f"radio on {self.port_name} did not take the key (AT&E=<key>): is "
-                      "ENCRYPTION_LEVEL set to match the key length?")
+        raise ATError(
+            f"radio on {self.port_name} did not take the key (AT&E=<key>): is "
+            "ENCRYPTION_LEVEL set to match the key length?"
+        )
 
     def key_matches(self, key: bytes) -> bool:
         """``AT&E?``: whether the radio's RAM key is ``key`` (the answer is never

@@ -128,8 +128,10 @@ def parse_expected(spec: str) -> dict[str, int]:
         try:
             loaded = tomllib.loads(data.decode()) if path.suffix == ".toml" else json.loads(data)
         except (UnicodeDecodeError, ValueError) as exc:
-            raise ConfigError(f"radio parameters file {text}: not valid "
-                              f"{'TOML' if path.suffix == '.toml' else 'JSON'}: {exc}") from None
+            raise ConfigError(
+                f"radio parameters file {text}: not valid "
+                f"{'TOML' if path.suffix == '.toml' else 'JSON'}: {exc}"
+            ) from None
         if not isinstance(loaded, dict):
             raise ConfigError(f"radio parameters file {text}: expected a table of NAME = value")
         raw = loaded
@@ -146,8 +148,11 @@ def parse_expected(spec: str) -> dict[str, int]:
 
 def compare(expected: Mapping[str, int], actual: Mapping[str, int]) -> list[Mismatch]:
     """Every expected parameter the radio does not report with the expected value."""
-    return [Mismatch(name, value, actual.get(name)) for name, value in expected.items()
-            if actual.get(name) != value]
+    return [
+        Mismatch(name, value, actual.get(name))
+        for name, value in expected.items()
+        if actual.get(name) != value
+    ]
 
 
 def describe(mismatches: list[Mismatch]) -> str:
@@ -164,7 +169,7 @@ def split_radio_url(url: str) -> tuple[str, int]:
 
     Raises :class:`ConfigError` for a URL that is not a local serial device.
     """
-    target = url[len("serial:"):] if url.startswith("serial:") else url
+    target = url[len("serial:") :] if url.startswith("serial:") else url
     path, _, query = target.partition("?")
     if "://" in path or not path:
         raise ConfigError(f"the radio check needs a serial device, not {url!r}")

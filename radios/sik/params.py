@@ -201,75 +201,198 @@ class ParamSpec:
         return f"{self.minimum}..{self.maximum}"
 
 
-def _common(*, air_speed: int, txpower: int, mavlink_max: int, mavlink: int, rtscts: int,
-            ) -> tuple[ParamSpec, ...]:
+def _common(
+    *,
+    air_speed: int,
+    txpower: int,
+    mavlink_max: int,
+    mavlink: int,
+    rtscts: int,
+) -> tuple[ParamSpec, ...]:
     mavlink_set = _bool if mavlink_max == 1 else None
     return (
-        ParamSpec(FORMAT, "FORMAT", PARAM_FORMAT_CURRENT, PARAM_FORMAT_CURRENT,
-                  PARAM_FORMAT_CURRENT, "readonly", "parameter format version (read-only)"),
-        ParamSpec(SERIAL_SPEED, "SERIAL_SPEED", 57, 1, 230, "boot",
-                  "serial speed in kbaud (57 = 57600)", allowed=frozenset(SERIAL_SPEEDS)),
-        ParamSpec(AIR_SPEED, "AIR_SPEED", air_speed, 0, 256, "boot",
-                  "air data rate in kbit/s; rounded up at boot to one of "
-                  + ", ".join(map(str, AIR_RATES)), on_boot=_air_boot),
-        ParamSpec(NETID, "NETID", 25, 0, 0xFFFF, "boot",
-                  "network id (16 bits); both ends must match", strict=False),
-        ParamSpec(TXPOWER, "TXPOWER", txpower, 0, BOARD_MAX_TXPOWER, "now",
-                  "transmit power in dBm; rounded up to one of "
-                  + ", ".join(map(str, POWER_LEVELS)),
-                  on_set=_txpower_set, on_boot=_txpower_boot),
+        ParamSpec(
+            FORMAT,
+            "FORMAT",
+            PARAM_FORMAT_CURRENT,
+            PARAM_FORMAT_CURRENT,
+            PARAM_FORMAT_CURRENT,
+            "readonly",
+            "parameter format version (read-only)",
+        ),
+        ParamSpec(
+            SERIAL_SPEED,
+            "SERIAL_SPEED",
+            57,
+            1,
+            230,
+            "boot",
+            "serial speed in kbaud (57 = 57600)",
+            allowed=frozenset(SERIAL_SPEEDS),
+        ),
+        ParamSpec(
+            AIR_SPEED,
+            "AIR_SPEED",
+            air_speed,
+            0,
+            256,
+            "boot",
+            "air data rate in kbit/s; rounded up at boot to one of " + ", ".join(map(str, AIR_RATES)),
+            on_boot=_air_boot,
+        ),
+        ParamSpec(
+            NETID, "NETID", 25, 0, 0xFFFF, "boot", "network id (16 bits); both ends must match", strict=False
+        ),
+        ParamSpec(
+            TXPOWER,
+            "TXPOWER",
+            txpower,
+            0,
+            BOARD_MAX_TXPOWER,
+            "now",
+            "transmit power in dBm; rounded up to one of " + ", ".join(map(str, POWER_LEVELS)),
+            on_set=_txpower_set,
+            on_boot=_txpower_boot,
+        ),
         ParamSpec(5, "ECC", 0, 0, 1, "boot", "error-correcting code (0/1)"),
-        ParamSpec(6, "MAVLINK", mavlink, 0, mavlink_max, "now",
-                  "MAVLink framing (0 raw, 1 framing" + (", 2 same as 1)" if mavlink_max == 2
-                                                       else ")"),
-                  on_set=mavlink_set),
-        ParamSpec(7, "OPPRESEND", 0, 0, 1, "now",
-                  "opportunistic resend (0/1; no effect since 2.0)", on_set=_bool),
-        ParamSpec(MIN_FREQ, "MIN_FREQ", 0, 0, 1_000_000, "boot",
-                  "lowest frequency in kHz (0 = band default; clamped to the band at boot)",
-                  strict=False, on_boot=_min_freq_boot),
-        ParamSpec(MAX_FREQ, "MAX_FREQ", 0, 0, 1_000_000, "boot",
-                  "highest frequency in kHz (0 = band default; clamped to the band at boot)",
-                  strict=False, on_boot=_max_freq_boot),
-        ParamSpec(10, "NUM_CHANNELS", 0, 0, MAX_FREQ_CHANNELS, "boot",
-                  "hopping channels (0 = band default; clamped to 1..50 at boot)",
-                  strict=False, on_boot=_channels_boot),
-        ParamSpec(11, "DUTY_CYCLE", 100, 0, 100, "now", "transmit duty cycle in percent",
-                  strict=False, on_set=_duty, on_boot=_duty_boot),
-        ParamSpec(12, "LBT_RSSI", 0, 0, 220, "now",
-                  "listen-before-talk threshold (0 = off; non-zero clamped to 25..220)",
-                  strict=False, on_set=_lbt, on_boot=_lbt_boot),
-        ParamSpec(13, "MANCHESTER", 0, 0, 1, "boot",
-                  "Manchester encoding (0/1; ignored above 128 kbit/s)", strict=False),
-        ParamSpec(14, "RTSCTS", rtscts, 0, 1, "now", "hardware flow control (0/1)",
-                  strict=False, on_set=_bool),
+        ParamSpec(
+            6,
+            "MAVLINK",
+            mavlink,
+            0,
+            mavlink_max,
+            "now",
+            "MAVLink framing (0 raw, 1 framing" + (", 2 same as 1)" if mavlink_max == 2 else ")"),
+            on_set=mavlink_set,
+        ),
+        ParamSpec(
+            7, "OPPRESEND", 0, 0, 1, "now", "opportunistic resend (0/1; no effect since 2.0)", on_set=_bool
+        ),
+        ParamSpec(
+            MIN_FREQ,
+            "MIN_FREQ",
+            0,
+            0,
+            1_000_000,
+            "boot",
+            "lowest frequency in kHz (0 = band default; clamped to the band at boot)",
+            strict=False,
+            on_boot=_min_freq_boot,
+        ),
+        ParamSpec(
+            MAX_FREQ,
+            "MAX_FREQ",
+            0,
+            0,
+            1_000_000,
+            "boot",
+            "highest frequency in kHz (0 = band default; clamped to the band at boot)",
+            strict=False,
+            on_boot=_max_freq_boot,
+        ),
+        ParamSpec(
+            10,
+            "NUM_CHANNELS",
+            0,
+            0,
+            MAX_FREQ_CHANNELS,
+            "boot",
+            "hopping channels (0 = band default; clamped to 1..50 at boot)",
+            strict=False,
+            on_boot=_channels_boot,
+        ),
+        ParamSpec(
+            11,
+            "DUTY_CYCLE",
+            100,
+            0,
+            100,
+            "now",
+            "transmit duty cycle in percent",
+            strict=False,
+            on_set=_duty,
+            on_boot=_duty_boot,
+        ),
+        ParamSpec(
+            12,
+            "LBT_RSSI",
+            0,
+            0,
+            220,
+            "now",
+            "listen-before-talk threshold (0 = off; non-zero clamped to 25..220)",
+            strict=False,
+            on_set=_lbt,
+            on_boot=_lbt_boot,
+        ),
+        ParamSpec(
+            13,
+            "MANCHESTER",
+            0,
+            0,
+            1,
+            "boot",
+            "Manchester encoding (0/1; ignored above 128 kbit/s)",
+            strict=False,
+        ),
+        ParamSpec(
+            14, "RTSCTS", rtscts, 0, 1, "now", "hardware flow control (0/1)", strict=False, on_set=_bool
+        ),
     )
 
 
 PARAMS_STANDARD: tuple[ParamSpec, ...] = (
     *_common(air_speed=64, txpower=20, mavlink_max=2, mavlink=1, rtscts=0),
-    ParamSpec(15, "MAX_WINDOW", 131, 0, 131, "boot",
-              "longest transmit window in ms (33 for low latency)"),
+    ParamSpec(15, "MAX_WINDOW", 131, 0, 131, "boot", "longest transmit window in ms (33 for low latency)"),
 )
 
 PARAMS_MULTIPOINT: tuple[ParamSpec, ...] = (
     *_common(air_speed=128, txpower=0, mavlink_max=1, mavlink=0, rtscts=1),
-    ParamSpec(NODEID, "NODEID", 1, 0, 0x7FFF, "now",
-              "this node's id (0 = base, which keeps sync); unique, below NODECOUNT",
-              strict=False),
-    ParamSpec(NODEDESTINATION, "NODEDESTINATION", BROADCAST, 0, BROADCAST, "now",
-              "destination node id (65535 = broadcast); not this node, below NODECOUNT",
-              strict=False),
+    ParamSpec(
+        NODEID,
+        "NODEID",
+        1,
+        0,
+        0x7FFF,
+        "now",
+        "this node's id (0 = base, which keeps sync); unique, below NODECOUNT",
+        strict=False,
+    ),
+    ParamSpec(
+        NODEDESTINATION,
+        "NODEDESTINATION",
+        BROADCAST,
+        0,
+        BROADCAST,
+        "now",
+        "destination node id (65535 = broadcast); not this node, below NODECOUNT",
+        strict=False,
+    ),
     ParamSpec(SYNCANY, "SYNCANY", 0, 0, 1, "now", "sync from any node, not only the base (0/1)"),
-    ParamSpec(NODECOUNT, "NODECOUNT", 2, 2, 0x8000, "now",
-              "number of nodes in the network (= highest node id + 1)", strict=False),
+    ParamSpec(
+        NODECOUNT,
+        "NODECOUNT",
+        2,
+        2,
+        0x8000,
+        "now",
+        "number of nodes in the network (= highest node id + 1)",
+        strict=False,
+    ),
 )
 
 
 AES_PARAM = ParamSpec(
-    ENCRYPTION_LEVEL, "ENCRYPTION_LEVEL", 0, 0, 3, "boot",
+    ENCRYPTION_LEVEL,
+    "ENCRYPTION_LEVEL",
+    0,
+    0,
+    3,
+    "boot",
     "AES encryption (0 off, 1 AES-128, 2 AES-192, 3 AES-256; only on firmware built "
-    "with AES); the key is set with AT&E (swarm radio-config --aes-key)", strict=False)
+    "with AES); the key is set with AT&E (swarm radio-config --aes-key)",
+    strict=False,
+)
 
 PARAMS_STANDARD_AES: tuple[ParamSpec, ...] = (*PARAMS_STANDARD, AES_PARAM)
 
@@ -291,8 +414,10 @@ def validate_key_hex(level: int, key: str) -> bytes:
     text = key.strip()
     want = 2 * key_length(level)
     if len(text) != want:
-        raise ConfigError(f"the key for ENCRYPTION_LEVEL={level} must be {want} hex digits "
-                          f"({want * 4} bits), got {len(text)} characters")
+        raise ConfigError(
+            f"the key for ENCRYPTION_LEVEL={level} must be {want} hex digits "
+            f"({want * 4} bits), got {len(text)} characters"
+        )
     if not all(c in "0123456789abcdefABCDEF" for c in text):
         raise ConfigError("the key must contain hex digits only (0-9, a-f)")
     return bytes.fromhex(text)
@@ -359,11 +484,13 @@ def validate_user_value(flavour: str, name: str, value: int | str) -> int:
         number = int(value)
     if spec.allowed is not None:
         if number not in spec.allowed:
-            raise ConfigError(f"{spec.name}={number} is not accepted: use "
-                              f"{spec.describe_range()}. {spec.name}: {spec.doc}")
+            raise ConfigError(
+                f"{spec.name}={number} is not accepted: use {spec.describe_range()}. {spec.name}: {spec.doc}"
+            )
     elif not spec.minimum <= number <= spec.maximum:
-        raise ConfigError(f"{spec.name}={number} is out of range {spec.describe_range()}. "
-                          f"{spec.name}: {spec.doc}")
+        raise ConfigError(
+            f"{spec.name}={number} is out of range {spec.describe_range()}. {spec.name}: {spec.doc}"
+        )
     return number
 
 
@@ -378,23 +505,28 @@ class SikParams:
     flavour or band, a bad ``stored`` value, or AES asked of the multipoint firmware.
     """
 
-    def __init__(self, flavour: str = "standard", *, band: int = 915,
-                 stored: Mapping[str, int] | None = None, aes: bool = False,
-                 stored_key: bytes | None = None) -> None:
+    def __init__(
+        self,
+        flavour: str = "standard",
+        *,
+        band: int = 915,
+        stored: Mapping[str, int] | None = None,
+        aes: bool = False,
+        stored_key: bytes | None = None,
+    ) -> None:
         self.flavour: Flavour = check_flavour(flavour)
         if aes and self.flavour != "standard":
             raise ConfigError("the multipoint SiK firmware has no AES encryption")
         self.aes = aes
-        self.specs: tuple[ParamSpec, ...] = (PARAMS_STANDARD_AES if aes
-                                             else params_for(self.flavour))
+        self.specs: tuple[ParamSpec, ...] = PARAMS_STANDARD_AES if aes else params_for(self.flavour)
         # the key: flash, RAM (AT&E=) and running copies, like the registers
-        self.key_eeprom = (bytes(stored_key) + bytes(KEY_BYTES))[:KEY_BYTES] if stored_key \
-            else bytes(KEY_BYTES)
+        self.key_eeprom = (
+            (bytes(stored_key) + bytes(KEY_BYTES))[:KEY_BYTES] if stored_key else bytes(KEY_BYTES)
+        )
         self.key_ram = self.key_eeprom
         self.key_active = self.key_eeprom
         if band not in BANDS:
-            raise ConfigError(f"unknown band {band} MHz: use one of "
-                              + ", ".join(str(b) for b in BANDS))
+            raise ConfigError(f"unknown band {band} MHz: use one of " + ", ".join(str(b) for b in BANDS))
         self.band: Band = BANDS[band]
         self.eeprom: dict[int, int] = self.defaults()
         for name, value in (stored or {}).items():
@@ -418,8 +550,9 @@ class SikParams:
     def spec(self, index: int) -> ParamSpec:
         """The spec of S register ``index``; raises :class:`ConfigError` if out of table."""
         if not 0 <= index < len(self.specs):
-            raise ConfigError(f"no S{index} in the {self.flavour} parameter table "
-                              f"(S0..S{len(self.specs) - 1})")
+            raise ConfigError(
+                f"no S{index} in the {self.flavour} parameter table (S0..S{len(self.specs) - 1})"
+            )
         return self.specs[index]
 
     def get(self, index: int) -> int:
@@ -474,21 +607,23 @@ class SikParams:
             key = bytes([DEFAULT_KEY_BYTE]) * length
             ok = False
         else:
-            key = bytes(_hex_nibble(hex_digits[2 * i]) << 4 | _hex_nibble(hex_digits[2 * i + 1])
-                        for i in range(length))
+            key = bytes(
+                _hex_nibble(hex_digits[2 * i]) << 4 | _hex_nibble(hex_digits[2 * i + 1])
+                for i in range(length)
+            )
             ok = True
         self.key_ram = key + self.key_ram[length:]
         return ok
 
     def key_hex(self) -> str:
         """``AT&E?``: the RAM key in lower-case hex, as many bytes as the RAM level says."""
-        return self.key_ram[:min(key_length(self.ram.get(ENCRYPTION_LEVEL, 0)), KEY_BYTES)].hex()
+        return self.key_ram[: min(key_length(self.ram.get(ENCRYPTION_LEVEL, 0)), KEY_BYTES)].hex()
 
     def active_key(self) -> bytes:
         """The key the radio encrypts with, or b'' when it runs without encryption."""
         if not self.aes or self.active.get(ENCRYPTION_LEVEL, 0) & 0xF == 0:
             return b""
-        return self.key_active[:key_length(self.active[ENCRYPTION_LEVEL])]
+        return self.key_active[: key_length(self.active[ENCRYPTION_LEVEL])]
 
     def factory_reset(self) -> None:
         """``AT&F``: defaults into RAM only (flash and the running radio are unchanged)."""

@@ -163,8 +163,15 @@ def model_goodput(t: TdmTiming, frame_len: int, serial_baud: int) -> float:
     return min(air, serial_bytes_per_s(serial_baud))
 
 
-def model_latency_s(t: TdmTiming, frame_len: int, serial_baud: int, slots: int = 2,
-                    *, peer_idle: bool = True, multipoint: bool = False) -> dict[str, float]:
+def model_latency_s(
+    t: TdmTiming,
+    frame_len: int,
+    serial_baud: int,
+    slots: int = 2,
+    *,
+    peer_idle: bool = True,
+    multipoint: bool = False,
+) -> dict[str, float]:
     """Predicted one-way latency of a small frame on an otherwise quiet channel.
 
     serial in + wait for a chance to transmit + flight + serial out, with the frame
@@ -190,8 +197,16 @@ def model_latency_s(t: TdmTiming, frame_len: int, serial_baud: int, slots: int =
         def q(p: float) -> float:
             return fixed + max(0.0, p * rnd - w)
 
-        return {"p50": q(0.5), "p99": q(0.99), "mean": fixed + (rnd - w) ** 2 / (2 * rnd),
-                "wait_max": rnd - w}
+        return {
+            "p50": q(0.5),
+            "p99": q(0.99),
+            "mean": fixed + (rnd - w) ** 2 / (2 * rnd),
+            "wait_max": rnd - w,
+        }
     interval = rnd / 2 if peer_idle else rnd
-    return {"p50": fixed + 0.5 * interval, "p99": fixed + 0.99 * interval,
-            "mean": fixed + 0.5 * interval, "wait_max": interval}
+    return {
+        "p50": fixed + 0.5 * interval,
+        "p99": fixed + 0.99 * interval,
+        "mean": fixed + 0.5 * interval,
+        "wait_max": interval,
+    }

@@ -1,0 +1,287 @@
+"""``swarm bench gcs``: the ground station with 50 simulated agents at 5 Hz.
+
+A ``swarm gcs --zenoh-listen`` process is the station. Another process (this module
+run with ``--feed``) plays N agents over one Zenoh session: each speaks the real
+agent side of the connection protocol (:class:`swarm.core.gslink.GsLink`: GSAdvertize,
+GSConnectAck, Telemetry as its heartbeat at ``hz``) and also publishes its pose
+and its AgentState at ``hz``, flying a circle. Once the station has all of them
+connected:
+
+* ``ws_messages_per_s``: messages one WebSocket client receives per second
+  (state pushes at 2 Hz plus events), with ``ws_state_kb`` the size of one state;
+* ``server_cpu_percent``: the station process's CPU time over the same window, as
+  a percentage of one core (:func:`swarm.cli.procs.cpu_seconds`);
+* ``page_frame_ms_p95`` (and the page's other figures): the page in headless
+  Chromium (:func:`swarm.cli.bench.gcs_page.measure_frames`), measured afterwards
+  with the station still fed; null with a ``page_error`` when no browser can run.
+
+Targets (the issue): station under 20% of one core; page frame p95 under 50 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import queue
+import subprocess
+import sys
+import time
+import urllib.request
+from typing import Any
+
+from swarm.cli.procs import Child, cpu_seconds, free_tcp_port
+
+AGENTS = 50
+HZ = 5.0
+CENTER = (47.397742, 8.545594)
+TARGET_CPU = 20.0
+TARGET_FRAME_MS = 50.0
+
+
+def _get(url: str) -> Any:
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+async def _ws_count(url: str, seconds: float) -> dict[str, Any]:
+    import aiohttp
+
+    counts: dict[str, Any] = {"messages": 0, "states": 0, "events": 0, "state_bytes": 0}
+    async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+        await ws.receive(timeout=10)  # the first state, sent on connect
+        loop = asyncio.get_running_loop()
+        begin = loop.time()
+        end = begin + seconds
+        while (left := end - loop.time()) > 0:
+            try:
+                msg = await ws.receive(timeout=left)
+            except TimeoutError:
+                break
+            if msg.type != aiohttp.WSMsgType.TEXT:
+                break
+            counts["messages"] += 1
+            if msg.data.startswith('{"type": "state"'):
+                counts["states"] += 1
+                counts["state_bytes"] += len(msg.data)
+            elif msg.data.startswith('{"type": "event"'):
+                counts["events"] += 1
+        counts["seconds"] = loop.time() - begin
+    return counts
+
+
+def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, Any]:
+    seconds = 8.0 if quick else 20.0
+    # full trails (60 s) make the biggest state messages: the steady state
+    warm_up = 2.0 if quick else 62.0
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    station = Child(
+        ["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_tcp_port()}", "--tiles", "none", "--json"],
+        name="gcs",
+    )
+    feeder: subprocess.Popen[bytes] | None = None
+    out: dict[str, Any] = {"agents": agents, "rate_hz": hz, "warm_up_s": warm_up, "measure_s": seconds}
+    try:
+        url = json.loads(station.wait_lines(1, 30)[0])["url"]
+        feeder = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "swarm.cli.bench.gcs",
+                "--feed",
+                ep,
+                "--agents",
+                str(agents),
+                "--hz",
+                str(hz),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        t0 = time.monotonic()
+        connected = 0
+        while time.monotonic() - t0 < 60:
+            if feeder.poll() is not None or station.proc.poll() is not None:
+                raise RuntimeError(
+                    "the feeder or the station exited early: " + " | ".join(station.errors[-3:])
+                )
+            state = _get(url + "api/state")
+            connected = sum(1 for a in state["agents"] if a["connected"])
+            if connected == agents:
+                break
+            time.sleep(0.2)
+        out["connect_all_s"] = round(time.monotonic() - t0, 2) if connected == agents else None
+        out["connected"] = connected
+        time.sleep(warm_up)
+        cpu0, w0 = cpu_seconds(station.pid), time.monotonic()
+        counts = asyncio.run(_ws_count(url.replace("http://", "ws://") + "ws", seconds))
+        cpu1, w1 = cpu_seconds(station.pid), time.monotonic()
+        wall = w1 - w0
+        out["ws_messages_per_s"] = round(counts["messages"] / counts["seconds"], 2)
+        out["ws_states_per_s"] = round(counts["states"] / counts["seconds"], 2)
+        out["ws_state_kb"] = round(counts["state_bytes"] / max(1, counts["states"]) / 1024, 1)
+        out["input_messages_per_s"] = round(agents * hz * 3, 1)  # telemetry + pose + state
+        out["server_cpu_percent"] = round(100.0 * (cpu1 - cpu0) / wall, 1)
+        out["server_cpu_target"] = TARGET_CPU
+        state = _get(url + "api/state")
+        out["connected_at_end"] = sum(1 for a in state["agents"] if a["connected"])
+        out["leader"] = state["leader"]
+        out["trail_points_per_agent"] = max(len(a["trail"]) for a in state["agents"])
+        page = _page(url, 5.0 if quick else 10.0)
+        page["page_seconds"] = page.pop("seconds", None)
+        out.update(page)
+        out["page_frame_target_ms"] = TARGET_FRAME_MS
+        out["meets_targets"] = (
+            out["server_cpu_percent"] < TARGET_CPU
+            and out.get("page_frame_ms_p95") is not None
+            and out["page_frame_ms_p95"] < TARGET_FRAME_MS
+        )
+    finally:
+        if feeder is not None:
+            feeder.terminate()
+            try:
+                feeder.wait(10)
+            except subprocess.TimeoutExpired:
+                feeder.kill()
+                feeder.wait(5)
+        station.stop()
+    return out
+
+
+def _page(url: str, seconds: float) -> dict[str, Any]:
+    try:
+        from swarm.cli.bench.gcs_page import measure_frames
+    except ImportError as exc:
+        return {"page_frame_ms_p95": None, "page_error": f"no page benchmark module: {exc}"}
+    try:
+        return dict(measure_frames(url, seconds))
+    except Exception as exc:  # no browser, no Playwright: report, do not fail the other figures
+        return {"page_frame_ms_p95": None, "page_error": f"{type(exc).__name__}: {exc}"}
+
+
+# -- the feeder process ------------------------------------------------------------
+
+
+def feed(ep: str, agents: int, hz: float) -> None:
+    """Play ``agents`` agents at ``hz`` over one Zenoh session until SIGTERM."""
+    import signal
+
+    from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+    from swarm.core.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
+    from swarm.runtime.transport import KEY_GS_ADVERTIZE, inbox_key, open_session, pose_key, state_key
+
+    stop = [False]
+    signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
+    session = open_session(connect=[ep])
+    period = 1.0 / hz
+    ids = list(range(1, agents + 1))
+    names = {i: f"sim{i}" for i in ids}
+    by_name = {n: i for i, n in names.items()}
+    links = {i: GsLink(i, names[i], GsConfig(hb_interval=period)) for i in ids}
+    inbox: queue.Queue[tuple[int, Any]] = queue.Queue()
+    members = frozenset(ids[1:])
+    pool = frozenset(ids)
+
+    def on_sample(sample: Any) -> None:
+        key = str(sample.key_expr)
+        try:
+            msg = decode(sample.payload.to_bytes())
+        except ValueError:
+            return
+        if key == KEY_GS_ADVERTIZE:
+            for k in ids:
+                inbox.put((k, msg))
+        else:
+            to = by_name.get(key.split("/", 1)[1])
+            if to is not None:
+                inbox.put((to, msg))
+
+    subs = [session.declare_subscriber("swarm/*", on_sample)]
+
+    def pose(i: int, now: float) -> Pose:
+        ang = now * 0.05 + i * 2 * math.pi / agents
+        r = 0.002
+        return Pose(
+            CENTER[0] + r * math.cos(ang),
+            CENTER[1] + r * 1.5 * math.sin(ang),
+            520.0,
+            math.degrees(ang + math.pi / 2) % 360.0,
+            -5.0 * math.sin(ang),
+            5.0 * math.cos(ang),
+            now,
+        )
+
+    def telemetry(i: int, now: float) -> Telemetry:
+        return Telemetry(
+            i,
+            pose(i, now),
+            mode_code("OFFBOARD"),
+            FLAG_ARMED | FLAG_AIRBORNE | FLAG_FC_OK,
+            Phase.LEADER if i == 1 else Phase.MEMBER,
+            1,
+            90 - i % 30,
+            200,
+            190,
+            5.0,
+        )
+
+    def put(key: str, msg: Any) -> None:
+        session.put(key, encode(msg))
+
+    start = time.monotonic()
+    due = {i: start + period * k / agents for k, i in enumerate(ids)}
+    while not stop[0]:
+        now = time.monotonic()
+        while True:
+            try:
+                i, msg = inbox.get_nowait()
+            except queue.Empty:
+                break
+            for o in links[i].handle(msg, now):
+                st = links[i].station_name(o.to)
+                if st:
+                    put(inbox_key(st), o.msg)
+        for i in ids:
+            g = links[i]
+            for o in g.tick(now, lambda i=i: telemetry(i, time.monotonic())):  # type: ignore[misc]
+                if o.to == 0:
+                    put(KEY_GS_ADVERTIZE, o.msg)
+                else:
+                    st = g.station_name(o.to)
+                    if st:
+                        put(inbox_key(st), o.msg)
+            if now >= due[i]:
+                due[i] += period
+                if due[i] < now:
+                    due[i] = now + period
+                put(pose_key(names[i]), PoseReport(pose(i, now)))
+                put(
+                    state_key(names[i]),
+                    AgentState(
+                        i,
+                        Phase.LEADER if i == 1 else Phase.MEMBER,
+                        leader=1,
+                        locked=True,
+                        pool=pool,
+                        members=members if i == 1 else frozenset(),
+                    ),
+                )
+        time.sleep(0.01)
+    for s in subs:
+        s.undeclare()
+    session.close()
+
+
+def _main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m swarm.cli.bench.gcs")
+    p.add_argument("--feed", metavar="EP", required=True, help="Zenoh endpoint of the station")
+    p.add_argument("--agents", type=int, default=AGENTS)
+    p.add_argument("--hz", type=float, default=HZ)
+    a = p.parse_args(argv)
+    feed(a.feed, a.agents, a.hz)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main())

@@ -1,0 +1,374 @@
+"""``swarm gcs``: the ground control station: connection protocol, web page and JSON API.
+
+Live: ``swarm gcs --radio URL`` (a SiK radio or an emulator pty) or
+``--zenoh-listen/--zenoh-connect EP...`` (Zenoh over IP). Replay:
+``swarm gcs --replay CAPTURE [--speed X]`` plays a ``.tlog`` on the same page.
+
+The page and the API answer only their own page, under this machine's names
+(``--allow-host NAME`` adds one) and, beyond loopback, only with the station's token
+(``--token``, ``--token-file``, or one generated and printed once in the ready
+line's address ``.../?token=...``); README, "Security".
+
+It prints one ready line once the HTTP server listens (``--json``:
+``{"event": "ready", "url", "name", "id", "link", "replay", "token", ...}``), then one line per
+station event (connections, leader changes, command results; ``--json``:
+``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 0).
+Bad input (a missing serial device, a port in use, a tile folder that is not
+one, a damaged capture) prints one line and exits 2. A radio lost while running
+(a USB radio unplugged) is waited for and reopened at the same path, the station
+keeping its view of the swarm (events ``radio lost: ...`` and ``radio back after S
+s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from radios.errors import CaptureError
+from swarm.cli.commands.agent import add_radio_loss_argument, radio_loss_message
+from swarm.cli.util import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
+from swarm.core.gslink import STATION_IDS
+from swarm.core.messages import check_name
+from swarm.errors import MessageError, TransportError
+from swarm.runtime.server import (
+    MAX_WS_HZ,
+    OSM_ATTRIBUTION,
+    OSM_TILES,
+    TOKEN_RULE,
+    GcsServer,
+    ServerConfig,
+    ServerError,
+    check_host_name,
+    check_token,
+)
+
+PROG = "swarm gcs"
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = parser(
+        PROG,
+        "Ground control station: connects the agents that announce themselves, shows "
+        "them on a map in the browser and sends them commands (JSON API at /api).",
+    )
+    src = p.add_argument_group("where the swarm is (one of)")
+    src.add_argument("--radio", metavar="URL", help="radio link: serial device or emulator pty")
+    src.add_argument(
+        "--zenoh-listen",
+        nargs="+",
+        default=[],
+        metavar="EP",
+        help="Zenoh endpoints to listen on (tcp/127.0.0.1:7447)",
+    )
+    src.add_argument(
+        "--zenoh-connect", nargs="+", default=[], metavar="EP", help="Zenoh endpoints to connect to"
+    )
+    src.add_argument("--replay", metavar="CAPTURE", help="play a captured flight (.tlog) instead")
+    p.add_argument(
+        "--http",
+        default="127.0.0.1:8080",
+        metavar="HOST:PORT",
+        help="where the page and the API listen (default 127.0.0.1:8080; port 0: any free)",
+    )
+    tiles = p.add_mutually_exclusive_group()
+    tiles.add_argument(
+        "--tiles",
+        metavar="URL_TEMPLATE",
+        help=f"map tile URL with {{z}}, {{x}}, {{y}} (default {OSM_TILES}); 'none': a plain background",
+    )
+    tiles.add_argument("--tiles-dir", metavar="DIR", help="offline tiles DIR/{z}/{x}/{y}.png")
+    p.add_argument("--attribution", help="map attribution text (default: OpenStreetMap's)")
+    p.add_argument("--center", metavar="LAT,LON", help="initial map centre (default: the first agent)")
+    p.add_argument(
+        "--ws-hz",
+        type=float,
+        default=2.0,
+        help=f"state pushes per second on the WebSocket (default 2, at most {MAX_WS_HZ:g})",
+    )
+    _add_security_arguments(p)
+    p.add_argument("--capture", metavar="FILE", help="record the radio's traffic to a .tlog (with --radio)")
+    p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
+    p.add_argument("--name", default="gcs", help="station name (default gcs)")
+    p.add_argument("--id", type=int, default=255, help="station system id, 251..255 (default 255)")
+    p.add_argument("--speed", type=float, help="replay speed factor (default 1)")
+    p.add_argument("--paused", action="store_true", help="replay: start paused")
+    p.add_argument("--json", action="store_true", help="JSON lines instead of text")
+    add_radio_loss_argument(p)
+    return p
+
+
+# -- who may use the page and the API (README, "Security") ----------------------------
+
+
+def _add_security_arguments(p: argparse.ArgumentParser) -> None:
+    sec = p.add_argument_group("who may use the page and the API")
+    tok = sec.add_mutually_exclusive_group()
+    tok.add_argument(
+        "--token",
+        metavar="TOKEN",
+        help=f"the token the page and the API need ({TOKEN_RULE}); default: none on "
+        "loopback, generated and printed once beyond it",
+    )
+    tok.add_argument(
+        "--token-file", metavar="FILE", help="read the token from FILE (keeps it out of the process list)"
+    )
+    sec.add_argument(
+        "--allow-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a host name the page may be opened under besides localhost and the "
+        "listening address (repeatable)",
+    )
+
+
+def _token(a: argparse.Namespace) -> str | None:
+    """The operator's token (--token, --token-file) or None. Raises UsageError."""
+    if a.token_file is not None:
+        try:
+            text = Path(a.token_file).read_text(encoding="utf-8").strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not UTF-8 text"
+            raise UsageError(f"--token-file {a.token_file}: {why}") from None
+        try:
+            return check_token(text)
+        except ValueError:
+            raise UsageError(f"--token-file {a.token_file}: the token must be {TOKEN_RULE}") from None
+    if a.token is not None:
+        try:
+            return check_token(a.token)
+        except ValueError:
+            raise UsageError(f"--token: {TOKEN_RULE}") from None
+    return None
+
+
+def _allowed_hosts(a: argparse.Namespace) -> tuple[str, ...]:
+    out = []
+    for name in a.allow_host:
+        try:
+            out.append(check_host_name(name))
+        except ValueError as exc:
+            raise UsageError(f"--allow-host: {exc}") from None
+    return tuple(out)
+
+
+def parse_http(text: str) -> tuple[str, int]:
+    """``HOST:PORT``, ``[V6]:PORT`` or ``PORT``. Raises UsageError."""
+    host, sep, port_s = text.rpartition(":")
+    if not sep:
+        host, port_s = "127.0.0.1", text
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        port = int(port_s)
+    except ValueError:
+        raise UsageError(f"--http {text!r}: HOST:PORT (127.0.0.1:8080)") from None
+    if not 0 <= port <= 65535:
+        raise UsageError(f"--http {text!r}: port {port} outside 0..65535")
+    return host, port
+
+
+def parse_center(text: str) -> tuple[float, float]:
+    try:
+        lat_s, lon_s = text.split(",")
+        lat, lon = float(lat_s), float(lon_s)
+    except ValueError:
+        raise UsageError(f"--center {text!r}: LAT,LON in degrees (47.397,8.545)") from None
+    if not (math.isfinite(lat) and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180):
+        raise UsageError(f"--center {text!r}: latitude -90..90, longitude -180..180")
+    return lat, lon
+
+
+def _server_config(a: argparse.Namespace) -> ServerConfig:
+    host, port = parse_http(a.http)
+    tiles: str | None = OSM_TILES
+    tiles_dir = None
+    if a.tiles is not None:
+        if a.tiles.lower() == "none":
+            tiles = None
+        elif not all(k in a.tiles for k in ("{z}", "{x}", "{y}")) or not a.tiles.startswith(
+            ("http://", "https://", "/")
+        ):
+            raise UsageError(f"--tiles {a.tiles!r}: an http(s) URL template with {{z}}, {{x}} and {{y}}")
+        else:
+            tiles = a.tiles
+    if a.tiles_dir is not None:
+        tiles_dir = Path(a.tiles_dir)
+        if not tiles_dir.is_dir():
+            raise UsageError(f"--tiles-dir {a.tiles_dir}: not a directory")
+        if not os.access(tiles_dir, os.R_OK | os.X_OK):
+            raise UsageError(f"--tiles-dir {a.tiles_dir}: not readable")
+    if not (math.isfinite(a.ws_hz) and 0 < a.ws_hz <= MAX_WS_HZ):
+        raise UsageError(f"--ws-hz {a.ws_hz}: more than 0, at most {MAX_WS_HZ:g}")
+    return ServerConfig(
+        host=host,
+        port=port,
+        tiles=tiles,
+        tiles_dir=tiles_dir,
+        attribution=a.attribution if a.attribution is not None else OSM_ATTRIBUTION,
+        center=parse_center(a.center) if a.center else None,
+        ws_hz=a.ws_hz,
+        token=_token(a),
+        allow_hosts=_allowed_hosts(a),
+    )
+
+
+def _check(a: argparse.Namespace) -> None:
+    live = [
+        x for x in (a.radio is not None, bool(a.zenoh_listen or a.zenoh_connect), a.replay is not None) if x
+    ]
+    if len(live) != 1:
+        raise UsageError("give one of --radio URL, --zenoh-listen/--zenoh-connect EP..., --replay CAPTURE")
+    if a.replay is None and (a.speed is not None or a.paused):
+        raise UsageError("--speed and --paused are for --replay")
+    if a.capture is not None and a.radio is None:
+        raise UsageError("--capture records a radio's traffic: it needs --radio")
+    if a.exit_on_radio_loss and a.radio is None:
+        raise UsageError("--exit-on-radio-loss is for a station on a radio (--radio)")
+    if a.replay is not None and a.key is not None:
+        raise UsageError("--key is for a live station (a replay sends nothing)")
+    try:
+        check_name(a.name)
+    except MessageError as exc:
+        raise UsageError(f"--name: {exc}") from None
+    if a.name in ("advertize", "GSAdvertize"):
+        raise UsageError(f"--name {a.name!r} is a reserved key")
+    if a.id not in STATION_IDS:
+        raise UsageError(f"--id {a.id}: ground stations use {STATION_IDS.start}..{STATION_IDS.stop - 1}")
+    if a.speed is not None and not (math.isfinite(a.speed) and 0 < a.speed <= 100):
+        raise UsageError(f"--speed {a.speed}: a factor in (0, 100]")
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    a = _build_parser().parse_args(argv)
+    _check(a)
+    cfg = _server_config(a)
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop = StopFlag().install()
+    try:
+        return _run(a, cfg, stop)
+    finally:
+        for sig, handler in previous.items():  # main() may run inside another program
+            signal.signal(sig, handler)
+
+
+def _open_station(a: argparse.Namespace) -> Any:
+    if a.replay is not None:
+        from swarm.runtime.replay import ReplayStation, load_capture
+
+        try:
+            cap = load_capture(a.replay)
+        except CaptureError as exc:
+            raise UsageError(str(exc)) from None
+        if cap.records == 0:
+            raise UsageError(f"{a.replay}: an empty capture")
+        return ReplayStation(
+            cap, speed=a.speed or 1.0, name=None if a.name == "gcs" else a.name, playing=not a.paused
+        ).start()
+    from swarm.runtime.station import Station
+
+    st = Station(
+        a.name,
+        a.id,
+        radio=a.radio,
+        zenoh_listen=a.zenoh_listen,
+        zenoh_connect=a.zenoh_connect,
+        key_file=a.key,
+        capture=a.capture,
+    )
+    try:
+        return st.start()
+    except TransportError as exc:
+        raise UsageError(str(exc)) from None
+    except CaptureError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
+    station = _open_station(a)
+    server = None
+    lock = threading.Lock()
+
+    def on_event(ev: dict[str, Any]) -> None:
+        with lock:
+            try:
+                if a.json:
+                    print_json({"event": "log", **ev})
+                else:
+                    print(f"[{ev['kind']}] {ev['text']}", flush=True)
+            except (BrokenPipeError, ValueError):
+                pass
+
+    try:
+        try:
+            server = GcsServer(station, cfg).start()
+        except ServerError as exc:
+            raise UsageError(str(exc)) from None
+        # the token: "none", "given" (the operator has it: not printed) or "generated"
+        # (printed here, once, in the address to open)
+        token = "none" if cfg.token is None else "generated" if cfg.token_generated else "given"
+        ready: dict[str, Any] = {
+            "event": "ready",
+            "url": server.url,
+            "name": station.name,
+            "id": station.id,
+            "link": station.describe(),
+            "replay": a.replay is not None,
+            "tiles": cfg.tile_template,
+            "listen": f"{cfg.host}:{server.port}",
+            "token": token,
+        }
+        if token == "generated":
+            ready["open"] = server.token_url
+        if a.replay is not None:
+            ready["duration_s"] = round(station.capture.duration, 3)
+            ready["records"] = station.capture.records
+        bridge = getattr(station, "bridge", None)
+        if bridge is not None and a.exit_on_radio_loss:
+            bridge.cfg.reopen_radio = False  # before "ready": a radio pulled at once ends it too
+        with lock:
+            if a.json:
+                print_json(ready)
+            else:
+                where = server.token_url if token == "generated" else server.url
+                note = " (token required)" if token == "given" else ""
+                if cfg.host in ("", "0.0.0.0", "::"):
+                    note += " (listening on every address: other machines use this one's address)"
+                print(
+                    f"gcs {station.name} id={station.id} {station.describe()} {where}{note} ready", flush=True
+                )
+        station.add_listener(on_event)
+        bridge = getattr(station, "bridge", None)
+        if bridge is not None:
+            bridge.add_listener(
+                lambda what, text: on_event(
+                    {
+                        "t": round(time.time(), 3),
+                        "kind": "radio",
+                        "text": f"radio {what}" + (": " if what == "lost" else " ") + text,
+                    }
+                )
+            )
+        while not stop.wait(0.5):
+            if not station.running:
+                bridge = getattr(station, "bridge", None)
+                why = (
+                    radio_loss_message(bridge)
+                    if bridge is not None and bridge.link_lost
+                    else "the station's thread stopped"
+                )
+                print(f"{PROG}: error: {why}", file=sys.stderr)
+                return EXIT_FAILURE
+    finally:
+        if server is not None:
+            server.stop()
+        station.stop()
+    return 0

@@ -1,0 +1,317 @@
+"""`swarm replay`: decode, summarise or re-feed a radio capture (.tlog).
+
+Theory of operation
+-------------------
+One capture file, four modes (each its own function below; only one runs):
+
+* dump (default): one line per frame, MAVProxy-like text or, with ``--json``, one
+  JSON object per line (:func:`radios.replay.decode_record`);
+* ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
+  message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
+  object;
+* ``--plot FILE.png``: the formation: every agent's track from its pose stream,
+  the leader marked, the slots, and the slot-error metrics
+  (:mod:`swarm.sim.tracks`; matplotlib is imported only here);
+* ``--to URL``: the frames are written to a link opened with
+  :func:`radios.link.open_link` (a radio, an emulator pty, ``loop://``...) at the
+  recorded pace scaled by ``--speed`` with silences capped at ``--max-gap``
+  (:class:`radios.replay.Player`), then a summary is printed. SIGINT or SIGTERM
+  stops it before the next frame (exit 130 for SIGINT, 0 for SIGTERM).
+
+The capture is streamed, never loaded whole. A damaged capture is used up to the
+damage: every whole record is printed (or counted, or sent), then the damage
+message goes to stderr and the exit code is 1. A missing file is bad input (exit
+2). Errors never show a traceback (:func:`swarm.cli.util.guarded`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from radios.errors import CaptureDamagedError, LinkError
+from radios.link import open_link
+from radios.replay import (
+    DEFAULT_MAX_GAP,
+    DEFAULT_SPEED,
+    CaptureStats,
+    Player,
+    PlayStats,
+    decode_record,
+    format_record,
+    format_time,
+)
+from radios.tlog import TlogReader, read_tlog
+from swarm.cli.util import (
+    EXIT_FAILURE,
+    EXIT_INTERRUPTED,
+    StopFlag,
+    UsageError,
+    guarded,
+    parser,
+    print_json,
+)
+
+PROG = "swarm replay"
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = parser(PROG, "Decode, summarise or re-feed a radio capture (.tlog).")
+    p.add_argument("file", metavar="FILE", help="the capture (.tlog)")
+    p.add_argument("--json", action="store_true", help="JSON lines / one JSON object")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--stats", action="store_true", help="print statistics, not frames")
+    mode.add_argument(
+        "--plot",
+        metavar="PNG",
+        help="draw the agents' tracks, the leader and the formation slots to PNG "
+        "and print the formation metrics",
+    )
+    mode.add_argument(
+        "--to", metavar="URL", help="re-feed the frames to this link or port at the recorded pace"
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=None,
+        metavar="X",
+        help=f"with --to: pace factor, 0 = as fast as possible (default {DEFAULT_SPEED:g})",
+    )
+    p.add_argument(
+        "--max-gap",
+        type=float,
+        default=None,
+        metavar="S",
+        help=f"with --to: longest wait between frames in seconds (default {DEFAULT_MAX_GAP:g})",
+    )
+    p.add_argument("--baud", type=int, default=None, metavar="B", help="with --to: serial baud rate of URL")
+    return p
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = _build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help, or a usage error argparse already printed
+        return exc.code if isinstance(exc.code, int) else EXIT_FAILURE
+    if args.to is None:
+        given = [
+            f
+            for f, v in (("--speed", args.speed), ("--max-gap", args.max_gap), ("--baud", args.baud))
+            if v is not None
+        ]
+        if given:
+            raise UsageError(f"{', '.join(given)} only appl{'ies' if len(given) == 1 else 'y'} with --to")
+    reader = _open(args.file)
+    try:
+        if args.to is not None:
+            return _feed(reader, args)
+        if args.stats:
+            return _stats(reader, args.file, as_json=args.json)
+        if args.plot is not None:
+            return _plot(args.file, args.plot, as_json=args.json)
+        return _dump(reader, as_json=args.json)
+    except BrokenPipeError:  # e.g. `swarm replay x.tlog | head`
+        _silence_stdout()
+        return EXIT_FAILURE
+    finally:
+        reader.close()
+
+
+def _open(path: str) -> TlogReader:
+    """Raises UsageError for a path that is not a file, CaptureError otherwise."""
+    if not os.path.exists(path):
+        raise UsageError(f"{path}: no such capture file")
+    if os.path.isdir(path):
+        raise UsageError(f"{path}: is a directory, not a capture file")
+    return read_tlog(path)
+
+
+def _damaged(exc: CaptureDamagedError) -> int:
+    sys.stdout.flush()
+    print(f"{PROG}: error: {exc}", file=sys.stderr, flush=True)
+    return EXIT_FAILURE
+
+
+def _silence_stdout() -> None:
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
+# -- dump -----------------------------------------------------------------------
+
+
+def _dump(reader: TlogReader, *, as_json: bool) -> int:
+    write = sys.stdout.write
+    try:
+        for rec in reader:
+            write((json.dumps(decode_record(rec)) if as_json else format_record(rec)) + "\n")
+    except CaptureDamagedError as exc:
+        return _damaged(exc)
+    sys.stdout.flush()
+    return 0
+
+
+# -- statistics -------------------------------------------------------------------
+
+
+def _stats(reader: TlogReader, path: str, *, as_json: bool) -> int:
+    acc = CaptureStats()
+    damage: CaptureDamagedError | None = None
+    try:
+        for rec in reader:
+            acc.add(rec)
+    except CaptureDamagedError as exc:
+        damage = exc
+    stats = acc.as_dict()
+    if as_json:
+        print_json({"file": path, **stats, "damage": str(damage) if damage else None})
+    else:
+        print(_stats_table(path, stats), flush=True)
+    return _damaged(damage) if damage else 0
+
+
+def _stats_table(path: str, s: dict[str, Any]) -> str:
+    lines = [f"{path}: {s['frames']} frames, {s['bytes']} bytes"]
+    if s["start"] is not None:
+        lines[0] += f" over {s['duration']:.3f} s ({format_time(s['start'])} to {format_time(s['end'])})"
+    if not s["systems"]:
+        return lines[0]
+    lines.append("")
+    lines.append(f"{'sysid':>5}  {'frames':>7}  {'bytes':>9}  {'bytes/s':>8}  {'air %':>5}  messages")
+    for sy in s["systems"]:
+        rate = "-" if sy["bytes_per_s"] is None else f"{sy['bytes_per_s']:.1f}"
+        msgs = ", ".join(f"{name} {n}" for name, n in sy["messages"].items())
+        lines.append(
+            f"{sy['sysid']:>5}  {sy['frames']:>7}  {sy['bytes']:>9}  {rate:>8}"
+            f"  {100 * sy['airtime_share']:>5.1f}  {msgs}"
+        )
+    lines.append("")
+    lines.append("messages: " + ", ".join(f"{n} {c}" for n, c in s["messages"].items()))
+    lines.append(
+        f"(air % = share of frame bytes + {s['airtime_overhead_bytes']} bytes per "
+        "frame; the emulator's air model is the fuller account)"
+    )
+    return "\n".join(lines)
+
+
+# -- re-feeding a port --------------------------------------------------------------
+
+
+def _with_baud(url: str, baud: int | None) -> str:
+    if baud is None:
+        return url
+    if "baud=" in url.split("?", 1)[-1] and "?" in url:
+        raise UsageError("give the baud rate either in the URL or with --baud, not both")
+    return f"{url}{'&' if '?' in url else '?'}baud={baud}"
+
+
+@contextmanager
+def _signals(flag: StopFlag) -> Iterator[None]:
+    """Route SIGINT/SIGTERM to ``flag`` while inside; restore the old handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    flag.install()
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def _feed(reader: TlogReader, args: argparse.Namespace) -> int:
+    url = _with_baud(args.to, args.baud)
+    speed = DEFAULT_SPEED if args.speed is None else args.speed
+    max_gap = DEFAULT_MAX_GAP if args.max_gap is None else args.max_gap
+    flag = StopFlag()
+    player = Player(reader, speed=speed, max_gap=max_gap, stop=flag.event)  # checks values
+    damage: CaptureDamagedError | None = None
+    with _signals(flag), open_link(url) as link:
+        if not link.can_send:
+            raise UsageError(f"{args.to} is receive-only, cannot re-feed it")
+        try:
+            player.play(link)
+        except CaptureDamagedError as exc:
+            damage = exc
+        except LinkError:
+            _print_summary(player.stats, args, speed, max_gap)
+            raise
+    _print_summary(player.stats, args, speed, max_gap)
+    if damage is not None:
+        return _damaged(damage)
+    if player.stats.stopped and flag.signal == signal.SIGINT:
+        return EXIT_INTERRUPTED
+    return 0
+
+
+def _print_summary(st: PlayStats, args: argparse.Namespace, speed: float, max_gap: float) -> None:
+    if args.json:
+        print_json(
+            {
+                "to": args.to,
+                **st.as_dict(),
+                "speed": speed,
+                "max_gap": max_gap if max_gap != float("inf") else None,
+            }
+        )
+        return
+    text = (
+        f"sent {st.frames} frames ({st.bytes} bytes) to {args.to} in {st.elapsed:.3f} s;"
+        f" recorded span {st.recorded:.3f} s, speed {speed:g}, max gap {max_gap:g} s"
+    )
+    if st.stopped:
+        text += "; stopped before the end"
+    print(text, flush=True)
+
+
+# -- plot ---------------------------------------------------------------------
+
+
+def _plot(path: str, out: str, *, as_json: bool) -> int:
+    """Tracks, leader, slots (swarm.sim.tracks.plot) and the formation metrics."""
+    from swarm.sim.tracks import analyse, plot
+
+    parent = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(parent):
+        raise UsageError(f"--plot {out}: no such directory {parent}")
+    an = analyse(path)
+    try:
+        plot(an, out)
+    except ValueError as exc:
+        print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except OSError as exc:
+        raise UsageError(f"--plot {out}: {exc.strerror or exc}") from None
+    s = an.summary()
+    s["plot"] = out
+    if as_json:
+        print(json.dumps(s))
+    else:
+        print(f"plot: {out}")
+        print(f"leader: agent {s['leader']}; agents {', '.join(map(str, s['agents']))}")
+        print(
+            f"slot error on straight legs: RMS {s['formation_rms_m']} m, max {s['formation_max_m']} m; "
+            f"in turns: max {s['turn_max_m']} m ({s['samples']} samples)"
+        )
+        for m, d in s["per_member"].items():
+            print(f"  agent {m}: RMS {d['rms_m']} m, max {d['max_m']} m")
+    if an.damaged:
+        print(f"{PROG}: error: {an.damaged}", file=sys.stderr)
+        return EXIT_FAILURE
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main(None))

@@ -1,0 +1,127 @@
+"""``swarm sim``: N simulated multicopters that speak MAVLink 2 like PX4 or ArduPilot SITL.
+
+Vehicle i has system id i+1. px4: it sends to 127.0.0.1:14540+i and answers whoever
+talks to it (client ``udpin:127.0.0.1:14540+i``); ardupilot: it listens on TCP
+5760+10*i (client ``tcp:127.0.0.1:5760+10i``). ``--serial pty`` puts vehicle 0 on a
+pseudo terminal and prints the client's side. All timers run on simulated time,
+``--speedup`` times faster than the wall clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from firmware_bridge.errors import BridgeError
+from firmware_bridge.sim import SimConfig, VehicleSim
+from swarm.cli.util import StopFlag, UsageError, guarded, parser
+
+PROG = "swarm sim"
+
+
+def parse_home(text: str) -> tuple[float, float, float]:
+    """``LAT,LON,ALT`` (degrees, degrees, metres AMSL) -> tuple; UsageError if malformed."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise UsageError(f"--home must be LAT,LON,ALT, got {text!r}")
+    try:
+        lat, lon, alt = (float(p) for p in parts)
+    except ValueError:
+        raise UsageError(f"--home must be three numbers LAT,LON,ALT, got {text!r}") from None
+    if not all(math.isfinite(x) for x in (lat, lon, alt)):
+        raise UsageError(f"--home must be finite numbers, got {text!r}")
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+        raise UsageError(f"--home latitude/longitude out of range: {text!r}")
+    if not -1000.0 <= alt <= 10000.0:
+        raise UsageError(f"--home altitude must be -1000..10000 m, got {alt}")
+    return lat, lon, alt
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = parser(
+        PROG,
+        "Simulate N multicopters speaking MAVLink 2 like PX4 SITL (UDP 14540+i) or "
+        "ArduPilot SITL (TCP 5760+10i). Runs until SIGINT/SIGTERM.",
+    )
+    p.add_argument("--vehicles", type=int, required=True, metavar="N", help="number of vehicles (1..250)")
+    p.add_argument(
+        "--home",
+        default="47.397742,8.545594,488.0",
+        metavar="LAT,LON,ALT",
+        help="start of vehicle 1 (default PX4 SITL's Zurich home)",
+    )
+    p.add_argument(
+        "--spacing",
+        type=float,
+        default=5.0,
+        metavar="M",
+        help="vehicle i starts i*M metres east of home (default 5)",
+    )
+    p.add_argument("--profile", choices=("px4", "ardupilot"), default="px4")
+    p.add_argument(
+        "--speedup",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="simulated seconds per wall second (default 1)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (telemetry noise)")
+    p.add_argument(
+        "--base-port", type=int, metavar="P", help="first port instead of 14540 (px4) or 5760 (ardupilot)"
+    )
+    p.add_argument(
+        "--serial",
+        metavar="URL",
+        help='vehicle 1 on a serial device (DEVICE[:BAUD]) or "pty" for a new pseudo terminal',
+    )
+    p.add_argument(
+        "--offboard-loss",
+        choices=("hold", "land", "rtl"),
+        default="hold",
+        help="PX4 action when the offboard stream is lost (default hold)",
+    )
+    return p
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    home = parse_home(args.home)
+    if not 1 <= args.vehicles <= 250:
+        raise UsageError(f"--vehicles must be 1..250, got {args.vehicles}")
+    if args.base_port is not None and not 1 <= args.base_port <= 65535:
+        raise UsageError(f"--base-port must be 1..65535, got {args.base_port}")
+    cfg = SimConfig(
+        vehicles=args.vehicles,
+        profile=args.profile,
+        home=home,
+        spacing=args.spacing,
+        speedup=args.speedup,
+        seed=args.seed,
+        base_port=args.base_port,
+        serial=args.serial,
+        offboard_loss_action=args.offboard_loss,
+    )
+    stop = StopFlag().install()
+    try:
+        sim = VehicleSim(cfg)
+        endpoints = sim.start()
+    except BridgeError as exc:
+        raise UsageError(str(exc)) from None
+    try:
+        for i, ep in enumerate(endpoints):
+            v = sim.vehicle(i)
+            lat, lon, alt = v.start_geo
+            print(
+                f"vehicle {i + 1} sysid={v.sysid} {args.profile} {v.transport.kind} -> {ep} "
+                f"home={lat:.7f},{lon:.7f},{alt:.1f}",
+                flush=True,
+            )
+        print(f"ready: {len(endpoints)} vehicle(s), speedup {args.speedup:g}", flush=True)
+        while not stop.wait(0.5):
+            if sim.error is not None:
+                print(f"{PROG}: error: {sim.error}", flush=True)
+                return 1
+    finally:
+        sim.stop()
+    return 0

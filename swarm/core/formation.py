@@ -1,0 +1,416 @@
+"""V-formation geometry, the follow law and the leader's route, as pure functions.
+
+Theory of operation
+-------------------
+The paper's formation (section 2.4): the leader flies; each member follows one
+agent, on one side, so that the swarm makes a V behind the leader, each arm a
+chain. Here:
+
+* **Assignments** (:func:`assign`, :func:`reconcile`): members are split into a
+  left and a right arm; the first of each arm follows the leader, each next one
+  the one before it. With known positions the split and the order follow where
+  the members are (lateral offset from the leader's track, then distance behind
+  it), so nobody crosses the V to reach its slot; without positions, by id. When a
+  member leaves, its arm closes up (whoever followed it follows the one it
+  followed); a new member goes to the tail of the shorter arm; a new leader
+  assigns afresh from positions.
+* **Slot** (:func:`slot_offset`): the followed agent's position plus ``back_m``
+  opposite the swarm heading and ``side_m`` to the member's side (right of the
+  heading for RIGHT). Altitude: the followed agent's, plus ``stagger_m`` per
+  chain position (0: one common altitude).
+* **Follow law** (:func:`follow_target`): the followed pose is predicted to now
+  with its velocity over its age (the radio delays it by up to a TDM round), the
+  slot offset is added, and the followed velocity is the setpoint's velocity
+  feed-forward, so that the autopilot's position loop does not lag the slot by
+  v / Kp (5 m at 5 m/s with PX4's MPC_XY_P). The member's yaw is the swarm heading.
+* **Pose age** (:class:`AgeEstimator`): a Pose carries its sample time modulo
+  2.56 s in the sender's clock. Clocks differ between drones, so the age is
+  estimated per sender as the delay beyond the smallest delay seen recently
+  (the smallest is the radio's best case; its few tens of milliseconds are
+  ignored).
+* **Route** (:class:`Route`): the leader's path through waypoints at a set
+  speed, corners rounded with ``turn_radius_m`` (a 90 degree corner becomes a
+  quarter circle), sampled by distance: position, direction (the swarm
+  heading) and velocity.
+* **Metrics** (:func:`slot_error`): a member's distance from its slot.
+
+Coordinates: poses are geodetic (WGS-84 latitude, longitude, metres AMSL);
+offsets are applied in the local north/east/up plane at the reference point with
+pymap3d (exact for formation distances).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import pymap3d
+
+from swarm.core.messages import Assignment, Pose, Side, Task, TaskKind
+
+POSE_T_WRAP = 2.56  # Pose.t crosses the air modulo this many seconds
+
+
+@dataclass(frozen=True)
+class FormationConfig:
+    back_m: float = 10.0
+    side_m: float = 5.0
+    stagger_m: float = 0.0  # altitude step per chain position
+    min_separation_m: float = 3.0
+    separation_clear_m: float = 1.0  # resume when this much beyond the minimum
+    stale_s: float = 2.0  # a followed pose older than this: hold
+    max_predict_s: float = 1.5  # never extrapolate a pose further than this
+    #: how much later the setpoint takes effect: the pilot's step (10 Hz) and the
+    #: driver's stream (10 Hz) hold it 0.1 s on average before the autopilot has it
+    lead_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        checks = {
+            "back_m": 0 <= self.back_m <= 63.75,
+            "side_m": 0 <= self.side_m <= 63.75,
+            "stagger_m": -20 <= self.stagger_m <= 20,
+            "min_separation_m": 0 < self.min_separation_m <= 50,
+            "separation_clear_m": 0 <= self.separation_clear_m <= 50,
+            "stale_s": 0 < self.stale_s <= 60,
+            "max_predict_s": 0 <= self.max_predict_s <= 10,
+            "lead_s": 0 <= self.lead_s <= 2,
+        }
+        for k, ok in checks.items():
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and ok):
+                raise ValueError(f"formation {k}={v!r} out of range")
+        if self.back_m == 0 and self.side_m == 0:
+            raise ValueError(
+                "formation back_m and side_m cannot both be 0: every slot would be on its leader"
+            )
+
+
+# -- geodesy ------------------------------------------------------------------------
+
+
+def offset(lat: float, lon: float, north: float, east: float) -> tuple[float, float]:
+    """The point ``north``/``east`` metres from (lat, lon)."""
+    la, lo, _ = pymap3d.enu2geodetic(east, north, 0.0, lat, lon, 0.0)
+    return float(la), float(lo)
+
+
+def ne_between(lat0: float, lon0: float, lat: float, lon: float) -> tuple[float, float]:
+    """(north, east) metres of (lat, lon) from (lat0, lon0)."""
+    e, n, _ = pymap3d.geodetic2enu(lat, lon, 0.0, lat0, lon0, 0.0)
+    return float(n), float(e)
+
+
+def distance(a: Pose, b: Pose) -> float:
+    """3-D distance in metres between two poses."""
+    n, e = ne_between(a.lat, a.lon, b.lat, b.lon)
+    return math.sqrt(n * n + e * e + (a.alt - b.alt) ** 2)
+
+
+def heading_of(vn: float, ve: float) -> float:
+    return math.degrees(math.atan2(ve, vn)) % 360.0
+
+
+# -- geometry -----------------------------------------------------------------------
+
+
+def slot_offset(heading_deg: float, side: Side, back_m: float, side_m: float) -> tuple[float, float]:
+    """(north, east) of a slot from the agent it follows."""
+    h = math.radians(heading_deg)
+    fn, fe = math.cos(h), math.sin(h)  # forward
+    rn, re = -math.sin(h), math.cos(h)  # right of the heading
+    s = float(int(side)) * side_m
+    return -back_m * fn + s * rn, -back_m * fe + s * re
+
+
+def arms(assignments: Iterable[Assignment], leader: int) -> dict[Side, list[int]]:
+    """The two chains, each from the leader outwards. Members whose link is broken
+    (they follow someone not in their arm) are put at the end of their arm."""
+    by_side: dict[Side, list[Assignment]] = {Side.LEFT: [], Side.RIGHT: []}
+    for a in assignments:
+        by_side[a.side].append(a)
+    out: dict[Side, list[int]] = {}
+    for side, items in by_side.items():
+        follows = {a.follows: a.member for a in items}
+        chain: list[int] = []
+        cur = leader
+        while cur in follows and follows[cur] not in chain:
+            cur = follows[cur]
+            chain.append(cur)
+        chain += sorted(a.member for a in items if a.member not in chain)
+        out[side] = chain
+    return out
+
+
+def chains_to_assignments(leader: int, left: Sequence[int], right: Sequence[int]) -> tuple[Assignment, ...]:
+    out: list[Assignment] = []
+    for side, chain in ((Side.LEFT, left), (Side.RIGHT, right)):
+        prev = leader
+        for m in chain:
+            out.append(Assignment(m, prev, side))
+            prev = m
+    return tuple(sorted(out, key=lambda a: a.member))
+
+
+def assign(
+    leader: int,
+    members: Iterable[int],
+    heading_deg: float,
+    poses: Mapping[int, Pose] | None = None,
+    leader_pose: Pose | None = None,
+) -> tuple[Assignment, ...]:
+    """Fresh assignments for ``members`` behind ``leader`` (see the module docstring).
+    The right arm gets the extra member of an odd count."""
+    ms = sorted(set(members) - {leader})
+    n_left = len(ms) // 2
+    if poses is not None and leader_pose is not None and all(m in poses for m in ms):
+        h = math.radians(heading_deg)
+        rel: dict[int, tuple[float, float]] = {}
+        for m in ms:
+            dn, de = ne_between(leader_pose.lat, leader_pose.lon, poses[m].lat, poses[m].lon)
+            along = dn * math.cos(h) + de * math.sin(h)
+            lateral = -dn * math.sin(h) + de * math.cos(h)  # + right
+            rel[m] = (along, lateral)
+        by_lateral = sorted(ms, key=lambda m: (rel[m][1], m))
+        left = sorted(by_lateral[:n_left], key=lambda m: (-rel[m][0], m))
+        right = sorted(by_lateral[n_left:], key=lambda m: (-rel[m][0], m))
+    else:
+        right, left = ms[0::2], ms[1::2]
+    return chains_to_assignments(leader, left, right)
+
+
+def reconcile(
+    task: Task,
+    leader: int,
+    members: Iterable[int],
+    poses: Mapping[int, Pose] | None = None,
+    leader_pose: Pose | None = None,
+) -> Task:
+    """The leader's FOLLOW task kept in step with its members: departed members close
+    their arm up, new ones join the tail of the shorter arm, a new leader assigns
+    afresh. Other tasks are returned unchanged."""
+    if task.kind != TaskKind.FOLLOW:
+        return task
+    ms = set(members) - {leader}
+    heads = {a.follows for a in task.assignments} - {a.member for a in task.assignments}
+    if task.assignments and heads != {leader}:
+        # a new leader (the assignments hang from someone else): assign from positions
+        return _with(task, assign(leader, ms, task.heading, poses, leader_pose))
+    chains = arms(task.assignments, leader)
+    left = [m for m in chains[Side.LEFT] if m in ms]
+    right = [m for m in chains[Side.RIGHT] if m in ms]
+    for m in sorted(ms - set(left) - set(right)):
+        (left if len(left) < len(right) else right).append(m)
+    new = chains_to_assignments(leader, left, right)
+    return task if new == tuple(sorted(task.assignments, key=lambda a: a.member)) else _with(task, new)
+
+
+def _with(task: Task, assignments: tuple[Assignment, ...]) -> Task:
+    return replace(task, assignments=assignments)
+
+
+def assignment_of(task: Task, me: int) -> Assignment | None:
+    for a in task.assignments:
+        if a.member == me:
+            return a
+    return None
+
+
+def chain_position(task: Task, me: int) -> int:
+    """1 for a member that follows the leader, 2 for the next one, ... (0: none)."""
+    follows = {a.member: a.follows for a in task.assignments}
+    k, cur, seen = 0, me, set()
+    while cur in follows and cur not in seen:
+        seen.add(cur)
+        cur = follows[cur]
+        k += 1
+    return k
+
+
+# -- the follow law -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """A position target with velocity feed-forward (AMSL altitude, degrees)."""
+
+    lat: float
+    lon: float
+    alt: float
+    yaw_deg: float
+    vn: float = 0.0
+    ve: float = 0.0
+
+
+def predict(pose: Pose, age_s: float, max_s: float) -> tuple[float, float]:
+    """``pose``'s position ``age_s`` seconds later at its velocity."""
+    dt = max(0.0, min(age_s, max_s))
+    if dt == 0.0 or (pose.vn == 0.0 and pose.ve == 0.0):
+        return pose.lat, pose.lon
+    return offset(pose.lat, pose.lon, pose.vn * dt, pose.ve * dt)
+
+
+def follow_target(
+    followed: Pose,
+    age_s: float,
+    heading_deg: float,
+    side: Side,
+    cfg: FormationConfig,
+    back_m: float | None = None,
+    side_m: float | None = None,
+    turn_rate_dps: float = 0.0,
+) -> Setpoint:
+    """The member's setpoint: the followed agent predicted to now, plus the slot offset;
+    velocity feed-forward: the followed velocity plus the slot's rotation about the
+    followed agent when the swarm heading turns (``turn_rate_dps``)."""
+    lat, lon = predict(followed, age_s + cfg.lead_s, cfg.max_predict_s)
+    heading_deg = (heading_deg + turn_rate_dps * cfg.lead_s) % 360.0
+    dn, de = slot_offset(
+        heading_deg, side, cfg.back_m if back_m is None else back_m, cfg.side_m if side_m is None else side_m
+    )
+    la, lo = offset(lat, lon, dn, de)
+    w = math.radians(turn_rate_dps)  # d/dt of the rotated offset: w x (dn, de), clockwise
+    vn, ve = followed.vn - w * de, followed.ve + w * dn
+    return Setpoint(la, lo, followed.alt + cfg.stagger_m, heading_deg, vn, ve)
+
+
+def slot_error(
+    member: Pose, followed: Pose, heading_deg: float, side: Side, back_m: float, side_m: float
+) -> float:
+    """Horizontal distance in metres between a member and its slot (both at one instant)."""
+    dn, de = slot_offset(heading_deg, side, back_m, side_m)
+    fn, fe = ne_between(followed.lat, followed.lon, member.lat, member.lon)
+    return math.hypot(fn - dn, fe - de)
+
+
+@dataclass
+class AgeEstimator:
+    """Age of a sender's pose from its wrapped sample time (see the module docstring)."""
+
+    window_s: float = 30.0
+    _min: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
+
+    def age(self, sender: int, t_wrapped: float, now: float) -> float:
+        d = (now - t_wrapped) % POSE_T_WRAP
+        hist = self._min.setdefault(sender, [])
+        # a monotone deque of (time, delay) keeps the window's minimum
+        while hist and hist[-1][1] >= d:
+            hist.pop()
+        hist.append((now, d))
+        while hist[0][0] < now - self.window_s:
+            hist.pop(0)
+        age = d - hist[0][1]
+        return age if age < POSE_T_WRAP / 2 else 0.0  # a wrap we cannot tell: trust it fresh
+
+
+# -- the leader's route -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RoutePoint:
+    n: float
+    e: float
+    heading_deg: float
+    curvature: float = 0.0  # degrees of heading per metre along the route (+: turning right)
+
+
+@dataclass(frozen=True)
+class _Seg:
+    length: float
+    # line: start (n, e), unit direction; arc: centre, radius, start angle, turn sign
+    kind: str
+    a: tuple[float, float]
+    b: tuple[float, float]
+    r: float = 0.0
+    sign: float = 0.0
+
+
+class Route:
+    """A path through waypoints (local north/east metres from an origin), corners
+    rounded with ``turn_radius_m``, sampled by distance along it."""
+
+    def __init__(self, points: Sequence[tuple[float, float]], turn_radius_m: float = 10.0) -> None:
+        pts = [p for i, p in enumerate(points) if i == 0 or math.dist(p, points[i - 1]) > 1e-6]
+        if len(pts) < 2:
+            raise ValueError("a route needs at least two distinct points")
+        if not (math.isfinite(turn_radius_m) and turn_radius_m >= 0):
+            raise ValueError(f"turn radius {turn_radius_m!r} must be >= 0")
+        self.segments: list[_Seg] = []
+        start = pts[0]
+        for i in range(1, len(pts)):
+            p, q = pts[i], pts[i + 1] if i + 1 < len(pts) else None
+            d1 = _unit(pts[i - 1], p)
+            if q is None:
+                self._line(start, p)
+                break
+            d2 = _unit(p, q)
+            turn = math.atan2(d1[0] * d2[1] - d1[1] * d2[0], d1[0] * d2[0] + d1[1] * d2[1])
+            if abs(turn) < 1e-6 or turn_radius_m == 0:
+                self._line(start, p)
+                start = p
+                continue
+            t = turn_radius_m * math.tan(abs(turn) / 2)
+            t = min(t, 0.5 * math.dist(pts[i - 1], p), 0.5 * math.dist(p, q))
+            r = t / math.tan(abs(turn) / 2)
+            a = (p[0] - d1[0] * t, p[1] - d1[1] * t)
+            self._line(start, a)
+            sign = 1.0 if turn > 0 else -1.0  # +: turning right (clockwise, seen from above, n/e axes)
+            # centre: to the right of d1 for a right turn
+            right = (-d1[1], d1[0])
+            c = (a[0] + sign * right[0] * r, a[1] + sign * right[1] * r)
+            ang0 = math.atan2(a[1] - c[1], a[0] - c[0])
+            self.segments.append(_Seg(r * abs(turn), "arc", c, (ang0, turn), r, sign))
+            start = (p[0] + d2[0] * t, p[1] + d2[1] * t)
+        self.length = sum(s.length for s in self.segments)
+
+    def _line(self, a: tuple[float, float], b: tuple[float, float]) -> None:
+        length = math.dist(a, b)
+        if length > 1e-9:
+            self.segments.append(_Seg(length, "line", a, _unit(a, b)))
+
+    def at(self, s: float) -> RoutePoint:
+        """Where the route is ``s`` metres from its start (clamped to its ends)."""
+        s = max(0.0, min(s, self.length))
+        for seg in self.segments:
+            if s <= seg.length or seg is self.segments[-1]:
+                s = min(s, seg.length)
+                if seg.kind == "line":
+                    (n0, e0), (dn, de) = seg.a, seg.b
+                    return RoutePoint(n0 + dn * s, e0 + de * s, heading_of(dn, de))
+                ang0, turn = seg.b
+                ang = ang0 + math.copysign(s / seg.r, turn)
+                n = seg.a[0] + seg.r * math.cos(ang)
+                e = seg.a[1] + seg.r * math.sin(ang)
+                # tangent: derivative of the position along the turn's direction
+                tn, te = -math.sin(ang) * math.copysign(1, turn), math.cos(ang) * math.copysign(1, turn)
+                return RoutePoint(n, e, heading_of(tn, te), math.copysign(math.degrees(1.0 / seg.r), turn))
+            s -= seg.length
+        raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _unit(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
+    d = math.dist(a, b)
+    return (b[0] - a[0]) / d, (b[1] - a[1]) / d
+
+
+__all__ = [
+    "AgeEstimator",
+    "FormationConfig",
+    "Route",
+    "RoutePoint",
+    "Setpoint",
+    "arms",
+    "assign",
+    "assignment_of",
+    "chain_position",
+    "chains_to_assignments",
+    "distance",
+    "follow_target",
+    "heading_of",
+    "ne_between",
+    "offset",
+    "predict",
+    "reconcile",
+    "slot_error",
+    "slot_offset",
+]

@@ -1,0 +1,404 @@
+"""One swarm agent as a pure state machine: the protocol core, the pilot, the
+ground-station link, the command log and the pose bookkeeping, composed once.
+
+Theory of operation
+-------------------
+:class:`AgentNode` is what runs on one drone, minus the world. It is fed events
+with the current time and returns what to do; it never reads a clock, opens a port
+or starts a thread, so the real-time agent (:mod:`swarm.runtime.agent`) and the
+virtual-time flight simulator (:mod:`swarm.sim.flightsim`) drive the same code:
+
+* ``start(now)``, then ``handle(event, now)`` for each event, ``tick(now)`` at
+  ``next_deadline()`` (or sooner: a tick before its time does nothing wrong).
+* **Events in**: a swarm or station :class:`~swarm.core.messages.Message` received;
+  :class:`PoseHeard` (another agent's pose stream); :class:`OwnPose` (this vehicle's
+  pose, and whether it is airborne); :class:`VehicleInfo` (the flight controller's
+  mode, arming, battery, link: what Telemetry reports); :class:`RadioInfo` (the
+  local radio's RSSI); :class:`SetTask` (the task a leader carries on its
+  Heartbeats); :class:`VehicleLink` (the flight controller fell silent or came back);
+  :class:`CallDone` (a vehicle call finished).
+* **Outputs**: :class:`Send` (a message to an agent or station id, with the name the
+  node learnt for it, or to everyone: ``to`` 0 for Advertize and GSAdvertize);
+  :class:`PublishState` (when the election state changed, and as a keep-alive:
+  every ``profile.state_interval``, every 5 s once leading or following);
+  :class:`SetpointOut` (the pilot's setpoint, every 0.1 s while it steers);
+  :class:`CallOut` (a blocking vehicle call: arm, take-off...); :class:`EventOut`
+  (a line for the operator: commands, the pilot's events, the vehicle link).
+
+What the node decides, as the agent did before it: Advertize from our own id with
+another name is an id conflict (counted, reported once); names and ids are learnt
+from Advertize; a member hands every Heartbeat's task to the pilot (its heading and
+turn rate); a Command is answered once per station and sequence number
+(:func:`swarm.core.gslink.answer_command`: a repeat is answered from the log,
+never run twice; answers are sent again 0.5 and 1.5 s later), and an accepted swarm
+FOLLOW or STOP on the leader becomes the task on its Heartbeats; the leader's pilot
+steers the task's heading during a FOLLOW; the vehicle link going down is told to the
+core (a leader that cannot fly hands over).
+
+Counters are kept in ``stats`` (a dict the runtime may share with its own counters).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass, replace
+
+from swarm.core.gslink import (
+    FLAG_AIRBORNE,
+    FLAG_ARMED,
+    FLAG_FC_OK,
+    FLAG_HOLDING,
+    CommandLog,
+    GsLink,
+    GsOut,
+    answer_command,
+    mode_code,
+)
+from swarm.core.messages import (
+    AckResult,
+    Advertize,
+    AgentState,
+    Command,
+    GSAdvertize,
+    GSConnect,
+    GSHeartbeat,
+    Message,
+    Phase,
+    Pose,
+    Task,
+    TaskKind,
+    Telemetry,
+)
+from swarm.core.pilot import Call, Mode, Pilot, PilotConfig, Role, Setpoint
+from swarm.core.protocol import ADVERTIZE, NO_POSE, Core, Out, Profile, RandomVote, VotePolicy
+
+SETPOINT_PERIOD = 0.1  # the pilot's step: setpoints at 10 Hz
+STATE_KEEPALIVE_S = 5.0  # state publication period once leading or following
+#: the node's events when its flight controller falls silent and comes back
+VEHICLE_LINK_LOST = "vehicle link lost"
+VEHICLE_LINK_BACK = "vehicle link back"
+#: pilot modes in which the vehicle flies itself (no setpoints)
+_NO_SETPOINTS = (Mode.IDLE, Mode.TAKEOFF, Mode.LAND, Mode.RETURN)
+
+
+# -- events in ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class PoseHeard:
+    """Another agent's pose, by id, or by name (resolved with the Advertize table)."""
+
+    pose: Pose
+    sender: int = 0
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class OwnPose:
+    pose: Pose
+    airborne: bool
+
+
+@dataclass(frozen=True)
+class VehicleInfo:
+    """What the flight controller last said, for Telemetry."""
+
+    mode: str = ""
+    armed: bool = False
+    airborne: bool = False
+    battery: int = -1  # percent, -1 unknown
+    groundspeed: float = 0.0
+    link_ok: bool = True
+
+
+@dataclass(frozen=True)
+class RadioInfo:
+    rssi: int
+    remrssi: int
+
+
+@dataclass(frozen=True)
+class SetTask:
+    task: Task
+
+
+@dataclass(frozen=True)
+class VehicleLink:
+    up: bool
+
+
+@dataclass(frozen=True)
+class CallDone:
+    call: Call
+    ok: bool
+    error: str = ""
+
+
+# -- outputs -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Send:
+    """``msg`` to agent or station ``to`` (0: to everyone, Advertize or GSAdvertize);
+    ``name`` the one learnt for ``to`` (None if not known yet)."""
+
+    to: int
+    msg: Message
+    name: str | None = None
+
+
+@dataclass(frozen=True)
+class PublishState:
+    state: AgentState
+
+
+@dataclass(frozen=True)
+class SetpointOut:
+    setpoint: Setpoint
+
+
+@dataclass(frozen=True)
+class CallOut:
+    call: Call
+
+
+@dataclass(frozen=True)
+class EventOut:
+    text: str
+
+
+NodeOut = Send | PublishState | SetpointOut | CallOut | EventOut
+NODE_STATS = (
+    "received",
+    "own_echo",
+    "id_conflicts",
+    "commands",
+    "command_replays",
+    "poses_heard",
+    "vehicle_link_lost",
+    "vehicle_link_back",
+)
+
+
+class AgentNode:
+    """One agent's parts composed (see the module docstring). ``has_fc``: a flight
+    controller is attached (without one, commands to this agent fail and the
+    protocol does not wait for a pose)."""
+
+    def __init__(
+        self,
+        agent_id: int,
+        name: str,
+        profile: Profile,
+        *,
+        policy: VotePolicy | None = None,
+        rng: random.Random | None = None,
+        has_fc: bool = False,
+        pilot: PilotConfig | None = None,
+        stats: dict[str, int] | None = None,
+    ) -> None:
+        self.id = agent_id
+        self.name = name
+        self.profile = profile
+        self.has_fc = has_fc
+        self.core = Core(
+            agent_id, name, profile, policy or RandomVote(), rng=rng or random.Random(), has_fc=has_fc
+        )
+        self.pilot = Pilot(agent_id, pilot or PilotConfig())
+        self.gs = GsLink(agent_id, name)
+        self.commands = CommandLog()
+        self.stats = stats if stats is not None else {}
+        for k in NODE_STATS:
+            self.stats.setdefault(k, 0)
+        self.names: dict[int, str] = {}  # agent id -> name, from Advertize
+        self.ids: dict[str, int] = {}  # name -> agent id
+        self.vehicle: VehicleInfo | None = None
+        self.radio = RadioInfo(0, 0)
+        self.reported_conflicts: set[tuple[int, str]] = set()
+        self._next_publish = 0.0
+        self._next_step = 0.0
+
+    # -- driving ---------------------------------------------------------------------
+    def start(self, now: float) -> list[NodeOut]:
+        self._next_publish = self._next_step = now
+        return self._outs(self.core.start(now))
+
+    def next_deadline(self) -> float:
+        d = min(self._next_publish, self._next_step, self.gs.next_deadline())
+        for x in (self.core.next_deadline(), self.commands.next_deadline()):
+            if x is not None:
+                d = min(d, x)
+        return d
+
+    def tick(self, now: float) -> list[NodeOut]:
+        core = self.core
+        out: list[NodeOut] = []
+        if core.take_state_changed() or now >= self._next_publish:
+            out.append(PublishState(core.state()))
+            # settled (leading or following): a change is published at once anyway,
+            # so the keep-alive can be slow; the air is shared with poses
+            settled = core.phase in (Phase.LEADER, Phase.MEMBER)
+            self._next_publish = now + (STATE_KEEPALIVE_S if settled else self.profile.state_interval)
+        out += self._outs(core.tick(now))
+        out += self._gs_outs(self.gs.tick(now, self.telemetry))
+        out += [self._send(station, ack) for station, ack in self.commands.due(now)]
+        if now >= self._next_step:
+            self._next_step = max(self._next_step + SETPOINT_PERIOD, now - SETPOINT_PERIOD)
+            out += self._pilot_step(now)
+        return out
+
+    def handle(self, ev: object, now: float) -> list[NodeOut]:
+        if isinstance(ev, Message):
+            return self._message(ev, now)
+        core = self.core
+        if isinstance(ev, PoseHeard):
+            sender = ev.sender or self.ids.get(ev.name, 0)
+            if sender and sender != self.id:
+                self.pilot.on_pose(sender, ev.pose, now)
+                core.note_pose(sender, ev.pose, now)
+                self.stats["poses_heard"] += 1
+        elif isinstance(ev, OwnPose):
+            core.set_pose(ev.pose)
+            self.pilot.set_own(ev.pose, ev.airborne)
+        elif isinstance(ev, VehicleInfo):
+            self.vehicle = ev
+        elif isinstance(ev, RadioInfo):
+            self.radio = ev
+        elif isinstance(ev, SetTask):
+            core.set_task(ev.task)
+        elif isinstance(ev, CallDone):
+            self.pilot.call_done(ev.call, ev.ok, ev.error)
+        elif isinstance(ev, VehicleLink):
+            self.stats["vehicle_link_back" if ev.up else "vehicle_link_lost"] += 1
+            core.set_vehicle_link(ev.up, now)  # a leader that cannot fly hands over
+            return [EventOut(VEHICLE_LINK_BACK if ev.up else VEHICLE_LINK_LOST)]
+        return []
+
+    # -- messages ----------------------------------------------------------------------
+    def _message(self, msg: Message, now: float) -> list[NodeOut]:
+        self.stats["received"] += 1
+        if isinstance(msg, (GSAdvertize, GSConnect, GSHeartbeat)):
+            return self._gs_outs(self.gs.handle(msg, now))
+        if isinstance(msg, Command):
+            return self._command(msg, now)
+        core = self.core
+        if isinstance(msg, Advertize):
+            if msg.sender == self.id:
+                if msg.name == self.name:
+                    self.stats["own_echo"] += 1  # our own advertisement, delivered locally
+                    return []
+                return self._id_conflict(msg)
+            self.names[msg.sender] = msg.name
+            self.ids[msg.name] = msg.sender
+        hb = core.last_hb
+        outs = self._outs(core.handle(msg, now))
+        if core.last_hb != hb and core.phase == Phase.MEMBER:
+            self.pilot.on_task(core.task, now)  # every heartbeat (the heading's rate)
+        return outs
+
+    def _id_conflict(self, msg: Advertize) -> list[NodeOut]:
+        self.stats["id_conflicts"] += 1
+        k = (msg.sender, msg.name)
+        if k in self.reported_conflicts:
+            return []
+        self.reported_conflicts.add(k)
+        return [EventOut(f"{msg.name!r} advertises our id {msg.sender}")]
+
+    def role(self) -> Role:
+        core = self.core
+        settled = core.phase in (Phase.LEADER, Phase.MEMBER)
+        return Role(
+            core.phase,
+            core.leader if settled else 0,
+            frozenset(core.members) if core.phase == Phase.LEADER else frozenset(),
+            dict(core.poses),
+        )
+
+    def _command(self, cmd: Command, now: float) -> list[NodeOut]:
+        """Answer a Command (once per station and sequence number) and act on it."""
+        self.stats["commands"] += 1
+        core = self.core
+        ack, calls, repeat = answer_command(
+            self.commands, cmd, self.id, self.has_fc, lambda c: self.pilot.command(c, self.role(), now), now
+        )
+        if repeat:  # a retry: the same answer, nothing run again
+            self.stats["command_replays"] += 1
+            return [self._send(cmd.sender, ack)]
+        if ack.result == AckResult.ACCEPTED and cmd.target == 0 and core.phase == Phase.LEADER:
+            core.set_task(self.pilot.task)  # FOLLOW or HOLD rides on the next heartbeats
+        text = f"command {cmd.kind.name} seq {cmd.seq} from {cmd.sender}: {ack.result.name}" + (
+            f" ({ack.reason})" if ack.reason else ""
+        )
+        return [self._send(cmd.sender, ack), EventOut(text), *(CallOut(c) for c in calls)]
+
+    def _pilot_step(self, now: float) -> list[NodeOut]:
+        core = self.core
+        sp, heading = self.pilot.step(now, self.role())
+        if heading is not None and core.phase == Phase.LEADER and core.task.kind == TaskKind.FOLLOW:
+            core.set_task(replace(core.task, heading=heading[0], turn_rate=heading[1]))
+        out: list[NodeOut] = [EventOut(e) for e in self.pilot.take_events()]
+        if sp is not None and self.pilot.mode not in _NO_SETPOINTS:
+            out.append(SetpointOut(sp))
+        return out
+
+    # -- outputs -----------------------------------------------------------------------
+    def _send(self, to: int, msg: Message) -> Send:
+        return Send(to, msg, self.gs.station_name(to) or self.names.get(to))
+
+    def _outs(self, outs: list[Out]) -> list[NodeOut]:
+        return [
+            Send(0, o.msg, None) if o.to == ADVERTIZE else Send(o.to, o.msg, self.names.get(o.to))
+            for o in outs
+        ]
+
+    def _gs_outs(self, outs: list[GsOut]) -> list[NodeOut]:
+        return [Send(o.to, o.msg, None if o.to == 0 else self.gs.station_name(o.to)) for o in outs]
+
+    def telemetry(self) -> Telemetry:
+        """This agent's Telemetry for connected ground stations (its connection heartbeat)."""
+        core = self.core
+        pose = core.pose or NO_POSE
+        mode = flags = 0
+        battery, groundspeed = 255, 0.0
+        v = self.vehicle
+        if v is not None:
+            mode = mode_code(v.mode) if v.link_ok else 0  # not the last mode heard: unknown
+            flags |= (FLAG_ARMED if v.armed else 0) | (FLAG_AIRBORNE if v.airborne else 0)
+            flags |= FLAG_FC_OK if v.link_ok else 0
+            if 0 <= v.battery <= 100:
+                battery = v.battery
+            if math.isfinite(v.groundspeed):
+                groundspeed = max(0.0, min(63.75, v.groundspeed))
+            flags |= FLAG_HOLDING if self.pilot.holding else 0
+        leader = core.leader if core.phase in (Phase.LEADER, Phase.MEMBER) else 0
+        return Telemetry(
+            self.id,
+            pose,
+            mode,
+            flags,
+            core.phase,
+            leader,
+            battery,
+            self.radio.rssi & 0xFF,
+            self.radio.remrssi & 0xFF,
+            groundspeed,
+        )
+
+
+__all__ = [
+    "NODE_STATS",
+    "SETPOINT_PERIOD",
+    "VEHICLE_LINK_BACK",
+    "VEHICLE_LINK_LOST",
+    "AgentNode",
+    "CallDone",
+    "CallOut",
+    "EventOut",
+    "NodeOut",
+    "OwnPose",
+    "PoseHeard",
+    "PublishState",
+    "RadioInfo",
+    "Send",
+    "SetTask",
+    "SetpointOut",
+    "VehicleInfo",
+    "VehicleLink",
+]

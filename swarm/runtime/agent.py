@@ -1,0 +1,634 @@
+"""The agent runtime: one agent node driven in real time over Zenoh (and a radio).
+
+Theory of operation
+-------------------
+:class:`Agent` wires one :class:`~swarm.core.node.AgentNode` (the pure agent: protocol
+core, pilot, station link, command log) to the world, with threads and queues as
+the paper has it (section 2.2: one thread per protocol or link, queues between them):
+
+* **Zenoh**: one session per agent. With a radio the session has no endpoints and
+  no scouting, so agents meet only through the radio; with ``zenoh_listen`` /
+  ``zenoh_connect`` endpoints they meet over IP. A :class:`~swarm.runtime.transport.Transport`
+  gives the key space: the agent listens on its inbox ``swarm/<name>`` and on
+  ``swarm/advertize``, and publishes its state on ``swarm/<name>/state``.
+* **Radio** (optional): :func:`radios.link.open_link` and a
+  :class:`~swarm.runtime.bridge.RadioBridge` (its own tx and rx threads) carry the key space
+  over the air, MAVLink 2 signed when a key file is given.
+* **Protocol thread** (:class:`~swarm.runtime.loop.EventLoop`): the only thread that
+  touches the node. Zenoh callbacks only put what they receive on its queue (so do
+  the pose and vehicle threads and :meth:`Agent.set_task`); it feeds the node with
+  the monotonic clock at its deadlines and carries out what the node returns:
+  ``Send`` to everyone (Advertize on ``swarm/advertize``, GSAdvertize on
+  ``swarm/GSAdvertize``) or to ``swarm/<name>`` with the name the node learnt (an id
+  not yet heard of is counted in ``stats['unknown_destination']`` and skipped: every
+  agent advertises while it looks for a swarm and leaders keep advertising, so
+  names arrive before anyone needs them); ``PublishState`` on ``swarm/<name>/state``;
+  setpoints to the flight controller; vehicle calls to the vehicle thread; events
+  to the log and ``on_event``. What the node decides (ground-station connections,
+  commands answered once, the pilot) is in :mod:`swarm.core.node`.
+* **Pose thread** (only with a flight controller): at ``pose_hz`` reads the
+  driver's :class:`~firmware_bridge.driver.VehicleState` snapshot, hands the node the
+  pose and what Telemetry reports (through the queue), publishes it on ``swarm/<name>/pose`` and, with
+  a radio, gives the bridge a HEARTBEAT and a GLOBAL_POSITION_INT for standard
+  ground stations. The driver does not expose raw pymavlink messages, so those two
+  are rebuilt from the snapshot (same fields; the vehicle type, not in the
+  snapshot, is sent as a quadrotor); the bridge rate-limits them to 1 Hz. While the
+  driver reports the vehicle link lost the thread publishes nothing (a stale
+  position would look alive to the swarm).
+* **Vehicle link**: the driver's link-lost / link-restored callbacks come through
+  the queue to the node (an event, a leader that cannot fly hands over, Telemetry
+  without FLAG_FC_OK and with the mode unknown).
+* **Vehicle thread**: runs the pilot's blocking calls (arm, take-off, land...) and
+  queues each result back.
+
+Profiles: ``paper`` (the default) or ``fast``, whose windows follow the radio
+network's TDM round (``round_s``). The round is not read from the radio: pass it,
+or it defaults to a SiK pair at 64 kbit/s (0.2368 s); a multipoint network of N
+radios has ``radios.sik.timing.tdm_timing(air_kbps).round_s(N)``.
+
+Vote policies: ``random`` (the paper), ``battery`` (the flight controller's
+remaining battery percent; 255 when unknown or without a flight controller), and
+``link`` (the local radio's RSSI from RADIO_STATUS; 0 without a radio).
+
+:meth:`Agent.stop` stops every thread and closes the bridge, the link, the vehicle
+and the session; it is safe twice, and the agent is a context manager.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import random
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from swarm.core.messages import (
+    Advertize,
+    AgentState,
+    GSAdvertize,
+    Pose,
+    PoseReport,
+    Task,
+    check_id,
+    check_name,
+)
+from swarm.core.node import (
+    SETPOINT_PERIOD,
+    VEHICLE_LINK_BACK,
+    VEHICLE_LINK_LOST,
+    AgentNode,
+    CallDone,
+    CallOut,
+    EventOut,
+    NodeOut,
+    OwnPose,
+    PoseHeard,
+    PublishState,
+    RadioInfo,
+    Send,
+    SetpointOut,
+    SetTask,
+    VehicleInfo,
+    VehicleLink,
+)
+from swarm.core.pilot import Call, PilotConfig, Setpoint
+from swarm.core.protocol import BatteryVote, LinkQualityVote, Profile, RandomVote, VotePolicy, profile_by_name
+from swarm.runtime.loop import EventLoop
+
+log = logging.getLogger(__name__)
+
+VOTES = ("random", "battery", "link")
+PROFILES = ("paper", "fast")
+DEFAULT_AIR_KBPS = 64
+
+
+def default_round_s(slots: int = 2, air_kbps: int = DEFAULT_AIR_KBPS) -> float:
+    """The SiK TDM round for ``slots`` radios at ``air_kbps`` (2: a standard pair)."""
+    from radios.sik.timing import tdm_timing
+
+    return tdm_timing(air_kbps).round_s(slots)
+
+
+_STOP = object()
+
+
+class Agent:
+    """One swarm agent: a protocol core, its threads, Zenoh, optionally a radio and a
+    flight controller. See the module docstring.
+
+    Construction only checks the arguments (ValueError); :meth:`start` (or ``with``)
+    opens everything and may raise the errors of the parts it opens:
+    :class:`radios.errors.ConfigError` (key file), :class:`radios.errors.LinkOpenError`
+    (radio), :class:`swarm.errors.TransportError` (Zenoh endpoints),
+    :class:`firmware_bridge.errors.BridgeError` (flight controller).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        agent_id: int,
+        *,
+        radio: str | None = None,
+        zenoh_listen: Sequence[str] = (),
+        zenoh_connect: Sequence[str] = (),
+        fc: str | None = None,
+        profile: str = "paper",
+        round_s: float | None = None,
+        key_file: str | None = None,
+        vote: str = "random",
+        pose_hz: float = 4.0,
+        fc_timeout: float = 10.0,
+        seed: int | None = None,
+        pilot: PilotConfig | None = None,
+        on_state: Callable[[AgentState], None] | None = None,
+        on_event: Callable[[str], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        check_name(name)
+        check_id(agent_id)
+        if vote not in VOTES:
+            raise ValueError(f"unknown vote policy {vote!r}: {', '.join(VOTES)}")
+        if profile not in PROFILES:
+            raise ValueError(f"unknown profile {profile!r}: {', '.join(PROFILES)}")
+        if radio is not None and (zenoh_listen or zenoh_connect):
+            raise ValueError("an agent meets others either through a radio or over Zenoh endpoints")
+        if radio is None and not (zenoh_listen or zenoh_connect):
+            raise ValueError("give a radio or at least one Zenoh endpoint (listen or connect)")
+        if round_s is not None and not (math.isfinite(round_s) and round_s > 0):
+            raise ValueError(f"round_s {round_s!r} must be a positive number of seconds")
+        if not (math.isfinite(pose_hz) and 0 < pose_hz <= 50):
+            raise ValueError(f"pose_hz {pose_hz!r} must be in (0, 50]")
+        self.name = name
+        self.id = agent_id
+        self.radio_url = radio
+        self.zenoh_listen = list(zenoh_listen)
+        self.zenoh_connect = list(zenoh_connect)
+        self.fc_url = fc
+        self.round_s = round_s if round_s is not None else default_round_s()
+        self.profile: Profile = profile_by_name(profile, self.round_s)
+        self.key_file = key_file
+        self.vote = vote
+        self.pose_hz = pose_hz
+        self.fc_timeout = fc_timeout
+        self.on_state = on_state
+        self.on_event = on_event
+        self.clock = clock
+        self.pilot_config = pilot or PilotConfig()
+        self._seed = seed
+        self._calls: queue.Queue[object] = queue.Queue()
+        self.stats: dict[str, int] = {
+            "received": 0,
+            "sent": 0,
+            "advertized": 0,
+            "unknown_destination": 0,
+            "send_errors": 0,
+            "state_published": 0,
+            "own_echo": 0,
+            "id_conflicts": 0,
+            "errors": 0,
+            "poses": 0,
+            "vehicle_forwarded": 0,
+            "gs_sent": 0,
+            "commands": 0,
+            "command_replays": 0,
+            "setpoints": 0,
+            "setpoint_errors": 0,
+            "poses_heard": 0,
+            "vehicle_link_lost": 0,
+            "vehicle_link_back": 0,
+        }
+        self.node: AgentNode | None = None
+        self.session: Any = None
+        self.transport: Any = None
+        self.link: Any = None
+        self.bridge: Any = None
+        self.vehicle: Any = None
+        self.started_at = 0.0
+        self.loop = EventLoop(
+            f"agent-{name}-protocol",
+            handle=self._handle,
+            tick=self._tick,
+            next_deadline=self._next_deadline,
+            on_error=self._count_error,
+            clock=clock,
+        )
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._lock = threading.Lock()
+        self._state: AgentState | None = None
+        self._started = False
+        self._stopped = False
+        self._radio_seen = (0, 0)
+
+    # -- the node's parts (None before start) ---------------------------------------
+    @property
+    def core(self) -> Any:
+        return self.node.core if self.node is not None else None
+
+    @property
+    def gs(self) -> Any:
+        return self.node.gs if self.node is not None else None
+
+    @property
+    def names(self) -> dict[int, str]:
+        return self.node.names if self.node is not None else {}
+
+    # -- life cycle -------------------------------------------------------------
+    def start(self) -> Agent:
+        """Open the session, radio, bridge and flight controller and start the threads."""
+        with self._lock:
+            if self._started:
+                return self
+            self._started = True
+        try:
+            self._open()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _open(self) -> None:
+        from swarm.runtime.bridge import open_node
+        from swarm.runtime.transport import Transport
+
+        self.session, self.link, self.bridge = open_node(
+            self.name,
+            self.id,
+            radio=self.radio_url,
+            listen=self.zenoh_listen,
+            connect=self.zenoh_connect,
+            key_file=self.key_file,
+        )
+        if self.fc_url is not None:
+            from firmware_bridge.driver import connect
+
+            self.vehicle = connect(
+                self.fc_url,
+                timeout=self.fc_timeout,
+                on_link_lost=lambda: self.loop.put(VehicleLink(False)),
+                on_link_restored=lambda: self.loop.put(VehicleLink(True)),
+            )
+        self.node = AgentNode(
+            self.id,
+            self.name,
+            self.profile,
+            policy=self._policy(),
+            rng=random.Random(self._seed),
+            has_fc=self.vehicle is not None,
+            pilot=self.pilot_config,
+            stats=self.stats,
+        )
+        self.transport = Transport(self.name, self.session)
+        self.transport.on_inbox(self.loop.put)
+        self.transport.on_advertize(self.loop.put)
+        self.transport.on_gs_advertize(self.loop.put)
+        self.transport.on_pose(
+            "*",
+            lambda name, rep: self.loop.put(PoseHeard(rep.pose, name=name)) if name != self.name else None,
+        )
+        self.started_at = self.clock()
+        self._execute(self.node.start(self.clock()))
+        self.loop.start()
+        if self.vehicle is not None:
+            self._spawn(self._pose_loop, "pose")
+            self._spawn(self._vehicle_loop, "vehicle")
+
+    def _spawn(self, target: Callable[[], None], what: str) -> None:
+        t = threading.Thread(target=target, name=f"agent-{self.name}-{what}", daemon=True)
+        self._threads.append(t)
+        t.start()
+
+    def _policy(self) -> VotePolicy:
+        if self.vote == "battery":
+            return BatteryVote(self._battery)
+        if self.vote == "link":
+            return LinkQualityVote(lambda: self.bridge.radio.rssi if self.bridge is not None else 0)
+        return RandomVote()
+
+    def _battery(self) -> int:
+        # an unknown battery must not win a battery vote
+        if self.vehicle is None:
+            return 0
+        pct = int(self.vehicle.state.battery_remaining)
+        return pct if 0 <= pct <= 100 else 0
+
+    def stop(self) -> None:
+        """Stop every thread, then close bridge, link, vehicle and session. Safe twice."""
+        with self._lock:
+            if self._stopped:
+                return
+            self._stopped = True
+        self._stop.set()
+        self.loop.stop()
+        self._calls.put(_STOP)
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(2.0)
+        for close in (
+            self.transport and self.transport.close,
+            self.bridge and self.bridge.close,
+            self.link and self.link.close,
+            self.vehicle and self.vehicle.close,
+            self.session and self.session.close,
+        ):
+            if close:
+                try:
+                    close()
+                except Exception:  # every part gets its chance to close
+                    log.debug("agent %s: error while closing", self.name, exc_info=True)
+
+    close = stop
+
+    def __enter__(self) -> Agent:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- public helpers -----------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        radio_ok = self.bridge is None or not self.bridge.link_lost
+        return (
+            self._started
+            and not self._stopped
+            and radio_ok
+            and self.loop.alive
+            and all(t.is_alive() for t in self._threads)
+        )
+
+    def state(self) -> AgentState | None:
+        """The last state the protocol thread published (None before the first)."""
+        return self._state
+
+    def set_task(self, task: Task) -> None:
+        """The task a leader sends on its Heartbeats (applied on the protocol thread)."""
+        self.loop.put(SetTask(task))
+
+    def describe(self) -> str:
+        """Where the agent meets others, for the ready line."""
+        if self.radio_url is not None:
+            return f"radio={self.radio_url}"
+        parts = []
+        if self.zenoh_listen:
+            parts.append("listen=" + ",".join(self.zenoh_listen))
+        if self.zenoh_connect:
+            parts.append("connect=" + ",".join(self.zenoh_connect))
+        return "zenoh " + " ".join(parts)
+
+    # -- protocol thread: the node and what it asks for ------------------------------
+    def _handle(self, item: object, now: float) -> None:
+        assert self.node is not None
+        self._execute(self.node.handle(item, now))
+
+    def _tick(self, now: float) -> None:
+        node = self.node
+        assert node is not None
+        if self.bridge is not None:
+            radio = (self.bridge.radio.rssi, self.bridge.radio.remrssi)
+            if radio != self._radio_seen:
+                self._radio_seen = radio
+                node.handle(RadioInfo(*radio), now)
+        self._execute(node.tick(now))
+
+    def _next_deadline(self) -> float:
+        return self.node.next_deadline() if self.node is not None else self.clock() + 1.0
+
+    def _count_error(self) -> None:
+        self.stats["errors"] += 1
+
+    def _execute(self, outs: list[NodeOut]) -> None:
+        for o in outs:
+            if isinstance(o, Send):
+                self._send(o)
+            elif isinstance(o, PublishState):
+                self._publish_state(o.state)
+            elif isinstance(o, SetpointOut):
+                self._setpoint(o.setpoint)
+            elif isinstance(o, CallOut):
+                self._calls.put(o.call)
+            elif isinstance(o, EventOut):
+                self._event(o.text)
+
+    def _send(self, o: Send) -> None:
+        tr = self.transport
+        try:
+            if o.to == 0:
+                if isinstance(o.msg, Advertize):
+                    tr.advertise(o.msg)
+                    self.stats["advertized"] += 1
+                elif isinstance(o.msg, GSAdvertize):
+                    tr.gs_advertise(o.msg)
+                return
+            if o.name is None:
+                self.stats["unknown_destination"] += 1
+                return
+            tr.send(o.name, o.msg)
+            self.stats["gs_sent" if o.to > 250 else "sent"] += 1
+        except Exception:  # the session closing under us, or a bad peer name
+            self.stats["send_errors"] += 1
+            log.debug("agent %s: send failed", self.name, exc_info=True)
+
+    def _event(self, text: str) -> None:
+        log.info("agent %s: %s", self.name, text)
+        if self.on_event is not None:
+            try:
+                self.on_event(text)
+            except Exception:
+                log.exception("agent %s: on_event callback failed", self.name)
+
+    def _setpoint(self, sp: Setpoint) -> None:
+        v = self.vehicle
+        if v is None:
+            return
+        s = v.state
+        if s.home is not None:
+            home_amsl = s.home[2]
+        elif s.alt_amsl is not None and s.rel_alt is not None:
+            home_amsl = s.alt_amsl - s.rel_alt
+        else:
+            return
+        try:
+            v.set_target_global(
+                sp.lat, sp.lon, sp.alt - home_amsl, math.radians(sp.yaw_deg), velocity=(sp.vn, sp.ve, 0.0)
+            )
+            self.stats["setpoints"] += 1
+        except Exception as exc:  # a bad setpoint is refused by the driver: count, hold on
+            self.stats["setpoint_errors"] += 1
+            log.debug("agent %s: setpoint refused: %s", self.name, exc)
+
+    def _vehicle_loop(self) -> None:
+        """Runs the pilot's one-shot calls (they block: take-off waits for altitude)."""
+        while not self._stop.is_set():
+            item = self._calls.get()
+            if item is _STOP or not isinstance(item, Call):
+                break
+            try:
+                self._do_call(item)
+                self.loop.put(CallDone(item, True, ""))
+            except Exception as exc:
+                self.loop.put(CallDone(item, False, str(exc)))
+
+    def _do_call(self, c: Call) -> None:
+        v = self.vehicle
+        if c.kind == "arm":
+            v.arm()
+        elif c.kind == "disarm":
+            v.disarm()
+        elif c.kind == "takeoff":
+            v.takeoff(c.alt, wait=True, timeout=60.0)
+            v.start_offboard()  # hold here under setpoint control
+        elif c.kind == "land":
+            v.land()
+        elif c.kind == "return":
+            v.return_to_launch()
+        else:
+            raise ValueError(f"unknown vehicle call {c.kind!r}")
+
+    def _publish_state(self, st: AgentState) -> None:
+        try:
+            self.transport.publish_state(st)
+            self.stats["state_published"] += 1
+        except Exception:
+            self.stats["send_errors"] += 1
+        if st != self._state:
+            self._state = st
+            if self.on_state is not None:
+                try:
+                    self.on_state(st)
+                except Exception:
+                    log.exception("agent %s: on_state callback failed", self.name)
+
+    # -- pose thread -------------------------------------------------------------------
+    def _pose_loop(self) -> None:
+        period = 1.0 / self.pose_hz
+        while not self._stop.wait(period):
+            try:
+                self._pose_once()
+            except Exception:
+                self.stats["errors"] += 1
+                log.exception("agent %s: pose error", self.name)
+
+    def _pose_once(self) -> None:
+        v = self.vehicle
+        s = v.state
+        link_ok = bool(getattr(v, "link_ok", True))
+        self.loop.put(vehicle_info(s, link_ok))
+        if not link_ok:
+            return  # no fresh position: a stale one would look alive to the swarm
+        if self.bridge is not None:
+            for msg in vehicle_messages(s):
+                self.bridge.forward_vehicle(msg)
+                self.stats["vehicle_forwarded"] += 1
+        # the pose's sample time is when the position arrived, not when we read it
+        t = s.position_time if s.position_time and self.clock is time.monotonic else self.clock()
+        pose = pose_from_state(s, t)
+        if pose is None:
+            return
+        self.loop.put(OwnPose(pose, bool(s.in_air)))
+        self.transport.publish_pose(PoseReport(pose))
+        self.stats["poses"] += 1
+
+
+def vehicle_info(s: Any, link_ok: bool) -> VehicleInfo:
+    """What Telemetry reports of a driver VehicleState."""
+    speed = 0.0
+    if s.velocity is not None and all(map(math.isfinite, s.velocity[:2])):
+        speed = math.hypot(s.velocity[0], s.velocity[1])
+    return VehicleInfo(
+        mode=s.mode,
+        armed=bool(s.armed),
+        airborne=bool(s.in_air),
+        battery=int(s.battery_remaining),
+        groundspeed=speed,
+        link_ok=link_ok,
+    )
+
+
+def pose_from_state(s: Any, t: float) -> Pose | None:
+    """The protocol's Pose from a driver VehicleState (None before a position fix)."""
+    if s.lat is None or s.lon is None:
+        return None
+    vn, ve = (s.velocity[0], s.velocity[1]) if s.velocity is not None else (0.0, 0.0)
+    vals = [s.lat, s.lon, s.alt_amsl if s.alt_amsl is not None else 0.0, math.degrees(s.yaw) % 360.0, vn, ve]
+    if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in vals):
+        return None
+    return Pose(vals[0], vals[1], vals[2], vals[3], vals[4], vals[5], t)
+
+
+_AUTOPILOT_IDS = {"px4": 12, "ardupilot": 3}
+MAV_TYPE_QUADROTOR = 2
+
+
+def _clamp(x: float, lo: int, hi: int) -> int:
+    return max(lo, min(hi, round(x)))
+
+
+def vehicle_messages(s: Any) -> list[Any]:
+    """HEARTBEAT and (with a fix) GLOBAL_POSITION_INT rebuilt from a VehicleState, for
+    :meth:`swarm.runtime.bridge.RadioBridge.forward_vehicle` (the driver keeps no raw messages)."""
+    from radios.mavlink import dialect
+
+    out: list[Any] = [
+        dialect.MAVLink_heartbeat_message(
+            MAV_TYPE_QUADROTOR,
+            _AUTOPILOT_IDS.get(s.autopilot, 0),
+            s.base_mode & 0xFF,
+            s.custom_mode & 0xFFFFFFFF,
+            s.system_status & 0xFF,
+            3,
+        )
+    ]
+    if s.lat is not None and s.lon is not None and math.isfinite(s.lat) and math.isfinite(s.lon):
+        vel = s.velocity if s.velocity is not None and all(map(math.isfinite, s.velocity)) else (0, 0, 0)
+        alt = s.alt_amsl if s.alt_amsl is not None and math.isfinite(s.alt_amsl) else 0.0
+        rel = s.rel_alt if s.rel_alt is not None and math.isfinite(s.rel_alt) else 0.0
+        hdg = _clamp(math.degrees(s.yaw) % 360.0 * 100, 0, 35999) if math.isfinite(s.yaw) else 65535
+        out.append(
+            dialect.MAVLink_global_position_int_message(
+                s.time_boot_ms & 0xFFFFFFFF,
+                _clamp(s.lat * 1e7, -900_000_000, 900_000_000),
+                _clamp(s.lon * 1e7, -1_800_000_000, 1_800_000_000),
+                _clamp(alt * 1000, -(2**31), 2**31 - 1),
+                _clamp(rel * 1000, -(2**31), 2**31 - 1),
+                _clamp(vel[0] * 100, -32768, 32767),
+                _clamp(vel[1] * 100, -32768, 32767),
+                _clamp(vel[2] * 100, -32768, 32767),
+                hdg,
+            )
+        )
+    return out
+
+
+def state_dict(name: str, st: AgentState) -> dict[str, Any]:
+    """An AgentState as the JSON object ``swarm agent --json`` prints."""
+    return {
+        "name": name,
+        "id": st.sender,
+        "phase": st.phase.name,
+        "leader": st.leader,
+        "pool": sorted(st.pool),
+        "locked": st.locked,
+        "members": sorted(st.members),
+        "candidate": st.candidate,
+        "weight": st.weight,
+        "epoch": st.epoch,
+    }
+
+
+__all__ = [
+    "PROFILES",
+    "SETPOINT_PERIOD",
+    "VEHICLE_LINK_BACK",
+    "VEHICLE_LINK_LOST",
+    "VOTES",
+    "Agent",
+    "default_round_s",
+    "pose_from_state",
+    "state_dict",
+    "vehicle_info",
+    "vehicle_messages",
+]

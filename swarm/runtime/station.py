@@ -1,0 +1,296 @@
+"""The ground station's runtime: one :class:`~swarm.core.station.StationCore` on a thread.
+
+:class:`Station` runs the core on a thread over a Zenoh session, optionally bridged
+to a radio (exactly as :class:`swarm.runtime.agent.Agent` does), and gives the
+server thread-safe snapshots, command futures and an event feed.
+:class:`StationView` is what the server reads from a station, live or replayed.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from typing import Any, cast
+
+from swarm.core.messages import GCS_ID, GSAdvertize, Message
+from swarm.core.station import CommandRefused, CommandSpec, Event, StationConfig, StationCore, StOut, outcome
+from swarm.runtime.loop import EventLoop
+
+log = logging.getLogger(__name__)
+
+TICK_S = 0.05
+
+
+class StationView:
+    """What the server reads from a station, live or replayed: both keep a
+    :class:`StationCore` under a lock and say what time it is for it (``_now``)."""
+
+    core: StationCore
+    name: str
+    id: int
+    _lock: threading.Lock | threading.RLock
+
+    def _now(self) -> float:
+        raise NotImplementedError  # each station knows its own time
+
+    def describe(self) -> str:
+        raise NotImplementedError
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            body = self.core.snapshot(self._now())
+        body["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
+        return body
+
+    def snapshot_json(self) -> str:
+        """:meth:`snapshot` as JSON text (what the server sends)."""
+        station = {"name": self.name, "id": self.id, "link": self.describe()}
+        with self._lock:
+            return self.core.snapshot_json(self._now(), station)
+
+    def agent(self, agent_id: int) -> dict[str, Any] | None:
+        with self._lock:
+            a = self.core.agents.get(agent_id)
+            return a.as_dict(self._now()) if a is not None else None
+
+
+class Station(StationView):
+    """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.
+
+    Construction checks arguments (ValueError); :meth:`start` opens everything and may
+    raise :class:`radios.errors.ConfigError` (key file),
+    :class:`radios.errors.LinkOpenError` (radio), :class:`radios.errors.CaptureError`
+    (capture file), :class:`swarm.errors.TransportError` (Zenoh endpoints).
+    """
+
+    def __init__(
+        self,
+        name: str = "gcs",
+        station_id: int = GCS_ID,
+        *,
+        radio: str | None = None,
+        zenoh_listen: Sequence[str] = (),
+        zenoh_connect: Sequence[str] = (),
+        key_file: str | None = None,
+        capture: str | None = None,
+        config: StationConfig | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        if radio is not None and (zenoh_listen or zenoh_connect):
+            raise ValueError("a station joins either through a radio or over Zenoh endpoints")
+        if radio is None and not (zenoh_listen or zenoh_connect):
+            raise ValueError("give a radio or at least one Zenoh endpoint (listen or connect)")
+        if capture is not None and radio is None:
+            raise ValueError("a capture records the radio's traffic: it needs a radio")
+        self.core = StationCore(
+            name, station_id, config, wall_offset=wall() - clock(), first_seq=random.randrange(1, 0x10000)
+        )
+        self.name = name
+        self.id = station_id
+        self.radio_url = radio
+        self.zenoh_listen = list(zenoh_listen)
+        self.zenoh_connect = list(zenoh_connect)
+        self.key_file = key_file
+        self.capture = capture
+        self.clock = clock
+        self.replay = None
+        self.session: Any = None
+        self.transport: Any = None
+        self.link: Any = None
+        self.bridge: Any = None
+        self.stats = {"send_errors": 0, "errors": 0}
+        self._lock = threading.Lock()
+        self._futures: dict[int, Future[tuple[int, dict[str, Any]]]] = {}
+        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        # ticks at the core's deadlines and at most every TICK_S otherwise: at hundreds
+        # of messages a second, ticking after every batch cost more than the messages
+        # (every timer is a second or more, so 50 ms is invisible)
+        self.loop = EventLoop(
+            f"gcs-{name}",
+            handle=self._handle,
+            tick=self._tick,
+            next_deadline=self.core.next_deadline,
+            after=self._after,
+            on_error=self._count_error,
+            clock=clock,
+            min_tick_gap=TICK_S,
+        )
+        self._started = self._stopped = False
+
+    def start(self) -> Station:
+        with self._lock:
+            if self._started:
+                return self
+            self._started = True
+        try:
+            self._open()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _open(self) -> None:
+        from swarm.runtime.bridge import open_node
+        from swarm.runtime.transport import Transport
+
+        self.session, self.link, self.bridge = open_node(
+            self.name,
+            self.id,
+            radio=self.radio_url,
+            listen=self.zenoh_listen,
+            connect=self.zenoh_connect,
+            key_file=self.key_file,
+            capture=self.capture,
+        )
+        self.transport = tr = Transport(self.name, self.session)
+        tr.on_inbox(lambda m: self.loop.put((m, "")))
+        tr.on_gs_advertize(lambda m: self.loop.put((m, "")))
+        tr.on_pose("*", lambda n, m: self.loop.put((m, n)))
+        tr.on_state("*", lambda n, m: self.loop.put((m, n)))
+        self.loop.start()
+
+    def stop(self) -> None:
+        """Stop the thread, then close bridge, link and session. Safe twice."""
+        with self._lock:
+            if self._stopped:
+                return
+            self._stopped = True
+        self.loop.stop()
+        for close in (
+            self.transport and self.transport.close,
+            self.bridge and self.bridge.close,
+            self.link and self.link.close,
+            self.session and self.session.close,
+        ):
+            if close:
+                try:
+                    close()
+                except Exception:
+                    log.debug("station: error while closing", exc_info=True)
+        with self._lock:
+            futures, self._futures = self._futures, {}
+        for f in futures.values():
+            if not f.done():
+                f.set_result((503, {"error": "the station stopped"}))
+
+    close = stop
+
+    def __enter__(self) -> Station:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        radio_ok = self.bridge is None or not self.bridge.link_lost
+        return self._started and not self._stopped and radio_ok and self.loop.alive
+
+    def describe(self) -> str:
+        if self.radio_url is not None:
+            return f"radio={self.radio_url}"
+        parts = []
+        if self.zenoh_listen:
+            parts.append("listen=" + ",".join(self.zenoh_listen))
+        if self.zenoh_connect:
+            parts.append("connect=" + ",".join(self.zenoh_connect))
+        return "zenoh " + " ".join(parts)
+
+    # -- for the server (any thread): snapshot, snapshot_json, agent from StationView --
+    def _now(self) -> float:
+        return self.clock()
+
+    def center(self) -> list[float] | None:
+        with self._lock:
+            for a in self.core.agents.values():
+                if a.pose is not None:
+                    return [a.pose.lat, a.pose.lon]
+        return None
+
+    def submit(self, spec: CommandSpec) -> Future[tuple[int, dict[str, Any]]]:
+        """Send a command; the future gives (status, body) once every addressee
+        answered or ran out of tries.
+
+        Raises:
+            CommandRefused: see :meth:`StationCore.submit`.
+        """
+        fut: Future[tuple[int, dict[str, Any]]] = Future()
+        with self._lock:
+            if self._stopped:
+                raise CommandRefused(503, "the station is stopping")
+            req, outs = self.core.submit(spec, self.clock())
+            self._futures[req.id] = fut
+            events = self.core.take_events()
+        self._send(outs)
+        self._notify(events)
+        self.loop.wake()  # its next deadline moved
+        return fut
+
+    def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+        """``fn(event_dict)`` for every new event (called on the station's thread)."""
+        with self._lock:
+            self._listeners.append(fn)
+
+    def remove_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+        with self._lock:
+            if fn in self._listeners:
+                self._listeners.remove(fn)
+
+    # -- the station thread -------------------------------------------------------------
+    def _handle(self, item: object, now: float) -> None:
+        msg, name = cast(tuple[Message, str], item)
+        with self._lock:
+            outs = self.core.handle(msg, now, name)
+        self._send(outs)
+
+    def _tick(self, now: float) -> None:
+        with self._lock:
+            outs = self.core.tick(now)
+        self._send(outs)
+
+    def _after(self) -> None:
+        with self._lock:
+            events = self.core.take_events()
+            finished = self.core.take_finished()
+            futures = [self._futures.pop(r.id, None) for r in finished]
+        self._notify(events)
+        for r, f in zip(finished, futures, strict=True):
+            if f is not None and not f.done():
+                f.set_result(outcome(r))
+
+    def _count_error(self) -> None:
+        self.stats["errors"] += 1
+
+    def _send(self, outs: list[StOut]) -> None:
+        tr = self.transport
+        for o in outs:
+            try:
+                if o.to == 0:
+                    if isinstance(o.msg, GSAdvertize):
+                        tr.gs_advertise(o.msg)
+                else:
+                    tr.send(o.name, o.msg)
+            except Exception:
+                self.stats["send_errors"] += 1
+                log.debug("station: send failed", exc_info=True)
+
+    def _notify(self, events: list[Event]) -> None:
+        if not events:
+            return
+        with self._lock:
+            listeners = list(self._listeners)
+        for e in events:
+            d = e.as_dict()
+            for fn in listeners:
+                try:
+                    fn(d)
+                except Exception:
+                    log.exception("station: event listener failed")
+
+
+__all__ = ["Station", "StationView"]

@@ -1,0 +1,1 @@
+"""Virtual time: the election simulator, the flight simulator, tracks from captures."""

@@ -1,0 +1,481 @@
+"""Deterministic simulation: N protocol cores over the SiK air model, in virtual time.
+
+Theory of operation
+-------------------
+Each simulated agent is a :class:`swarm.core.protocol.Core` behind a radio of
+:class:`radios.air.AirModel` (the same model the pty emulator runs). What a core
+sends is encoded exactly as the radio bridge does it: compact message in a
+MAVLink 2 TUNNEL frame, payload type by key kind, identical P2P payloads to several
+peers merged into one multicast frame. Frames go through the model's serial
+pacing, TDM and loss; what a radio outputs is parsed, filtered by target and
+decoded back into the core. There is no wall clock: the loop jumps from one
+deadline (a core's or the air's) to the next, so a run is exactly repeatable for
+its seed.
+
+Scenarios add loss (uniform, bursty), partitions (groups that cannot hear each
+other for a while), crashes (an agent stops for good; ``leader`` means whoever
+leads then) and late starts. After each run the invariants are checked:
+
+* converged: at some point every live agent was in one agreed swarm per
+  connected group (one leader, every other agent its member and listed by it)
+  and that held for ``settle`` seconds; a run that never gets there violates;
+* after convergence, two leaders in one connected group never coexist for more
+  than SPLIT_LIMIT_S (the merge rule's time);
+* no member follows a dead leader for longer than its leader timeout (+ a round);
+* whether every live agent is in the agreed swarm at the end is reported
+  (``stable_at_end``): under heavy loss members are expelled and re-join, so
+  a run may end in the middle of a re-join without anything being wrong;
+* the air time used stays within the channel's capacity.
+
+A failing seed is reported with the exact command that replays it.
+"""
+
+from __future__ import annotations
+
+import random
+import statistics
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+from radios.air import AirModel, LossModel, RadioConfig
+from radios.loss import GilbertElliott, UniformLoss
+from radios.mavlink import MSG_TUNNEL, FrameBuilder, FrameParser, frame_length
+from swarm.core.messages import Advertize, Message, Phase, Pose, decode, encode
+from swarm.core.protocol import ADVERTIZE, Core, Out, profile_by_name
+from swarm.core.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
+from swarm.errors import DecodeError
+
+
+@dataclass(frozen=True)
+class Partition:
+    t0: float
+    t1: float
+    groups: tuple[frozenset[int], ...]
+
+    @classmethod
+    def parse(cls, spec: str) -> Partition:
+        """``T0-T1:1,2,3|4,5`` (seconds; agent ids, 1-based)."""
+        try:
+            times, groups = spec.split(":", 1)
+            a, b = times.split("-", 1)
+            gs = tuple(frozenset(int(x) for x in g.split(",") if x) for g in groups.split("|"))
+            return cls(float(a), float(b), gs)
+        except ValueError:
+            raise ValueError(f"partition {spec!r}: expected T0-T1:1,2|3,4") from None
+
+    def group_of(self, agent: int) -> int:
+        for i, g in enumerate(self.groups):
+            if agent in g:
+                return i
+        return -1
+
+
+@dataclass
+class PartitionLoss:
+    """Drops every packet between agents of different groups during the partition."""
+
+    parts: list[Partition]
+
+    def lost(self, sender: int, receiver: int, t: float, rng: random.Random) -> bool:
+        for p in self.parts:
+            if p.t0 <= t < p.t1 and p.group_of(sender + 1) != p.group_of(receiver + 1):
+                return True
+        return False
+
+
+def parse_at(spec: str) -> tuple[str, float]:
+    """``ID@T`` or ``leader@T``."""
+    who, _, t = spec.partition("@")
+    if not t:
+        raise ValueError(f"{spec!r}: expected ID@SECONDS or leader@SECONDS")
+    return who, float(t)
+
+
+@dataclass
+class Scenario:
+    agents: int = 5
+    loss: float = 0.0
+    burst_loss: str | None = None
+    partitions: list[str] = field(default_factory=list)
+    crashes: list[str] = field(default_factory=list)
+    late: list[str] = field(default_factory=list)
+    profile: str = "paper"
+    air_kbps: int = 64
+    serial_baud: int = 57600
+    duration: float = 60.0
+    settle: float = 3.0  # converged state must hold this long
+
+    def command(self, seed: int) -> str:
+        parts = [
+            f"swarm simulate --agents {self.agents} --seeds 1 --seed {seed}",
+            f"--profile {self.profile}",
+        ]
+        if self.loss:
+            parts.append(f"--loss {self.loss}")
+        if self.burst_loss:
+            parts.append(f"--burst-loss {self.burst_loss}")
+        parts += [f"--partition {p}" for p in self.partitions]
+        parts += [f"--crash {c}" for c in self.crashes]
+        parts += [f"--late {x}" for x in self.late]
+        if self.duration != 60.0:
+            parts.append(f"--duration {self.duration}")
+        return " ".join(parts)
+
+
+@dataclass
+class RunResult:
+    seed: int
+    converged: bool
+    elect_s: float | None
+    failover_s: float | None
+    violations: list[str]
+    air_utilisation: float
+    messages_per_agent: float
+    leader: int
+    end_s: float
+    stable_at_end: bool = True
+
+
+POSE = Pose(47.397742, 8.545594, 500.0)
+SPLIT_LIMIT_S = 20.0
+
+
+class Sim:
+    """One seeded run."""
+
+    def __init__(self, sc: Scenario, seed: int) -> None:
+        self.sc = sc
+        self.seed = seed
+        rng = random.Random(seed)
+        n = sc.agents
+        fw = "standard" if n <= 2 else "multipoint"
+        cfgs = [
+            RadioConfig(
+                air_kbps=sc.air_kbps, serial_baud=sc.serial_baud, firmware=fw, node_id=i, node_count=max(n, 2)
+            )
+            for i in range(n)
+        ]
+        losses: list[LossModel] = []
+        if sc.loss:
+            losses.append(UniformLoss(sc.loss))
+        if sc.burst_loss:
+            losses.append(GilbertElliott.parse(sc.burst_loss))
+        self.partitions = [Partition.parse(p) for p in sc.partitions]
+        if self.partitions:
+            losses.append(PartitionLoss(self.partitions))
+        self.air = AirModel(cfgs, seed=rng.getrandbits(32), losses=losses)
+        round_s = self.air.round_s(0)
+        self.round_s = round_s
+        profile = profile_by_name(sc.profile, round_s)
+        self.cores = [
+            Core(i + 1, f"agent{i + 1}", profile, rng=random.Random(rng.getrandbits(64))) for i in range(n)
+        ]
+        for c in self.cores:
+            c.set_pose(POSE)
+        self.builders = [FrameBuilder(i + 1, COMP_ID) for i in range(n)]
+        self.parsers = [FrameParser() for _ in range(n)]
+        self.start_at = [0.0] * n
+        for spec in sc.late:
+            who, t = parse_at(spec)
+            self.start_at[int(who) - 1] = t
+        self.crash_at: list[tuple[str, float]] = [parse_at(s) for s in sc.crashes]
+        self.alive = [True] * n
+        self.started = [False] * n
+        self.dead_at: dict[int, float] = {}
+        self.sent = [0] * n
+        self.violations: list[str] = []
+        self.following_dead_since: dict[int, float] = {}
+        self._due = [0.0] * n  # each core's next deadline (cached)
+        self._split_since: float | None = None
+        # a run goes on at least until its last partition heals and its last agent starts
+        self._last_event = max([p.t1 for p in self.partitions] + self.start_at + [0.0])
+
+    # -- wiring -------------------------------------------------------------------
+    def _send(self, i: int, outs: list[Out], t: float) -> None:
+        if not outs or not self.alive[i]:
+            return
+        p2p: list[tuple[int, bytes]] = []
+        for o in outs:
+            data = encode(o.msg)
+            if o.to == ADVERTIZE:
+                kind = Kind.ADVERTIZE if isinstance(o.msg, Advertize) else Kind.GS_ADVERTIZE
+                self._write(i, kind, (0,), data, t)
+            else:
+                p2p.append((o.to, data))
+        for kind, targets, data in group(p2p):
+            self._write(i, kind, targets, data, t)
+
+    def _write(self, i: int, kind: Kind, targets: tuple[int, ...], body: bytes, t: float) -> None:
+        target, ptype, payload = pack(kind, targets, body)
+        frame = self.builders[i].tunnel(payload, target_system=target, payload_type=ptype)
+        self.sent[i] += 1
+        self.air.host_write(i, frame, t)
+
+    def _receive(self, i: int, t: float) -> None:
+        radio = self.air.radios[i]
+        if not radio.host_ready and not radio.outbuf:
+            return
+        data = self.air.take_output(i, t)
+        if not data:
+            return
+        if not self.alive[i] or not self.started[i]:
+            self.parsers[i].feed(data)
+            return
+        # what the core answers to the frames of one read leaves together, as the
+        # bridge's 5 ms hold sends it: identical payloads merge into one MULTI frame
+        outs: list[Out] = []
+        me = i + 1
+        for f in self.parsers[i].feed(data):
+            if f.msgid != MSG_TUNNEL:
+                continue
+            try:
+                tun = unpack_tunnel(f.payload)
+                if tun is None:
+                    continue
+                kind, target, ids, body = tun
+                if target not in (0, me) or (kind == Kind.MULTI and me not in ids):
+                    continue
+                msg = decode(body)
+            except DecodeError:
+                continue
+            outs += self._on_message(i, f.sysid, kind, msg, t)
+        self._send(i, outs, t)
+
+    def _on_message(self, i: int, sender: int, kind: Kind, msg: Message, t: float) -> list[Out]:
+        """A message received by agent ``i`` (a subclass adds other streams)."""
+        self._due[i] = t
+        return self.cores[i].handle(msg, t)
+
+    # -- running ------------------------------------------------------------------
+    def _agreement(self) -> tuple[bool, int]:
+        """(every live agent in one agreed swarm per connected group, a leader id)."""
+        live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
+        if not live:
+            return True, 0
+        groups: dict[int, list[Core]] = defaultdict(list)
+        t = self.air.now
+        for c in live:
+            key = 0
+            for p in self.partitions:
+                if p.t0 <= t < p.t1:
+                    key = p.group_of(c.me)
+            groups[key].append(c)
+        leader_id = 0
+        for members in groups.values():
+            leaders = [c for c in members if c.phase == Phase.LEADER]
+            if len(leaders) != 1:
+                return False, 0
+            lead = leaders[0]
+            leader_id = lead.me
+            for c in members:
+                if c is lead:
+                    continue
+                if c.phase != Phase.MEMBER or c.leader != lead.me or c.me not in lead.members:
+                    return False, 0
+        return True, leader_id
+
+    def run(self) -> RunResult:
+        sc = self.sc
+        n = sc.agents
+        t = 0.0
+        converged_since: float | None = None
+        elect_s: float | None = None
+        failover_s: float | None = None
+        crash_time: float | None = None
+        leader = 0
+        last_conv_state = False
+        next_check = 0.0
+        while t <= sc.duration:
+            # starts and crashes due now
+            for i in range(n):
+                if not self.started[i] and t >= self.start_at[i]:
+                    self.started[i] = True
+                    self._send(i, self.cores[i].start(t), t)
+                    self._due[i] = t
+            for k, (who, when) in enumerate(list(self.crash_at)):
+                if t >= when:
+                    victim = leader if who == "leader" else int(who)
+                    if who == "leader" and victim == 0:
+                        continue  # no leader yet: wait
+                    self.crash_at.pop(k)
+                    if 1 <= victim <= n and self.alive[victim - 1]:
+                        self.alive[victim - 1] = False
+                        self.dead_at[victim] = t
+                        crash_time = t
+                        converged_since = None
+                        last_conv_state = False
+                    break
+            self.air.advance(t)
+            for i in range(n):
+                self._receive(i, t)
+            for i in range(n):
+                if self.alive[i] and self.started[i] and self._due[i] <= t + 1e-9:
+                    core = self.cores[i]
+                    self._send(i, core.tick(t), t)
+                    d = core.next_deadline()
+                    self._due[i] = d if d is not None else float("inf")
+            if t < next_check:
+                t = self._next_time(t)
+                continue
+            next_check = t + 0.1
+            ok, lead = self._agreement()
+            if ok and all(self.started):
+                if not last_conv_state:
+                    converged_since = t
+                    leader = lead
+                last_conv_state = True
+                if converged_since is not None and t - converged_since >= sc.settle:
+                    if crash_time is None and elect_s is None:
+                        elect_s = converged_since - max(self.start_at)
+                    if crash_time is not None and failover_s is None and converged_since >= crash_time:
+                        failover_s = converged_since - crash_time
+                    if not self.crash_at and t >= self._last_event:
+                        break
+            else:
+                last_conv_state = False
+            if ok:
+                leader = lead
+            self._check_dead_leaders(t)
+            self._check_split(t, elect_s is not None or failover_s is not None)
+            t = self._next_time(t)
+        ok, lead = self._agreement()
+        if elect_s is None and not (self.sc.crashes and failover_s is not None):
+            self.violations.append("never converged (no agreed swarm held for the settle time)")
+        util = self.air.utilisation(t)
+        if util > 1.0:
+            self.violations.append(f"air utilisation {util:.2f} above capacity")
+        live = [i for i in range(n) if self.alive[i]]
+        return RunResult(
+            seed=self.seed,
+            converged=ok,
+            elect_s=elect_s,
+            failover_s=failover_s,
+            violations=self.violations,
+            air_utilisation=util,
+            messages_per_agent=sum(self.sent[i] for i in live) / max(len(live), 1),
+            leader=lead,
+            end_s=t,
+            stable_at_end=ok,
+        )
+
+    def _check_split(self, t: float, converged_once: bool) -> None:
+        """After convergence, two leaders in one connected group must not coexist for
+        longer than SPLIT_LIMIT_S (the merge rule needs an advertize and a heartbeat)."""
+        if not converged_once:
+            return
+        groups: dict[int, int] = defaultdict(int)
+        for i, c in enumerate(self.cores):
+            if self.alive[i] and self.started[i] and c.phase == Phase.LEADER:
+                key = 0
+                for p in self.partitions:
+                    if p.t0 <= t < p.t1:
+                        key = p.group_of(c.me)
+                groups[key] += 1
+        if any(n > 1 for n in groups.values()):
+            self._split_since = t if self._split_since is None else self._split_since
+            if t - self._split_since > SPLIT_LIMIT_S:
+                msg = f"two leaders in one connected group for over {SPLIT_LIMIT_S:.0f} s"
+                if msg not in self.violations:
+                    self.violations.append(msg)
+        else:
+            self._split_since = None
+
+    def _check_dead_leaders(self, t: float) -> None:
+        limit = self.cores[0].profile.leader_timeout + 2 * self.round_s
+        for i, c in enumerate(self.cores):
+            if not self.alive[i] or c.phase != Phase.MEMBER:
+                self.following_dead_since.pop(i, None)
+                continue
+            if c.leader in self.dead_at:
+                since = max(self.dead_at[c.leader], self.following_dead_since.setdefault(i, t))
+                if t - since > limit:
+                    msg = f"agent {i + 1} followed dead leader {c.leader} for over {limit:.1f} s"
+                    if msg not in self.violations:
+                        self.violations.append(msg)
+
+    def _air_deadline(self) -> float | None:
+        """The air model's next deadline, except that a radio's serial output wakes
+        the loop when the next whole frame has left the radio (nothing can be decoded
+        before) instead of every 5 ms of output: the same bytes at the same times."""
+        air = self.air
+        t = air._events[0][0] if air._events else None
+        for i, r in enumerate(air.radios):
+            if not r.outbuf:
+                continue
+            need = self._frame_need(i, r.outbuf)
+            if need is None:
+                d = r.drain_clock + min(len(r.outbuf) * r.byte_s, 0.005)
+            else:
+                d = r.drain_clock + need * r.byte_s + 1e-9
+            t = d if t is None or d < t else t
+        return t
+
+    def _frame_need(self, i: int, outbuf: bytearray) -> int | None:
+        """Bytes of ``outbuf`` that complete the frame the parser is waiting for (all
+        of it if the frame is cut short), or None if the stream is not at a frame."""
+        pend = self.parsers[i]._buf
+        head: bytes | bytearray = pend if pend else outbuf
+        if len(head) < 3 and pend:
+            head = bytes(pend) + bytes(outbuf[:3])
+        flen = frame_length(head, 0)
+        if flen is None:
+            return None
+        return max(1, min(flen - len(pend), len(outbuf)))
+
+    def _next_time(self, t: float) -> float:
+        cands = [t + 0.1]  # invariants are sampled every 100 ms
+        dl = self._air_deadline()
+        if dl is not None:
+            cands.append(dl)
+        for i in range(len(self.cores)):
+            if self.alive[i] and self.started[i]:
+                cands.append(self._due[i])
+            elif not self.started[i]:
+                cands.append(self.start_at[i])
+        cands += [w for _, w in self.crash_at]
+        nxt = min(x for x in cands if x > t + 1e-9) if any(x > t + 1e-9 for x in cands) else t + 0.05
+        return max(nxt, t + 1e-4)
+
+
+def pct(values: list[float], q: float) -> float | None:
+    if not values:
+        return None
+    s = sorted(values)
+    k = min(len(s) - 1, max(0, round(q * (len(s) - 1))))
+    return round(s[k], 3)
+
+
+def campaign(sc: Scenario, seeds: int, seed0: int = 0) -> dict[str, Any]:
+    results = [Sim(sc, seed0 + k).run() for k in range(seeds)]
+    elect = [r.elect_s for r in results if r.elect_s is not None]
+    fail = [r.failover_s for r in results if r.failover_s is not None]
+    bad = [r for r in results if r.violations]
+    round_s = Sim(sc, seed0).round_s
+    out: dict[str, Any] = {
+        "agents": sc.agents,
+        "profile": sc.profile,
+        "loss": sc.loss,
+        "runs": len(results),
+        "converged": sum(r.elect_s is not None or r.failover_s is not None for r in results),
+        "stable_at_end": sum(r.stable_at_end for r in results),
+        "violations": sum(len(r.violations) for r in results),
+        "elect_s": {"p50": pct(elect, 0.5), "p95": pct(elect, 0.95), "max": pct(elect, 1.0)},
+        "air_utilisation": {
+            "p50": pct([r.air_utilisation for r in results], 0.5),
+            "max": pct([r.air_utilisation for r in results], 1.0),
+        },
+        "messages_per_agent": {"p50": pct([r.messages_per_agent for r in results], 0.5)},
+        "round_s": round(round_s, 4),
+    }
+    if sc.crashes:
+        out["failover_s"] = {"p50": pct(fail, 0.5), "p95": pct(fail, 0.95)}
+    out["failing"] = [
+        {"seed": r.seed, "violations": r.violations or ["did not converge"], "replay": sc.command(r.seed)}
+        for r in bad[:10]
+    ]
+    return out
+
+
+def elect_stats(values: list[float]) -> dict[str, float | None]:
+    return {"p50": statistics.median(values) if values else None}

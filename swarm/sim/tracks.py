@@ -1,0 +1,260 @@
+"""Formation tracks and metrics from a radio capture, and their picture.
+
+Theory of operation
+-------------------
+Everything the swarm puts on the air is in the capture (``.tlog``): each agent's
+pose stream (PoseReport in TUNNEL frames) and the leader's Heartbeats with the
+swarm task (heading, assignments). :func:`analyse` rebuilds from it:
+
+* each agent's **track**: its poses at their sample times. A pose carries its
+  sample time modulo 2.56 s in the sender's clock; the capture stamps the air
+  time. Per sender, the delay (air time - sample time) modulo 2.56 s is smallest
+  for the pose that waited least; the sample time of every pose is its air time
+  minus its delay beyond that smallest one (the smallest, a few tens of
+  milliseconds of serial and air time, is ignored);
+* the **task timeline**: which leader, heading and assignments held when;
+* each member's **slot error** at each of its pose samples: the distance from
+  the slot (the followed agent's position, interpolated at the same instant,
+  plus the slot offset for the task heading then). A sample is in a *turn* when
+  the task heading changed within ``turn_margin_s`` of it; the others, from
+  ``settle_s`` after the first follow task, are *straight*.
+
+:func:`plot` draws the tracks (local metres from the first leader pose), the
+leader's thick with a star where it ended, and the slots every ``slot_every_s``
+seconds (crosses, with a thin line to the agent followed), with matplotlib's Agg
+backend (no display needed).
+
+Nothing here raises for a damaged capture: the whole records before the damage
+are used and ``damaged`` says where it stopped.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from radios.errors import CaptureError
+from radios.mavlink import MSG_TUNNEL
+from radios.tlog import read_tlog
+from swarm.core.formation import POSE_T_WRAP, ne_between, slot_error, slot_offset
+from swarm.core.messages import Heartbeat, Pose, PoseReport, Task, TaskKind, decode
+from swarm.core.tunnel import Kind, unpack_tunnel
+from swarm.errors import DecodeError
+
+KIND_P2P, KIND_POSE, KIND_MULTI = Kind.P2P, Kind.POSE, Kind.MULTI
+
+
+@dataclass
+class Analysis:
+    tracks: dict[int, list[tuple[float, Pose]]] = field(default_factory=dict)
+    tasks: list[tuple[float, int, Task]] = field(default_factory=list)  # (t, leader, task)
+    errors: list[tuple[float, int, float, bool]] = field(default_factory=list)  # t, member, m, turn
+    records: int = 0
+    damaged: str = ""
+    follow_at: float | None = None
+
+    @property
+    def leader(self) -> int:
+        return self.tasks[-1][1] if self.tasks else 0
+
+    def summary(self) -> dict[str, Any]:
+        straight = [e for _t, _m, e, turn in self.errors if not turn]
+        turns = [e for _t, _m, e, turn in self.errors if turn]
+        members = sorted({m for _t, m, _e, _turn in self.errors})
+        per = {}
+        for m in members:
+            s = [e for _t, mm, e, turn in self.errors if mm == m and not turn]
+            a = [e for _t, mm, e, _turn in self.errors if mm == m]
+            per[str(m)] = {"rms_m": _rms(s), "max_m": round(max(a), 2) if a else None, "samples": len(a)}
+        return {
+            "leader": self.leader,
+            "agents": sorted(self.tracks),
+            "records": self.records,
+            "formation_rms_m": _rms(straight),
+            "formation_max_m": round(max(straight), 2) if straight else None,
+            "turn_max_m": round(max(turns), 2) if turns else None,
+            "samples": len(self.errors),
+            "per_member": per,
+            **({"damaged": self.damaged} if self.damaged else {}),
+        }
+
+
+def _rms(v: list[float]) -> float | None:
+    return round(math.sqrt(sum(x * x for x in v) / len(v)), 3) if v else None
+
+
+def read_capture(path: str) -> Analysis:
+    """Tracks and tasks from a capture (no metrics yet).
+
+    Raises:
+        CaptureError: the file cannot be opened.
+    """
+    an = Analysis()
+    raw: dict[int, list[tuple[float, Pose]]] = {}
+    reader = read_tlog(path)
+    try:
+        for rec in reader:
+            an.records += 1
+            f = rec.frame
+            if f.msgid != MSG_TUNNEL:
+                continue
+            try:
+                tun = unpack_tunnel(f.payload)
+                if tun is None:
+                    continue
+                kind, _target, _ids, body = tun
+                if kind not in (KIND_POSE, KIND_P2P, KIND_MULTI):
+                    continue
+                msg = decode(body)
+            except DecodeError:
+                continue
+            if kind == KIND_POSE and isinstance(msg, PoseReport):
+                raw.setdefault(f.sysid, []).append((rec.t, msg.pose))
+            elif isinstance(msg, Heartbeat) and msg.task.kind != TaskKind.NONE:
+                if not an.tasks or an.tasks[-1][1:] != (msg.sender, msg.task):
+                    an.tasks.append((rec.t, msg.sender, msg.task))
+    except CaptureError as exc:
+        an.damaged = str(exc)
+    finally:
+        reader.close()
+    for sender, samples in raw.items():
+        delays = [(t - pose.t) % POSE_T_WRAP for t, pose in samples]
+        base = min(delays)
+        track = [
+            (t - (d - base if d - base < POSE_T_WRAP / 2 else 0.0), pose)
+            for (t, pose), d in zip(samples, delays, strict=True)
+        ]
+        track.sort(key=lambda x: x[0])
+        an.tracks[sender] = track
+    follows = [t for t, _l, task in an.tasks if task.kind == TaskKind.FOLLOW]
+    an.follow_at = follows[0] if follows else None
+    return an
+
+
+def position_at(
+    track: list[tuple[float, Pose]], t: float, times: list[float] | None = None, max_gap: float = 2.0
+) -> tuple[float, float] | None:
+    """(lat, lon) interpolated at ``t`` (None outside the track or across a gap)."""
+    ts = times if times is not None else [x[0] for x in track]
+    k = bisect.bisect_left(ts, t)
+    if k == 0 or k >= len(ts):
+        return None
+    (t0, a), (t1, b) = track[k - 1], track[k]
+    if t1 - t0 > max_gap:
+        return None
+    w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+    return a.lat + (b.lat - a.lat) * w, a.lon + (b.lon - a.lon) * w
+
+
+def analyse(
+    path: str, *, settle_s: float = 15.0, turn_margin_s: float = 8.0, start: float | None = None
+) -> Analysis:
+    """Tracks, tasks and slot errors (see the module docstring). ``start``: count
+    samples from this capture time (default: the first follow task + ``settle_s``)."""
+    an = read_capture(path)
+    if an.follow_at is None:
+        return an
+    t_from = start if start is not None else an.follow_at + settle_s
+    times = {a: [x[0] for x in tr] for a, tr in an.tracks.items()}
+    task_t = [t for t, _l, _task in an.tasks]
+    changes = [
+        an.tasks[k][0]
+        for k in range(1, len(an.tasks))
+        if an.tasks[k][2].kind == TaskKind.FOLLOW
+        and an.tasks[k - 1][2].kind == TaskKind.FOLLOW
+        and an.tasks[k][2].heading != an.tasks[k - 1][2].heading
+    ]
+    for member, track in an.tracks.items():
+        for t, pose in track:
+            if t < t_from:
+                continue
+            k = bisect.bisect_right(task_t, t) - 1
+            if k < 0:
+                continue
+            _t0, _leader, task = an.tasks[k]
+            if task.kind != TaskKind.FOLLOW:
+                continue
+            a = next((x for x in task.assignments if x.member == member), None)
+            if a is None or a.follows not in an.tracks:
+                continue
+            fp = position_at(an.tracks[a.follows], t, times[a.follows])
+            if fp is None:
+                continue
+            followed = Pose(fp[0], fp[1], pose.alt)
+            err = slot_error(pose, followed, task.heading, a.side, task.back_m, task.side_m)
+            j = bisect.bisect_left(changes, t - turn_margin_s)
+            turn = j < len(changes) and changes[j] <= t + turn_margin_s
+            an.errors.append((t, member, err, turn))
+    an.errors.sort()
+    return an
+
+
+def plot(an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "") -> str:
+    """Draw the tracks and slots to ``out`` (PNG). Returns ``out``.
+
+    Raises:
+        OSError: the file cannot be written.
+        ValueError: nothing to draw (no pose in the capture).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not an.tracks:
+        raise ValueError("no pose stream in the capture: nothing to draw")
+    leader = an.leader
+    ref_track = an.tracks.get(leader) or next(iter(an.tracks.values()))
+    lat0, lon0 = ref_track[0][1].lat, ref_track[0][1].lon
+
+    def ne(p: tuple[float, float]) -> tuple[float, float]:
+        return ne_between(lat0, lon0, p[0], p[1])
+
+    fig, ax = plt.subplots(figsize=(8, 8), dpi=100)
+    for agent, track in sorted(an.tracks.items()):
+        pts = [ne((p.lat, p.lon)) for _t, p in track]
+        xs, ys = [e for _n, e in pts], [n for n, _e in pts]
+        lead = agent == leader
+        ax.plot(xs, ys, lw=2.5 if lead else 1.0, label=f"agent {agent}" + (" (leader)" if lead else ""))
+        if lead and pts:
+            ax.plot(xs[-1], ys[-1], marker="*", ms=16, color="black")
+    if an.follow_at is not None and an.tasks:
+        times = {a: [x[0] for x in tr] for a, tr in an.tracks.items()}
+        t_end = max(tr[-1][0] for tr in an.tracks.values())
+        task_t = [t for t, _l, _task in an.tasks]
+        t = an.follow_at
+        while t <= t_end:
+            k = bisect.bisect_right(task_t, t) - 1
+            task = an.tasks[k][2] if k >= 0 else None
+            if task is not None and task.kind == TaskKind.FOLLOW:
+                for a in task.assignments:
+                    if a.follows not in an.tracks:
+                        continue
+                    fp = position_at(an.tracks[a.follows], t, times[a.follows])
+                    if fp is None:
+                        continue
+                    fn, fe = ne(fp)
+                    dn, de = slot_offset(task.heading, a.side, task.back_m, task.side_m)
+                    ax.plot([fe, fe + de], [fn, fn + dn], color="grey", lw=0.5)
+                    ax.plot(fe + de, fn + dn, marker="x", color="red", ms=5)
+            t += slot_every_s
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize=8)
+    s = an.summary()
+    default = (
+        f"leader {leader}: slot error RMS {s['formation_rms_m']} m, max {s['formation_max_m']} m "
+        f"on straight legs, {s['turn_max_m']} m in turns\n(x: slots every {slot_every_s:g} s)"
+    )
+    ax.set_title(title or default, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+__all__ = ["Analysis", "analyse", "plot", "position_at", "read_capture"]

@@ -41,7 +41,3 @@ class CommandTimeout(BridgeError, TimeoutError):
 
 class SetpointError(BridgeError, ValueError):
     """A setpoint is NaN, infinite or out of range: refused before it reaches the vehicle."""
-
-
-class LinkLost(BridgeError):
-    """The autopilot link is lost (no message for longer than the timeout)."""

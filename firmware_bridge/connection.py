@@ -1,0 +1,299 @@
+"""The link to the flight controller: connection strings and the pymavlink connection.
+
+Theory of operation. :func:`parse_url` is the one parser of the driver's
+connection strings (serial, udp/udpin, udpout, tcp, a bare ``/dev/...`` path); it
+is pure and opens nothing. :func:`open_link` opens the pymavlink connection for
+an :class:`Endpoint` (its blocking TCP connect and reconnect loop replaced by
+:class:`TcpLink`, which has a connect timeout and reports EOF instead of
+retrying), sets up MAVLink 2 signing, and waits for the autopilot's HEARTBEAT
+with our own deadline while sending the companion's heartbeat once a second
+(udpout and serial peers may wait to hear from us first). On any failure the
+connection is closed again before the error leaves. :func:`close_link` closes it,
+never raising. Errors are one-line :class:`ConnectError` or
+:class:`HeartbeatTimeout`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+os.environ.setdefault("MAVLINK20", "1")  # before pymavlink picks its wire protocol
+
+from pymavlink import mavutil
+
+from firmware_bridge.errors import ConnectError, HeartbeatTimeout
+from firmware_bridge.modes import MAV_AUTOPILOT_INVALID
+from firmware_bridge.telemetry import MSG_RADIO_STATUS, is_autopilot_heartbeat
+
+if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pragma: no cover - imported earlier as v1
+    os.environ["MAVLINK20"] = "1"
+    mavutil.set_dialect(mavutil.current_dialect)
+
+mavlink: Any = mavutil.mavlink
+
+__all__ = [
+    "Endpoint",
+    "TcpLink",
+    "close_link",
+    "companion_heartbeat",
+    "open_link",
+    "parse_url",
+    "signing_timestamp",
+]
+
+COMPANION_COMPONENT = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_STATE_ACTIVE = 4
+DEFAULT_BAUD = 57600
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A parsed connection string: ``scheme`` is serial, udpin, udpout or tcp."""
+
+    scheme: Literal["serial", "udpin", "udpout", "tcp"]
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+    def __str__(self) -> str:
+        if self.scheme == "serial":
+            return f"serial:{self.device}:{self.baud}"
+        return f"{self.scheme}:{self.host}:{self.port}"
+
+
+def _host_port(scheme: str, rest: str, url: str) -> tuple[str, int]:
+    rest = rest.removeprefix("//")
+    host, sep, port_s = rest.rpartition(":")
+    if not sep:
+        raise ConnectError(f"{url!r}: expected {scheme}:HOST:PORT")
+    host = host.strip("[]")
+    try:
+        port = int(port_s)
+    except ValueError:
+        raise ConnectError(f"{url!r}: port {port_s!r} is not a number") from None
+    if not 0 < port < 65536:
+        raise ConnectError(f"{url!r}: port {port} out of range 1-65535")
+    return host, port
+
+
+def _serial(rest: str, url: str) -> Endpoint:
+    device, colon, baud_s = rest.rpartition(":")
+    if not colon:
+        device, baud = rest, DEFAULT_BAUD
+    else:
+        try:
+            baud = int(baud_s)
+        except ValueError:
+            raise ConnectError(f"{url!r}: baud rate {baud_s!r} is not a number") from None
+        if baud <= 0:
+            raise ConnectError(f"{url!r}: baud rate must be positive")
+    if not device:
+        raise ConnectError(f"{url!r}: no serial device")
+    return Endpoint("serial", device=device, baud=baud)
+
+
+def parse_url(url: str) -> Endpoint:
+    """Parse ``serial:/dev/ttyAMA0:921600``, ``udp:``/``udpin:HOST:PORT`` (listen, as
+    PX4 SITL's API port expects), ``udpout:HOST:PORT`` or ``tcp:HOST:PORT``. A bare
+    ``/dev/...`` path is a serial port; ``udp://:14540`` (MAVSDK style) listens.
+
+    Raises:
+        ConnectError: malformed string or unknown scheme (nothing is opened here).
+    """
+    if not isinstance(url, str) or not url.strip():
+        raise ConnectError(f"empty connection string {url!r}")
+    url = url.strip()
+    if url.startswith("/"):
+        url = "serial:" + url
+    scheme, sep, rest = url.partition(":")
+    scheme = scheme.lower()
+    if not sep or not rest:
+        raise ConnectError(
+            f"{url!r}: expected SCHEME:..., e.g. udpin:127.0.0.1:14540, "
+            "tcp:127.0.0.1:5760 or serial:/dev/ttyAMA0:921600"
+        )
+    if scheme == "serial":
+        return _serial(rest, url)
+    if scheme in ("udp", "udpin"):
+        host, port = _host_port(scheme, rest, url)
+        return Endpoint("udpin", host=host or "0.0.0.0", port=port)
+    if scheme in ("udpout", "tcp"):
+        host, port = _host_port(scheme, rest, url)
+        if not host:
+            raise ConnectError(f"{url!r}: {scheme} needs a host")
+        return Endpoint("tcp" if scheme == "tcp" else "udpout", host=host, port=port)
+    raise ConnectError(f"{url!r}: unknown scheme {scheme!r} (serial, udp, udpin, udpout, tcp)")
+
+
+def _resolve(ep: Endpoint, kind: socket.SocketKind) -> str:
+    try:
+        infos = socket.getaddrinfo(ep.host, ep.port, socket.AF_INET, kind)
+    except (socket.gaierror, UnicodeError) as e:
+        raise ConnectError(f"{ep}: cannot resolve host {ep.host!r}: {e}") from None
+    return str(infos[0][4][0])
+
+
+class TcpLink(mavutil.mavtcp):
+    """pymavlink's TCP link with a connect timeout and no retry loop on EOF."""
+
+    connect_timeout = 5.0
+    port: socket.socket | None
+    eof: bool
+
+    def do_connect(self) -> None:
+        sock = socket.create_connection(self.destination_addr, timeout=self.connect_timeout)
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        mavutil.set_close_on_exec(sock.fileno())
+        self.port = sock
+        self.eof = False
+        if hasattr(self, "fd"):
+            self.fd = sock.fileno()
+
+    def handle_eof(self) -> None:
+        self.eof = True
+
+    def handle_disconnect(self) -> None:
+        self.eof = True
+
+    def recv(self, n: int | None = None) -> bytes:
+        if getattr(self, "eof", False) or self.port is None:
+            return b""
+        try:
+            data: bytes = super().recv(n)
+        except OSError:
+            self.eof = True
+            return b""
+        return data
+
+    def write(self, buf: bytes) -> None:
+        if getattr(self, "eof", False) or self.port is None:
+            return
+        super().write(buf)
+
+    def try_reconnect(self) -> bool:
+        with contextlib.suppress(OSError):
+            if self.port is not None:
+                self.port.close()
+        self.port = None
+        try:
+            self.connect_timeout = 1.0
+            self.do_connect()
+        except OSError:
+            self.port = None
+            return False
+        return True
+
+
+def _open(ep: Endpoint, timeout: float, source_system: int) -> Any:
+    """Open the pymavlink link for ``ep``.
+
+    Raises:
+        ConnectError: missing device, unresolvable host, port in use, refused.
+    """
+    kw = {"source_system": source_system, "source_component": COMPANION_COMPONENT}
+    try:
+        if ep.scheme == "serial":
+            if not os.path.exists(ep.device):
+                raise ConnectError(f"{ep}: serial device {ep.device} does not exist")
+            return mavutil.mavlink_connection(ep.device, baud=ep.baud, autoreconnect=False, **kw)
+        if ep.scheme in ("udpin", "udpout"):
+            ip = _resolve(ep, socket.SOCK_DGRAM)
+            return mavutil.mavlink_connection(f"{ep.scheme}:{ip}:{ep.port}", **kw)
+        ip = _resolve(ep, socket.SOCK_STREAM)
+        TcpLink.connect_timeout = max(0.1, min(timeout, 5.0))
+        return TcpLink(f"{ip}:{ep.port}", retries=0, **kw)
+    except ConnectError:
+        raise
+    except (OSError, ValueError) as e:
+        raise ConnectError(f"{ep}: cannot open: {e}") from None
+
+
+def open_link(
+    ep: Endpoint,
+    *,
+    timeout: float,
+    source_system: int,
+    source_component: int,
+    signing_key: bytes | None = None,
+) -> tuple[Any, Any]:
+    """Open ``ep``, set up signing and wait for the autopilot's HEARTBEAT; return
+    ``(connection, heartbeat)``. With ``signing_key`` everything sent is signed and
+    only signed messages (and unsigned RADIO_STATUS) are accepted.
+
+    Raises:
+        ConnectError: missing device, unresolvable host, refused, link error.
+        HeartbeatTimeout: no autopilot heartbeat within ``timeout`` s.
+    """
+    conn = _open(ep, timeout, source_system)
+    conn.mav.srcComponent = source_component
+    try:
+        if signing_key is not None:
+            conn.setup_signing(
+                bytes(signing_key),
+                sign_outgoing=True,
+                allow_unsigned_callback=lambda _mav, msg_id: msg_id == MSG_RADIO_STATUS,
+            )
+        return conn, _wait_heartbeat(conn, ep, timeout, source_component)
+    except BaseException:
+        close_link(conn)
+        raise
+
+
+def close_link(conn: Any) -> None:
+    """Close the pymavlink connection; never raises (closing twice is fine)."""
+    with contextlib.suppress(Exception):
+        conn.close()
+
+
+def companion_heartbeat() -> Any:
+    """The companion computer's HEARTBEAT (ONBOARD_CONTROLLER, no autopilot, active)."""
+    return mavlink.MAVLink_heartbeat_message(
+        MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE, 3
+    )
+
+
+def signing_timestamp() -> int:
+    """The wall clock in MAVLink signing units (10 µs since 2015-01-01 UTC)."""
+    return int((time.time() - 1420070400) * 100_000)
+
+
+def _autopilot_heartbeat_in(conn: Any, component: int) -> Any | None:
+    """The first autopilot HEARTBEAT (not from ``component``) among the messages
+    waiting on ``conn``, or None once they are read."""
+    while True:
+        msg = conn.recv_msg()
+        if msg is None:
+            return None
+        if is_autopilot_heartbeat(msg) and msg.get_srcComponent() != component:
+            return msg
+
+
+def _wait_heartbeat(conn: Any, ep: Endpoint, timeout: float, component: int) -> Any:
+    deadline = time.monotonic() + timeout
+    next_hb = 0.0
+    hb = companion_heartbeat()
+    while True:
+        now = time.monotonic()
+        if now >= deadline:
+            raise HeartbeatTimeout(f"{ep}: no autopilot heartbeat within {timeout:g} s")
+        if getattr(conn, "eof", False):
+            raise ConnectError(f"{ep}: connection closed by the peer before any heartbeat")
+        if now >= next_hb:  # udpout and serial peers may wait to hear from us first
+            with contextlib.suppress(OSError):
+                conn.mav.send(hb)
+            next_hb = now + 1.0
+        try:
+            conn.select(min(0.1, max(0.0, deadline - now)))
+            msg = _autopilot_heartbeat_in(conn, component)
+        except OSError as e:
+            raise ConnectError(f"{ep}: link error while waiting for a heartbeat: {e}") from None
+        if msg is not None:
+            return msg

@@ -1,0 +1,311 @@
+"""Telemetry folding, link watching and stream requests: the driver's pure side.
+
+Theory of operation. :class:`TelemetryFolder` is fed every message the link
+delivers with the time it arrived (``fold(msg, now)``). It keeps only the
+autopilot's (the system and component whose HEARTBEAT :func:`connect` took),
+folds each telemetry message into a new immutable :class:`VehicleState` by one
+function per message type (``_FOLDS``, the whole mapping in one table), keeps the
+last STATUSTEXTs of the autopilot's system and returns what a command in flight
+needs to hear (:class:`Heard`: a COMMAND_ACK addressed to us, a STATUSTEXT).
+:class:`LinkWatch` decides from the time of the autopilot's last message whether
+the link is lost (silent for longer than the timeout) or back, once per change.
+:class:`StreamRequests` remembers which message intervals were asked for and says
+which to ask again (not heard for 3 periods, at least 3 s; not asked in the last
+3 s), and when to ask again for HOME_POSITION. No I/O, no thread, no clock: the
+caller passes ``now`` (time.monotonic() in the driver, anything in tests).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+from firmware_bridge.modes import (
+    MAV_AUTOPILOT_INVALID,
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    decode_mode,
+)
+from firmware_bridge.setpoints import wrap_yaw
+
+__all__ = [
+    "CommandAck",
+    "Heard",
+    "LinkWatch",
+    "StatusText",
+    "StreamRequests",
+    "TelemetryFolder",
+    "VehicleState",
+    "is_autopilot_heartbeat",
+]
+
+LANDED_UNDEFINED, LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = 0, 1, 2, 3, 4
+
+# MAV_TYPEs that are never an autopilot (GCS, companion, gimbal, ADS-B, camera ...)
+NON_VEHICLE_TYPES = frozenset({6, 18, 26, 27, 30, 31, 32, 33, 34, 36, 37, 38, 39, 40, 41, 42})
+
+MSG_SYS_STATUS, MSG_GPS_RAW_INT, MSG_ATTITUDE = 1, 24, 30
+MSG_LOCAL_POSITION_NED, MSG_GLOBAL_POSITION_INT = 32, 33
+MSG_RADIO_STATUS, MSG_HOME_POSITION, MSG_EXTENDED_SYS_STATE = 109, 242, 245
+MAV_SYS_STATUS_SENSOR_GPS = 32
+
+HOME_REQUEST = -1  # StreamRequests' key for the one-shot REQUEST_MESSAGE(HOME_POSITION)
+REQUEST_AGAIN_S = 3.0  # at most one request per message per 3 s
+FALLBACK_AFTER_S = 1.0  # GLOBAL_POSITION_INT's velocity/heading only when the better source is this old
+
+
+def is_autopilot_heartbeat(msg: Any) -> bool:
+    """True for a flight controller's HEARTBEAT (not a GCS, companion or gimbal)."""
+    return (
+        msg.get_type() == "HEARTBEAT"
+        and msg.autopilot != MAV_AUTOPILOT_INVALID
+        and msg.type not in NON_VEHICLE_TYPES
+    )
+
+
+@dataclass(frozen=True)
+class StatusText:
+    """One STATUSTEXT from the autopilot (``time`` is the ``now`` it was folded at)."""
+
+    time: float
+    severity: int
+    text: str
+
+
+@dataclass(frozen=True)
+class CommandAck:
+    """A COMMAND_ACK from the autopilot addressed to us (or to everyone)."""
+
+    command: int
+    result: int
+    time: float
+
+
+@dataclass(frozen=True)
+class Heard:
+    """What one folded message means to a command in flight."""
+
+    ack: CommandAck | None = None
+    text: StatusText | None = None
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """A snapshot of the vehicle's telemetry. Unknown values are None (positions) or
+    the defaults below. Angles in radians, distances in metres, times monotonic."""
+
+    autopilot: str = "other"
+    system_id: int = 0
+    component_id: int = 0
+    lat: float | None = None
+    lon: float | None = None
+    alt_amsl: float | None = None
+    rel_alt: float | None = None
+    ned: tuple[float, float, float] | None = None
+    velocity: tuple[float, float, float] | None = None
+    yaw: float = 0.0
+    armed: bool = False
+    mode: str = ""
+    base_mode: int = 0
+    custom_mode: int = 0
+    system_status: int = 0
+    landed_state: int = LANDED_UNDEFINED
+    battery_remaining: int = -1
+    voltage: float | None = None
+    home: tuple[float, float, float] | None = None
+    gps_ok: bool = False
+    time_boot_ms: int = 0
+    last_message_time: float = 0.0
+    position_time: float = 0.0  # when the last GLOBAL_POSITION_INT arrived (monotonic)
+    last_heartbeat_time: float = 0.0
+
+    @property
+    def in_air(self) -> bool:
+        """From EXTENDED_SYS_STATE if the vehicle sends it, else armed and above 0.5 m."""
+        if self.landed_state != LANDED_UNDEFINED:
+            return self.landed_state in (LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING)
+        return self.armed and self.rel_alt is not None and self.rel_alt > 0.5
+
+
+def _text(raw: Any) -> str:
+    if isinstance(raw, bytes):
+        raw = raw.decode("utf-8", "replace")
+    return str(raw).rstrip("\x00").strip()
+
+
+_Updates = dict[str, Any]
+
+
+class TelemetryFolder:
+    """Folds the autopilot's messages into :attr:`state` (see the module header).
+
+    ``own_system`` is our MAVLink system id: a COMMAND_ACK for another system is
+    not ours. Telemetry fields come only from ``(target_system, target_component)``;
+    STATUSTEXTs from any component of ``target_system``.
+    """
+
+    def __init__(
+        self, autopilot: str, target_system: int, target_component: int, own_system: int, texts: int = 32
+    ) -> None:
+        self.autopilot = autopilot
+        self.target_system = target_system
+        self.target_component = target_component
+        self.own_system = own_system
+        self.state = VehicleState(autopilot=autopilot, system_id=target_system, component_id=target_component)
+        self.texts: deque[StatusText] = deque(maxlen=texts)
+        self.seen: dict[int, float] = {}  # message id -> when last heard
+        self._gps_fix: int | None = None
+        self._attitude_time = 0.0
+        self._local_time = 0.0
+
+    def texts_since(self, since: float) -> list[str]:
+        """The STATUSTEXTs folded at ``since`` or later, oldest first."""
+        return [t.text for t in self.texts if t.time >= since]
+
+    def fold(self, msg: Any, now: float) -> Heard:
+        """Fold ``msg`` (a pymavlink message) heard at ``now``; never raises on a
+        message of the autopilot's dialect (BAD_DATA and strangers are ignored)."""
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA" or msg.get_srcSystem() != self.target_system:
+            return Heard()
+        text = None
+        if mtype == "STATUSTEXT":
+            text = StatusText(now, msg.severity, _text(msg.text))
+            self.texts.append(text)
+        if msg.get_srcComponent() != self.target_component:
+            return Heard(text=text)
+        self.seen[msg.get_msgId()] = now
+        if mtype == "HEARTBEAT" and not is_autopilot_heartbeat(msg):
+            return Heard(text=text)
+        upd: _Updates = {"last_message_time": now}
+        ack = None
+        if mtype == "COMMAND_ACK":
+            if getattr(msg, "target_system", 0) in (0, self.own_system):
+                ack = CommandAck(msg.command, msg.result, now)
+        else:
+            fold = _FOLDS.get(mtype)
+            if fold is not None:
+                upd.update(fold(self, msg, now))
+        self.state = replace(self.state, **upd)
+        return Heard(ack=ack, text=text)
+
+    # one function per telemetry message: the fields it sets in the next state
+    def _heartbeat(self, msg: Any, now: float) -> _Updates:
+        return {
+            "armed": bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
+            "mode": decode_mode(self.autopilot, msg.custom_mode, msg.base_mode),
+            "base_mode": msg.base_mode,
+            "custom_mode": msg.custom_mode,
+            "system_status": msg.system_status,
+            "last_heartbeat_time": now,
+        }
+
+    def _global_position(self, msg: Any, now: float) -> _Updates:
+        upd: _Updates = {
+            "lat": msg.lat * 1e-7,
+            "lon": msg.lon * 1e-7,
+            "alt_amsl": msg.alt * 1e-3,
+            "rel_alt": msg.relative_alt * 1e-3,
+            "time_boot_ms": msg.time_boot_ms,
+            "position_time": now,
+        }
+        if now - self._local_time > FALLBACK_AFTER_S:  # no LOCAL_POSITION_NED lately
+            upd["velocity"] = (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)
+        if now - self._attitude_time > FALLBACK_AFTER_S and msg.hdg != 65535:  # no ATTITUDE lately
+            upd["yaw"] = wrap_yaw(math.radians(msg.hdg * 0.01))
+        return upd
+
+    def _local_position(self, msg: Any, now: float) -> _Updates:
+        if not all(math.isfinite(v) for v in (msg.x, msg.y, msg.z)):
+            return {}
+        self._local_time = now
+        return {"ned": (msg.x, msg.y, msg.z), "velocity": (msg.vx, msg.vy, msg.vz)}
+
+    def _attitude(self, msg: Any, now: float) -> _Updates:
+        if not math.isfinite(msg.yaw):
+            return {}
+        self._attitude_time = now
+        return {"yaw": wrap_yaw(msg.yaw)}
+
+    def _extended_sys_state(self, msg: Any, now: float) -> _Updates:
+        return {"landed_state": msg.landed_state}
+
+    def _sys_status(self, msg: Any, now: float) -> _Updates:
+        upd: _Updates = {
+            "battery_remaining": msg.battery_remaining,
+            "voltage": None if msg.voltage_battery == 65535 else msg.voltage_battery * 1e-3,
+        }
+        if self._gps_fix is None and msg.onboard_control_sensors_present & MAV_SYS_STATUS_SENSOR_GPS:
+            upd["gps_ok"] = bool(msg.onboard_control_sensors_health & MAV_SYS_STATUS_SENSOR_GPS)
+        return upd
+
+    def _gps_raw(self, msg: Any, now: float) -> _Updates:
+        self._gps_fix = msg.fix_type  # from now on GPS_RAW_INT, not SYS_STATUS, says whether GPS is ok
+        return {"gps_ok": msg.fix_type >= 3}
+
+    def _home_position(self, msg: Any, now: float) -> _Updates:
+        return {"home": (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)}
+
+
+_FOLDS: dict[str, Callable[[TelemetryFolder, Any, float], _Updates]] = {
+    "HEARTBEAT": TelemetryFolder._heartbeat,
+    "GLOBAL_POSITION_INT": TelemetryFolder._global_position,
+    "LOCAL_POSITION_NED": TelemetryFolder._local_position,
+    "ATTITUDE": TelemetryFolder._attitude,
+    "EXTENDED_SYS_STATE": TelemetryFolder._extended_sys_state,
+    "SYS_STATUS": TelemetryFolder._sys_status,
+    "GPS_RAW_INT": TelemetryFolder._gps_raw,
+    "HOME_POSITION": TelemetryFolder._home_position,
+}
+
+
+class LinkWatch:
+    """Lost when the autopilot has been silent for more than ``timeout`` s, back
+    when it is heard again; :meth:`check` reports each change once."""
+
+    def __init__(self, timeout: float) -> None:
+        self.timeout = timeout
+        self.ok = True
+
+    def check(self, last_message_time: float, now: float) -> Literal["lost", "restored"] | None:
+        """The change at ``now`` given the time of the autopilot's last message, if any."""
+        silent = now - last_message_time > self.timeout
+        if self.ok and silent:
+            self.ok = False
+            return "lost"
+        if not self.ok and not silent:
+            self.ok = True
+            return "restored"
+        return None
+
+
+class StreamRequests:
+    """The message intervals asked for, and which to ask for again."""
+
+    def __init__(self) -> None:
+        self.rates: dict[int, float] = {}  # message id -> Hz asked for
+        self.last_asked: dict[int, float] = {}  # message id (or HOME_REQUEST) -> when
+
+    def asked(self, msg_id: int, rate_hz: float, now: float) -> None:
+        """Record that ``msg_id`` was asked for at ``rate_hz`` at ``now``."""
+        self.rates[msg_id] = rate_hz
+        self.last_asked[msg_id] = now
+
+    def due(self, seen: Mapping[int, float], now: float) -> list[tuple[int, float]]:
+        """(message id, rate) of each stream not heard for 3 periods (at least 3 s)
+        and not asked for in the last 3 s; the caller asks again and records it."""
+        out = []
+        for msg_id, rate in self.rates.items():
+            stale = now - seen.get(msg_id, 0.0) > max(REQUEST_AGAIN_S, 3.0 / rate)
+            if stale and now - self.last_asked.get(msg_id, 0.0) > REQUEST_AGAIN_S:
+                out.append((msg_id, rate))
+        return out
+
+    def home_due(self, home_known: bool, now: float) -> bool:
+        """True (and recorded as asked) when HOME_POSITION should be requested again."""
+        if home_known or now - self.last_asked.get(HOME_REQUEST, 0.0) <= REQUEST_AGAIN_S:
+            return False
+        self.last_asked[HOME_REQUEST] = now
+        return True

@@ -57,7 +57,7 @@ FORCE_MAGIC = 21196  # arm param 2: force (disarm in the air)
 RTL_ALT = 15.0  # return altitude above home, m (AP RTL_ALT; PX4 shortened (I))
 MAX_STREAM_HZ = 50.0
 #: the flavour class of each profile (its class data: SITL link and ports)
-FLAVOURS: dict[str, type[Flavour]] = {"px4": Px4, "ardupilot": ArduPilot}
+FLAVOURS: dict[str, type[Flavour]] = {cls.name: cls for cls in (Px4, ArduPilot)}
 
 
 @dataclass(frozen=True)

@@ -337,7 +337,7 @@ def test_core_setpoint_parsing_px4() -> None:
         ),
         0.1,
     )
-    assert ap.ob_sp is None
+    assert ap.flavour.setpoint is None
     # nothing set: invalid
     ap.handle(
         _roundtrip(
@@ -345,7 +345,7 @@ def test_core_setpoint_parsing_px4() -> None:
         ),
         0.2,
     )
-    assert ap.ob_sp is None
+    assert ap.flavour.setpoint is None
     # addressed to another system: ignored
     ap.handle(
         _roundtrip(
@@ -354,7 +354,7 @@ def test_core_setpoint_parsing_px4() -> None:
         ),
         0.3,
     )
-    assert ap.ob_sp is None
+    assert ap.flavour.setpoint is None
     # BODY_NED velocity, position ignored
     ap.handle(
         _roundtrip(
@@ -362,8 +362,8 @@ def test_core_setpoint_parsing_px4() -> None:
         ),
         0.4,
     )
-    assert ap.ob_sp is not None and all(math.isnan(x) for x in ap.ob_sp.pos)
-    assert ap.ob_sp.vel[0] == pytest.approx(1.0)
+    assert ap.flavour.setpoint is not None and all(math.isnan(x) for x in ap.flavour.setpoint.pos)
+    assert ap.flavour.setpoint.vel[0] == pytest.approx(1.0)
     # global relative-alt frame projected to local NED
     ap.handle(
         _roundtrip(
@@ -374,7 +374,7 @@ def test_core_setpoint_parsing_px4() -> None:
         ),
         0.5,
     )
-    assert ap.ob_sp.pos[2] == pytest.approx(-7.0) and abs(ap.ob_sp.pos[0]) < 0.02
+    assert ap.flavour.setpoint.pos[2] == pytest.approx(-7.0) and abs(ap.flavour.setpoint.pos[0]) < 0.02
     # the packed custom_mode in param2 is cast to uint8: accepted no-op (a PX4 pitfall)
     out = ap.handle(_roundtrip(cl, cl.command_long_encode(1, 1, 176, 0, 1, 393216, 0, 0, 0, 0, 0)), 0.6)
     assert [m.result for m in out if m.get_type() == "COMMAND_ACK"] == [0]

@@ -1,8 +1,11 @@
 """Simulated PX4 / ArduCopter multicopters speaking MAVLink 2 (``swarm sim``).
 
 ``VehicleSim(SimConfig(...)).start()`` returns one pymavlink connection string per
-vehicle; :mod:`firmware_bridge.sim.autopilot` is the I/O-free vehicle core,
-:mod:`firmware_bridge.sim.dynamics` its point-mass physics and
+vehicle; :mod:`firmware_bridge.sim.autopilot` is the I/O-free vehicle core, which
+asks its flavour (:mod:`firmware_bridge.sim.flavour`: :mod:`~firmware_bridge.sim.px4`
+or :mod:`~firmware_bridge.sim.ardupilot`) whatever differs between the two autopilots;
+:mod:`firmware_bridge.sim.telemetry` encodes its messages,
+:mod:`firmware_bridge.sim.dynamics` is its point-mass physics and
 :mod:`firmware_bridge.sim.runner` the sockets and the thread.
 """
 

@@ -83,6 +83,32 @@ class Body:
         if not powered or target is None:
             self._unpowered(dt, powered)
             return
+        vc = self._velocity_command(target, lim)
+        # first-order lag with acceleration limits
+        ax = (vc[0] - v[0]) / lim.tau
+        ay = (vc[1] - v[1]) / lim.tau
+        ah = math.hypot(ax, ay)
+        if ah > lim.a_xy:
+            ax *= lim.a_xy / ah
+            ay *= lim.a_xy / ah
+        az = min(max((vc[2] - v[2]) / lim.tau, -lim.a_z), lim.a_z)
+        r = self._yaw_rate_command(target, lim)
+        if self.on_ground and vc[2] >= 0.0 and v[2] >= 0.0:
+            # resting on the ground: motors spinning, nothing moves
+            self._rest()
+            return
+        self.acc = [ax, ay, az]
+        for i, a in enumerate((ax, ay, az)):
+            v[i] += a * dt
+            p[i] += v[i] * dt
+        self.yaw = wrap_pi(self.yaw + r * dt)
+        self.yaw_rate = r
+        if p[2] >= 0.0:
+            self._rest()
+
+    def _velocity_command(self, target: Target, lim: Limits) -> list[float]:
+        """The position loop: commanded NED velocity within the speed and braking limits."""
+        p, v = self.pos, self.vel
         vc = [0.0, 0.0, 0.0]
         ex = target.pos[0] - p[0] if math.isfinite(target.pos[0]) else NAN
         ey = target.pos[1] - p[1] if math.isfinite(target.pos[1]) else NAN
@@ -112,34 +138,16 @@ class Body:
         v_up = target.v_up if math.isfinite(target.v_up) else lim.v_up
         v_dn = target.v_down if math.isfinite(target.v_down) else lim.v_down
         vc[2] = min(max(vc[2], -v_up), v_dn)
-        # first-order lag with acceleration limits
-        ax = (vc[0] - v[0]) / lim.tau
-        ay = (vc[1] - v[1]) / lim.tau
-        ah = math.hypot(ax, ay)
-        if ah > lim.a_xy:
-            ax *= lim.a_xy / ah
-            ay *= lim.a_xy / ah
-        az = min(max((vc[2] - v[2]) / lim.tau, -lim.a_z), lim.a_z)
-        # yaw
+        return vc
+
+    def _yaw_rate_command(self, target: Target, lim: Limits) -> float:
         if math.isfinite(target.yaw):
             r = lim.yaw_p * wrap_pi(target.yaw - self.yaw)
         elif math.isfinite(target.yaw_rate):
             r = target.yaw_rate
         else:
             r = 0.0
-        r = min(max(r, -lim.yaw_rate_max), lim.yaw_rate_max)
-        if self.on_ground and vc[2] >= 0.0 and v[2] >= 0.0:
-            # resting on the ground: motors spinning, nothing moves
-            self._rest()
-            return
-        self.acc = [ax, ay, az]
-        for i, a in enumerate((ax, ay, az)):
-            v[i] += a * dt
-            p[i] += v[i] * dt
-        self.yaw = wrap_pi(self.yaw + r * dt)
-        self.yaw_rate = r
-        if p[2] >= 0.0:
-            self._rest()
+        return min(max(r, -lim.yaw_rate_max), lim.yaw_rate_max)
 
     def _unpowered(self, dt: float, powered: bool) -> None:
         p, v = self.pos, self.vel

@@ -40,10 +40,8 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_bridge.errors import BridgeError, ConnectError
-from firmware_bridge.sim.autopilot import Autopilot, Msg, VehicleState
+from firmware_bridge.sim.autopilot import FLAVOURS, Autopilot, Msg, VehicleState
 
-PX4_BASE_PORT = 14540
-AP_BASE_PORT = 5760
 MAX_VEHICLES = 250
 
 
@@ -66,7 +64,7 @@ class SimConfig:
         """Raise :class:`ConnectError` (a :class:`BridgeError`) for impossible values."""
         if not 1 <= self.vehicles <= MAX_VEHICLES:
             raise ConnectError(f"vehicles must be 1..{MAX_VEHICLES}, got {self.vehicles}")
-        if self.profile not in ("px4", "ardupilot"):
+        if self.profile not in FLAVOURS:
             raise ConnectError(f"profile must be px4 or ardupilot, got {self.profile!r}")
         lat, lon, alt = self.home
         if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and -1000.0 <= alt <= 10000.0):
@@ -79,14 +77,14 @@ class SimConfig:
             raise ConnectError(
                 f"offboard_loss_action must be hold, land or rtl, got {self.offboard_loss_action!r}"
             )
-        base = (
-            self.base_port
-            if self.base_port is not None
-            else (PX4_BASE_PORT if self.profile == "px4" else AP_BASE_PORT)
-        )
-        last = base + (self.vehicles - 1) * (1 if self.profile == "px4" else 10)
+        base = self.first_port()
+        last = base + (self.vehicles - 1) * FLAVOURS[self.profile].sitl_port_step
         if not base >= 1 or last > 65535:
             raise ConnectError(f"ports {base}..{last} out of range")
+
+    def first_port(self) -> int:
+        """Vehicle 0's port: ``base_port``, or the SITL default of the profile."""
+        return self.base_port if self.base_port is not None else FLAVOURS[self.profile].sitl_base_port
 
 
 class _Transport(ABC):
@@ -383,22 +381,16 @@ class VehicleSim:
             return self.endpoints
         cfg = self.config
         sel = selectors.DefaultSelector()
-        base = (
-            cfg.base_port
-            if cfg.base_port is not None
-            else (PX4_BASE_PORT if cfg.profile == "px4" else AP_BASE_PORT)
-        )
+        flavour = FLAVOURS[cfg.profile]
+        link = _UdpTransport if flavour.sitl_link == "udp" else _TcpTransport
+        base = cfg.first_port()
         transports: list[_Transport] = []
         try:
             for i in range(cfg.vehicles):
-                tr: _Transport
                 if i == 0 and cfg.serial:
-                    tr = _SerialTransport(cfg.serial)
-                elif cfg.profile == "px4":
-                    tr = _UdpTransport(cfg.host, base + i)
+                    transports.append(_SerialTransport(cfg.serial))
                 else:
-                    tr = _TcpTransport(cfg.host, base + 10 * i)
-                transports.append(tr)
+                    transports.append(link(cfg.host, base + flavour.sitl_port_step * i))
         except (ConnectError, OSError) as exc:
             for tr in transports:
                 tr.close(sel)
@@ -442,10 +434,6 @@ class VehicleSim:
     @property
     def vehicles(self) -> list[Vehicle]:
         return list(self._vehicles)
-
-    def sim_time(self) -> float:
-        """Current simulated time in seconds since start."""
-        return self._now()
 
     def stop(self) -> None:
         self._stop.set()

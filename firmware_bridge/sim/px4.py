@@ -1,0 +1,227 @@
+"""The PX4 flavour of the simulated autopilot: its rules and its OFFBOARD mode.
+
+Theory of operation. :class:`Px4` answers the questions
+:class:`~firmware_bridge.sim.autopilot.Autopilot` asks its flavour (see
+:mod:`firmware_bridge.sim.flavour`) the way PX4 v1.14 does: modes are numbered
+``main << 16 | sub << 24``, a refusal is TEMPORARILY_REJECTED, NAV_TAKEOFF enters
+AUTO.TAKEOFF with an AMSL altitude (NaN: MIS_TAKEOFF_ALT) and completes into
+AUTO.LOITER. OFFBOARD follows the setpoint stream: any valid setpoint, in any mode, is
+proof of life and becomes the offboard setpoint; arming in OFFBOARD and switching to it
+while armed need a setpoint younger than COM_OF_LOSS_T; a stream older than that while
+armed in OFFBOARD is the loss failsafe (COM_OBL_RC_ACT: hold, land or return; land
+without GPS). "(I)" in comments marks inferred behaviour.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, ClassVar
+
+from firmware_bridge.sim import modes
+from firmware_bridge.sim.dynamics import NAN, Limits, Target
+from firmware_bridge.sim.flavour import (
+    ACCEPTED,
+    DENIED,
+    TEMPORARILY_REJECTED,
+    Flavour,
+    Msg,
+    Reply,
+    finite,
+    global_setpoint_ned,
+    rotate,
+    setpoint_fields,
+)
+
+if TYPE_CHECKING:
+    from firmware_bridge.sim.autopilot import Autopilot
+
+COM_OF_LOSS_T = 1.0  # offboard stream timeout, s
+MIS_TAKEOFF_ALT = 2.5  # default take-off altitude above home, m
+
+STREAMS: dict[int, float] = {  # msg id -> interval (simulated s), onboard link (reduced)
+    33: 0.1,  # GLOBAL_POSITION_INT 10 Hz
+    32: 0.1,  # LOCAL_POSITION_NED 10 Hz
+    30: 0.1,  # ATTITUDE 10 Hz
+    85: 0.1,  # POSITION_TARGET_LOCAL_NED 10 Hz
+    1: 1.0,  # SYS_STATUS 1 Hz
+    245: 1.0,  # EXTENDED_SYS_STATE 1 Hz
+    24: 1.0,  # GPS_RAW_INT 1 Hz
+    147: 1.0,  # BATTERY_STATUS 1 Hz
+    242: 2.0,  # HOME_POSITION 0.5 Hz
+}
+#: COM_OBL_RC_ACT: offboard_loss_action -> mode, and the failsafe's name in STATUSTEXT
+LOSS_MODES = {"hold": "AUTO.LOITER", "land": "AUTO.LAND", "rtl": "AUTO.RTL"}
+LOSS_NAMES = {"AUTO.LOITER": "Hold", "AUTO.LAND": "Land", "AUTO.RTL": "Return"}
+
+
+class Px4(Flavour):
+    """PX4 multicopter; ``loss_action`` is COM_OBL_RC_ACT (hold, land or rtl)."""
+
+    name = "px4"
+    sitl_link = "udp"
+    sitl_base_port = 14540
+    sitl_port_step = 1
+    initial_mode = "AUTO.LOITER"
+    land_mode = "AUTO.LAND"
+    rtl_mode = "AUTO.RTL"
+    limits: ClassVar[Limits] = Limits()
+    default_streams = STREAMS
+    refusal = TEMPORARILY_REJECTED
+    takeoff_speed = 1.5  # MPC_TKO_SPEED
+    land_speed_low = 0.7  # MPC_LAND_SPEED
+    version = 1 << 24 | 14 << 16
+    set_mode_ack = 176  # (I) PX4 acks SET_MODE as DO_SET_MODE
+    reposition_by_long = True
+    text_gps_lost = "GPS lost: no position"
+    text_gps_failsafe = "Failsafe activated: no position, landing"
+    text_preflight_disarm = "Disarmed by auto preflight disarming"
+    text_landed_disarm = "Landing detected, disarmed"
+    text_disarm_denied = "Disarming denied: not landed"
+    text_armed = "Armed by external command"
+    text_disarmed = "Disarmed by external command"
+
+    def __init__(self, loss_action: str = "hold") -> None:
+        self.loss_action = loss_action
+        self.setpoint: Target | None = None  # the offboard setpoint
+        self.setpoint_time = -math.inf  # when the last valid setpoint arrived
+
+    def stream_fresh(self, ap: Autopilot) -> bool:
+        return ap.t - self.setpoint_time <= COM_OF_LOSS_T
+
+    # ---------------------------------------------------------------- status
+    def heartbeat(self, ap: Autopilot) -> Msg:
+        custom = modes.px4_custom_mode(ap.mode)
+        base = 1 | modes.px4_base_flags(ap.mode) | (128 if ap.armed else 0)
+        status = (5 if ap.failsafe else 4) if ap.armed else 3
+        return ap.mav.heartbeat_encode(2, 12, base, custom, status)
+
+    def touchdown_disarm_delay(self, kind: str) -> float:
+        return 2.0
+
+    def echo_mask(self, ap: Autopilot) -> int | None:
+        return 0  # the controller's setpoint, in every mode
+
+    # ----------------------------------------------------------------- modes
+    def set_mode_numbers(self, ap: Autopilot, p2: float, p3: float) -> Reply:
+        main, sub = int(p2) & 0xFF, int(p3) & 0xFF  # PX4 casts to uint8
+        if main == 0:
+            return ACCEPTED, None  # accepted no-op, as PX4 does
+        return self._mode_by_number(ap, main, sub)
+
+    def set_custom_mode(self, ap: Autopilot, custom_mode: int) -> Reply:
+        return self._mode_by_number(ap, (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF)
+
+    def _mode_by_number(self, ap: Autopilot, main: int, sub: int) -> Reply:
+        if main != 4:
+            sub = 0
+        name = modes.PX4_BY_NUMBER.get((main, sub))
+        if name is None:
+            return DENIED, f"Mode change denied: unsupported mode {main}/{sub}"
+        return ap.change_mode(name)
+
+    def change_mode(self, ap: Autopilot, name: str) -> Reply:
+        if ap.armed:
+            if name in modes.NEEDS_POSITION and not ap.gps_ok:
+                return TEMPORARILY_REJECTED, f"Switching to {name} is not available: no position"
+            if name == "OFFBOARD" and not self.stream_fresh(ap):
+                return TEMPORARILY_REJECTED, "Switching to Offboard is currently not available"
+        if name == "AUTO.TAKEOFF":
+            ap.takeoff_z = ap.home[2] - MIS_TAKEOFF_ALT if ap.armed else -MIS_TAKEOFF_ALT
+        ap.enter_mode(name)
+        return ACCEPTED, None
+
+    def arm_refusal(self, ap: Autopilot, p: tuple[float, ...]) -> str | None:
+        if not ap.gps_ok:
+            return "Arming denied: Preflight Fail: no global position"
+        if ap.mode == "OFFBOARD" and not self.stream_fresh(ap):
+            return "Arming denied: no offboard signal"
+        return None
+
+    # -------------------------------------------------------------- commands
+    def takeoff(self, ap: Autopilot, p: tuple[float, ...], frame: int | None) -> Reply:
+        home_amsl = ap.geo(*ap.home)[2]
+        alt = p[6]
+        rel = alt - home_amsl if finite(alt) else MIS_TAKEOFF_ALT
+        if rel <= 0.0:
+            rel = MIS_TAKEOFF_ALT
+        ap.enter_mode("AUTO.TAKEOFF")
+        ap.takeoff_z = ap.home[2] - rel
+        return ACCEPTED, None
+
+    def reposition(self, ap: Autopilot, p: tuple[float, ...], ned: tuple[float, float, float]) -> Reply:
+        ap.enter_mode("AUTO.LOITER")
+        ap.hold_point = ned
+        return ACCEPTED, None
+
+    def on_local_setpoint(self, ap: Autopilot, msg: Msg) -> None:
+        frame = msg.coordinate_frame
+        if frame not in (1, 8):
+            ap.text(4, f"LOCAL_NED coordinate frame {frame} unsupported")
+            return
+        pos, vel, acc = setpoint_fields(msg, (msg.x, msg.y, msg.z))
+        if frame == 8:
+            pos = [NAN, NAN, NAN]
+            vel = rotate(vel, ap.body.yaw)
+            acc = rotate(acc, ap.body.yaw)
+        self._accept(ap, msg, pos, vel, acc)
+
+    def on_global_setpoint(self, ap: Autopilot, msg: Msg) -> None:
+        frame = msg.coordinate_frame
+        if frame not in (5, 6, 11):
+            ap.text(4, f"GLOBAL_INT coordinate frame {frame} unsupported")
+            return
+        if not ap.gps_ok:
+            return  # no global reference: dropped silently
+        pos, vel, acc = setpoint_fields(msg, global_setpoint_ned(ap, msg))
+        self._accept(ap, msg, pos, vel, acc)
+
+    def on_request_data_stream(self, ap: Autopilot, msg: Msg) -> None:
+        pass  # PX4 takes SET_MESSAGE_INTERVAL only
+
+    def _accept(self, ap: Autopilot, msg: Msg, pos: list[float], vel: list[float], acc: list[float]) -> None:
+        mask = msg.type_mask
+        if any(math.isinf(v) for v in (*pos, *vel, *acc)):
+            return
+        has_acc = (mask & 448) != 448
+        if (mask & 512) and has_acc:
+            return  # FORCE with acceleration: rejected
+        if (mask & 7) == 7 and (mask & 56) == 56 and not has_acc:
+            return  # nothing set: invalid
+        yaw = NAN if mask & 1024 else msg.yaw
+        yaw_rate = NAN if mask & 2048 else msg.yaw_rate
+        self.setpoint = Target(
+            pos=(pos[0], pos[1], pos[2]),
+            vel=(vel[0], vel[1], vel[2]),
+            acc=(acc[0], acc[1], acc[2]),
+            yaw=yaw if finite(yaw) else NAN,
+            yaw_rate=yaw_rate if finite(yaw_rate) else NAN,
+        )
+        self.setpoint_time = ap.t  # proof of life, in any mode
+
+    # ------------------------------------------------------- OFFBOARD and take-off
+    def check_timeouts(self, ap: Autopilot) -> None:
+        if ap.mode != "OFFBOARD" or not ap.armed or ap.t - self.setpoint_time <= COM_OF_LOSS_T:
+            return
+        action = LOSS_MODES[self.loss_action]
+        if action != "AUTO.LOITER" and not ap.gps_ok:
+            action = "AUTO.LAND"
+        ap.enter_mode(action)
+        ap.failsafe = True
+        ap.text(2, f"Failsafe activated: no offboard signal, {LOSS_NAMES[action]}")
+
+    def own_target(self, ap: Autopilot) -> Target:
+        return self.setpoint if self.setpoint is not None else ap.hold_target()
+
+    def after_step(self, ap: Autopilot, kind: str) -> None:
+        if kind == "takeoff" and ap.armed and ap.body.pos[2] <= ap.takeoff_z + 0.15:
+            ap.enter_mode("AUTO.LOITER")
+
+    def taking_off(self, ap: Autopilot, kind: str) -> bool:
+        return False  # AUTO.TAKEOFF is a mode of its own
+
+    def on_enter_mode(self, ap: Autopilot, kind: str) -> None:
+        pass  # OFFBOARD keeps its setpoint across mode changes
+
+    def on_disarm(self, ap: Autopilot, kind: str) -> None:
+        if kind == "takeoff":
+            ap.enter_mode("AUTO.LOITER")

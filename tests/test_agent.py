@@ -295,3 +295,38 @@ def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
             assert 0 <= a._battery() <= 255
     finally:
         sim.stop()
+
+
+def test_agents_handed_open_links_elect_and_leave_them_open(tmp_path: Any) -> None:
+    """An Agent can be handed a link its caller opened (any radios.link.Link): it
+    bridges it, and on stop leaves it open for its opener to close."""
+    from radios.link import open_link
+    from swarm.cli.procs import start_emulator
+
+    emu, paths = start_emulator(2, tmp_path, "--seed", "16")  # a pair that hop-locks quickly
+    own: dict[str, AgentState] = {}
+    agents: list[Agent] = []
+    links = []
+    try:
+        for i in (1, 2):
+            link = open_link(paths[i - 1])
+            links.append(link)
+            node = NodeOptions(link=link)
+            assert node.radio_url == paths[i - 1] and node.on_radio
+            a = Agent(f"agent{i}", i, node, config=AgentConfig(profile="fast"))
+            a.on_state = partial(own.__setitem__, f"agent{i}")
+            agents.append(a.start())
+        assert agents[0].describe() == f"radio={paths[0]}"
+        leader = wait_until(lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the handed links")
+        assert leader in (1, 2)
+        for a in agents:
+            assert a.bridge is not None and a.bridge.stats.frames_in > 0
+            a.stop()
+            assert not a.running
+        assert not any(link.closed for link in links)  # the opener's to close
+    finally:
+        for a in agents:
+            a.stop()
+        for link in links:
+            link.close()
+        emu.stop()

@@ -191,3 +191,19 @@ def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> Non
         for ch in (loud, quiet):
             assert ch.stop() == 0
     assert quiet.errors == []  # without -v: nothing configured, INFO stays quiet
+
+
+def test_log_level_debug_shows_the_hidden_traceback_after_the_error_line() -> None:
+    import subprocess
+    import sys
+
+    argv = [sys.executable, "-m", "swarm.cli", "--log-level", "debug", "agent", "--name", "a1", "--id", "1"]
+    p = subprocess.run([*argv, "--radio", "/nonexistent/radio0"], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    err = p.stderr.splitlines()
+    assert err[0].startswith("swarm agent: error: ") and "/nonexistent/radio0" in err[0]
+    assert " swarm.cli DEBUG: swarm agent: LinkOpenError" in err[1] and "Traceback" in p.stderr
+    q = subprocess.run(
+        [*argv[:3], *argv[5:], "--radio", "/nonexistent/radio0"], capture_output=True, text=True, timeout=60
+    )
+    assert q.returncode == 2 and len(q.stderr.splitlines()) == 1  # the default: one line

@@ -71,8 +71,8 @@ def guarded(prog: str) -> Callable[[Callable[[list[str] | None], int]], Callable
             except KeyboardInterrupt:
                 return EXIT_INTERRUPTED
             except ERROR_ROOTS as exc:
-                log.debug("%s: %s", prog, type(exc).__name__, exc_info=True)
-                print(f"{prog}: error: {exc}", file=sys.stderr)
+                print(f"{prog}: error: {exc}", file=sys.stderr, flush=True)
+                log.debug("%s: %s", prog, type(exc).__name__, exc_info=True)  # the bug report's
                 return exit_code(exc)
             except BrokenPipeError:
                 return EXIT_FAILURE

@@ -19,7 +19,15 @@ from net_helpers import free_port
 from net_helpers import wait_until as _wait_until
 
 from swarm.core.messages import AgentState, Phase
-from swarm.runtime.agent import Agent, default_round_s, pose_from_state, state_dict, vehicle_messages
+from swarm.runtime.agent import (
+    Agent,
+    AgentConfig,
+    NodeOptions,
+    default_round_s,
+    pose_from_state,
+    state_dict,
+    vehicle_messages,
+)
 from swarm.runtime.transport import Transport
 
 DEADLINE = 40.0  # paper profile: three 2 s windows plus discovery, with lots of margin
@@ -61,12 +69,13 @@ def trio() -> Iterator[tuple[list[Agent], dict[str, AgentState], dict[str, Agent
     agents: list[Agent] = []
     observer: Transport | None = None
     try:
-        agents.append(Agent("agent1", 1, zenoh_listen=[ep], on_state=hook("agent1")).start())
+        agents.append(Agent("agent1", 1, NodeOptions(zenoh_listen=[ep]), on_state=hook("agent1")).start())
         observer = Transport.open("observer", connect=[ep])
         observer.on_state("*", observe)
         t0 = time.monotonic()
         for i in (2, 3):
-            agents.append(Agent(f"agent{i}", i, zenoh_connect=[ep], on_state=hook(f"agent{i}")).start())
+            node = NodeOptions(zenoh_connect=[ep])
+            agents.append(Agent(f"agent{i}", i, node, on_state=hook(f"agent{i}")).start())
         yield agents, own, seen, t0
     finally:
         for a in agents:
@@ -116,7 +125,7 @@ def test_leader_stops_and_the_others_elect_again(trio: Any) -> None:
 def test_stop_is_clean_and_safe_twice() -> None:
     ep = f"tcp/127.0.0.1:{free_port()}"
     before = {t.ident for t in threading.enumerate()}
-    with Agent("solo", 7, zenoh_listen=[ep]) as a:
+    with Agent("solo", 7, NodeOptions(zenoh_listen=[ep])) as a:
         wait_until(lambda: a.state() is not None, "the first state")
         assert a.running
     a.stop()
@@ -148,15 +157,18 @@ def test_stop_is_clean_and_safe_twice() -> None:
     ],
 )
 def test_bad_arguments(kwargs: dict[str, Any], match: str) -> None:
+    """Each option in its group (where the agent meets others, how it behaves): the
+    same refusals as when they were all keyword arguments of Agent."""
     name, agent_id = kwargs.pop("name"), kwargs.pop("agent_id")
+    node = {k: kwargs.pop(k) for k in ("radio", "zenoh_listen") if k in kwargs}
     with pytest.raises(ValueError, match=match):
-        Agent(name, agent_id, **kwargs)
+        Agent(name, agent_id, NodeOptions(**node), config=AgentConfig(**kwargs))
 
 
 def test_missing_radio_raises_and_leaves_nothing_open() -> None:
     from radios.errors import LinkOpenError
 
-    a = Agent("a1", 1, radio="/nonexistent/radio0")
+    a = Agent("a1", 1, NodeOptions(radio="/nonexistent/radio0"))
     with pytest.raises(LinkOpenError):
         a.start()
     a.stop()
@@ -166,7 +178,7 @@ def test_missing_radio_raises_and_leaves_nothing_open() -> None:
 def test_round_and_helpers() -> None:
     assert default_round_s() == pytest.approx(0.2368)
     assert default_round_s(5) == pytest.approx(0.592)
-    a = Agent("a1", 1, radio="x", profile="fast", round_s=0.3)
+    a = Agent("a1", 1, NodeOptions(radio="x"), config=AgentConfig(profile="fast", round_s=0.3))
     assert a.profile.name == "fast" and a.profile.vote_interval == pytest.approx(0.3)
 
     class S:  # the driver's VehicleState fields the agent reads
@@ -214,10 +226,8 @@ def test_two_agents_over_signed_radios_with_the_fast_profile(tmp_path: Any) -> N
                 Agent(
                     f"agent{i}",
                     i,
-                    radio=paths[i - 1],
-                    key_file=str(key),
-                    profile="fast",
-                    vote="link",
+                    NodeOptions(radio=paths[i - 1], key_file=str(key)),
+                    config=AgentConfig(profile="fast", vote="link"),
                     on_state=partial(own.__setitem__, f"agent{i}"),
                 ).start()
             )
@@ -267,7 +277,13 @@ def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
     try:
         url = sim.wait_lines(1, 30)[0].split(" -> ")[1].split()[0]
         with (
-            Agent("flyer", 3, zenoh_listen=[ep], fc=url, vote="battery", pose_hz=10) as a,
+            Agent(
+                "flyer",
+                3,
+                NodeOptions(zenoh_listen=[ep]),
+                fc=url,
+                config=AgentConfig(vote="battery", pose_hz=10),
+            ) as a,
             Transport.open("observer", connect=[ep]) as obs,
         ):
             obs.on_pose("flyer", lambda _n, p: poses.append(p))
@@ -279,3 +295,38 @@ def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
             assert 0 <= a._battery() <= 255
     finally:
         sim.stop()
+
+
+def test_agents_handed_open_links_elect_and_leave_them_open(tmp_path: Any) -> None:
+    """An Agent can be handed a link its caller opened (any radios.link.Link): it
+    bridges it, and on stop leaves it open for its opener to close."""
+    from radios.link import open_link
+    from swarm.cli.procs import start_emulator
+
+    emu, paths = start_emulator(2, tmp_path, "--seed", "16")  # a pair that hop-locks quickly
+    own: dict[str, AgentState] = {}
+    agents: list[Agent] = []
+    links = []
+    try:
+        for i in (1, 2):
+            link = open_link(paths[i - 1])
+            links.append(link)
+            node = NodeOptions(link=link)
+            assert node.radio_url == paths[i - 1] and node.on_radio
+            a = Agent(f"agent{i}", i, node, config=AgentConfig(profile="fast"))
+            a.on_state = partial(own.__setitem__, f"agent{i}")
+            agents.append(a.start())
+        assert agents[0].describe() == f"radio={paths[0]}"
+        leader = wait_until(lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the handed links")
+        assert leader in (1, 2)
+        for a in agents:
+            assert a.bridge is not None and a.bridge.stats.frames_in > 0
+            a.stop()
+            assert not a.running
+        assert not any(link.closed for link in links)  # the opener's to close
+    finally:
+        for a in agents:
+            a.stop()
+        for link in links:
+            link.close()
+        emu.stop()

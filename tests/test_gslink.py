@@ -24,7 +24,7 @@ from swarm.core.messages import (
     Pose,
     Telemetry,
 )
-from swarm.runtime.agent import Agent
+from swarm.runtime.agent import Agent, AgentConfig, NodeOptions
 from swarm.runtime.transport import Transport
 
 POSE = Pose(47.0, 8.0, 500.0)
@@ -121,7 +121,7 @@ def test_command_log_replays_answers_and_sends_new_ones_again() -> None:
 @pytest.fixture
 def agent_and_station() -> Iterator[tuple[Agent, Transport, list[Message]]]:
     ep = f"tcp/127.0.0.1:{free_port()}"
-    agent = Agent("agent3", 3, zenoh_listen=[ep], seed=3).start()
+    agent = Agent("agent3", 3, NodeOptions(zenoh_listen=[ep]), config=AgentConfig(seed=3)).start()
     station = Transport.open("gcs", connect=[ep])
     got: list[Message] = []
     lock = threading.Lock()

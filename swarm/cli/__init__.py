@@ -3,12 +3,20 @@
 Subcommand modules are imported lazily so that `swarm --help` and each command
 start fast and a broken optional dependency of one command does not break others.
 Only working subcommands are listed here.
+
+Global options come before the subcommand: ``-v`` (INFO; ``-vv`` DEBUG) or
+``--log-level LEVEL`` sends the project's log lines at that level to stderr, one
+line each with the time, the logger's name and the level. Without them nothing is
+configured: only warnings and errors reach stderr, as bare lines.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
+
+from swarm.cli.util import EXIT_USAGE, LOG_LEVELS, configure_logging
 
 # name -> (module in swarm.cli.commands, one-line summary)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -26,23 +34,61 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 def _usage() -> str:
     width = max(len(n) for n in COMMANDS)
-    lines = ["usage: swarm <command> [options]", "", "commands:"]
+    lines = ["usage: swarm [-v | -vv | --log-level LEVEL] <command> [options]", "", "commands:"]
     lines += [f"  {name:<{width}}  {summary}" for name, (_, summary) in COMMANDS.items()]
-    lines += ["", "Run 'swarm <command> --help' for a command's options."]
+    lines += [
+        "",
+        "options (before the command):",
+        "  -v, -vv            log INFO (-v) or DEBUG (-vv) lines to stderr",
+        f"  --log-level LEVEL  log lines at LEVEL and above ({', '.join(LOG_LEVELS)}) to stderr",
+        "",
+        "Run 'swarm <command> --help' for a command's options.",
+    ]
     return "\n".join(lines)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        print(f"swarm: error: {message}\n\n{_usage()}", file=sys.stderr)
+        raise SystemExit(EXIT_USAGE)
+
+
+def _global_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="swarm", add_help=False)
+    p.add_argument("-h", "--help", action="store_true")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS)
+    p.add_argument("command", nargs="?")
+    p.add_argument("args", nargs=argparse.REMAINDER)
+    return p
+
+
+def _level(a: argparse.Namespace) -> str | None:
+    """The log level the global options ask for, or None (leave logging alone)."""
+    if a.log_level is not None:
+        return str(a.log_level)
+    if a.verbose:
+        return "INFO" if a.verbose == 1 else "DEBUG"
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
-    if not args or args[0] in ("-h", "--help"):
+    try:
+        a = _global_parser().parse_args(args)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    if a.help or a.command is None:
         print(_usage())
-        return 0 if args else 2
-    name, rest = args[0], args[1:]
-    if name not in COMMANDS:
-        print(f"swarm: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
-        return 2
-    module = importlib.import_module(f"swarm.cli.commands.{COMMANDS[name][0]}")
-    code: int = module.main(rest)
+        return 0 if a.help else EXIT_USAGE
+    if a.command not in COMMANDS:
+        print(f"swarm: unknown command {a.command!r}\n\n{_usage()}", file=sys.stderr)
+        return EXIT_USAGE
+    level = _level(a)
+    if level is not None:
+        configure_logging(level)
+    module = importlib.import_module(f"swarm.cli.commands.{COMMANDS[a.command][0]}")
+    code: int = module.main(a.args)
     return code
 
 

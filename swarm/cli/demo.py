@@ -7,17 +7,20 @@ Theory of operation
 radio emulator with N + 1 radios (``--capture``: everything on air goes to a
 ``.tlog``), ``swarm sim`` with N PX4-like vehicles 8 m apart, N ``swarm agent``
 processes (agent K: radio K-1, vehicle K) and, when the ground station is
-installed and ``gcs`` is asked, ``swarm gcs`` on one more radio. The demo itself is a
-ground node on the last radio: a radio bridge and a Zenoh session as a station
-(id 254, name ``demo``) that announces itself on ``swarm/GSAdvertize`` and sends
-Commands with acknowledgement and retry, exactly as an operator's station does.
+installed and ``gcs`` is asked, ``swarm gcs`` on one more radio. The demo itself
+drives a ground station on the last radio: the real one,
+:class:`swarm.runtime.station.Station` (id 254, name ``demo``), which connects the
+agents and sends Commands with acknowledgement and retry, exactly as an operator's
+station does (a command counts once an agent accepted it or its Telemetry shows
+it carried out).
 
 The flight: wait for one leader that every agent agrees on (from the agents'
-``--json`` state lines); TAKEOFF to each agent; once all report ``took off``,
-FOLLOW (heading north) to the leader; ``settle_s`` later the route: GOTO north
+``--json`` state lines) and for every agent to be connected to the demo's
+station; TAKEOFF to the swarm (each agent); once all report ``took off``, FOLLOW
+(heading north) through the leader; ``settle_s`` later the route: GOTO north
 ``leg_m`` then WAYPOINT east ``leg_m`` (a rounded 90 degree right turn); when
 the leader reports ``arrived``, ``tail_s`` more, then the swarm STOP (the
-FOLLOW task ends, on the air too) and LAND to each agent. Progress
+FOLLOW task ends, on the air too) and LAND to the swarm. Progress
 lines every few seconds show phase, leader and the formation error so far (read
 from the capture as it grows). The summary (leader, election time, formation RMS
 and maximum, air utilisation, capture, plot) comes from
@@ -41,17 +44,22 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from radios.errors import RadioError
 from swarm.cli.procs import Child, ChildError, start_emulator
-from swarm.core.messages import AckResult, Command, CommandAck, CommandKind, GSAdvertize, Message
+from swarm.core.messages import CommandKind
+from swarm.errors import SwarmError
+
+if TYPE_CHECKING:
+    from swarm.runtime.station import Station
 
 DEMO_ID = 254
 DEMO_NAME = "demo"
+#: how long the demo's station tries a command before it gives up on an agent
+COMMAND_GIVE_UP_S = 20.0
 
 
-class DemoError(RadioError):
+class DemoError(SwarmError):
     """The demo could not go on (a process failed, a step timed out)."""
 
 
@@ -114,70 +122,6 @@ def _free_base_port(count: int) -> int:
     raise DemoError("no free UDP ports for the simulated vehicles")
 
 
-class Ground:
-    """The demo's station on a radio: announces itself, sends commands, collects acks."""
-
-    def __init__(self, radio: str) -> None:
-        from radios.link import open_link
-        from swarm.runtime.bridge import RadioBridge
-        from swarm.runtime.transport import Transport, open_session
-
-        self.link = open_link(radio)
-        self.session = open_session()
-        self.bridge = RadioBridge(self.session, self.link, name=DEMO_NAME, agent_id=DEMO_ID).start()
-        self.tr = Transport(DEMO_NAME, self.session)
-        self._acks: dict[int, CommandAck] = {}
-        self._cond = threading.Condition()
-        self._seq = 0
-        self._stop = threading.Event()
-        self.tr.on_inbox(self._inbox)
-        self._thread = threading.Thread(target=self._advertise, name="demo-ground", daemon=True)
-        self._thread.start()
-
-    def _inbox(self, msg: Message) -> None:
-        if isinstance(msg, CommandAck):
-            with self._cond:
-                self._acks[msg.seq] = msg
-                self._cond.notify_all()
-
-    def _advertise(self) -> None:
-        while not self._stop.wait(1.0):
-            try:
-                self.tr.gs_advertise(GSAdvertize(DEMO_ID, DEMO_NAME))
-            except Exception:
-                return
-
-    def command(
-        self, agent: int, target: int, kind: CommandKind, *, timeout: float = 20.0, **args: float
-    ) -> CommandAck:
-        """Send until acknowledged (same sequence number: the agent answers once)."""
-        with self._cond:
-            self._seq = (self._seq + 1) & 0xFFFF
-            seq = self._seq
-        cmd = Command(DEMO_ID, seq, target, kind, **args)
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                self.tr.send(f"agent{agent}", cmd)
-            except Exception as exc:
-                raise DemoError(f"cannot send {kind.name} to agent{agent}: {exc}") from exc
-            with self._cond:
-                self._cond.wait_for(lambda: seq in self._acks, timeout=1.5)
-                ack = self._acks.get(seq)
-            if ack is not None:
-                return ack
-            if time.monotonic() > deadline:
-                raise DemoError(f"agent{agent} did not answer {kind.name} in {timeout:.0f} s")
-
-    def close(self) -> None:
-        self._stop.set()
-        for close in (self.tr.close, self.bridge.close, self.link.close, self.session.close):
-            try:
-                close()
-            except Exception:
-                pass
-
-
 class _Watch:
     """The agents' JSON lines: states and pilot events."""
 
@@ -221,97 +165,125 @@ class _Watch:
         return any(text in e for e in self.events[agent])
 
 
-def run_demo(cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None]) -> dict[str, Any]:
-    """Run the demo; returns the summary. ``out`` gets progress lines.
+class _Demo:
+    """One run of the demo: its files, processes, station, clock and summary."""
 
-    Raises:
-        DemoError, ChildError: a process failed or a step did not happen in time.
-    """
-    cfg.check()
-    n = cfg.agents
-    workdir = cfg.workdir or tempfile.mkdtemp(prefix="swarm-demo-")
-    os.makedirs(workdir, exist_ok=True)
-    capture = cfg.capture or os.path.join(workdir, "air.tlog")
-    plot_path = cfg.plot or os.path.join(workdir, "formation.png")
-    stats = os.path.join(workdir, "emulator.json")
-    children: list[Child] = []
-    ground: Ground | None = None
-    t0 = time.monotonic()
-    summary: dict[str, Any] = {
-        "agents": n,
-        "loss": cfg.loss,
-        "profile": cfg.profile,
-        "leader": 0,
-        "elect_s": None,
-        "formation_rms_m": None,
-        "formation_max_m": None,
-        "turn_max_m": None,
-        "air_utilisation": None,
-        "capture": capture,
-        "plot": None,
-        "gcs": None,
-        "workdir": workdir,
-        "ok": False,
-    }
+    def __init__(self, cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None]) -> None:
+        self.cfg, self.stop, self.out = cfg, stop, out
+        self.workdir = cfg.workdir or tempfile.mkdtemp(prefix="swarm-demo-")
+        os.makedirs(self.workdir, exist_ok=True)
+        self.capture = cfg.capture or os.path.join(self.workdir, "air.tlog")
+        self.plot_path = cfg.plot or os.path.join(self.workdir, "formation.png")
+        self.stats = os.path.join(self.workdir, "emulator.json")
+        self.children: list[Child] = []
+        self.station: Station | None = None
+        self.watch = _Watch([])
+        self.t0 = time.monotonic()
+        self.summary: dict[str, Any] = {
+            "agents": cfg.agents,
+            "loss": cfg.loss,
+            "profile": cfg.profile,
+            "leader": 0,
+            "elect_s": None,
+            "formation_rms_m": None,
+            "formation_max_m": None,
+            "turn_max_m": None,
+            "air_utilisation": None,
+            "capture": self.capture,
+            "plot": None,
+            "gcs": None,
+            "workdir": self.workdir,
+            "ok": False,
+        }
 
-    def elapsed() -> float:
-        return time.monotonic() - t0
+    # -- time, stop and waiting ------------------------------------------------------
+    def elapsed(self) -> float:
+        return time.monotonic() - self.t0
 
-    def check_stop() -> None:
-        if stop.is_set():
+    def check_stop(self) -> None:
+        if self.stop.is_set():
             raise KeyboardInterrupt
-        if elapsed() > cfg.duration:
-            raise DemoError(f"the demo did not finish within --duration {cfg.duration:.0f} s")
+        if self.elapsed() > self.cfg.duration:
+            raise DemoError(f"the demo did not finish within --duration {self.cfg.duration:.0f} s")
 
-    def wait_for(pred: Callable[[], Any], what: str, timeout: float, every: float = 0.2) -> Any:
+    def wait_for(self, pred: Callable[[], Any], what: str, timeout: float, every: float = 0.2) -> Any:
         end = time.monotonic() + timeout
         while True:
-            watch.poll()
+            self.watch.poll()
             v = pred()
             if v:
                 return v
-            check_stop()
+            self.check_stop()
             if time.monotonic() > end:
                 raise DemoError(f"timed out after {timeout:.0f} s waiting for {what}")
-            stop.wait(every)
+            self.stop.wait(every)
 
-    try:
+    def progress_until(self, done: Callable[[], bool], every: float = 5.0) -> None:
+        """Wait for ``done``, with a progress line every ``every`` s (the formation
+        error so far, read from the capture as it grows)."""
+        from swarm.sim.tracks import analyse
+
+        watch = self.watch
+        last = time.monotonic()
+        while True:
+            watch.poll()
+            if done():
+                return
+            self.check_stop()
+            if time.monotonic() - last >= every:
+                last = time.monotonic()
+                an = analyse(self.capture, start=time.time() - every)
+                errs = [e for _t, _m, e, _turn in an.errors]
+                lead = watch.leader()
+                modes = sum(1 for k in watch.events if watch.has_event(k, "following"))
+                err = f"slot error last {every:g} s: max {max(errs):.1f} m" if errs else "no slot samples yet"
+                n = len(watch.agents)
+                self.out(f"   t={self.elapsed():5.1f} s leader=agent{lead} following={modes}/{n - 1} {err}")
+            self.stop.wait(0.2)
+
+    # -- the station's commands ----------------------------------------------------------
+    def command(self, target: int | None, kind: CommandKind, what: str, **args: float) -> None:
+        """Send through the demo's station (``target`` None: the swarm) and wait until
+        every addressee accepted it or shows it carried out.
+
+        Raises:
+            DemoError: the station refused it, or an agent refused or did not answer.
+        """
+        from swarm.core.station import DONE_RESULTS, CommandRefused, CommandSpec
+
+        assert self.station is not None
+        try:
+            fut = self.station.submit(CommandSpec(target, kind, **args))
+        except CommandRefused as exc:
+            raise DemoError(f"{what}: the station refused it: {exc.reason}") from None
+        while not fut.done():
+            self.check_stop()
+            self.stop.wait(0.1)
+        _status, body = fut.result()
+        bad = [r for r in body["results"] if r["result"] not in DONE_RESULTS]
+        if bad:
+            why = "; ".join(f"agent{r['agent']} {r['result']} {r['reason']}".rstrip() for r in bad)
+            raise DemoError(f"{what}: {why}")
+
+    # -- the processes -------------------------------------------------------------------
+    def start(self) -> None:
+        """Emulator, vehicles, agents (ready), the demo's station, the ground station."""
+        cfg, n = self.cfg, self.cfg.agents
         radios = n + 1 + (1 if cfg.gcs else 0)
-        out(f"== {n} agents, {cfg.loss:.0%} loss, {cfg.profile} profile; files in {workdir}")
-        os.makedirs(os.path.join(workdir, "radios"), exist_ok=True)
+        self.out(f"== {n} agents, {cfg.loss:.0%} loss, {cfg.profile} profile; files in {self.workdir}")
+        os.makedirs(os.path.join(self.workdir, "radios"), exist_ok=True)
         emu, links = start_emulator(
             radios,
-            os.path.join(workdir, "radios"),
-            "--capture",
-            capture,
-            "--loss",
-            str(cfg.loss),
-            "--stats-json",
-            stats,
-            "--seed",
-            str(cfg.seed),
+            os.path.join(self.workdir, "radios"),
+            *("--capture", self.capture, "--loss", str(cfg.loss)),
+            *("--stats-json", self.stats, "--seed", str(cfg.seed)),
         )
-        children.append(emu)
-        base = _free_base_port(n)
-        sim = Child(
-            [
-                "sim",
-                "--vehicles",
-                str(n),
-                "--spacing",
-                "8",
-                "--base-port",
-                str(base),
-                "--seed",
-                str(cfg.seed),
-            ],
-            name="vehicle simulator",
-        )
-        children.append(sim)
-        lines = sim.wait_lines(n + 1, 30)
-        fcs = [line.split("-> ", 1)[1].split()[0] for line in lines[:n]]
-        out(f"   radio emulator: {radios} radios; vehicle simulator: {n} PX4 vehicles")
+        self.children.append(emu)
+        fcs = self.start_vehicles()
+        self.out(f"   radio emulator: {radios} radios; vehicle simulator: {n} PX4 vehicles")
         slots = ["--slots", str(radios)] if cfg.profile == "fast" else []
+        flight = ["--profile", cfg.profile, *slots, "--json", "--pose-hz", str(cfg.pose_hz)]
+        flight += ["--speed", str(cfg.speed_mps)]
         agents = [
             Child(
                 [
@@ -324,88 +296,120 @@ def run_demo(cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None])
                     links[k - 1],
                     "--fc",
                     fcs[k - 1],
-                    "--profile",
-                    cfg.profile,
-                    *slots,
-                    "--json",
-                    "--pose-hz",
-                    str(cfg.pose_hz),
-                    "--speed",
-                    str(cfg.speed_mps),
+                    *flight,
                 ],
                 name=f"agent{k}",
             )
             for k in range(1, n + 1)
         ]
-        children += agents
+        self.children += agents
         for a in agents:
             a.wait_lines(1, 60)
-        started = elapsed()
-        watch = _Watch(agents)
-        ground = Ground(links[n])
+        self.started = self.elapsed()
+        self.watch = _Watch(agents)
+        self.station = _station(links[n])
         if cfg.gcs:
-            summary["gcs"] = _start_gcs(links[n + 1], cfg.http, children, out)
-        out("== election")
-        leader = wait_for(watch.leader, "one leader agreed by every agent", 120)
-        summary["leader"] = leader
-        summary["elect_s"] = round(elapsed() - started, 1)
-        out(f"   leader agent{leader} after {summary['elect_s']} s")
-        out(f"== take-off to {cfg.alt_m:g} m")
-        for k in range(1, n + 1):
-            ack = ground.command(k, k, CommandKind.TAKEOFF, alt=cfg.alt_m)
-            if ack.result != AckResult.ACCEPTED:
-                raise DemoError(f"agent{k} refused take-off: {ack.result.name} {ack.reason}")
-        wait_for(
-            lambda: all(watch.has_event(k, "took off") for k in range(1, n + 1)),
+            self.summary["gcs"] = _start_gcs(links[n + 1], cfg.http, self.children, self.out)
+
+    def start_vehicles(self) -> list[str]:
+        """``swarm sim`` with N vehicles 8 m apart; their flight-controller URLs."""
+        n = self.cfg.agents
+        base = _free_base_port(n)
+        sim = Child(
+            [
+                "sim",
+                "--vehicles",
+                str(n),
+                "--spacing",
+                "8",
+                "--base-port",
+                str(base),
+                "--seed",
+                str(self.cfg.seed),
+            ],
+            name="vehicle simulator",
+        )
+        self.children.append(sim)
+        lines = sim.wait_lines(n + 1, 30)
+        return [line.split("-> ", 1)[1].split()[0] for line in lines[:n]]
+
+    def close(self) -> None:
+        if self.station is not None:
+            self.station.stop()
+        for ch in reversed(self.children):
+            try:
+                ch.stop()
+            except Exception:
+                pass
+
+    # -- the flight ------------------------------------------------------------------------
+    def elect(self) -> int:
+        n = self.cfg.agents
+        self.out("== election")
+        leader = int(self.wait_for(self.watch.leader, "one leader agreed by every agent", 120))
+        self.summary["leader"] = leader
+        self.summary["elect_s"] = round(self.elapsed() - self.started, 1)
+        self.out(f"   leader agent{leader} after {self.summary['elect_s']} s")
+        station = self.station
+        assert station is not None
+        self.wait_for(
+            lambda: all((station.agent(k) or {}).get("connected") for k in range(1, n + 1)),
+            "every agent to connect to the demo's station",
+            60,
+        )
+        return leader
+
+    def take_off_and_follow(self, leader: int) -> int:
+        """Take-off, then the V behind the leader; the leader then (it may have changed)."""
+        n = self.cfg.agents
+        self.out(f"== take-off to {self.cfg.alt_m:g} m")
+        self.command(None, CommandKind.TAKEOFF, "take-off", alt=self.cfg.alt_m)
+        self.wait_for(
+            lambda: all(self.watch.has_event(k, "took off") for k in range(1, n + 1)),
             "every agent to take off",
             90,
         )
-        out("== follow in V (heading north)")
-        leader = watch.leader() or leader
-        ack = ground.command(leader, 0, CommandKind.FOLLOW, heading=0.0)
-        if ack.result != AckResult.ACCEPTED:
-            raise DemoError(f"the leader refused follow: {ack.result.name} {ack.reason}")
-        follow_t = elapsed()
-        _progress_until(
-            lambda: elapsed() - follow_t >= cfg.settle_s, watch, capture, out, elapsed, check_stop, stop
-        )
-        emu_before = _emu_stats(stats)
-        out(f"== route: {cfg.leg_m:g} m north, then {cfg.leg_m:g} m east at {cfg.speed_mps:g} m/s")
-        lat, lon, alt = _leader_position(capture, leader)
+        self.out("== follow in V (heading north)")
+        leader = self.watch.leader() or leader
+        self.command(None, CommandKind.FOLLOW, "follow", heading=0.0)
+        follow_t = self.elapsed()
+        self.progress_until(lambda: self.elapsed() - follow_t >= self.cfg.settle_s)
+        return leader
+
+    def route(self, leader: int) -> float:
+        """The route, ``leg_m`` north then east; the wall time it started."""
         import pymap3d
 
+        cfg = self.cfg
+        emu_before = _emu_stats(self.stats)
+        self.out(f"== route: {cfg.leg_m:g} m north, then {cfg.leg_m:g} m east at {cfg.speed_mps:g} m/s")
+        lat, lon, alt = _leader_position(self.capture, leader)
         a = pymap3d.ned2geodetic(cfg.leg_m, 0.0, 0.0, lat, lon, alt)
         b = pymap3d.ned2geodetic(cfg.leg_m, cfg.leg_m, 0.0, lat, lon, alt)
         for kind, p in ((CommandKind.GOTO, a), (CommandKind.WAYPOINT, b)):
-            ack = ground.command(leader, leader, kind, lat=float(p[0]), lon=float(p[1]), alt=float(alt))
-            if ack.result != AckResult.ACCEPTED:
-                raise DemoError(f"the leader refused {kind.name}: {ack.result.name} {ack.reason}")
+            self.command(leader, kind, f"the leader's {kind.name}", lat=float(p[0]), lon=float(p[1]), alt=alt)
         route_wall = time.time()
-        _progress_until(
-            lambda: watch.has_event(leader, "arrived"), watch, capture, out, elapsed, check_stop, stop
-        )
-        end_wait = elapsed() + cfg.tail_s
-        _progress_until(lambda: elapsed() >= end_wait, watch, capture, out, elapsed, check_stop, stop)
-        emu_after = _emu_stats(stats)
-        if emu_before and emu_after and emu_after["elapsed_s"] > emu_before["elapsed_s"]:
-            busy = (
-                emu_after["utilisation"] * emu_after["elapsed_s"]
-                - emu_before["utilisation"] * emu_before["elapsed_s"]
-            )
-            summary["air_utilisation"] = round(busy / (emu_after["elapsed_s"] - emu_before["elapsed_s"]), 3)
-        out("== landing")
-        try:  # the swarm stop ends the FOLLOW task on the air: the capture's analysis stops there
-            ground.command(leader, 0, CommandKind.STOP, timeout=8.0)
-        except DemoError as exc:
-            out(f"   {exc}")
-        for k in range(1, n + 1):
+        self.progress_until(lambda: self.watch.has_event(leader, "arrived"))
+        end_wait = self.elapsed() + cfg.tail_s
+        self.progress_until(lambda: self.elapsed() >= end_wait)
+        self.summary["air_utilisation"] = _utilisation(emu_before, _emu_stats(self.stats))
+        return route_wall
+
+    def land(self) -> None:
+        self.out("== landing")
+        # the swarm stop ends the FOLLOW task on the air: the capture's analysis stops there
+        for kind, what in ((CommandKind.STOP, "stop"), (CommandKind.LAND, "landing")):
             try:
-                ground.command(k, k, CommandKind.LAND, timeout=8.0)
+                self.command(None, kind, what)
             except DemoError as exc:
-                out(f"   {exc}")
+                self.out(f"   {exc}")
+
+    def analyse(self, route_wall: float) -> None:
+        """The formation's figures from the capture, the plot, and ``ok``."""
         from swarm.sim.tracks import analyse, plot
 
-        an = analyse(capture, start=route_wall)
+        summary = self.summary
+        an = analyse(self.capture, start=route_wall)
         s = an.summary()
         summary["formation_rms_m"] = s["formation_rms_m"]
         summary["turn_max_m"] = s["turn_max_m"]
@@ -413,24 +417,53 @@ def run_demo(cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None])
         summary["formation_max_m"] = round(max(all_err), 2) if all_err else None
         summary["per_member"] = s["per_member"]
         try:
-            summary["plot"] = plot(an, plot_path)
+            summary["plot"] = plot(an, self.plot_path)
         except (OSError, ValueError) as exc:
-            out(f"   no plot: {exc}")
+            self.out(f"   no plot: {exc}")
         rms = summary["formation_rms_m"]
         if rms is None and all_err:  # a route too short for straight legs: judge it whole
             rms = math.sqrt(sum(e * e for e in all_err) / len(all_err))
             summary["route_rms_m"] = round(rms, 3)
-        summary["ok"] = rms is not None and rms <= cfg.max_rms_m
-        summary["wall_s"] = round(elapsed(), 1)
-        return summary
+        summary["ok"] = rms is not None and rms <= self.cfg.max_rms_m
+        summary["wall_s"] = round(self.elapsed(), 1)
+
+
+def run_demo(cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None]) -> dict[str, Any]:
+    """Run the demo; returns the summary. ``out`` gets progress lines.
+
+    Raises:
+        DemoError, ChildError: a process failed or a step did not happen in time.
+    """
+    cfg.check()
+    demo = _Demo(cfg, stop, out)
+    try:
+        demo.start()
+        leader = demo.elect()
+        leader = demo.take_off_and_follow(leader)
+        route_wall = demo.route(leader)
+        demo.land()
+        demo.analyse(route_wall)
+        return demo.summary
     finally:
-        if ground is not None:
-            ground.close()
-        for ch in reversed(children):
-            try:
-                ch.stop()
-            except Exception:
-                pass
+        demo.close()
+
+
+def _station(radio: str) -> Station:
+    """The demo's ground station on ``radio`` (started)."""
+    from swarm.core.station import StationConfig
+    from swarm.runtime.station import Station
+
+    return Station(
+        DEMO_NAME, DEMO_ID, radio=radio, config=StationConfig(command_give_up=COMMAND_GIVE_UP_S)
+    ).start()
+
+
+def _utilisation(before: dict[str, Any] | None, after: dict[str, Any] | None) -> float | None:
+    """The air's busy share between two emulator counter snapshots."""
+    if not (before and after and after["elapsed_s"] > before["elapsed_s"]):
+        return None
+    busy = after["utilisation"] * after["elapsed_s"] - before["utilisation"] * before["elapsed_s"]
+    return round(busy / (after["elapsed_s"] - before["elapsed_s"]), 3)
 
 
 def _start_gcs(radio: str, http: str, children: list[Child], out: Callable[[str], None]) -> str | None:
@@ -471,33 +504,4 @@ def _leader_position(capture: str, leader: int) -> tuple[float, float, float]:
     return p.lat, p.lon, p.alt
 
 
-def _progress_until(
-    done: Callable[[], bool],
-    watch: _Watch,
-    capture: str,
-    out: Callable[[str], None],
-    elapsed: Callable[[], float],
-    check_stop: Callable[[], None],
-    stop: threading.Event,
-    every: float = 5.0,
-) -> None:
-    from swarm.sim.tracks import analyse
-
-    last = time.monotonic()
-    while True:
-        watch.poll()
-        if done():
-            return
-        check_stop()
-        if time.monotonic() - last >= every:
-            last = time.monotonic()
-            an = analyse(capture, start=time.time() - every)
-            errs = [e for _t, _m, e, _turn in an.errors]
-            lead = watch.leader()
-            modes = sum(1 for k in watch.events if watch.has_event(k, "following"))
-            err = f"slot error last {every:g} s: max {max(errs):.1f} m" if errs else "no slot samples yet"
-            out(f"   t={elapsed():5.1f} s leader=agent{lead} following={modes}/{len(watch.agents) - 1} {err}")
-        stop.wait(0.2)
-
-
-__all__ = ["DemoConfig", "DemoError", "Ground", "run_demo"]
+__all__ = ["DEMO_ID", "DEMO_NAME", "DemoConfig", "DemoError", "run_demo"]

@@ -16,10 +16,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from radios.errors import RadioError
+from swarm.errors import SwarmError
 
 
-class ChildError(RadioError):
+class ChildError(SwarmError):
     """A child process failed to start or exited early."""
 
 

@@ -3,7 +3,10 @@
 Every subcommand's ``main`` is wrapped by :func:`guarded` so that a user never sees a
 traceback for an error the project raises on purpose: the message goes to stderr
 and the exit code says what happened (1 failure, 2 bad usage or input, 130
-interrupted).
+interrupted). The guard knows the three error roots, one per package
+(:class:`radios.errors.RadioError`, :class:`firmware_bridge.errors.BridgeError`,
+:class:`swarm.errors.SwarmError`); :func:`exit_code` maps an error to its code in one
+place. With ``swarm --log-level DEBUG`` the guard also logs the traceback it hides.
 """
 
 from __future__ import annotations
@@ -11,21 +14,50 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import logging
 import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from firmware_bridge.errors import BridgeError, ConnectError
 from radios.errors import ConfigError, LinkOpenError, RadioError
+from swarm.errors import SwarmError, TransportError
+
+if TYPE_CHECKING:
+    from swarm.runtime.options import NodeOptions
+
+log = logging.getLogger("swarm.cli")
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 
 
-class UsageError(Exception):
+class UsageError(SwarmError):
     """Bad command-line input discovered after argument parsing (exit code 2)."""
+
+
+#: the errors every package raises on purpose: anything else is a bug (a traceback)
+ERROR_ROOTS: tuple[type[Exception], ...] = (RadioError, BridgeError, SwarmError)
+#: the kinds that mean the user's input is wrong (exit 2): a command-line value, a
+#: parameter or key file, a link URL or missing device, a flight-controller URL or
+#: port, a Zenoh endpoint. A timeout among them (no heartbeat) is a failure instead.
+BAD_INPUT: tuple[type[Exception], ...] = (
+    UsageError,
+    ConfigError,
+    LinkOpenError,
+    ConnectError,
+    TransportError,
+)
+
+
+def exit_code(exc: BaseException) -> int:
+    """The exit code for an error of one of the :data:`ERROR_ROOTS` (2 bad input, else 1)."""
+    if isinstance(exc, BAD_INPUT) and not isinstance(exc, TimeoutError):
+        return EXIT_USAGE
+    return EXIT_FAILURE
 
 
 def guarded(prog: str) -> Callable[[Callable[[list[str] | None], int]], Callable[[list[str] | None], int]]:
@@ -38,12 +70,10 @@ def guarded(prog: str) -> Callable[[Callable[[list[str] | None], int]], Callable
                 return fn(argv)
             except KeyboardInterrupt:
                 return EXIT_INTERRUPTED
-            except (UsageError, ConfigError, LinkOpenError) as exc:
-                print(f"{prog}: error: {exc}", file=sys.stderr)
-                return EXIT_USAGE
-            except RadioError as exc:
-                print(f"{prog}: error: {exc}", file=sys.stderr)
-                return EXIT_FAILURE
+            except ERROR_ROOTS as exc:
+                print(f"{prog}: error: {exc}", file=sys.stderr, flush=True)
+                log.debug("%s: %s", prog, type(exc).__name__, exc_info=True)  # the bug report's
+                return exit_code(exc)
             except BrokenPipeError:
                 return EXIT_FAILURE
 
@@ -54,6 +84,69 @@ def guarded(prog: str) -> Callable[[Callable[[list[str] | None], int]], Callable
 
 def parser(prog: str, description: str) -> argparse.ArgumentParser:
     return argparse.ArgumentParser(prog=prog, description=description)
+
+
+# -- the node options every node command shares (agent, gcs) ----------------------
+
+
+def add_node_arguments(p: argparse.ArgumentParser, *, title: str | None = None) -> Any:
+    """Where a node meets the others (``--radio``, ``--zenoh-listen``, ``--zenoh-connect``
+    in a group ``title`` if given, which is returned), its signing key (``--key``) and
+    ``--exit-on-radio-loss``. :func:`node_options` reads them back."""
+    where = p.add_argument_group(title) if title else p
+    where.add_argument(
+        "--radio", metavar="URL", help="radio link: serial device or emulator pty (DIR/radioK)"
+    )
+    for flag, what in (
+        ("--zenoh-listen", "listen on (tcp/127.0.0.1:7447)"),
+        ("--zenoh-connect", "connect to"),
+    ):
+        where.add_argument(
+            flag, nargs="+", default=[], metavar="EP", help=f"Zenoh endpoints to {what}, instead of a radio"
+        )
+    p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
+    p.add_argument(
+        "--exit-on-radio-loss",
+        action="store_true",
+        help="exit 1 when the radio goes away, instead of waiting for it to come "
+        "back (for a service manager that restarts the program)",
+    )
+    return where
+
+
+def node_options(a: argparse.Namespace, who: str, *, others: str = "") -> NodeOptions:
+    """The :class:`~swarm.runtime.options.NodeOptions` of :func:`add_node_arguments`'
+    values; ``who`` names the node in a message ("an agent"), ``others`` lists the
+    command's other ways in (", --replay CAPTURE").
+
+    Raises:
+        UsageError: no way in or two, or --exit-on-radio-loss without a radio.
+    """
+    from swarm.runtime.options import NodeOptions
+
+    try:
+        node = NodeOptions(
+            radio=a.radio, zenoh_listen=a.zenoh_listen, zenoh_connect=a.zenoh_connect, key_file=a.key
+        )
+    except ValueError:
+        raise UsageError(f"give one of --radio URL, --zenoh-listen/--zenoh-connect EP...{others}") from None
+    if a.exit_on_radio_loss and not node.on_radio:
+        raise UsageError(f"--exit-on-radio-loss is for {who} on a radio (--radio)")
+    return node
+
+
+def radio_loss_message(bridge: Any) -> str:
+    """The one line for a radio lost for good (``bridge`` may be None)."""
+    reason = getattr(bridge, "loss_reason", "")
+    return "radio link lost" + (f": {reason}" if reason else "")
+
+
+def exit_when_stopped(prog: str, node: Any, what: str) -> int:
+    """A node (agent or station) stopped on its own: say why on stderr, exit 1."""
+    bridge = getattr(node, "bridge", None)
+    why = radio_loss_message(bridge) if bridge is not None and bridge.link_lost else f"{what} stopped"
+    print(f"{prog}: error: {why}", file=sys.stderr)
+    return EXIT_FAILURE
 
 
 class StopFlag:
@@ -81,3 +174,14 @@ class StopFlag:
 
 def print_json(obj: Any) -> None:
     print(json.dumps(obj, sort_keys=False), flush=True)
+
+
+#: ``--log-level`` names, quietest last
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s: %(message)s"
+
+
+def configure_logging(level: str) -> None:
+    """Send the project's loggers at ``level`` and above to stderr, one line each
+    (time, logger name, level, message)."""
+    logging.basicConfig(level=level, format=LOG_FORMAT, stream=sys.stderr, force=True)

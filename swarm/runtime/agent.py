@@ -7,11 +7,14 @@ core, pilot, station link, command log) to the world, with threads and queues as
 the paper has it (section 2.2: one thread per protocol or link, queues between them):
 
 * **Zenoh**: one session per agent. With a radio the session has no endpoints and
-  no scouting, so agents meet only through the radio; with ``zenoh_listen`` /
-  ``zenoh_connect`` endpoints they meet over IP. A :class:`~swarm.runtime.transport.Transport`
+  no scouting, so agents meet only through the radio; with Zenoh endpoints (listen
+  and/or connect) they meet over IP. Which of the two is the agent's
+  :class:`~swarm.runtime.options.NodeOptions`; how it behaves (profile, vote, pose
+  rate, pilot) its :class:`~swarm.runtime.options.AgentConfig`. A :class:`~swarm.runtime.transport.Transport`
   gives the key space: the agent listens on its inbox ``swarm/<name>`` and on
   ``swarm/advertize``, and publishes its state on ``swarm/<name>/state``.
-* **Radio** (optional): :func:`radios.link.open_link` and a
+* **Radio** (optional): :func:`radios.link.open_link` (or a link handed in already
+  open, which the agent bridges but leaves to its opener to close) and a
   :class:`~swarm.runtime.bridge.RadioBridge` (its own tx and rx threads) carry the key space
   over the air, MAVLink 2 signed when a key file is given.
 * **Protocol thread** (:class:`~swarm.runtime.loop.EventLoop`): the only thread that
@@ -30,9 +33,8 @@ the paper has it (section 2.2: one thread per protocol or link, queues between t
   driver's :class:`~firmware_bridge.driver.VehicleState` snapshot, hands the node the
   pose and what Telemetry reports (through the queue), publishes it on ``swarm/<name>/pose`` and, with
   a radio, gives the bridge a HEARTBEAT and a GLOBAL_POSITION_INT for standard
-  ground stations. The driver does not expose raw pymavlink messages, so those two
-  are rebuilt from the snapshot (same fields; the vehicle type, not in the
-  snapshot, is sent as a quadrotor); the bridge rate-limits them to 1 Hz. While the
+  ground stations, rebuilt from the snapshot by :mod:`swarm.runtime.vehicle` (the
+  driver keeps no raw messages); the bridge rate-limits them to 1 Hz. While the
   driver reports the vehicle link lost the thread publishes nothing (a stale
   position would look alive to the swarm).
 * **Vehicle link**: the driver's link-lost / link-restored callbacks come through
@@ -62,14 +64,13 @@ import queue
 import random
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 from swarm.core.messages import (
     Advertize,
     AgentState,
     GSAdvertize,
-    Pose,
     PoseReport,
     Task,
     check_id,
@@ -91,17 +92,16 @@ from swarm.core.node import (
     Send,
     SetpointOut,
     SetTask,
-    VehicleInfo,
     VehicleLink,
 )
-from swarm.core.pilot import Call, PilotConfig, Setpoint
+from swarm.core.pilot import Call, Setpoint
 from swarm.core.protocol import BatteryVote, LinkQualityVote, Profile, RandomVote, VotePolicy, profile_by_name
 from swarm.runtime.loop import EventLoop
+from swarm.runtime.options import PROFILES, VOTES, AgentConfig, NodeOptions
+from swarm.runtime.vehicle import pose_from_state, state_dict, vehicle_info, vehicle_messages
 
 log = logging.getLogger(__name__)
 
-VOTES = ("random", "battery", "link")
-PROFILES = ("paper", "fast")
 DEFAULT_AIR_KBPS = 64
 
 
@@ -114,10 +114,38 @@ def default_round_s(slots: int = 2, air_kbps: int = DEFAULT_AIR_KBPS) -> float:
 
 _STOP = object()
 
+#: the counters in :attr:`Agent.stats` (the node counts most of them)
+STATS = (
+    "received",
+    "sent",
+    "advertized",
+    "unknown_destination",
+    "send_errors",
+    "state_published",
+    "own_echo",
+    "id_conflicts",
+    "errors",
+    "poses",
+    "vehicle_forwarded",
+    "gs_sent",
+    "commands",
+    "command_replays",
+    "setpoints",
+    "setpoint_errors",
+    "poses_heard",
+    "vehicle_link_lost",
+    "vehicle_link_back",
+)
+
 
 class Agent:
     """One swarm agent: a protocol core, its threads, Zenoh, optionally a radio and a
     flight controller. See the module docstring.
+
+    ``node``: where it meets the others (a radio URL, an open link, or Zenoh
+    endpoints); ``fc``: the flight controller's URL (optional); ``config``: how it
+    behaves; ``on_state`` / ``on_event``: hooks called on the protocol thread with
+    each new state and each event's text.
 
     Construction only checks the arguments (ValueError); :meth:`start` (or ``with``)
     opens everything and may raise the errors of the parts it opens:
@@ -130,76 +158,28 @@ class Agent:
         self,
         name: str,
         agent_id: int,
+        node: NodeOptions,
         *,
-        radio: str | None = None,
-        zenoh_listen: Sequence[str] = (),
-        zenoh_connect: Sequence[str] = (),
         fc: str | None = None,
-        profile: str = "paper",
-        round_s: float | None = None,
-        key_file: str | None = None,
-        vote: str = "random",
-        pose_hz: float = 4.0,
-        fc_timeout: float = 10.0,
-        seed: int | None = None,
-        pilot: PilotConfig | None = None,
+        config: AgentConfig | None = None,
         on_state: Callable[[AgentState], None] | None = None,
         on_event: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         check_name(name)
         check_id(agent_id)
-        if vote not in VOTES:
-            raise ValueError(f"unknown vote policy {vote!r}: {', '.join(VOTES)}")
-        if profile not in PROFILES:
-            raise ValueError(f"unknown profile {profile!r}: {', '.join(PROFILES)}")
-        if radio is not None and (zenoh_listen or zenoh_connect):
-            raise ValueError("an agent meets others either through a radio or over Zenoh endpoints")
-        if radio is None and not (zenoh_listen or zenoh_connect):
-            raise ValueError("give a radio or at least one Zenoh endpoint (listen or connect)")
-        if round_s is not None and not (math.isfinite(round_s) and round_s > 0):
-            raise ValueError(f"round_s {round_s!r} must be a positive number of seconds")
-        if not (math.isfinite(pose_hz) and 0 < pose_hz <= 50):
-            raise ValueError(f"pose_hz {pose_hz!r} must be in (0, 50]")
         self.name = name
         self.id = agent_id
-        self.radio_url = radio
-        self.zenoh_listen = list(zenoh_listen)
-        self.zenoh_connect = list(zenoh_connect)
+        self.options = node
+        self.config = cfg = config if config is not None else AgentConfig()
         self.fc_url = fc
-        self.round_s = round_s if round_s is not None else default_round_s()
-        self.profile: Profile = profile_by_name(profile, self.round_s)
-        self.key_file = key_file
-        self.vote = vote
-        self.pose_hz = pose_hz
-        self.fc_timeout = fc_timeout
+        self.round_s = cfg.round_s if cfg.round_s is not None else default_round_s()
+        self.profile: Profile = profile_by_name(cfg.profile, self.round_s)
         self.on_state = on_state
         self.on_event = on_event
         self.clock = clock
-        self.pilot_config = pilot or PilotConfig()
-        self._seed = seed
         self._calls: queue.Queue[object] = queue.Queue()
-        self.stats: dict[str, int] = {
-            "received": 0,
-            "sent": 0,
-            "advertized": 0,
-            "unknown_destination": 0,
-            "send_errors": 0,
-            "state_published": 0,
-            "own_echo": 0,
-            "id_conflicts": 0,
-            "errors": 0,
-            "poses": 0,
-            "vehicle_forwarded": 0,
-            "gs_sent": 0,
-            "commands": 0,
-            "command_replays": 0,
-            "setpoints": 0,
-            "setpoint_errors": 0,
-            "poses_heard": 0,
-            "vehicle_link_lost": 0,
-            "vehicle_link_back": 0,
-        }
+        self.stats: dict[str, int] = dict.fromkeys(STATS, 0)
         self.node: AgentNode | None = None
         self.session: Any = None
         self.transport: Any = None
@@ -250,24 +230,39 @@ class Agent:
             raise
         return self
 
+    def _open_node(self) -> None:
+        """The session, and with a radio the link (unless handed one) and its bridge."""
+        from swarm.runtime.bridge import BridgeConfig, RadioBridge, open_node
+        from swarm.runtime.transport import open_session
+
+        n = self.options
+        if n.link is None:
+            self.session, self.link, self.bridge = open_node(
+                self.name,
+                self.id,
+                radio=n.radio,
+                listen=n.zenoh_listen,
+                connect=n.zenoh_connect,
+                key_file=n.key_file,
+            )
+            return
+        from radios.signing import load_key
+
+        key = load_key(n.key_file) if n.key_file is not None else None
+        self.session = open_session()  # no endpoints, no scouting: only the radio
+        cfg = BridgeConfig(signing_key=key)
+        self.bridge = RadioBridge(self.session, n.link, name=self.name, agent_id=self.id, config=cfg).start()
+
     def _open(self) -> None:
-        from swarm.runtime.bridge import open_node
         from swarm.runtime.transport import Transport
 
-        self.session, self.link, self.bridge = open_node(
-            self.name,
-            self.id,
-            radio=self.radio_url,
-            listen=self.zenoh_listen,
-            connect=self.zenoh_connect,
-            key_file=self.key_file,
-        )
+        self._open_node()
         if self.fc_url is not None:
             from firmware_bridge.driver import connect
 
             self.vehicle = connect(
                 self.fc_url,
-                timeout=self.fc_timeout,
+                timeout=self.config.fc_timeout,
                 on_link_lost=lambda: self.loop.put(VehicleLink(False)),
                 on_link_restored=lambda: self.loop.put(VehicleLink(True)),
             )
@@ -276,9 +271,9 @@ class Agent:
             self.name,
             self.profile,
             policy=self._policy(),
-            rng=random.Random(self._seed),
+            rng=random.Random(self.config.seed),
             has_fc=self.vehicle is not None,
-            pilot=self.pilot_config,
+            pilot=self.config.pilot,
             stats=self.stats,
         )
         self.transport = Transport(self.name, self.session)
@@ -302,9 +297,9 @@ class Agent:
         t.start()
 
     def _policy(self) -> VotePolicy:
-        if self.vote == "battery":
+        if self.config.vote == "battery":
             return BatteryVote(self._battery)
-        if self.vote == "link":
+        if self.config.vote == "link":
             return LinkQualityVote(lambda: self.bridge.radio.rssi if self.bridge is not None else 0)
         return RandomVote()
 
@@ -370,14 +365,7 @@ class Agent:
 
     def describe(self) -> str:
         """Where the agent meets others, for the ready line."""
-        if self.radio_url is not None:
-            return f"radio={self.radio_url}"
-        parts = []
-        if self.zenoh_listen:
-            parts.append("listen=" + ",".join(self.zenoh_listen))
-        if self.zenoh_connect:
-            parts.append("connect=" + ",".join(self.zenoh_connect))
-        return "zenoh " + " ".join(parts)
+        return self.options.describe()
 
     # -- protocol thread: the node and what it asks for ------------------------------
     def _handle(self, item: object, now: float) -> None:
@@ -504,7 +492,7 @@ class Agent:
 
     # -- pose thread -------------------------------------------------------------------
     def _pose_loop(self) -> None:
-        period = 1.0 / self.pose_hz
+        period = 1.0 / self.config.pose_hz
         while not self._stop.wait(period):
             try:
                 self._pose_once()
@@ -533,99 +521,16 @@ class Agent:
         self.stats["poses"] += 1
 
 
-def vehicle_info(s: Any, link_ok: bool) -> VehicleInfo:
-    """What Telemetry reports of a driver VehicleState."""
-    speed = 0.0
-    if s.velocity is not None and all(map(math.isfinite, s.velocity[:2])):
-        speed = math.hypot(s.velocity[0], s.velocity[1])
-    return VehicleInfo(
-        mode=s.mode,
-        armed=bool(s.armed),
-        airborne=bool(s.in_air),
-        battery=int(s.battery_remaining),
-        groundspeed=speed,
-        link_ok=link_ok,
-    )
-
-
-def pose_from_state(s: Any, t: float) -> Pose | None:
-    """The protocol's Pose from a driver VehicleState (None before a position fix)."""
-    if s.lat is None or s.lon is None:
-        return None
-    vn, ve = (s.velocity[0], s.velocity[1]) if s.velocity is not None else (0.0, 0.0)
-    vals = [s.lat, s.lon, s.alt_amsl if s.alt_amsl is not None else 0.0, math.degrees(s.yaw) % 360.0, vn, ve]
-    if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in vals):
-        return None
-    return Pose(vals[0], vals[1], vals[2], vals[3], vals[4], vals[5], t)
-
-
-_AUTOPILOT_IDS = {"px4": 12, "ardupilot": 3}
-MAV_TYPE_QUADROTOR = 2
-
-
-def _clamp(x: float, lo: int, hi: int) -> int:
-    return max(lo, min(hi, round(x)))
-
-
-def vehicle_messages(s: Any) -> list[Any]:
-    """HEARTBEAT and (with a fix) GLOBAL_POSITION_INT rebuilt from a VehicleState, for
-    :meth:`swarm.runtime.bridge.RadioBridge.forward_vehicle` (the driver keeps no raw messages)."""
-    from radios.mavlink import dialect
-
-    out: list[Any] = [
-        dialect.MAVLink_heartbeat_message(
-            MAV_TYPE_QUADROTOR,
-            _AUTOPILOT_IDS.get(s.autopilot, 0),
-            s.base_mode & 0xFF,
-            s.custom_mode & 0xFFFFFFFF,
-            s.system_status & 0xFF,
-            3,
-        )
-    ]
-    if s.lat is not None and s.lon is not None and math.isfinite(s.lat) and math.isfinite(s.lon):
-        vel = s.velocity if s.velocity is not None and all(map(math.isfinite, s.velocity)) else (0, 0, 0)
-        alt = s.alt_amsl if s.alt_amsl is not None and math.isfinite(s.alt_amsl) else 0.0
-        rel = s.rel_alt if s.rel_alt is not None and math.isfinite(s.rel_alt) else 0.0
-        hdg = _clamp(math.degrees(s.yaw) % 360.0 * 100, 0, 35999) if math.isfinite(s.yaw) else 65535
-        out.append(
-            dialect.MAVLink_global_position_int_message(
-                s.time_boot_ms & 0xFFFFFFFF,
-                _clamp(s.lat * 1e7, -900_000_000, 900_000_000),
-                _clamp(s.lon * 1e7, -1_800_000_000, 1_800_000_000),
-                _clamp(alt * 1000, -(2**31), 2**31 - 1),
-                _clamp(rel * 1000, -(2**31), 2**31 - 1),
-                _clamp(vel[0] * 100, -32768, 32767),
-                _clamp(vel[1] * 100, -32768, 32767),
-                _clamp(vel[2] * 100, -32768, 32767),
-                hdg,
-            )
-        )
-    return out
-
-
-def state_dict(name: str, st: AgentState) -> dict[str, Any]:
-    """An AgentState as the JSON object ``swarm agent --json`` prints."""
-    return {
-        "name": name,
-        "id": st.sender,
-        "phase": st.phase.name,
-        "leader": st.leader,
-        "pool": sorted(st.pool),
-        "locked": st.locked,
-        "members": sorted(st.members),
-        "candidate": st.candidate,
-        "weight": st.weight,
-        "epoch": st.epoch,
-    }
-
-
 __all__ = [
     "PROFILES",
     "SETPOINT_PERIOD",
+    "STATS",
     "VEHICLE_LINK_BACK",
     "VEHICLE_LINK_LOST",
     "VOTES",
     "Agent",
+    "AgentConfig",
+    "NodeOptions",
     "default_round_s",
     "pose_from_state",
     "state_dict",

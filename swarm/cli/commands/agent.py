@@ -42,28 +42,37 @@ radio silent, or different without ``--restore-radio``, prints one line
 from __future__ import annotations
 
 import argparse
-import contextlib
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
-from firmware_bridge.errors import BridgeError, ConnectError, HeartbeatTimeout
+from firmware_bridge.errors import BridgeError
 from radios.errors import ATError, RadioError
 from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
-from swarm.cli.util import EXIT_FAILURE, EXIT_USAGE, StopFlag, UsageError, guarded, parser, print_json
+from swarm.cli.util import (
+    StopFlag,
+    UsageError,
+    add_node_arguments,
+    exit_code,
+    exit_when_stopped,
+    guarded,
+    node_options,
+    parser,
+    print_json,
+)
 from swarm.core.formation import FormationConfig
 from swarm.core.messages import AgentState
 from swarm.core.pilot import PilotConfig
-from swarm.errors import MessageError, TransportError
+from swarm.errors import MessageError
 from swarm.runtime.agent import (
     PROFILES,
     VEHICLE_LINK_BACK,
     VEHICLE_LINK_LOST,
     VOTES,
     Agent,
+    AgentConfig,
     default_round_s,
     state_dict,
 )
@@ -79,26 +88,27 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--name", required=True, help="agent name (1-16 of A-Z a-z 0-9 _ -)")
     p.add_argument("--id", required=True, type=int, help="MAVLink system id, 1..250, unique in the swarm")
-    p.add_argument("--radio", metavar="URL", help="radio link: serial device or emulator pty (DIR/radioK)")
-    p.add_argument(
-        "--zenoh-listen",
-        nargs="+",
-        default=[],
-        metavar="EP",
-        help="Zenoh endpoints to listen on (tcp/127.0.0.1:7447), instead of a radio",
-    )
-    p.add_argument(
-        "--zenoh-connect",
-        nargs="+",
-        default=[],
-        metavar="EP",
-        help="Zenoh endpoints to connect to, instead of a radio",
-    )
+    add_node_arguments(p)
     p.add_argument(
         "--fc",
         metavar="URL",
         help="flight controller (udpin:0.0.0.0:14540, tcp:host:port, /dev/ttyACM0...): optional",
     )
+    _add_timing_arguments(p)
+    _add_radio_check_arguments(p)
+    p.add_argument(
+        "--vote",
+        choices=VOTES,
+        default="random",
+        help="vote weight: random (the paper), battery, or link (RSSI)",
+    )
+    p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
+    _add_flight_arguments(p)
+    p.add_argument("--json", action="store_true", help="JSON lines instead of text")
+    return p
+
+
+def _add_timing_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--profile",
         choices=PROFILES,
@@ -122,7 +132,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--air-speed", type=int, default=64, metavar="KBPS", help="radio air rate for the round (default 64)"
     )
-    p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
+
+
+def _add_radio_check_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--radio-params",
         metavar="NAME=V,...|FILE",
@@ -142,61 +154,23 @@ def _build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="with --radio-params: write the expected values back (AT&W, ATZ) instead of refusing to start",
     )
-    p.add_argument(
-        "--vote",
-        choices=VOTES,
-        default="random",
-        help="vote weight: random (the paper), battery, or link (RSSI)",
-    )
-    p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
+
+
+def _add_flight_arguments(p: argparse.ArgumentParser) -> None:
     f = p.add_argument_group("formation and flight (with --fc)")
-    f.add_argument(
-        "--speed", type=float, default=5.0, metavar="M/S", help="route speed of a leader (default 5)"
-    )
-    f.add_argument("--back", type=float, default=10.0, metavar="M", help="slot distance behind (default 10)")
-    f.add_argument(
-        "--side", type=float, default=5.0, metavar="M", help="slot distance to the side (default 5)"
-    )
-    f.add_argument(
-        "--stagger",
-        type=float,
-        default=0.0,
-        metavar="M",
-        help="altitude step per chain position (default 0: one altitude)",
-    )
-    f.add_argument(
-        "--min-separation",
-        type=float,
-        default=3.0,
-        metavar="M",
-        help="hold when another agent is closer than this (default 3)",
-    )
-    f.add_argument(
-        "--turn-radius",
-        type=float,
-        default=25.0,
-        metavar="M",
-        help="corner radius of a leader's route (default 25)",
-    )
-    p.add_argument("--json", action="store_true", help="JSON lines instead of text")
-    add_radio_loss_argument(p)
-    return p
-
-
-def add_radio_loss_argument(p: argparse.ArgumentParser) -> None:
-    """``--exit-on-radio-loss``, shared with ``swarm gcs``."""
-    p.add_argument(
-        "--exit-on-radio-loss",
-        action="store_true",
-        help="exit 1 when the radio goes away, instead of waiting for it to come "
-        "back (for a service manager that restarts the program)",
-    )
-
-
-def radio_loss_message(bridge: Any) -> str:
-    """The one line for a radio lost for good (``bridge`` may be None)."""
-    reason = getattr(bridge, "loss_reason", "")
-    return "radio link lost" + (f": {reason}" if reason else "")
+    for flag, default, what in (
+        ("--speed", 5.0, "route speed of a leader"),
+        ("--back", 10.0, "slot distance behind"),
+        ("--side", 5.0, "slot distance to the side"),
+        ("--stagger", 0.0, "altitude step per chain position"),
+        ("--min-separation", 3.0, "hold when another agent is closer than this"),
+        ("--turn-radius", 25.0, "corner radius of a leader's route"),
+    ):
+        note = ": one altitude" if flag == "--stagger" else ""
+        metavar = "M/S" if flag == "--speed" else "M"
+        f.add_argument(
+            flag, type=float, default=default, metavar=metavar, help=f"{what} (default {default:g}{note})"
+        )
 
 
 def _text(name: str, st: AgentState) -> str:
@@ -212,23 +186,84 @@ def _text(name: str, st: AgentState) -> str:
     return " ".join(parts)
 
 
-def _check_radio(a: argparse.Namespace, *, again: bool = False, lock: threading.Lock | None = None) -> None:
+class _Lines:
+    """The agent's stdout, from any of its threads: text, or JSON lines with ``--json``.
+    The ready line comes first: states before it wait for it, events before it are
+    dropped. A closed stdout is ignored (the agent keeps running quietly)."""
+
+    def __init__(self, a: argparse.Namespace) -> None:
+        self.name, self.id, self.json = a.name, a.id, a.json
+        self.lock = threading.Lock()
+        self.t0 = time.monotonic()
+        self.ready = False
+        self._pending: list[AgentState] = []
+
+    def _put(self, obj: dict[str, Any], text: str) -> None:  # called with ``lock`` held
+        try:
+            if self.json:
+                print_json(obj)
+            else:
+                print(text, flush=True)
+        except (BrokenPipeError, ValueError):  # stdout gone: keep running quietly
+            pass
+
+    def line(self, obj: dict[str, Any], text: str) -> None:
+        """One line at once, ready or not (the radio check's)."""
+        with self.lock:
+            self._put(obj, text)
+
+    def event(self, event: str, text: str, /, **fields: Any) -> None:
+        """``{"event", "name", "id", **fields, "t"}`` or ``agent NAME: text``, once ready."""
+        obj = {"event": event, "name": self.name, "id": self.id, **fields}
+        obj["t"] = round(time.monotonic() - self.t0, 3)
+        with self.lock:
+            if self.ready:
+                self._put(obj, f"agent {self.name}: {text}")
+
+    def state(self, st: AgentState) -> None:
+        with self.lock:
+            if not self.ready:
+                self._pending.append(st)
+            else:
+                self._state(st)
+
+    def _state(self, st: AgentState) -> None:  # called with ``lock`` held
+        t = round(time.monotonic() - self.t0, 3)
+        self._put({"event": "state", **state_dict(self.name, st), "t": t}, _text(self.name, st))
+
+    def pilot(self, text: str) -> None:
+        """The agent's events: its vehicle link lost or back, what its pilot does."""
+        if text in (VEHICLE_LINK_LOST, VEHICLE_LINK_BACK):
+            self.event("vehicle", text, link=text == VEHICLE_LINK_BACK, text=text)
+        else:
+            self.event("pilot", text, text=text)
+
+    def radio(self, what: str, text: str) -> None:
+        sep = ": " if what in ("lost", "paused") else " "
+        self.event("radio", f"radio {what}{sep}{text}", state=what, text=text)
+
+    def open(self, agent: Agent) -> None:
+        """The ready line, then the states that waited for it."""
+        obj = {"event": "ready", "name": self.name, "id": self.id, "link": agent.describe()}
+        obj.update(profile=agent.profile.name, round_s=round(agent.round_s, 4))
+        text = f"agent {self.name} id={self.id} {agent.describe()} profile={agent.profile.name} ready"
+        with self.lock:
+            self._put(obj, text)
+            self.ready = True
+            for st in self._pending:
+                self._state(st)
+            self._pending.clear()
+
+
+def _check_radio(a: argparse.Namespace, out: _Lines, *, again: bool = False) -> None:
     """The radio guard (before the bridge opens the port, or on a port it lent). Raises
     RadioError for a radio that differs (without --restore-radio) or does not answer, and
     ConfigError for bad expected parameters. ``again``: a re-check of an isolated agent,
-    which says so in one line even when the radio is as expected. ``lock``: held while
-    printing (not while checking: the agent's threads print too)."""
+    which says so in one line even when the radio is as expected."""
     report = check_radio(a.radio, parse_expected(a.radio_params), restore=a.restore_radio)
 
     def say(obj: dict[str, Any], text: str) -> None:
-        with lock if lock is not None else contextlib.nullcontext():
-            try:
-                if a.json:
-                    print_json({**obj, "name": a.name, "id": a.id, "radio": a.radio})
-                else:
-                    print(f"agent {a.name}: {text}", flush=True)
-            except (BrokenPipeError, ValueError):
-                pass
+        out.line({**obj, "name": a.name, "id": a.id, "radio": a.radio}, f"agent {a.name}: {text}")
 
     if not report.mismatches:
         if again:
@@ -251,17 +286,11 @@ def _check_radio(a: argparse.Namespace, *, again: bool = False, lock: threading.
     )
 
 
-@guarded(PROG)
-def main(argv: list[str] | None = None) -> int:
-    a = _build_parser().parse_args(argv)
+def _check_arguments(a: argparse.Namespace) -> None:
+    """What argparse cannot check. Raises UsageError; sets ``a.round_s``."""
     if not 1 <= a.id <= 250:
         raise UsageError(f"--id {a.id}: agent ids are 1..250 (255 is the ground station)")
-    if a.radio is None and not (a.zenoh_listen or a.zenoh_connect):
-        raise UsageError("give --radio URL, or --zenoh-listen / --zenoh-connect endpoints")
-    if a.radio is not None and (a.zenoh_listen or a.zenoh_connect):
-        raise UsageError("--radio and Zenoh endpoints exclude each other")
-    if a.exit_on_radio_loss and a.radio is None:
-        raise UsageError("--exit-on-radio-loss is for an agent on a radio (--radio)")
+    a.node = node_options(a, "an agent")
     if a.round_s is None:
         if not 2 <= a.slots <= 32:
             raise UsageError("--slots: 2..32")
@@ -273,129 +302,39 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--restore-radio and --radio-recheck need --radio-params")
     if a.radio_recheck < 0:
         raise UsageError(f"--radio-recheck {a.radio_recheck}: seconds, 0 for off")
-    if a.radio_params:
-        if a.radio is None:
-            raise UsageError("--radio-params checks a radio: give --radio")
-        _check_radio(a)
-    lock = threading.Lock()
-    t0 = time.monotonic()
+    if a.radio_params and a.radio is None:
+        raise UsageError("--radio-params checks a radio: give --radio")
 
-    # state changes that happen before the ready line is out wait for it, so that
-    # readers always see "ready" first
-    gate: dict[str, Any] = {"ready": False, "pending": [], "t0": t0}
 
-    def on_state(st: AgentState) -> None:
-        with lock:
-            if not gate["ready"]:
-                gate["pending"].append(st)
-                return
-            emit(st)
-
-    def emit(st: AgentState) -> None:  # called with ``lock`` held
-        try:
-            if a.json:
-                print_json({"event": "state", **state_dict(a.name, st), "t": round(time.monotonic() - t0, 3)})
-            else:
-                print(_text(a.name, st), flush=True)
-        except (BrokenPipeError, ValueError):  # stdout gone: keep running quietly
-            pass
-
-    def on_event(text: str) -> None:
-        with lock:
-            if not gate["ready"]:
-                return
-            try:
-                if a.json and text in (VEHICLE_LINK_LOST, VEHICLE_LINK_BACK):
-                    print_json(
-                        {
-                            "event": "vehicle",
-                            "name": a.name,
-                            "id": a.id,
-                            "link": text == VEHICLE_LINK_BACK,
-                            "text": text,
-                            "t": round(time.monotonic() - t0, 3),
-                        }
-                    )
-                elif a.json:
-                    print_json(
-                        {
-                            "event": "pilot",
-                            "name": a.name,
-                            "id": a.id,
-                            "text": text,
-                            "t": round(time.monotonic() - t0, 3),
-                        }
-                    )
-                else:
-                    print(f"agent {a.name}: {text}", flush=True)
-            except (BrokenPipeError, ValueError):
-                pass
-
+def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
+    """The agent the arguments describe (not started). Raises UsageError."""
     try:
-        pilot = PilotConfig(
-            speed_mps=a.speed,
-            turn_radius_m=a.turn_radius,
-            formation=FormationConfig(
-                back_m=a.back, side_m=a.side, stagger_m=a.stagger, min_separation_m=a.min_separation
-            ),
+        formation = FormationConfig(
+            back_m=a.back, side_m=a.side, stagger_m=a.stagger, min_separation_m=a.min_separation
         )
-
-        agent = Agent(
-            a.name,
-            a.id,
-            radio=a.radio,
-            zenoh_listen=a.zenoh_listen,
-            zenoh_connect=a.zenoh_connect,
-            fc=a.fc,
-            profile=a.profile,
-            round_s=a.round_s,
-            key_file=a.key,
-            vote=a.vote,
-            pose_hz=a.pose_hz,
-            pilot=pilot,
-            on_state=on_state,
-            on_event=on_event,
+        pilot = PilotConfig(speed_mps=a.speed, turn_radius_m=a.turn_radius, formation=formation)
+        config = AgentConfig(
+            profile=a.profile, round_s=a.round_s, vote=a.vote, pose_hz=a.pose_hz, pilot=pilot
         )
+        return Agent(a.name, a.id, a.node, fc=a.fc, config=config, on_state=out.state, on_event=out.pilot)
     except (MessageError, ValueError) as exc:
         raise UsageError(str(exc)) from None
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    a = _build_parser().parse_args(argv)
+    _check_arguments(a)
+    out = _Lines(a)
+    if a.radio_params:
+        _check_radio(a, out)
+    agent = _agent(a, out)
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return _run(a, agent, StopFlag().install(), lock, gate, emit)
+        return _run(a, agent, StopFlag().install(), out)
     finally:
         for sig, handler in previous.items():  # main() may run inside another program
             signal.signal(sig, handler)
-
-
-def _watch_radio(a: argparse.Namespace, bridge: Any, lock: threading.Lock, gate: dict[str, Any]) -> None:
-    """Radio lost / back as events; with --exit-on-radio-loss the bridge gives up
-    instead of reopening (the agent then stops and main exits 1)."""
-    if a.exit_on_radio_loss:
-        bridge.cfg.reopen_radio = False
-    t0 = gate["t0"]
-
-    def on_radio(what: str, text: str) -> None:
-        with lock:
-            if not gate["ready"]:
-                return
-            try:
-                if a.json:
-                    print_json(
-                        {
-                            "event": "radio",
-                            "name": a.name,
-                            "id": a.id,
-                            "state": what,
-                            "text": text,
-                            "t": round(time.monotonic() - t0, 3),
-                        }
-                    )
-                else:
-                    sep = ": " if what in ("lost", "paused") else " "
-                    print(f"agent {a.name}: radio {what}{sep}{text}", flush=True)
-            except (BrokenPipeError, ValueError):
-                pass
-
-    bridge.add_listener(on_radio)
 
 
 def _isolated(agent: Agent) -> bool:
@@ -407,103 +346,49 @@ def _isolated(agent: Agent) -> bool:
     return not others and st.leader in (0, agent.id)
 
 
-def _recheck_radio(a: argparse.Namespace, bridge: Any, lock: threading.Lock) -> None:
+def _recheck_radio(a: argparse.Namespace, bridge: Any, out: _Lines) -> None:
     """Check (and restore) the radio of a running agent: the bridge lends the port."""
     try:
-        bridge.lend_radio(lambda: _check_radio(a, again=True, lock=lock), why="radio check")
+        bridge.lend_radio(lambda: _check_radio(a, out, again=True), why="radio check")
     except RadioError as exc:  # silent, different, refused: say so, keep flying, retry later
-        with lock:
-            try:
-                if a.json:
-                    print_json(
-                        {
-                            "event": "radio-check-failed",
-                            "name": a.name,
-                            "id": a.id,
-                            "radio": a.radio,
-                            "error": str(exc),
-                        }
-                    )
-                else:
-                    print(f"agent {a.name}: radio check failed: {exc}", flush=True)
-            except (BrokenPipeError, ValueError):
-                pass
+        out.line(
+            {"event": "radio-check-failed", "name": a.name, "id": a.id, "radio": a.radio, "error": str(exc)},
+            f"agent {a.name}: radio check failed: {exc}",
+        )
 
 
 def _start(agent: Agent) -> int | None:
-    """Start the agent; None on success, else the exit code (message printed)."""
+    """Start the agent; None on success, else the exit code (message printed). The
+    guard reports the radio's and Zenoh's errors; the flight controller's are named."""
     try:
         agent.start()
-    except TransportError as exc:
-        agent.stop()
-        raise UsageError(str(exc)) from None
-    except HeartbeatTimeout as exc:
-        agent.stop()
-        print(f"{PROG}: error: flight controller: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    except ConnectError as exc:
-        agent.stop()
-        print(f"{PROG}: error: flight controller: {exc}", file=sys.stderr)
-        return EXIT_USAGE
     except BridgeError as exc:
-        agent.stop()
         print(f"{PROG}: error: flight controller: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
+        return exit_code(exc)
     return None
 
 
-def _run(
-    a: argparse.Namespace,
-    agent: Agent,
-    stop: StopFlag,
-    lock: threading.Lock,
-    gate: dict[str, Any],
-    emit: Callable[[AgentState], None],
-) -> int:
+def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> int:
     failed = _start(agent)
     if failed is not None:
         return failed
     if agent.bridge is not None:
-        _watch_radio(a, agent.bridge, lock, gate)
+        if a.exit_on_radio_loss:  # the bridge gives up instead of reopening: main exits 1
+            agent.bridge.cfg.reopen_radio = False
+        agent.bridge.add_listener(out.radio)
     recheck = RecheckTimer(a.radio_recheck) if a.radio_recheck else None
     try:
-        with lock:
-            if a.json:
-                print_json(
-                    {
-                        "event": "ready",
-                        "name": a.name,
-                        "id": a.id,
-                        "link": agent.describe(),
-                        "profile": agent.profile.name,
-                        "round_s": round(agent.round_s, 4),
-                    }
-                )
-            else:
-                print(
-                    f"agent {a.name} id={a.id} {agent.describe()} profile={agent.profile.name} ready",
-                    flush=True,
-                )
-            gate["ready"] = True
-            for st in gate["pending"]:
-                emit(st)
-            gate["pending"].clear()
+        out.open(agent)
         while not stop.wait(0.5):
             if (
                 recheck is not None
                 and agent.bridge is not None
                 and recheck.update(_isolated(agent), time.monotonic())
             ):
-                _recheck_radio(a, agent.bridge, lock)
+                _recheck_radio(a, agent.bridge, out)
                 continue
             if not agent.running:
-                why = (
-                    radio_loss_message(agent.bridge)
-                    if agent.bridge is not None and agent.bridge.link_lost
-                    else "the agent's protocol thread stopped"
-                )
-                print(f"{PROG}: error: {why}", file=sys.stderr)
-                return EXIT_FAILURE
+                return exit_when_stopped(PROG, agent, "the agent's protocol thread")
     finally:
         agent.stop()
     return 0

@@ -26,18 +26,25 @@ import argparse
 import math
 import os
 import signal
-import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from radios.errors import CaptureError
-from swarm.cli.commands.agent import add_radio_loss_argument, radio_loss_message
-from swarm.cli.util import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
+from swarm.cli.util import (
+    StopFlag,
+    UsageError,
+    add_node_arguments,
+    exit_when_stopped,
+    guarded,
+    node_options,
+    parser,
+    print_json,
+)
 from swarm.core.gslink import STATION_IDS
 from swarm.core.messages import check_name
-from swarm.errors import MessageError, TransportError
+from swarm.errors import MessageError
 from swarm.runtime.server import (
     MAX_WS_HZ,
     OSM_ATTRIBUTION,
@@ -59,18 +66,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "Ground control station: connects the agents that announce themselves, shows "
         "them on a map in the browser and sends them commands (JSON API at /api).",
     )
-    src = p.add_argument_group("where the swarm is (one of)")
-    src.add_argument("--radio", metavar="URL", help="radio link: serial device or emulator pty")
-    src.add_argument(
-        "--zenoh-listen",
-        nargs="+",
-        default=[],
-        metavar="EP",
-        help="Zenoh endpoints to listen on (tcp/127.0.0.1:7447)",
-    )
-    src.add_argument(
-        "--zenoh-connect", nargs="+", default=[], metavar="EP", help="Zenoh endpoints to connect to"
-    )
+    src = add_node_arguments(p, title="where the swarm is (one of)")
     src.add_argument("--replay", metavar="CAPTURE", help="play a captured flight (.tlog) instead")
     p.add_argument(
         "--http",
@@ -95,13 +91,11 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     _add_security_arguments(p)
     p.add_argument("--capture", metavar="FILE", help="record the radio's traffic to a .tlog (with --radio)")
-    p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
     p.add_argument("--name", default="gcs", help="station name (default gcs)")
     p.add_argument("--id", type=int, default=255, help="station system id, 251..255 (default 255)")
     p.add_argument("--speed", type=float, help="replay speed factor (default 1)")
     p.add_argument("--paused", action="store_true", help="replay: start paused")
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
-    add_radio_loss_argument(p)
     return p
 
 
@@ -221,17 +215,17 @@ def _server_config(a: argparse.Namespace) -> ServerConfig:
 
 
 def _check(a: argparse.Namespace) -> None:
-    live = [
-        x for x in (a.radio is not None, bool(a.zenoh_listen or a.zenoh_connect), a.replay is not None) if x
-    ]
-    if len(live) != 1:
-        raise UsageError("give one of --radio URL, --zenoh-listen/--zenoh-connect EP..., --replay CAPTURE")
+    ways = ", --replay CAPTURE"
+    if a.replay is None:
+        a.node = node_options(a, "a station", others=ways)
+    elif a.radio is not None or a.zenoh_listen or a.zenoh_connect:
+        raise UsageError(f"give one of --radio URL, --zenoh-listen/--zenoh-connect EP...{ways}")
+    elif a.exit_on_radio_loss:
+        raise UsageError("--exit-on-radio-loss is for a station on a radio (--radio)")
     if a.replay is None and (a.speed is not None or a.paused):
         raise UsageError("--speed and --paused are for --replay")
     if a.capture is not None and a.radio is None:
         raise UsageError("--capture records a radio's traffic: it needs --radio")
-    if a.exit_on_radio_loss and a.radio is None:
-        raise UsageError("--exit-on-radio-loss is for a station on a radio (--radio)")
     if a.replay is not None and a.key is not None:
         raise UsageError("--key is for a live station (a replay sends nothing)")
     try:
@@ -275,21 +269,51 @@ def _open_station(a: argparse.Namespace) -> Any:
         ).start()
     from swarm.runtime.station import Station
 
+    n = a.node
     st = Station(
         a.name,
         a.id,
-        radio=a.radio,
-        zenoh_listen=a.zenoh_listen,
-        zenoh_connect=a.zenoh_connect,
-        key_file=a.key,
+        radio=n.radio,
+        zenoh_listen=n.zenoh_listen,
+        zenoh_connect=n.zenoh_connect,
+        key_file=n.key_file,
         capture=a.capture,
     )
     try:
         return st.start()
-    except TransportError as exc:
+    except CaptureError as exc:  # the capture file is the user's input too
         raise UsageError(str(exc)) from None
-    except CaptureError as exc:
-        raise UsageError(str(exc)) from None
+
+
+def _ready_line(a: argparse.Namespace, cfg: ServerConfig, station: Any, server: GcsServer) -> None:
+    """The one ready line, once the server listens."""
+    # the token: "none", "given" (the operator has it: not printed) or "generated"
+    # (printed here, once, in the address to open)
+    token = "none" if cfg.token is None else "generated" if cfg.token_generated else "given"
+    ready: dict[str, Any] = {
+        "event": "ready",
+        "url": server.url,
+        "name": station.name,
+        "id": station.id,
+        "link": station.describe(),
+        "replay": a.replay is not None,
+        "tiles": cfg.tile_template,
+        "listen": f"{cfg.host}:{server.port}",
+        "token": token,
+    }
+    if token == "generated":
+        ready["open"] = server.token_url
+    if a.replay is not None:
+        ready["duration_s"] = round(station.capture.duration, 3)
+        ready["records"] = station.capture.records
+    if a.json:
+        print_json(ready)
+        return
+    where = server.token_url if token == "generated" else server.url
+    note = " (token required)" if token == "given" else ""
+    if cfg.host in ("", "0.0.0.0", "::"):
+        note += " (listening on every address: other machines use this one's address)"
+    print(f"gcs {station.name} id={station.id} {station.describe()} {where}{note} ready", flush=True)
 
 
 def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
@@ -307,66 +331,26 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
             except (BrokenPipeError, ValueError):
                 pass
 
+    def on_radio(what: str, text: str) -> None:
+        sep = ": " if what == "lost" else " "
+        on_event({"t": round(time.time(), 3), "kind": "radio", "text": f"radio {what}{sep}{text}"})
+
     try:
         try:
             server = GcsServer(station, cfg).start()
         except ServerError as exc:
             raise UsageError(str(exc)) from None
-        # the token: "none", "given" (the operator has it: not printed) or "generated"
-        # (printed here, once, in the address to open)
-        token = "none" if cfg.token is None else "generated" if cfg.token_generated else "given"
-        ready: dict[str, Any] = {
-            "event": "ready",
-            "url": server.url,
-            "name": station.name,
-            "id": station.id,
-            "link": station.describe(),
-            "replay": a.replay is not None,
-            "tiles": cfg.tile_template,
-            "listen": f"{cfg.host}:{server.port}",
-            "token": token,
-        }
-        if token == "generated":
-            ready["open"] = server.token_url
-        if a.replay is not None:
-            ready["duration_s"] = round(station.capture.duration, 3)
-            ready["records"] = station.capture.records
         bridge = getattr(station, "bridge", None)
         if bridge is not None and a.exit_on_radio_loss:
             bridge.cfg.reopen_radio = False  # before "ready": a radio pulled at once ends it too
         with lock:
-            if a.json:
-                print_json(ready)
-            else:
-                where = server.token_url if token == "generated" else server.url
-                note = " (token required)" if token == "given" else ""
-                if cfg.host in ("", "0.0.0.0", "::"):
-                    note += " (listening on every address: other machines use this one's address)"
-                print(
-                    f"gcs {station.name} id={station.id} {station.describe()} {where}{note} ready", flush=True
-                )
+            _ready_line(a, cfg, station, server)
         station.add_listener(on_event)
-        bridge = getattr(station, "bridge", None)
         if bridge is not None:
-            bridge.add_listener(
-                lambda what, text: on_event(
-                    {
-                        "t": round(time.time(), 3),
-                        "kind": "radio",
-                        "text": f"radio {what}" + (": " if what == "lost" else " ") + text,
-                    }
-                )
-            )
+            bridge.add_listener(on_radio)
         while not stop.wait(0.5):
             if not station.running:
-                bridge = getattr(station, "bridge", None)
-                why = (
-                    radio_loss_message(bridge)
-                    if bridge is not None and bridge.link_lost
-                    else "the station's thread stopped"
-                )
-                print(f"{PROG}: error: {why}", file=sys.stderr)
-                return EXIT_FAILURE
+                return exit_when_stopped(PROG, station, "the station's thread")
     finally:
         if server is not None:
             server.stop()

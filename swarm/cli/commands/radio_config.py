@@ -186,6 +186,12 @@ def _configure(
             f"the radio's firmware ({banner!r}) has no AES encryption (its ATI5 "
             "shows no ENCRYPTION_LEVEL): nothing was written"
         )
+    _write(conf, settings, key)
+    return _save(conf, settings, remote, key)
+
+
+def _write(conf: SikConfigurator, settings: dict[str, int], key: bytes | None) -> None:
+    """The settings and the key, in the radio's RAM (an ATError says nothing was saved)."""
     for name, value in settings.items():
         try:
             conf.set_param(name, value)
@@ -196,6 +202,10 @@ def _configure(
             conf.set_key(key)
         except ATError as exc:
             raise ATError(f"{exc}; nothing was saved") from None
+
+
+def _save(conf: SikConfigurator, settings: dict[str, int], remote: bool, key: bytes | None) -> dict[str, int]:
+    """Save, reboot and (a local radio) read the values back; returns them."""
     if remote:
         values = conf.read_params()
         conf.save()

@@ -52,6 +52,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="medium access: standard TDM pair, or multipoint slots "
         "(default: standard for 2 radios, multipoint for more)",
     )
+    _add_channel_arguments(p)
+    p.add_argument("--capture", metavar="FILE", help="write every frame put on air to a .tlog")
+    p.add_argument(
+        "--stats-json", metavar="FILE", help="write counters and channel utilisation (every 2 s and at exit)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed for loss and timing")
+    return p
+
+
+def _add_channel_arguments(p: argparse.ArgumentParser) -> None:
+    """The air between the radios, and what the radios do with it."""
     p.add_argument(
         "--loss", type=float, default=0.0, metavar="P", help="uniform packet loss probability per receiver"
     )
@@ -75,12 +86,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="model the CTS line: a host writing too fast is held back "
         "instead of losing bytes in the radio's full buffer",
     )
-    p.add_argument("--capture", metavar="FILE", help="write every frame put on air to a .tlog")
-    p.add_argument(
-        "--stats-json", metavar="FILE", help="write counters and channel utilisation (every 2 s and at exit)"
-    )
-    p.add_argument("--seed", type=int, default=0, help="random seed for loss and timing")
-    return p
 
 
 @guarded(PROG)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 from swarm.cli.util import UsageError, guarded, parser, print_json
@@ -10,8 +11,7 @@ from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 PROG = "swarm simulate"
 
 
-@guarded(PROG)
-def main(argv: list[str] | None = None) -> int:
+def _build_parser() -> argparse.ArgumentParser:
     p = parser(
         PROG,
         "Run K seeded scenarios of N protocol cores over the SiK air model in "
@@ -41,7 +41,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS")
     p.add_argument("--duration", type=float, default=60.0, help="virtual seconds per run at most")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    a = p.parse_args(argv)
+    return p
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    a = _build_parser().parse_args(argv)
     if not 1 <= a.agents <= 250:
         raise UsageError("--agents: 1..250")
     if a.seeds < 1:

@@ -276,8 +276,8 @@ def open_tlog_url(
             be opened (missing, a directory, no permission).
     """
     opts = Options(url)
-    speed = opts.float("speed", DEFAULT_SPEED)
-    max_gap = opts.float("max_gap", DEFAULT_MAX_GAP)
+    speed = opts.number("speed", DEFAULT_SPEED)
+    max_gap = opts.number("max_gap", DEFAULT_MAX_GAP)
     opts.finish(("speed", "max_gap"))
     if not url.target:
         raise LinkOpenError(f"{url.url}: no capture file path")

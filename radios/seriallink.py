@@ -121,9 +121,9 @@ def open_serial(url: str) -> SerialLink:
 
 def _serial_options(url: LinkURL) -> tuple[int, bool, float]:
     opts = Options(url)
-    baud = opts.int("baud", DEFAULT_BAUD)
-    rtscts = bool(opts.int("rtscts", 0))
-    write_timeout = opts.float("write_timeout", 2.0)
+    baud = opts.integer("baud", DEFAULT_BAUD)
+    rtscts = bool(opts.integer("rtscts", 0))
+    write_timeout = opts.number("write_timeout", 2.0)
     opts.finish()
     if baud <= 0:
         raise LinkOpenError(f"{url.url}: baud must be positive")

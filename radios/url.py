@@ -70,10 +70,13 @@ def parse_link_url(url: str) -> LinkURL:
     """Parse a radio link URL (see the module docstring for the forms).
 
     Raises:
-        LinkOpenError: ``url`` is empty or not a string.
+        LinkOpenError: ``url`` is empty, not a string, or holds a NUL character (no
+            path can).
     """
     if not isinstance(url, str) or not url:
         raise LinkOpenError("empty link URL")
+    if "\x00" in url:
+        raise LinkOpenError(f"{url!r}: a link URL cannot contain a NUL character")
     path, options = split_query(url)
     m = _SCHEME.match(path)
     if m is not None and not m.group(1).upper().startswith("COM"):
@@ -99,7 +102,7 @@ class Options:
         self.url = url.url
         self._left = dict(url.options)
 
-    def int(self, name: str, default: int) -> int:
+    def integer(self, name: str, default: int) -> int:
         if name not in self._left:
             return default
         try:
@@ -107,7 +110,7 @@ class Options:
         except ValueError:
             raise LinkOpenError(f"{self.url}: {name} must be an integer") from None
 
-    def float(self, name: str, default: float) -> float:
+    def number(self, name: str, default: float) -> float:
         if name not in self._left:
             return default
         try:

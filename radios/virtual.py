@@ -121,8 +121,8 @@ def open_virtual(url: LinkURL, **options: Any) -> VirtualLink:
     if options:
         raise LinkOpenError(f"unexpected options for a virtual link: {', '.join(options)}")
     opts = Options(url)
-    loss = opts.float("loss", 0.0)
-    seed = opts.int("seed", 0)
+    loss = opts.number("loss", 0.0)
+    seed = opts.integer("seed", 0)
     opts.finish(("loss", "seed"))
     return VirtualLink(url.url, url.target, loss=loss, seed=seed)
 

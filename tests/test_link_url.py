@@ -61,18 +61,26 @@ def test_empty_or_not_a_string(url: object) -> None:
         parse_link_url(url)  # type: ignore[arg-type]
 
 
+def test_a_nul_character_is_refused_by_every_backend_in_one_line(tmp_path: Path) -> None:
+    """A NUL reached open() and escaped as a ValueError traceback for captures."""
+    for url in ("x\x00.tlog", "tlog:\x00.tlog", "/dev/tty\x00", "virtual://a\x00b", "loop://\x00"):
+        with pytest.raises(LinkOpenError, match="cannot contain a NUL character") as info:
+            open_link(url)
+        assert "\n" not in str(info.value)
+
+
 def test_options_are_read_typed_and_leftovers_refused() -> None:
     opts = Options(parse_link_url("/dev/x?baud=9600&wt=0.5&bogus=1&zz=2"))
-    assert opts.int("baud", 1) == 9600
-    assert opts.int("missing", 42) == 42
-    assert opts.float("wt", 2.0) == 0.5
+    assert opts.integer("baud", 1) == 9600
+    assert opts.integer("missing", 42) == 42
+    assert opts.number("wt", 2.0) == 0.5
     with pytest.raises(LinkOpenError, match=r"^/dev/x\?.*: unknown option\(s\) bogus, zz \(known: a, b\)$"):
         opts.finish(("a", "b"))
     for query, message in [("n=1.5", "n must be an integer"), ("n=", "n must be an integer")]:
         with pytest.raises(LinkOpenError, match=message):
-            Options(parse_link_url(f"/x?{query}")).int("n", 0)
+            Options(parse_link_url(f"/x?{query}")).integer("n", 0)
     with pytest.raises(LinkOpenError, match="f must be a number"):
-        Options(parse_link_url("/x?f=fast")).float("f", 0.0)
+        Options(parse_link_url("/x?f=fast")).number("f", 0.0)
 
 
 # -- the flight-controller forms --------------------------------------------------------------

@@ -19,8 +19,9 @@ tests run on a fake clock without real time passing (python-can's ``player.py``,
 improved, STYLE.md point 9):
 
 * :class:`TlogLink` (``open_link("tlog:PATH?speed=X&max_gap=S")`` or a path ending in
-  ``.tlog``): the link backend for replay. Receive-only. ``recv(timeout)`` returns
-  the next frame when it is due, or None if it is not due within ``timeout``; at
+  ``.tlog``; :func:`open_tlog_url` is the registry's factory): the link backend
+  for replay. Receive-only. ``recv(timeout)`` returns the next frame when it is
+  due, or None if it is not due within ``timeout``; at
   the end of the capture it raises ``LinkClosedError("... end of capture")``. A
   damaged capture delivers every whole frame, ends the same way, and keeps the
   damage in :attr:`TlogLink.damage`.

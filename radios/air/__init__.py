@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-This module owns everything between the serial pins of N radios: serial pacing,
+This package owns everything between the serial pins of N radios: serial pacing,
 the radios' buffers, the MAVLink-aware packetiser, the TDM medium access, the
 channel (one transmission at a time, collisions, half duplex, NETID, loss) and
 RADIO_STATUS injection. It does no I/O and reads no clock: the caller feeds bytes

@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 Capturing is a wrapper, not a backend feature (pyserial's ``spy://``, STYLE.md
-point 8): :class:`CaptureLink` takes any open :class:`~radios.link.Link` and
+point 8): :class:`CaptureLink` takes any open :class:`~radios.linkbase.Link` and
 behaves exactly like it, except that
 
 * each frame :meth:`~CaptureLink.send` hands over successfully, and
@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 
 from radios.errors import LinkClosedError
-from radios.link import Link, LinkStats
+from radios.linkbase import Link, LinkStats
 from radios.mavlink import Frame
 from radios.tlog import TlogWriter
 

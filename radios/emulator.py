@@ -31,7 +31,9 @@ master ends and drives one :class:`radios.air.AirModel` in real time
   vehicle, its USB cable pulled): it keeps its slot and its lock on the air, sends
   what it still held, and what it receives meanwhile is lost.
 
-:class:`Emulator` is usable in-process (tests) or through ``swarm radio-emu``.
+:class:`Emulator` is usable in-process (tests) or through ``swarm radio-emu``. Its
+options, their checks and the parameters each radio boots with are in
+:mod:`radios.emulator_config` (re-exported here).
 """
 
 from __future__ import annotations
@@ -47,112 +49,30 @@ import time
 import tty
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
+from radios.emulator_config import (
+    BAUD_CODE,
+    SERIAL_BAUD,
+    EmulatorConfig,
+    check_capture_path,
+    parse_param,
+    radio_config_of,
+    stored_params,
+)
 from radios.errors import CaptureError, ConfigError
 from radios.loss import GilbertElliott, PositionFile, RangeLoss, UniformLoss, sensitivity_dbm
 from radios.mavlink import FrameParser
 from radios.sik.at import ATEngine
-from radios.sik.params import SikParams, spec_for, validate_user_value
+from radios.sik.params import SikParams
 
-SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600, 115: 115200, 230: 230400}
-BAUD_CODE = {v: k for k, v in SERIAL_BAUD.items()}
 READ_AHEAD_S = 0.02
 STATS_EVERY_S = 2.0
 MAX_PENDING = 65536
 CONTROL = "control"  # the control FIFO in DIR
 CONTROL_HELP = "unplug I [FOR_S] | replug I | loss P"
-
-
-@dataclass
-class EmulatorConfig:
-    nodes: int
-    directory: str
-    air_speed: int = 64
-    serial_speed: int = 57600
-    netids: list[int] = field(default_factory=lambda: [25])
-    firmware: str | None = None  # None: standard for 2 radios or fewer, else multipoint
-    loss: float = 0.0
-    burst_loss: str | None = None
-    positions: str | None = None
-    params: dict[str, int] = field(default_factory=dict)
-    flow_control: bool = False
-    capture: str | None = None
-    stats_json: str | None = None
-    seed: int = 0
-    aes: bool = False  # RFD900P radios running a SiK build with AES (standard firmware)
-
-    def resolved_firmware(self) -> str:
-        if self.firmware is not None:
-            return self.firmware
-        return "standard" if self.nodes <= 2 else "multipoint"
-
-    def validate(self) -> None:
-        """Raises ConfigError with a clear message for any bad value."""
-        if not 1 <= self.nodes <= 250:
-            raise ConfigError(f"--nodes {self.nodes}: between 1 and 250 radios")
-        if self.resolved_firmware() not in ("standard", "multipoint"):
-            raise ConfigError(f"--firmware {self.firmware}: standard or multipoint")
-        if self.serial_speed not in BAUD_CODE:
-            raise ConfigError(
-                f"--serial-speed {self.serial_speed}: one of " + ", ".join(str(b) for b in sorted(BAUD_CODE))
-            )
-        validate_user_value(self.resolved_firmware(), "AIR_SPEED", self.air_speed)
-        if len(self.netids) not in (1, self.nodes):
-            raise ConfigError(
-                f"--netid: give one NETID for all radios or one per radio "
-                f"({self.nodes}), not {len(self.netids)}"
-            )
-        for n in self.netids:
-            validate_user_value(self.resolved_firmware(), "NETID", n)
-        if not 0.0 <= self.loss <= 1.0:
-            raise ConfigError(f"--loss {self.loss}: a probability between 0 and 1")
-        if self.aes and self.resolved_firmware() != "standard":
-            raise ConfigError("--aes: the multipoint SiK firmware has no AES encryption")
-        for name, value in self.params.items():
-            if name.upper() == "ENCRYPTION_LEVEL" and not self.aes:
-                raise ConfigError("ENCRYPTION_LEVEL exists only on firmware built with AES")
-            validate_user_value(self.resolved_firmware(), name, value)
-
-
-def parse_param(text: str) -> tuple[str, int]:
-    """``NAME=VALUE`` as given to ``--param``. Raises ConfigError."""
-    name, sep, value = text.partition("=")
-    if not sep:
-        raise ConfigError(f"--param {text!r}: expected NAME=VALUE")
-    try:
-        return name.strip().upper(), int(value)
-    except ValueError:
-        raise ConfigError(f"--param {text!r}: the value must be an integer") from None
-
-
-def radio_config_of(p: SikParams) -> RadioConfig:
-    """What the air model needs of a radio whose parameters are ``p`` (its active copy)."""
-
-    def a(name: str) -> int:
-        return p.active[spec_for(p.flavour, name).index]
-
-    mp = p.flavour == "multipoint"
-    return RadioConfig(
-        netid=a("NETID"),
-        air_kbps=a("AIR_SPEED"),
-        serial_baud=SERIAL_BAUD.get(a("SERIAL_SPEED"), 57600),
-        ecc=bool(a("ECC")),
-        mavlink=a("MAVLINK"),
-        max_window_ms=131 if mp else a("MAX_WINDOW"),
-        num_channels=a("NUM_CHANNELS"),
-        min_freq=a("MIN_FREQ"),
-        max_freq=a("MAX_FREQ"),
-        txpower_dbm=a("TXPOWER"),
-        firmware=p.flavour,
-        node_id=a("NODEID") if mp else 0,
-        node_destination=a("NODEDESTINATION") if mp else 0xFFFF,
-        node_count=a("NODECOUNT") if mp else 2,
-        key=p.active_key(),
-    )
 
 
 class Emulator:
@@ -191,22 +111,6 @@ class Emulator:
         self.on_event: Callable[[str], None] | None = None
 
     # -- set-up -------------------------------------------------------------
-    def _stored(self, i: int) -> dict[str, int]:
-        cfg = self.cfg
-        stored = {
-            "AIR_SPEED": cfg.air_speed,
-            "SERIAL_SPEED": BAUD_CODE[cfg.serial_speed],
-            "NETID": cfg.netids[i] if len(cfg.netids) > 1 else cfg.netids[0],
-        }
-        if self.firmware == "multipoint":
-            stored["NODECOUNT"] = max(cfg.nodes, 2)
-            stored["NODEID"] = i
-            stored["MAVLINK"] = 1  # the swarm runs MAVLink framing; multipoint defaults to raw
-        stored.update(cfg.params)
-        # order matters for the multipoint cross-checks (NODEID < NODECOUNT)
-        order = ["NODECOUNT"] + [k for k in stored if k != "NODECOUNT"]
-        return {k: stored[k] for k in order if k in stored}
-
     def radio_config(self, i: int) -> RadioConfig:
         """The model's view of radio ``i``'s active parameters."""
         return radio_config_of(self.params[i])
@@ -233,21 +137,7 @@ class Emulator:
             CaptureError: the capture file cannot be created.
         """
         d = Path(self.cfg.directory)
-        if not d.is_dir():
-            raise ConfigError(f"--dir {d}: no such directory (create it first: mkdir -p {d})")
-        if not os.access(d, os.W_OK):
-            raise ConfigError(f"--dir {d}: not writable")
-        for i in range(self.cfg.nodes):
-            link = d / f"radio{i}"
-            if link.is_symlink():
-                link.unlink()  # a stale link left by an emulator that was killed
-            elif link.exists():
-                raise ConfigError(f"{link} exists and is not a link: choose another --dir")
-        control = d / CONTROL
-        if control.is_symlink() or (control.exists() and stat.S_ISFIFO(control.stat().st_mode)):
-            control.unlink()  # left by an emulator that was killed
-        elif control.exists():
-            raise ConfigError(f"{control} exists and is not a FIFO: choose another --dir")
+        control = self._claim_directory(d)
         losses = self._losses()
         if self.cfg.capture:
             from radios.tlog import TlogWriter
@@ -255,7 +145,9 @@ class Emulator:
             self._capture = TlogWriter(self.cfg.capture)
         try:
             for i in range(self.cfg.nodes):
-                self.params.append(SikParams(self.firmware, stored=self._stored(i), aes=self.cfg.aes))
+                self.params.append(
+                    SikParams(self.firmware, stored=stored_params(self.cfg, i), aes=self.cfg.aes)
+                )
             for i in range(self.cfg.nodes):
                 self.masters.append(-1)
                 self.slave_names.append("")
@@ -265,13 +157,7 @@ class Emulator:
                 self._parsers.append(FrameParser())
                 self.links.append(d / f"radio{i}")
                 self._plug(i)
-            os.mkfifo(control, 0o600)
-            self._control = control
-            # our own writer keeps the FIFO from reporting end-of-file between writers
-            self._control_fds = [
-                os.open(control, os.O_RDONLY | os.O_NONBLOCK),
-                os.open(control, os.O_WRONLY | os.O_NONBLOCK),
-            ]
+            self._open_control(control)
             now = self.clock()
             self.started = now
             self.model = AirModel(
@@ -288,6 +174,35 @@ class Emulator:
             self.close()
             raise
         return list(zip(self.links, self.slave_names, strict=True))
+
+    def _claim_directory(self, d: Path) -> Path:
+        """Check ``d`` and remove what a killed emulator left there; the control FIFO's
+        path. Raises ConfigError."""
+        if not d.is_dir():
+            raise ConfigError(f"--dir {d}: no such directory (create it first: mkdir -p {d})")
+        if not os.access(d, os.W_OK):
+            raise ConfigError(f"--dir {d}: not writable")
+        for i in range(self.cfg.nodes):
+            link = d / f"radio{i}"
+            if link.is_symlink():
+                link.unlink()  # a stale link left by an emulator that was killed
+            elif link.exists():
+                raise ConfigError(f"{link} exists and is not a link: choose another --dir")
+        control = d / CONTROL
+        if control.is_symlink() or (control.exists() and stat.S_ISFIFO(control.stat().st_mode)):
+            control.unlink()  # left by an emulator that was killed
+        elif control.exists():
+            raise ConfigError(f"{control} exists and is not a FIFO: choose another --dir")
+        return control
+
+    def _open_control(self, control: Path) -> None:
+        os.mkfifo(control, 0o600)
+        self._control = control
+        # our own writer keeps the FIFO from reporting end-of-file between writers
+        self._control_fds = [
+            os.open(control, os.O_RDONLY | os.O_NONBLOCK),
+            os.open(control, os.O_WRONLY | os.O_NONBLOCK),
+        ]
 
     def _plug(self, i: int) -> None:
         """A new pty for radio ``i`` at ``DIR/radio<i>``."""
@@ -450,8 +365,7 @@ class Emulator:
         model = self.model
         assert model is not None, "open() first"
         poller = select.poll()
-        n = self.cfg.nodes
-        registered = [-1] * n
+        registered = [-1] * self.cfg.nodes
         next_hup_check = 0.0
         control = self._control_fds[0] if self._control_fds else None
         if control is not None:
@@ -460,75 +374,96 @@ class Emulator:
             now = self.clock()
             self._serve(now, poller, registered)
             model.advance(now)
-            for i in range(n):
-                out = model.take_output(i, now)
-                if out:
-                    if self.connected[i]:
-                        pend = self._pending[i]
-                        pend += out
-                        if len(pend) > MAX_PENDING:
-                            self.dropped_output += len(pend) - MAX_PENDING
-                            del pend[: len(pend) - MAX_PENDING]
-                    else:
-                        self.dropped_output += len(out)
-                if self._pending[i]:
-                    self._flush(i)
+            self._deliver_output(model, now)
             if now >= next_hup_check:
                 next_hup_check = now + 0.1
                 self._check_connections()
-            # decide what to wait for
-            timeout = 0.1
-            dl = model.next_deadline()
-            if dl is not None:
-                timeout = min(timeout, dl - now)
-            for i in range(n):
-                mask = 0
-                if self.connected[i]:
-                    backlog = model.serial_backlog_s(i, now)
-                    if backlog < READ_AHEAD_S / 2:
-                        mask |= select.POLLIN
-                    elif backlog != float("inf"):
-                        timeout = min(timeout, backlog - READ_AHEAD_S / 2)
-                    if self._pending[i]:
-                        mask |= select.POLLOUT
-                if mask != registered[i]:
-                    if mask:
-                        if registered[i] > 0:
-                            poller.modify(self.masters[i], mask)
-                        else:
-                            poller.register(self.masters[i], mask)
-                    elif registered[i] > 0:
-                        poller.unregister(self.masters[i])
-                    registered[i] = mask
+            timeout = self._arm(model, now, poller, registered)
             if self.cfg.stats_json and now - self._last_stats >= STATS_EVERY_S:
                 self._last_stats = now
                 self.write_stats()
             events = poller.poll(max(0.0, timeout) * 1000.0)
-            if not events:
+            if events:
+                self._handle(model, events, control, poller, registered)
+
+    def _deliver_output(self, model: AirModel, now: float) -> None:
+        """Each radio's serial output to its host (lost while nobody has the port open,
+        the oldest bytes dropped beyond MAX_PENDING)."""
+        for i in range(self.cfg.nodes):
+            out = model.take_output(i, now)
+            if out:
+                if self.connected[i]:
+                    pend = self._pending[i]
+                    pend += out
+                    if len(pend) > MAX_PENDING:
+                        self.dropped_output += len(pend) - MAX_PENDING
+                        del pend[: len(pend) - MAX_PENDING]
+                else:
+                    self.dropped_output += len(out)
+            if self._pending[i]:
+                self._flush(i)
+
+    def _arm(self, model: AirModel, now: float, poller: Any, registered: list[int]) -> float:
+        """Register what to wait for on each master (input while the radio's serial
+        line is nearly idle, output while bytes are pending); the poll timeout."""
+        timeout = 0.1
+        dl = model.next_deadline()
+        if dl is not None:
+            timeout = min(timeout, dl - now)
+        for i in range(self.cfg.nodes):
+            mask = 0
+            if self.connected[i]:
+                backlog = model.serial_backlog_s(i, now)
+                if backlog < READ_AHEAD_S / 2:
+                    mask |= select.POLLIN
+                elif backlog != float("inf"):
+                    timeout = min(timeout, backlog - READ_AHEAD_S / 2)
+                if self._pending[i]:
+                    mask |= select.POLLOUT
+            if mask != registered[i]:
+                if mask:
+                    if registered[i] > 0:
+                        poller.modify(self.masters[i], mask)
+                    else:
+                        poller.register(self.masters[i], mask)
+                elif registered[i] > 0:
+                    poller.unregister(self.masters[i])
+                registered[i] = mask
+        return timeout
+
+    def _handle(
+        self,
+        model: AirModel,
+        events: list[tuple[int, int]],
+        control: int | None,
+        poller: Any,
+        registered: list[int],
+    ) -> None:
+        """Control lines, hang-ups, and what the hosts wrote (at most READ_AHEAD_S of
+        serial time per radio)."""
+        t = self.clock()
+        for fd, ev in events:
+            if fd == control:
+                self._read_control()
                 continue
-            t = self.clock()
-            for fd, ev in events:
-                if fd == control:
-                    self._read_control()
-                    continue
-                i = self.masters.index(fd)
-                if ev & (select.POLLHUP | select.POLLERR):
+            i = self.masters.index(fd)
+            if ev & (select.POLLHUP | select.POLLERR):
+                self._disconnect(i)
+                poller.unregister(fd)
+                registered[i] = 0
+                continue
+            if ev & select.POLLIN:
+                cfg = model.radios[i].cfg
+                budget = max(1, int(READ_AHEAD_S * cfg.serial_baud / 10))
+                try:
+                    data = os.read(fd, budget)
+                except (BlockingIOError, InterruptedError):
+                    data = b""
+                except OSError:
                     self._disconnect(i)
-                    poller.unregister(fd)
-                    registered[i] = 0
                     continue
-                if ev & select.POLLIN:
-                    cfg = model.radios[i].cfg
-                    budget = max(1, int(READ_AHEAD_S * cfg.serial_baud / 10))
-                    try:
-                        data = os.read(fd, budget)
-                    except (BlockingIOError, InterruptedError):
-                        data = b""
-                    except OSError:
-                        self._disconnect(i)
-                        continue
-                    if data:
-                        model.host_write(i, data, t)
+                if data:
+                    model.host_write(i, data, t)
 
     def _flush(self, i: int) -> None:
         pend = self._pending[i]
@@ -629,10 +564,15 @@ class Emulator:
         self.close()
 
 
-def check_capture_path(path: str) -> None:
-    """Fail early (ConfigError) if a capture file cannot be created at ``path``."""
-    parent = Path(path).parent
-    if not parent.is_dir():
-        raise ConfigError(f"--capture {path}: directory {parent} does not exist")
-    if Path(path).exists() and not stat.S_ISREG(os.stat(path).st_mode):
-        raise ConfigError(f"--capture {path}: not a regular file")
+# re-exported: the configuration lives in radios.emulator_config
+__all__ = [
+    "BAUD_CODE",
+    "CONTROL",
+    "CONTROL_HELP",
+    "SERIAL_BAUD",
+    "Emulator",
+    "EmulatorConfig",
+    "check_capture_path",
+    "parse_param",
+    "radio_config_of",
+]

@@ -19,12 +19,13 @@ tests run on a fake clock without real time passing (python-can's ``player.py``,
 improved, STYLE.md point 9):
 
 * :class:`TlogLink` (``open_link("tlog:PATH?speed=X&max_gap=S")`` or a path ending in
-  ``.tlog``): the link backend for replay. Receive-only. ``recv(timeout)`` returns
-  the next frame when it is due, or None if it is not due within ``timeout``; at
+  ``.tlog``; :func:`open_tlog_url` is the registry's factory): the link backend
+  for replay. Receive-only. ``recv(timeout)`` returns the next frame when it is
+  due, or None if it is not due within ``timeout``; at
   the end of the capture it raises ``LinkClosedError("... end of capture")``. A
   damaged capture delivers every whole frame, ends the same way, and keeps the
   damage in :attr:`TlogLink.damage`.
-* :class:`Player`: writes the records to a port (a :class:`~radios.link.Link` or any
+* :class:`Player`: writes the records to a port (a :class:`~radios.linkbase.Link` or any
   ``write(bytes)`` callable) at their time; a stop :class:`threading.Event` (set
   by a signal handler) ends it promptly.
 
@@ -55,9 +56,10 @@ from radios.errors import (
     LinkClosedError,
     LinkOpenError,
 )
-from radios.link import Link, split_query
+from radios.linkbase import Link
 from radios.mavlink import Frame, decode
 from radios.tlog import TlogReader, TlogRecord, read_tlog
+from radios.url import LinkURL, Options, parse_link_url
 
 DEFAULT_SPEED = 1.0
 DEFAULT_MAX_GAP = 5.0
@@ -148,7 +150,7 @@ class Pacer:
 class TlogLink(Link):
     """Receive-only link over a capture file; see the module docstring.
 
-    Build it with :func:`open_tlog_link` (or :func:`radios.link.open_link`).
+    Build it with :func:`open_tlog_link` (or ``radios.link.open_link``).
     ``damage`` holds the damage message once a damaged capture has ended, and
     ``ended`` says the last frame has been delivered.
     """
@@ -253,7 +255,18 @@ def open_tlog_link(
     clock: Clock = time.monotonic,
     sleep: Sleep | None = None,
 ) -> TlogLink:
-    """Open ``tlog:PATH?speed=X&max_gap=S`` (or a plain ``PATH.tlog``) for replay.
+    """Open ``tlog:PATH?speed=X&max_gap=S`` (or a plain ``PATH.tlog``) for replay,
+    see :func:`open_tlog_url`."""
+    return open_tlog_url(parse_link_url(url), clock=clock, sleep=sleep)
+
+
+def open_tlog_url(
+    url: LinkURL,
+    *,
+    clock: Clock = time.monotonic,
+    sleep: Sleep | None = None,
+) -> TlogLink:
+    """Open the capture ``url`` names for replay (the backend factory of ``tlog``).
 
     ``speed`` (default 1.0) scales the recorded pace, 0 means as fast as possible;
     ``max_gap`` (default 5 s, ``inf`` for none) caps each wait. ``clock`` and
@@ -263,31 +276,21 @@ def open_tlog_link(
         LinkOpenError: malformed or unknown option, no path, or the capture cannot
             be opened (missing, a directory, no permission).
     """
-    target = url[len("tlog:") :] if url.startswith("tlog:") else url
-    if target.startswith("//"):
-        target = target[2:]
-    path, opts = split_query(target)
-    values: dict[str, float] = {"speed": DEFAULT_SPEED, "max_gap": DEFAULT_MAX_GAP}
-    for name in list(opts):
-        if name not in values:
-            continue
-        try:
-            values[name] = float(opts.pop(name))
-        except ValueError:
-            raise LinkOpenError(f"{url}: {name} must be a number") from None
-    if opts:
-        raise LinkOpenError(f"{url}: unknown option(s) {', '.join(sorted(opts))} (known: speed, max_gap)")
-    if not path:
-        raise LinkOpenError(f"{url}: no capture file path")
+    opts = Options(url)
+    speed = opts.number("speed", DEFAULT_SPEED)
+    max_gap = opts.number("max_gap", DEFAULT_MAX_GAP)
+    opts.finish(("speed", "max_gap"))
+    if not url.target:
+        raise LinkOpenError(f"{url.url}: no capture file path")
     try:
-        _check_pacing(values["speed"], values["max_gap"])
+        _check_pacing(speed, max_gap)
     except ConfigError as exc:
-        raise LinkOpenError(f"{url}: {exc}") from None
+        raise LinkOpenError(f"{url.url}: {exc}") from None
     try:
-        reader = read_tlog(path)
+        reader = read_tlog(url.target)
     except CaptureError as exc:
         raise LinkOpenError(str(exc)) from exc
-    return TlogLink(url, reader, speed=values["speed"], max_gap=values["max_gap"], clock=clock, sleep=sleep)
+    return TlogLink(url.url, reader, speed=speed, max_gap=max_gap, clock=clock, sleep=sleep)
 
 
 # -- re-feeding a port ----------------------------------------------------------------
@@ -577,4 +580,5 @@ __all__ = [
     "format_record",
     "format_time",
     "open_tlog_link",
+    "open_tlog_url",
 ]

@@ -20,6 +20,7 @@ import random
 import struct
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
@@ -378,48 +379,48 @@ def test_capture_frames_decode_with_pymavlink(capture_net: tuple[Net, Path]) -> 
         assert data in decoded
 
 
-# -- back-off and bad input, through handle_frame on an in-memory link ------------
+# -- back-off and bad input, through handle_frame on an in-process link -----------
 
 
-class MemoryLink(Link):
-    """Records what the bridge writes; receives nothing (frames go in by handle_frame)."""
+class Tap:
+    """The other member of a ``virtual://`` bus the bridge's link is on: it hears every
+    frame the bridge writes and sends nothing (frames go in by handle_frame)."""
 
-    def __init__(self) -> None:
-        super().__init__("memory://")
+    def __init__(self, url: str) -> None:
+        self.link = open_link(url)
         self.written: list[Frame] = []
-        self._lock = threading.Lock()
-        self._gone = threading.Event()
 
-    def _read(self, timeout: float) -> bytes:
-        self._gone.wait(min(timeout, 0.05))
-        return b""
-
-    def _write(self, data: bytes) -> None:
-        with self._lock:
-            self.written.append(parse_one(data))
-
-    def _close(self) -> None:
-        self._gone.set()
+    def close(self) -> None:
+        self.link.close()
 
     def tunnels(self, kind: Kind | None = None) -> list[Frame]:
-        with self._lock:
-            frames = list(self.written)
+        while (frame := self.link.recv(0)) is not None:
+            self.written.append(frame)
         return [
             f
-            for f in frames
+            for f in self.written
             if f.msgid == MSG_TUNNEL
             and (kind is None or f.payload[0] | f.payload[1] << 8 == PAYLOAD_TYPE_BASE + int(kind))
         ]
 
 
+def virtual_link(stack: ExitStack) -> tuple[Link, Tap]:
+    """A bridge's link on a fresh in-process bus, and the tap that hears it."""
+    url = f"virtual://bridge-{uuid.uuid4().hex}"
+    link = open_link(url)
+    stack.callback(link.close)
+    tap = Tap(url)
+    stack.callback(tap.close)
+    return link, tap
+
+
 @pytest.fixture
-def solo() -> Iterator[tuple[RadioBridge, MemoryLink, Transport, Recorder]]:
-    """Agent a1 (id 1) bridged to an in-memory link, knowing a2 (id 2)."""
+def solo() -> Iterator[tuple[RadioBridge, Tap, Transport, Recorder]]:
+    """Agent a1 (id 1) bridged to an in-process link, knowing a2 (id 2)."""
     with ExitStack() as stack:
         session = open_session()
         stack.callback(session.close)
-        link = MemoryLink()
-        stack.callback(link.close)
+        link, tap = virtual_link(stack)
         bridge = RadioBridge(
             session, link, name="a1", agent_id=1, config=BridgeConfig(radio_status_stale_s=60.0)
         ).start()
@@ -430,7 +431,7 @@ def solo() -> Iterator[tuple[RadioBridge, MemoryLink, Transport, Recorder]]:
         stack.callback(rec.close)
         bridge.handle_frame(tunnel_frame(2, Kind.ADVERTIZE, encode(Advertize(2, "a2"))))
         assert bridge.peers() == {"a1": 1, "a2": 2}
-        yield bridge, link, transport, rec
+        yield bridge, tap, transport, rec
 
 
 def local_report(bridge: RadioBridge, txbuf: int) -> None:
@@ -440,7 +441,7 @@ def local_report(bridge: RadioBridge, txbuf: int) -> None:
     bridge.handle_frame(radio_status(txbuf))
 
 
-def test_backoff_on_radio_status_txbuf(solo: tuple[RadioBridge, MemoryLink, Transport, Recorder]) -> None:
+def test_backoff_on_radio_status_txbuf(solo: tuple[RadioBridge, Tap, Transport, Recorder]) -> None:
     """Below 50 % free txbuf telemetry waits; protocol and poses always go (poses thinned
     by at most 15 %, see test_radio_status_guard); a report claiming more bytes waiting
     than the bridge wrote is rejected."""
@@ -471,7 +472,7 @@ def test_backoff_on_radio_status_txbuf(solo: tuple[RadioBridge, MemoryLink, Tran
     wait_until(lambda: link.tunnels(Kind.STATE), "telemetry once txbuf is back to 90%")
 
 
-def test_bad_input_is_counted_never_raised(solo: tuple[RadioBridge, MemoryLink, Transport, Recorder]) -> None:
+def test_bad_input_is_counted_never_raised(solo: tuple[RadioBridge, Tap, Transport, Recorder]) -> None:
     bridge, _link, _t, _rec = solo
     s = bridge.stats
     published0 = s.published
@@ -509,7 +510,7 @@ def test_bad_input_is_counted_never_raised(solo: tuple[RadioBridge, MemoryLink, 
 
 
 def test_name_collision_counted_and_reported(
-    solo: tuple[RadioBridge, MemoryLink, Transport, Recorder],
+    solo: tuple[RadioBridge, Tap, Transport, Recorder],
 ) -> None:
     bridge, link, _t, rec = solo
     bridge.handle_frame(tunnel_frame(5, Kind.ADVERTIZE, encode(Advertize(5, "a5"))))
@@ -549,8 +550,7 @@ def test_replayed_signed_frame_counted() -> None:
     with ExitStack() as stack:
         session = open_session()
         stack.callback(session.close)
-        link = MemoryLink()
-        stack.callback(link.close)
+        link, _tap = virtual_link(stack)
         bridge = RadioBridge(session, link, name="a1", agent_id=1, config=BridgeConfig(signing_key=KEY))
         rec = Recorder(session)
         stack.callback(rec.close)

@@ -28,7 +28,7 @@ from radios.errors import (
     LinkClosedError,
     LinkOpenError,
 )
-from radios.link import open_link, open_serial
+from radios.link import open_link
 from radios.mavlink import MSG_RADIO_STATUS, FrameBuilder, FrameParser, pack_frame
 from radios.replay import (
     AIRTIME_OVERHEAD_BYTES,
@@ -40,6 +40,7 @@ from radios.replay import (
     format_record,
     open_tlog_link,
 )
+from radios.seriallink import open_serial
 from radios.tlog import TlogRecord, TlogWriter, read_tlog
 
 T0 = 1_700_000_000.0

@@ -9,7 +9,9 @@ A :class:`Pair` is two ends of one channel: what ``a`` sends, ``b`` receives;
 * ``loop``: pyserial's ``loop://``, one link talking to itself;
 * ``loop+capture``: the same wrapped by ``open_link(..., capture=PATH)``;
 * ``pty``: a production link on the slave of a fresh pty, the test holding the
-  master through a minimal test-only :class:`Link` backend.
+  master through a minimal test-only :class:`Link` backend;
+* ``virtual``: two members of a ``virtual://`` bus; a third member injects bytes
+  with ``write_bytes``.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import os
 import select
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,10 +44,12 @@ from radios.errors import (
     LinkOpenError,
     RadioError,
 )
-from radios.link import Link, SerialLink, open_link
+from radios.link import Link, open_link
 from radios.mavlink import Frame, FrameBuilder, parse_one
 from radios.replay import TlogLink
+from radios.seriallink import SerialLink
 from radios.tlog import TlogWriter, read_tlog
+from radios.virtual import VirtualLink
 
 # -- backends ---------------------------------------------------------------------------------
 
@@ -87,7 +92,12 @@ def _port_write(link: Link) -> Callable[[bytes], object]:
     return inner.port.write
 
 
-@pytest.fixture(params=["emulator", "loop", "loop+capture", "pty"])
+def bus_url(query: str = "") -> str:
+    """A ``virtual://`` URL of a bus no other test uses (bus names are process-wide)."""
+    return f"virtual://contract-{uuid.uuid4().hex}{query}"
+
+
+@pytest.fixture(params=["emulator", "loop", "loop+capture", "pty", "virtual"])
 def pair(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Pair]:
     kind = request.param
     if kind == "emulator":
@@ -98,6 +108,11 @@ def pair(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Pair]:
         capture = tmp_path / "loop.tlog" if kind == "loop+capture" else None
         with opened(open_link("loop://", capture=capture)) as (link,):
             yield Pair(link, link, _port_write(link))
+    elif kind == "virtual":
+        url = bus_url()
+        with opened(open_link(url), open_link(url), open_link(url)) as (a, b, tap):
+            assert isinstance(tap, VirtualLink)
+            yield Pair(a, b, tap.write_bytes)
     else:
         master, path = raw_pty()
         with opened(FdLink(master), open_link(path)) as (a, b):

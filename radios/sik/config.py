@@ -297,14 +297,18 @@ class SikConfigurator:
                 break
         if reply:
             return reply
+        raise self._no_answer(text, echoed, is_remote)
+
+    def _no_answer(self, text: str, echoed: bool, is_remote: bool) -> ATTimeoutError:
+        """The error for a command that got no reply: who did not answer."""
         if not echoed:
-            raise ATTimeoutError(
+            return ATTimeoutError(
                 f"no answer to {text} on {self.port_name}: the radio is not "
                 "in command mode (or not a SiK radio)"
             )
         if is_remote:
-            raise ATTimeoutError(f"remote radio did not answer {text} (link down?)")
-        raise ATTimeoutError(f"no reply to {text} on {self.port_name}")
+            return ATTimeoutError(f"remote radio did not answer {text} (link down?)")
+        return ATTimeoutError(f"no reply to {text} on {self.port_name}")
 
     def _op(self, at_command: str) -> str:
         """The command line for a radio operation: AT locally, RT (with target) remotely."""

@@ -1,8 +1,9 @@
 """The link to the flight controller: connection strings and the pymavlink connection.
 
-Theory of operation. :func:`parse_url` is the one parser of the driver's
-connection strings (serial, udp/udpin, udpout, tcp, a bare ``/dev/...`` path); it
-is pure and opens nothing. :func:`open_link` opens the pymavlink connection for
+Theory of operation. :func:`parse_url` parses the driver's connection strings
+(serial, udp/udpin, udpout, tcp, a bare ``/dev/...`` path, or a radio link's
+``/dev/x?baud=N``) with the link layer's grammar (:func:`radios.url.parse_endpoint`:
+one grammar for radios and flight controllers); it is pure and opens nothing. :func:`open_link` opens the pymavlink connection for
 an :class:`Endpoint` (its blocking TCP connect and reconnect loop replaced by
 :class:`TcpLink`, which has a connect timeout and reports EOF instead of
 retrying), sets up MAVLink 2 signing, and waits for the autopilot's HEARTBEAT
@@ -19,8 +20,7 @@ import contextlib
 import os
 import socket
 import time
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")  # before pymavlink picks its wire protocol
 
@@ -29,6 +29,9 @@ from pymavlink import mavutil
 from firmware_bridge.errors import ConnectError, HeartbeatTimeout
 from firmware_bridge.modes import MAV_AUTOPILOT_INVALID
 from firmware_bridge.telemetry import MSG_RADIO_STATUS, is_autopilot_heartbeat
+from radios.errors import LinkOpenError
+from radios.url import FC_DEFAULT_BAUD as DEFAULT_BAUD
+from radios.url import Endpoint, parse_endpoint
 
 if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pragma: no cover - imported earlier as v1
     os.environ["MAVLINK20"] = "1"
@@ -49,87 +52,22 @@ __all__ = [
 COMPANION_COMPONENT = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_STATE_ACTIVE = 4
-DEFAULT_BAUD = 57600
-
-
-@dataclass(frozen=True)
-class Endpoint:
-    """A parsed connection string: ``scheme`` is serial, udpin, udpout or tcp."""
-
-    scheme: Literal["serial", "udpin", "udpout", "tcp"]
-    host: str = ""
-    port: int = 0
-    device: str = ""
-    baud: int = 0
-
-    def __str__(self) -> str:
-        if self.scheme == "serial":
-            return f"serial:{self.device}:{self.baud}"
-        return f"{self.scheme}:{self.host}:{self.port}"
-
-
-def _host_port(scheme: str, rest: str, url: str) -> tuple[str, int]:
-    rest = rest.removeprefix("//")
-    host, sep, port_s = rest.rpartition(":")
-    if not sep:
-        raise ConnectError(f"{url!r}: expected {scheme}:HOST:PORT")
-    host = host.strip("[]")
-    try:
-        port = int(port_s)
-    except ValueError:
-        raise ConnectError(f"{url!r}: port {port_s!r} is not a number") from None
-    if not 0 < port < 65536:
-        raise ConnectError(f"{url!r}: port {port} out of range 1-65535")
-    return host, port
-
-
-def _serial(rest: str, url: str) -> Endpoint:
-    device, colon, baud_s = rest.rpartition(":")
-    if not colon:
-        device, baud = rest, DEFAULT_BAUD
-    else:
-        try:
-            baud = int(baud_s)
-        except ValueError:
-            raise ConnectError(f"{url!r}: baud rate {baud_s!r} is not a number") from None
-        if baud <= 0:
-            raise ConnectError(f"{url!r}: baud rate must be positive")
-    if not device:
-        raise ConnectError(f"{url!r}: no serial device")
-    return Endpoint("serial", device=device, baud=baud)
 
 
 def parse_url(url: str) -> Endpoint:
-    """Parse ``serial:/dev/ttyAMA0:921600``, ``udp:``/``udpin:HOST:PORT`` (listen, as
-    PX4 SITL's API port expects), ``udpout:HOST:PORT`` or ``tcp:HOST:PORT``. A bare
-    ``/dev/...`` path is a serial port; ``udp://:14540`` (MAVSDK style) listens.
+    """Parse a connection string with the link layer's grammar
+    (:func:`radios.url.parse_endpoint`): ``serial:/dev/ttyAMA0:921600`` or
+    ``/dev/ttyAMA0?baud=921600``, ``udp:``/``udpin:HOST:PORT`` (listen, as PX4 SITL's
+    API port expects), ``udpout:HOST:PORT`` or ``tcp:HOST:PORT``. A bare ``/dev/...``
+    path is a serial port at 57600 baud; ``udp://:14540`` (MAVSDK style) listens.
 
     Raises:
         ConnectError: malformed string or unknown scheme (nothing is opened here).
     """
-    if not isinstance(url, str) or not url.strip():
-        raise ConnectError(f"empty connection string {url!r}")
-    url = url.strip()
-    if url.startswith("/"):
-        url = "serial:" + url
-    scheme, sep, rest = url.partition(":")
-    scheme = scheme.lower()
-    if not sep or not rest:
-        raise ConnectError(
-            f"{url!r}: expected SCHEME:..., e.g. udpin:127.0.0.1:14540, "
-            "tcp:127.0.0.1:5760 or serial:/dev/ttyAMA0:921600"
-        )
-    if scheme == "serial":
-        return _serial(rest, url)
-    if scheme in ("udp", "udpin"):
-        host, port = _host_port(scheme, rest, url)
-        return Endpoint("udpin", host=host or "0.0.0.0", port=port)
-    if scheme in ("udpout", "tcp"):
-        host, port = _host_port(scheme, rest, url)
-        if not host:
-            raise ConnectError(f"{url!r}: {scheme} needs a host")
-        return Endpoint("tcp" if scheme == "tcp" else "udpout", host=host, port=port)
-    raise ConnectError(f"{url!r}: unknown scheme {scheme!r} (serial, udp, udpin, udpout, tcp)")
+    try:
+        return parse_endpoint(url, default_baud=DEFAULT_BAUD)
+    except LinkOpenError as exc:
+        raise ConnectError(str(exc)) from None
 
 
 def _resolve(ep: Endpoint, kind: socket.SocketKind) -> str:

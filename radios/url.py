@@ -28,7 +28,8 @@ strings; :class:`Options` reads them typed and refuses leftovers.
 The flight-controller connection strings (``serial:/dev/ttyAMA0:921600``,
 ``udp:``/``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT``) have their
 own small grammar, :func:`parse_endpoint`, in the same terms: a scheme, then a
-device and baud rate or a host and port.
+device and baud rate or a host and port; it also takes the serial form of a link
+URL (``/dev/ttyAMA0?baud=921600``), so one string names a serial port for both.
 """
 
 from __future__ import annotations
@@ -184,11 +185,26 @@ def _serial_endpoint(rest: str, url: str, default_baud: int) -> Endpoint:
     return Endpoint("serial", device=device, baud=baud)
 
 
+def _serial_link_endpoint(url: str, default_baud: int) -> Endpoint:
+    link = parse_link_url(url)
+    if link.scheme != "serial":
+        raise LinkOpenError(f"{url!r}: a flight controller is not reached by {link.scheme!r}")
+    opts = Options(link)
+    baud = opts.integer("baud", default_baud)
+    opts.finish(known=("baud",))
+    if baud <= 0:
+        raise LinkOpenError(f"{url!r}: baud rate must be positive")
+    if not link.target:
+        raise LinkOpenError(f"{url!r}: no serial device")
+    return Endpoint("serial", device=link.target, baud=baud)
+
+
 def parse_endpoint(url: str, *, default_baud: int = FC_DEFAULT_BAUD) -> Endpoint:
     """Parse ``serial:/dev/ttyAMA0:921600``, ``udp:``/``udpin:HOST:PORT`` (listen),
     ``udpout:HOST:PORT`` or ``tcp:HOST:PORT``. A bare ``/dev/...`` path is a serial
     port (``default_baud`` unless ``:BAUD`` follows); ``udp://:14540`` (MAVSDK style)
-    listens on every address.
+    listens on every address. The radio links' serial form is understood too:
+    ``/dev/ttyAMA0?baud=921600`` or ``serial:/dev/ttyAMA0?baud=921600``.
 
     Raises:
         LinkOpenError: malformed string or unknown scheme (nothing is opened here).
@@ -196,6 +212,8 @@ def parse_endpoint(url: str, *, default_baud: int = FC_DEFAULT_BAUD) -> Endpoint
     if not isinstance(url, str) or not url.strip():
         raise LinkOpenError(f"empty connection string {url!r}")
     url = url.strip()
+    if "?" in url:  # a radio link URL's serial form: /dev/x?baud=N, serial:/dev/x?baud=N
+        return _serial_link_endpoint(url, default_baud)
     if url.startswith("/"):
         url = "serial:" + url
     scheme, sep, rest = url.partition(":")

@@ -129,6 +129,10 @@ def fake_factory():
         ("udp://:14540", drv.Endpoint("udpin", host="0.0.0.0", port=14540)),
         ("udpout:10.0.0.2:14550", drv.Endpoint("udpout", host="10.0.0.2", port=14550)),
         ("tcp:127.0.0.1:5760", drv.Endpoint("tcp", host="127.0.0.1", port=5760)),
+        # the radio links' serial form: one string names a serial port for both
+        ("/dev/ttyAMA0?baud=921600", drv.Endpoint("serial", device="/dev/ttyAMA0", baud=921600)),
+        ("serial:/dev/ttyS1?baud=115200", drv.Endpoint("serial", device="/dev/ttyS1", baud=115200)),
+        ("/dev/ttyUSB1?", drv.Endpoint("serial", device="/dev/ttyUSB1", baud=57600)),
     ],
 )
 def test_parse_url(url: str, expected: drv.Endpoint) -> None:
@@ -152,6 +156,12 @@ def test_parse_url(url: str, expected: drv.Endpoint) -> None:
         "serial:/dev/ttyS0:fast",
         "serial:/dev/ttyS0:-5",
         "udpout::14550",
+        "/dev/ttyS0?baud=fast",
+        "/dev/ttyS0?baud=0",
+        "/dev/ttyS0?baud=57600&rtscts=maybe",
+        "flight.tlog?speed=2",
+        "virtual://bus?loss=0",
+        "/dev/tty\x00S0?baud=57600",
     ],
 )
 def test_parse_url_rejects(url: str) -> None:

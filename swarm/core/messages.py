@@ -34,45 +34,8 @@ from dataclasses import fields
 from enum import IntEnum
 from typing import Any
 
-from swarm.core.message_types import (
-    GCS_ID,
-    MAX_NAME,
-    NAME_RE,
-    PROTOCOL_VERSION,
-    REASON_MAX,
-    AckResult,
-    Advertize,
-    AgentState,
-    Assignment,
-    Command,
-    CommandAck,
-    CommandKind,
-    GSAdvertize,
-    GSConnect,
-    GSConnectAck,
-    GSHeartbeat,
-    Heartbeat,
-    HeartbeatAck,
-    Message,
-    NameConflict,
-    Phase,
-    PoolStatus,
-    Pose,
-    PoseReport,
-    Selection,
-    Side,
-    StartPool,
-    StartPoolAck,
-    SyncPool,
-    SyncPoolAck,
-    Task,
-    TaskKind,
-    Telemetry,
-    check_id,
-    check_name,
-    fit_reason,
-    pool_digest,
-)
+from swarm.core import message_types as mt
+from swarm.core.message_types import *  # noqa: F403  (re-exported: import the types from here)
 from swarm.errors import DecodeError, MessageError, VersionMismatch
 
 # -- primitive codecs -----------------------------------------------------------
@@ -117,7 +80,7 @@ class _R:
 def _w_ids(w: _W, ids: Iterable[int]) -> None:
     s = sorted(set(ids))
     for i in s:
-        check_id(i)
+        mt.check_id(i)
     if len(s) <= 32:
         w.u8(len(s))
         w.b += bytes(s)
@@ -168,7 +131,7 @@ def _r_str(r: _R, limit: int = 32) -> str:
 
 def _r_name(r: _R) -> str:
     s = _r_str(r)
-    if not NAME_RE.match(s):
+    if not mt.NAME_RE.match(s):
         raise DecodeError(f"invalid agent name {s!r}")
     return s
 
@@ -177,7 +140,7 @@ def _clamp_i8(v: float, scale: float) -> int:
     return max(-128, min(127, round(v * scale)))
 
 
-def _w_pose(w: _W, p: Pose) -> None:
+def _w_pose(w: _W, p: mt.Pose) -> None:
     w.pack(
         "iiHHbbB",
         round(p.lat * 1e7),
@@ -190,18 +153,18 @@ def _w_pose(w: _W, p: Pose) -> None:
     )
 
 
-def _r_pose(r: _R) -> Pose:
+def _r_pose(r: _R) -> mt.Pose:
     lat, lon, alt, hdg, vn, ve, t = r.unpack("iiHHbbB")
     if not -900_000_000 <= lat <= 900_000_000 or not -1_800_000_000 <= lon <= 1_800_000_000:
         raise DecodeError("pose latitude/longitude out of range")
     if hdg >= 36000:
         raise DecodeError("pose heading out of range")
-    return Pose(lat / 1e7, lon / 1e7, alt / 10.0 - 1000.0, hdg / 100.0, vn / 4.0, ve / 4.0, t / 100.0)
+    return mt.Pose(lat / 1e7, lon / 1e7, alt / 10.0 - 1000.0, hdg / 100.0, vn / 4.0, ve / 4.0, t / 100.0)
 
 
-def _w_task(w: _W, t: Task) -> None:
+def _w_task(w: _W, t: mt.Task) -> None:
     w.u8(int(t.kind))
-    if t.kind == TaskKind.FOLLOW:
+    if t.kind == mt.TaskKind.FOLLOW:
         w.pack(
             "HBBBb",
             round((t.heading % 360.0) * 100) % 36000,
@@ -212,16 +175,16 @@ def _w_task(w: _W, t: Task) -> None:
         )
         w.u8(len(t.assignments))
         for a in t.assignments:
-            w.pack("BBb", check_id(a.member), check_id(a.follows), int(a.side))
+            w.pack("BBb", mt.check_id(a.member), mt.check_id(a.follows), int(a.side))
 
 
-def _r_task(r: _R) -> Task:
+def _r_task(r: _R) -> mt.Task:
     try:
-        kind = TaskKind(r.u8())
+        kind = mt.TaskKind(r.u8())
     except ValueError:
         raise DecodeError("unknown task kind") from None
-    if kind != TaskKind.FOLLOW:
-        return Task(kind)
+    if kind != mt.TaskKind.FOLLOW:
+        return mt.Task(kind)
     hdg, back, side, gen, rate = r.unpack("HBBBb")
     if hdg >= 36000:
         raise DecodeError("task heading out of range")
@@ -235,8 +198,8 @@ def _r_task(r: _R) -> Task:
             raise DecodeError("formation side must be -1 or 1")
         if not (1 <= m <= 250 and 1 <= f <= 250):
             raise DecodeError("formation slot names an id outside 1..250")
-        out.append(Assignment(m, f, Side(s)))
-    return Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen, rate / 2.0)
+        out.append(mt.Assignment(m, f, mt.Side(s)))
+    return mt.Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen, rate / 2.0)
 
 
 def _enum(cls: type[IntEnum]) -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:
@@ -311,11 +274,11 @@ def _heading() -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:
 
 def _id(gcs: bool = False) -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:
     def w(wr: _W, v: int) -> None:
-        wr.u8(check_id(v, gcs=gcs))
+        wr.u8(mt.check_id(v, gcs=gcs))
 
     def r(rd: _R) -> int:
         v = rd.u8()
-        if not 1 <= v <= (GCS_ID if gcs else 250):
+        if not 1 <= v <= (mt.GCS_ID if gcs else 250):
             raise DecodeError(f"agent id {v} out of range")
         return v
 
@@ -326,7 +289,7 @@ def _opt_id() -> Codec:
     """An agent id, or 0 for none (a leader, a candidate, a command's target: the swarm)."""
 
     def w(wr: _W, v: int) -> None:
-        wr.u8(v if v == 0 else check_id(v))
+        wr.u8(v if v == 0 else mt.check_id(v))
 
     def r(rd: _R) -> int:
         v = rd.u8()
@@ -339,27 +302,27 @@ def _opt_id() -> Codec:
 
 U8, U16, U32 = _fmt("B"), _fmt("H"), _fmt("I")
 ID, ANY_ID, OPT_ID = _id(), _id(gcs=True), _opt_id()
-NAME = ((lambda w, v: _w_str(w, check_name(v))), _r_name)
-TEXT = ((lambda w, v: _w_str(w, v, REASON_MAX)), (lambda r: _r_str(r, REASON_MAX)))
+NAME = ((lambda w, v: _w_str(w, mt.check_name(v))), _r_name)
+TEXT = ((lambda w, v: _w_str(w, v, mt.REASON_MAX)), (lambda r: _r_str(r, mt.REASON_MAX)))
 IDS = (_w_ids, _r_ids)
 POSE = (_w_pose, _r_pose)
 TASK = (_w_task, _r_task)
 BOOL = _bool()
 
-_LAYOUT: dict[type[Message], list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
-    Advertize: [("sender", ID), ("name", NAME), ("flags", U8)],
-    GSAdvertize: [("sender", ANY_ID), ("name", NAME)],
-    Heartbeat: [("sender", ID), ("epoch", U16), ("seq", U8), ("members", IDS), ("task", TASK)],
-    HeartbeatAck: [("sender", ID), ("seq", U8), ("pose", POSE)],
-    StartPool: [("sender", ID)],
-    StartPoolAck: [("sender", ID), ("status", _enum(PoolStatus)), ("locked", BOOL), ("members", IDS)],
-    SyncPool: [("sender", ID), ("digest", U32), ("locked", BOOL), ("members", _opt_ids())],
-    SyncPoolAck: [("sender", ID), ("same", BOOL), ("locked", BOOL), ("members", IDS)],
-    Selection: [("sender", ID), ("candidate", ID), ("weight", U32), ("epoch", U16)],
-    PoseReport: [("pose", POSE)],
-    AgentState: [
+_LAYOUT: dict[type[mt.Message], list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
+    mt.Advertize: [("sender", ID), ("name", NAME), ("flags", U8)],
+    mt.GSAdvertize: [("sender", ANY_ID), ("name", NAME)],
+    mt.Heartbeat: [("sender", ID), ("epoch", U16), ("seq", U8), ("members", IDS), ("task", TASK)],
+    mt.HeartbeatAck: [("sender", ID), ("seq", U8), ("pose", POSE)],
+    mt.StartPool: [("sender", ID)],
+    mt.StartPoolAck: [("sender", ID), ("status", _enum(mt.PoolStatus)), ("locked", BOOL), ("members", IDS)],
+    mt.SyncPool: [("sender", ID), ("digest", U32), ("locked", BOOL), ("members", _opt_ids())],
+    mt.SyncPoolAck: [("sender", ID), ("same", BOOL), ("locked", BOOL), ("members", IDS)],
+    mt.Selection: [("sender", ID), ("candidate", ID), ("weight", U32), ("epoch", U16)],
+    mt.PoseReport: [("pose", POSE)],
+    mt.AgentState: [
         ("sender", ID),
-        ("phase", _enum(Phase)),
+        ("phase", _enum(mt.Phase)),
         ("leader", OPT_ID),
         ("candidate", OPT_ID),
         ("weight", U32),
@@ -368,46 +331,46 @@ _LAYOUT: dict[type[Message], list[tuple[str, tuple[Callable[[_W, Any], None], Ca
         ("pool", IDS),
         ("members", IDS),
     ],
-    GSConnect: [("sender", ANY_ID), ("seq", U16)],
-    GSConnectAck: [("sender", ID), ("seq", U16), ("hb_interval_ms", U16)],
-    Telemetry: [
+    mt.GSConnect: [("sender", ANY_ID), ("seq", U16)],
+    mt.GSConnectAck: [("sender", ID), ("seq", U16), ("hb_interval_ms", U16)],
+    mt.Telemetry: [
         ("sender", ID),
         ("pose", POSE),
         ("mode", U8),
         ("flags", U8),
-        ("phase", _enum(Phase)),
+        ("phase", _enum(mt.Phase)),
         ("leader", OPT_ID),
         ("battery", U8),
         ("rssi", U8),
         ("remrssi", U8),
         ("groundspeed", _scaled("B", 4)),
     ],
-    GSHeartbeat: [("sender", ANY_ID), ("seq", U8)],
-    Command: [("sender", ANY_ID), ("seq", U16), ("target", OPT_ID), ("kind", _enum(CommandKind))],
-    CommandAck: [("sender", ID), ("seq", U16), ("result", _enum(AckResult)), ("reason", TEXT)],
-    NameConflict: [("sender", ID), ("name", NAME), ("other_id", ID)],
+    mt.GSHeartbeat: [("sender", ANY_ID), ("seq", U8)],
+    mt.Command: [("sender", ANY_ID), ("seq", U16), ("target", OPT_ID), ("kind", _enum(mt.CommandKind))],
+    mt.CommandAck: [("sender", ID), ("seq", U16), ("result", _enum(mt.AckResult)), ("reason", TEXT)],
+    mt.NameConflict: [("sender", ID), ("name", NAME), ("other_id", ID)],
 }
 
 # per-kind arguments of a Command
-_CMD_ARGS: dict[CommandKind, list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
-    CommandKind.TAKEOFF: [("alt", _scaled("H", 10))],
-    CommandKind.GOTO: [
+_CMD_ARGS: dict[mt.CommandKind, list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
+    mt.CommandKind.TAKEOFF: [("alt", _scaled("H", 10))],
+    mt.CommandKind.GOTO: [
         ("lat", _scaled("i", 1e7)),
         ("lon", _scaled("i", 1e7)),
         ("alt", _scaled("H", 10, 1000.0)),
     ],
-    CommandKind.FOLLOW: [("heading", _heading())],
-    CommandKind.WAYPOINT: [
+    mt.CommandKind.FOLLOW: [("heading", _heading())],
+    mt.CommandKind.WAYPOINT: [
         ("lat", _scaled("i", 1e7)),
         ("lon", _scaled("i", 1e7)),
         ("alt", _scaled("H", 10, 1000.0)),
     ],
 }
 
-BY_TYPE: dict[int, type[Message]] = {cls.TYPE: cls for cls in _LAYOUT}
+BY_TYPE: dict[int, type[mt.Message]] = {cls.TYPE: cls for cls in _LAYOUT}
 
 
-def encode(msg: Message) -> bytes:
+def encode(msg: mt.Message) -> bytes:
     """Encode a message.
 
     Raises:
@@ -417,16 +380,16 @@ def encode(msg: Message) -> bytes:
     if layout is None:
         raise MessageError(f"{type(msg).__name__} is not a swarm message")
     w = _W()
-    w.u8(PROTOCOL_VERSION << 5 | msg.TYPE)
+    w.u8(mt.PROTOCOL_VERSION << 5 | msg.TYPE)
     for name, (wr, _) in layout:
         wr(w, getattr(msg, name))
-    if isinstance(msg, Command):
+    if isinstance(msg, mt.Command):
         for name, (wr, _) in _CMD_ARGS.get(msg.kind, []):
             wr(w, getattr(msg, name))
     return bytes(w.b)
 
 
-def decode(data: bytes) -> Message:
+def decode(data: bytes) -> mt.Message:
     """Decode one message.
 
     Raises:
@@ -438,14 +401,14 @@ def decode(data: bytes) -> Message:
             raise DecodeError("empty message")
         head = data[0]
         version, mtype = head >> 5, head & 0x1F
-        if version != PROTOCOL_VERSION:
-            raise VersionMismatch(version, PROTOCOL_VERSION)
+        if version != mt.PROTOCOL_VERSION:
+            raise VersionMismatch(version, mt.PROTOCOL_VERSION)
         cls = BY_TYPE.get(mtype)
         if cls is None:
             raise DecodeError(f"unknown message type {mtype}")
         r = _R(bytes(data))
         values = {name: rd(r) for name, (_, rd) in _LAYOUT[cls]}
-        if cls is Command:
+        if cls is mt.Command:
             for name, (_, rd) in _CMD_ARGS.get(values["kind"], []):
                 values[name] = rd(r)
         if r.i != len(r.d):
@@ -457,58 +420,22 @@ def decode(data: bytes) -> Message:
         raise DecodeError(f"invalid message: {exc}") from None
 
 
-def message_types() -> list[type[Message]]:
+def message_types() -> list[type[mt.Message]]:
     return list(_LAYOUT)
 
 
-def field_names(cls: type[Message]) -> list[str]:
+def field_names(cls: type[mt.Message]) -> list[str]:
     return [f.name for f in fields(cls)]
 
 
 __all__ = [
+    *mt.__all__,
     "BY_TYPE",
-    "GCS_ID",
-    "MAX_NAME",
-    "NAME_RE",
-    "PROTOCOL_VERSION",
-    "REASON_MAX",
-    "AckResult",
-    "Advertize",
-    "AgentState",
-    "Assignment",
-    "Command",
-    "CommandAck",
-    "CommandKind",
     "DecodeError",
-    "GSAdvertize",
-    "GSConnect",
-    "GSConnectAck",
-    "GSHeartbeat",
-    "Heartbeat",
-    "HeartbeatAck",
-    "Message",
     "MessageError",
-    "NameConflict",
-    "Phase",
-    "PoolStatus",
-    "Pose",
-    "PoseReport",
-    "Selection",
-    "Side",
-    "StartPool",
-    "StartPoolAck",
-    "SyncPool",
-    "SyncPoolAck",
-    "Task",
-    "TaskKind",
-    "Telemetry",
     "VersionMismatch",
-    "check_id",
-    "check_name",
     "decode",
     "encode",
     "field_names",
-    "fit_reason",
     "message_types",
-    "pool_digest",
 ]

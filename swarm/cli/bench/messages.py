@@ -224,65 +224,86 @@ def _probe(i: int) -> Selection:
     return Selection(1, candidate=2, weight=i, epoch=257)
 
 
-def bench_latency(samples: int) -> dict[str, Any]:
-    rng = random.Random(1)
-    round_s = tdm_timing(AIR_KBPS).round_s(2)
-    arrivals: dict[int, float] = {}
-    cond = threading.Condition()
-    lat: list[float] = []
-    lost = 0
+class _Probes:
+    """When each probe (a Selection of epoch 257, numbered by its weight) arrived."""
 
-    def on_inbox(msg: Message) -> None:
+    def __init__(self) -> None:
+        self.arrivals: dict[int, float] = {}
+        self.cond = threading.Condition()
+
+    def on_inbox(self, msg: Message) -> None:
         if isinstance(msg, Selection) and msg.epoch == 257:
-            with cond:
-                arrivals.setdefault(msg.weight, time.monotonic())
-                cond.notify_all()
+            with self.cond:
+                self.arrivals.setdefault(msg.weight, time.monotonic())
+                self.cond.notify_all()
 
-    def wait_for(i: int, timeout: float) -> float | None:
+    def wait_for(self, i: int, timeout: float) -> float | None:
         deadline = time.monotonic() + timeout
-        with cond:
-            while i not in arrivals:
+        with self.cond:
+            while i not in self.arrivals:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return None
-                cond.wait(left)
-            return arrivals[i]
+                self.cond.wait(left)
+            return self.arrivals[i]
 
+
+def _radio_pair(d: str, closers: list[Any]) -> tuple[Transport, Transport, list[RadioBridge]]:
+    """Two bridged nodes ``a1`` and ``a2`` on the emulator's radios (in ``d``); each
+    thing opened is added to ``closers``."""
+    emu, paths = start_emulator(2, d, "--air-speed", str(AIR_KBPS), "--seed", FAST_LOCK_SEED)
+    closers.append(emu.stop)
+    links = [open_link(p) for p in paths]
+    closers += [lk.close for lk in links]
+    sessions = [open_session(), open_session()]  # no endpoints: isolated
+    closers += [s.close for s in sessions]
+    bridges = [
+        RadioBridge(s, lk, name=f"a{i + 1}", agent_id=i + 1).start()
+        for i, (s, lk) in enumerate(zip(sessions, links, strict=True))
+    ]
+    closers += [b.close for b in bridges]
+    ta, tb = Transport("a1", sessions[0]), Transport("a2", sessions[1])
+    closers += [ta.close, tb.close]
+    return ta, tb, bridges
+
+
+def _lock(ta: Transport, tb: Transport, bridges: list[RadioBridge], probes: _Probes) -> None:
+    """Advertise until each bridge knows the other, then one probe through.
+
+    Raises:
+        RuntimeError: not within LOCK_DEADLINE_S.
+    """
+    deadline = time.monotonic() + LOCK_DEADLINE_S
+    while time.monotonic() < deadline and not all(len(b.peers()) == 2 for b in bridges):
+        ta.advertise(Advertize(1, "a1"))
+        tb.advertise(Advertize(2, "a2"))
+        time.sleep(0.3)
+    warm = 1_000_000
+    while time.monotonic() < deadline:
+        ta.send("a2", _probe(warm))
+        if probes.wait_for(warm, 1.0) is not None:
+            return
+        warm += 1
+    raise RuntimeError(f"the radio pair did not lock within {LOCK_DEADLINE_S:.0f} s")
+
+
+def bench_latency(samples: int) -> dict[str, Any]:
+    rng = random.Random(1)
+    round_s = tdm_timing(AIR_KBPS).round_s(2)
+    probes = _Probes()
+    lat: list[float] = []
+    lost = 0
     with tempfile.TemporaryDirectory() as d:
-        emu, paths = start_emulator(2, d, "--air-speed", str(AIR_KBPS), "--seed", FAST_LOCK_SEED)
-        closers: list[Any] = [emu.stop]
+        closers: list[Any] = []
         try:
-            links = [open_link(p) for p in paths]
-            closers += [lk.close for lk in links]
-            sessions = [open_session(), open_session()]  # no endpoints: isolated
-            closers += [s.close for s in sessions]
-            bridges = [
-                RadioBridge(s, lk, name=f"a{i + 1}", agent_id=i + 1).start()
-                for i, (s, lk) in enumerate(zip(sessions, links, strict=True))
-            ]
-            closers += [b.close for b in bridges]
-            ta, tb = Transport("a1", sessions[0]), Transport("a2", sessions[1])
-            closers += [ta.close, tb.close]
-            tb.on_inbox(on_inbox)
-            # hop lock: advertise until each bridge knows the other, then one probe through
-            deadline = time.monotonic() + LOCK_DEADLINE_S
-            while time.monotonic() < deadline and not all(len(b.peers()) == 2 for b in bridges):
-                ta.advertise(Advertize(1, "a1"))
-                tb.advertise(Advertize(2, "a2"))
-                time.sleep(0.3)
-            warm = 1_000_000
-            while time.monotonic() < deadline:
-                ta.send("a2", _probe(warm))
-                if wait_for(warm, 1.0) is not None:
-                    break
-                warm += 1
-            else:
-                raise RuntimeError(f"the radio pair did not lock within {LOCK_DEADLINE_S:.0f} s")
+            ta, tb, bridges = _radio_pair(d, closers)
+            tb.on_inbox(probes.on_inbox)
+            _lock(ta, tb, bridges, probes)
             for i in range(samples):
                 time.sleep(rng.uniform(0.05, 0.05 + 3 * round_s))  # uniform over the TDM round
                 t0 = time.monotonic()
                 ta.send("a2", _probe(i))
-                t1 = wait_for(i, SAMPLE_DEADLINE_S)
+                t1 = probes.wait_for(i, SAMPLE_DEADLINE_S)
                 if t1 is None:
                     lost += 1
                 else:
@@ -293,6 +314,11 @@ def bench_latency(samples: int) -> dict[str, Any]:
                     close()
                 except Exception:  # best effort: every resource gets its chance
                     pass
+    return _latency_figures(lat, lost, samples)
+
+
+def _latency_figures(lat: list[float], lost: int, samples: int) -> dict[str, Any]:
+    """The measured latencies against the TDM model's for the probe's frame."""
     frame_len = bridge_message_frame_bytes(_probe(samples), signed=False)
     model = model_latency_s(tdm_timing(AIR_KBPS), frame_len, SERIAL_BAUD)
     lat.sort()

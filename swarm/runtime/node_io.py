@@ -11,21 +11,50 @@ signed with the swarm key if given). :func:`open_node` opens one or the other as
 :class:`~swarm.runtime.transport.Transport` and returns them as one :class:`NodeIO`,
 which closes them in the reverse order. Whatever was opened is closed again if a
 later step fails. ``open_node`` stays importable from :mod:`swarm.runtime.bridge`.
+:class:`StartOnce` is the node's ``start()``: open once, close again on failure.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
-
-from swarm.runtime.transport import Transport, open_session
+from typing import TYPE_CHECKING, Any, Self
 
 if TYPE_CHECKING:
     from swarm.runtime.bridge import RadioBridge
+    from swarm.runtime.transport import Transport
 
 log = logging.getLogger(__name__)
+
+
+class StartOnce:
+    """The life cycle of a node (a station, an agent): :meth:`start` runs ``_open``
+    once, however often it is called; if opening fails, ``stop`` closes what was
+    opened and the error goes on. Subclasses give ``_open``, ``stop`` and the
+    ``_lock`` and ``_started`` attributes."""
+
+    _lock: threading.Lock | threading.RLock
+    _started: bool
+
+    def start(self) -> Self:
+        with self._lock:
+            if self._started:
+                return self
+            self._started = True
+        try:
+            self._open()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _open(self) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
 
 
 @dataclass
@@ -76,6 +105,7 @@ def open_node(
     from radios.link import open_link
     from radios.signing import load_key
     from swarm.runtime.bridge import BridgeConfig, RadioBridge
+    from swarm.runtime.transport import open_session
 
     key = load_key(key_file) if key_file is not None else None
     if radio is None:
@@ -112,6 +142,8 @@ def open_node_io(
     Raises:
         what :func:`open_node` raises.
     """
+    from swarm.runtime.transport import Transport
+
     session, link, bridge = open_node(
         name, agent_id, radio=radio, listen=listen, connect=connect, key_file=key_file, capture=capture
     )

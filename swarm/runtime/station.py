@@ -14,14 +14,12 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
 from swarm.core.messages import GCS_ID, GSAdvertize, Message
 from swarm.core.station import CommandRefused, CommandSpec, Event, StationConfig, StationCore, StOut, outcome
 from swarm.runtime.loop import EventLoop
-
-if TYPE_CHECKING:
-    from swarm.runtime.node_io import NodeIO
+from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +59,7 @@ class StationView:
             return a.as_dict(self._now()) if a is not None else None
 
 
-class Station(StationView):
+class Station(StartOnce, StationView):
     """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.
 
     Construction checks arguments (ValueError); :meth:`start` opens everything and may
@@ -126,21 +124,7 @@ class Station(StationView):
         )
         self._started = self._stopped = False
 
-    def start(self) -> Station:
-        with self._lock:
-            if self._started:
-                return self
-            self._started = True
-        try:
-            self._open()
-        except BaseException:
-            self.stop()
-            raise
-        return self
-
     def _open(self) -> None:
-        from swarm.runtime.node_io import open_node_io
-
         self.io = io = open_node_io(
             self.name,
             self.id,

@@ -25,8 +25,6 @@ station's part:
    Telemetry had FLAG_FC_OK and loses it has lost its flight controller: a
    ``vehicle`` event ("vehicle link lost"), ``vehicle_link: false`` and its mode,
    arming and airborne state unknown until the flag is back ("vehicle link back").
-5. Commands: :meth:`StationCore.submit` checks a :class:`CommandSpec` against what
-   the station knows (unknown agent, not connected, no leader: refused with a
 5. Commands: :meth:`StationCore.submit` refuses them in a replay (409) and hands
    them to its :class:`~swarm.core.station_delivery.CommandDelivery` (checks
    against what the station knows, sending with retries to the agents or the
@@ -76,11 +74,14 @@ from swarm.core.messages import (
     check_name,
 )
 from swarm.core.station_commands import (
+    AGENT_KINDS,
+    ALT_AMSL,
     CARRIED_OUT,
     DONE_RESULTS,
     KINDS,
     NO_ANSWER,
     RESULTS,
+    SWARM_KINDS,
     CommandRefused,
     CommandSpec,
     Request,
@@ -453,11 +454,14 @@ class StationCore:
 
 
 __all__ = [
+    "AGENT_KINDS",
+    "ALT_AMSL",
     "CARRIED_OUT",
     "DONE_RESULTS",
     "KINDS",
     "NO_ANSWER",
     "RESULTS",
+    "SWARM_KINDS",
     "AgentView",
     "CommandRefused",
     "CommandSpec",
@@ -466,6 +470,7 @@ __all__ = [
     "StOut",
     "StationConfig",
     "StationCore",
+    "StationCounters",
     "evidence",
     "outcome",
     "parse_command",

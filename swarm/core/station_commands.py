@@ -5,7 +5,8 @@ Theory of operation
 The API's command object (``{"target": id | "swarm", "kind": ..., args}``) becomes a
 :class:`CommandSpec` in :func:`parse_command`, or is refused with a
 :class:`CommandRefused` holding a short reason and an HTTP-like status; nothing about
-the swarm is known here (that check is :meth:`swarm.core.station.StationCore.submit`'s).
+the swarm is known here (that check is
+:meth:`swarm.core.station_delivery.CommandDelivery.submit`'s).
 
 A submitted command is a :class:`Request` holding one :class:`Pending` per addressee:
 its :class:`~swarm.core.messages.Command` (one seq each), the tries made, the agents

@@ -2,8 +2,8 @@
 
 Theory of operation
 -------------------
-:class:`StationConfig` holds every interval of the station's protocol (checked when
-built: positive numbers of seconds). :class:`StOut` is one message to send (to an
+:class:`StationConfig` holds the station protocol's intervals and sizes (checked when
+built: positive numbers of seconds, positive counts). :class:`StOut` is one message to send (to an
 agent's inbox, or 0 for ``swarm/GSAdvertize``); :class:`Event` one line of the
 station's log (connect, disconnect, leader, command, vehicle, info) in Unix time.
 :class:`AgentView` is what the station knows of one agent (position and trail, mode,

@@ -51,7 +51,14 @@ from aiohttp import web
 from swarm.core.station import CommandRefused, CommandSpec, parse_command
 from swarm.errors import SwarmError
 from swarm.runtime.security import (
+    HOST_RE,
+    LOGIN_PAGE,
     MAX_BODY,
+    MAX_DEPTH,
+    MAX_ID,
+    MAX_INT_DIGITS,
+    MAX_WS_FRAME,
+    TOKEN_RE,
     TOKEN_RULE,
     WILDCARDS,
     Guard,
@@ -421,13 +428,22 @@ class GcsServer:
 
 
 __all__ = [
+    "HOST_RE",
     "LEAFLET_DIR",
     "LOCAL_TILES",
+    "LOGIN_PAGE",
     "MAX_BODY",
+    "MAX_DEPTH",
+    "MAX_ID",
+    "MAX_INT_DIGITS",
+    "MAX_WS_FRAME",
+    "MAX_WS_HZ",
     "OSM_ATTRIBUTION",
     "OSM_TILES",
     "STATIC_DIR",
+    "TOKEN_RE",
     "TOKEN_RULE",
+    "WILDCARDS",
     "GcsServer",
     "ServerConfig",
     "ServerError",

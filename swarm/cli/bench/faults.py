@@ -32,7 +32,21 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from swarm.cli.bench.fault_bench import ROGUE_ID, BenchError, FaultBench, FaultResult
+from swarm.cli.bench.fault_bench import (
+    AGENTS,
+    HEALTH_TIMEOUT_S,
+    HOME,
+    KEY_PASSPHRASE,
+    LOSS,
+    RECHECK_S,
+    ROGUE_ID,
+    SPACING_M,
+    AgentProc,
+    BenchError,
+    FaultBench,
+    FaultResult,
+    Snapshot,
+)
 
 
 def leader_kill(bench: FaultBench) -> FaultResult:
@@ -558,3 +572,25 @@ def run(quick: bool = False) -> dict[str, Any]:
     if quick:
         return run_faults(FAULTS_QUICK, log=log, member_uptime_s=75.0)
     return run_faults(FAULTS_ALL, log=log)
+
+
+__all__ = [  # the harness's names, re-exported: they lived here
+    "AGENTS",
+    "FAULTS",
+    "FAULTS_ALL",
+    "FAULTS_QUICK",
+    "HEALTH_TIMEOUT_S",
+    "HOME",
+    "KEY_PASSPHRASE",
+    "LOSS",
+    "RECHECK_S",
+    "ROGUE_ID",
+    "SPACING_M",
+    "AgentProc",
+    "BenchError",
+    "FaultBench",
+    "FaultResult",
+    "Snapshot",
+    "run",
+    "run_faults",
+]

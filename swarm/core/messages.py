@@ -1,10 +1,11 @@
-"""Swarm messages and their one compact binary codec.
+"""The swarm messages' one compact binary codec.
 
 Theory of operation
 -------------------
-Every message is a frozen dataclass. :func:`encode` turns it into bytes and
-:func:`decode` turns any byte string into a message or raises
-:class:`DecodeError` (and nothing else). A SiK radio gives the whole swarm a few
+Every message is a frozen dataclass (:mod:`swarm.core.message_types`, whose
+names this module re-exports: the rest of the code imports them from here).
+:func:`encode` turns it into bytes and :func:`decode` turns any byte string into a
+message or raises :class:`DecodeError` (and nothing else). A SiK radio gives the whole swarm a few
 kilobytes per second, so the encoding is tight:
 
 * byte 0 = ``version << 5 | type``: 32 message types, and a protocol version in
@@ -27,350 +28,15 @@ decoder are driven by it, so they cannot disagree.
 from __future__ import annotations
 
 import math
-import re
 import struct
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field, fields
+from dataclasses import fields
 from enum import IntEnum
-from typing import Any, ClassVar
+from typing import Any
 
-import crcmod.predefined
-
+from swarm.core import message_types as mt
+from swarm.core.message_types import *  # noqa: F403  (re-exported: import the types from here)
 from swarm.errors import DecodeError, MessageError, VersionMismatch
-
-PROTOCOL_VERSION = 1
-GCS_ID = 255
-MAX_NAME = 16
-NAME_RE = re.compile(r"^[A-Za-z0-9_-]{1,16}$")
-
-_crc32 = crcmod.predefined.mkCrcFun("crc-32")
-
-
-def pool_digest(members: Iterable[int]) -> int:
-    """CRC-32 of a pool (order-independent: the sorted ids)."""
-    return int(_crc32(bytes(sorted(set(members)))))
-
-
-def fit_reason(text: str) -> str:
-    """``text`` cut to what a CommandAck's reason holds (whole UTF-8 characters)."""
-    raw = text.encode("utf-8")[:REASON_MAX]
-    return raw.decode("utf-8", errors="ignore")
-
-
-def check_name(name: str) -> str:
-    """Raise MessageError unless ``name`` is a valid agent name (1-16 of A-Z a-z 0-9 _ -),
-    usable as a Zenoh key chunk."""
-    if not isinstance(name, str) or not NAME_RE.match(name):
-        raise MessageError(f"invalid agent name {name!r}: 1 to 16 letters, digits, '_' or '-'")
-    return name
-
-
-def check_id(agent_id: int, *, gcs: bool = False) -> int:
-    top = GCS_ID if gcs else 250
-    if not isinstance(agent_id, int) or not 1 <= agent_id <= top:
-        raise MessageError(f"invalid agent id {agent_id!r}: 1..250 (the GCS is {GCS_ID})")
-    return agent_id
-
-
-# -- value types ----------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Pose:
-    """A sampled vehicle pose. ``t`` is the sample time in seconds (only t mod 2.56 s
-    crosses the air; receivers unwrap it against their clock)."""
-
-    lat: float
-    lon: float
-    alt: float  # metres AMSL
-    heading: float = 0.0  # degrees, 0..360
-    vn: float = 0.0  # m/s north
-    ve: float = 0.0  # m/s east
-    t: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("lat", "lon", "alt", "heading", "vn", "ve", "t"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise MessageError(f"pose {name}={v!r} is not a finite number")
-        if not -90 <= self.lat <= 90 or not -180 <= self.lon <= 180:
-            raise MessageError(f"pose lat/lon {self.lat}, {self.lon} out of range")
-        if not -1000 <= self.alt <= 5553.5:
-            raise MessageError(f"pose alt {self.alt} m outside -1000..5553.5 m AMSL")
-
-
-class Side(IntEnum):
-    LEFT = -1
-    RIGHT = 1
-
-
-@dataclass(frozen=True)
-class Assignment:
-    """Formation slot of one member: follow ``follows`` on ``side``."""
-
-    member: int
-    follows: int
-    side: Side
-
-
-class TaskKind(IntEnum):
-    NONE = 0
-    FOLLOW = 1
-    HOLD = 2
-
-
-@dataclass(frozen=True)
-class Task:
-    """What the leader asks of the swarm, riding on its Heartbeats."""
-
-    kind: TaskKind = TaskKind.NONE
-    heading: float = 0.0  # degrees, FOLLOW: the swarm's heading (the leader's course)
-    back_m: float = 10.0
-    side_m: float = 5.0
-    assignments: tuple[Assignment, ...] = ()
-    #: FOLLOW: which follow command this is (mod 256); a member that left the formation
-    #: for an individual command rejoins on a new generation
-    gen: int = 0
-    #: FOLLOW: how fast the swarm heading turns, degrees/s (+: clockwise), so members
-    #: turn their slots between Heartbeats; 0.5 deg/s steps, -63.5..63.5
-    turn_rate: float = 0.0
-
-
-class Phase(IntEnum):
-    IDLE = 0
-    POOLING = 1
-    LOCKED = 2
-    ELECTING = 3
-    LEADER = 4
-    MEMBER = 5
-
-
-class CommandKind(IntEnum):
-    ARM = 1
-    DISARM = 2
-    TAKEOFF = 3  # alt: metres above home
-    LAND = 4
-    RETURN = 5
-    GOTO = 6  # lat, lon, alt (AMSL)
-    FOLLOW = 7  # heading degrees
-    STOP = 8
-    WAYPOINT = 9  # lat, lon, alt (AMSL): append to the route being flown (GOTO replaces it)
-
-
-class AckResult(IntEnum):
-    ACCEPTED = 0
-    REJECTED = 1
-    UNKNOWN_AGENT = 2
-    NOT_CONNECTED = 3
-    NO_LEADER = 4
-    BAD_ARGUMENT = 5
-    FAILED = 6
-    IN_PROGRESS = 7
-
-
-class PoolStatus(IntEnum):
-    SUCCESS = 0
-    ALREADY_IN_POOL = 1
-
-
-# -- messages -------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Message:
-    TYPE: ClassVar[int] = 0
-
-
-@dataclass(frozen=True)
-class Advertize(Message):
-    """An agent announces itself on ``swarm/advertize``."""
-
-    TYPE: ClassVar[int] = 1
-    sender: int
-    name: str
-    flags: int = 0  # bit 0: has a flight controller
-
-
-@dataclass(frozen=True)
-class GSAdvertize(Message):
-    """On ``swarm/GSAdvertize``: an agent announces itself to ground stations (the
-    paper, section 3), and a station (id 255) announces its name, so that agents can
-    answer it."""
-
-    TYPE: ClassVar[int] = 2
-    sender: int
-    name: str
-
-
-@dataclass(frozen=True)
-class Heartbeat(Message):
-    """Leader -> members: I lead ``members``; the current task rides along."""
-
-    TYPE: ClassVar[int] = 3
-    sender: int
-    epoch: int
-    seq: int
-    members: frozenset[int] = frozenset()
-    task: Task = field(default_factory=Task)
-
-
-@dataclass(frozen=True)
-class HeartbeatAck(Message):
-    """Member -> leader: alive, with its pose (18 bytes; battery travels in Telemetry)."""
-
-    TYPE: ClassVar[int] = 4
-    sender: int
-    seq: int
-    pose: Pose
-
-
-@dataclass(frozen=True)
-class StartPool(Message):
-    TYPE: ClassVar[int] = 5
-    sender: int
-
-
-@dataclass(frozen=True)
-class StartPoolAck(Message):
-    TYPE: ClassVar[int] = 6
-    sender: int
-    status: PoolStatus
-    locked: bool = False
-    members: frozenset[int] = frozenset()
-
-
-@dataclass(frozen=True)
-class SyncPool(Message):
-    """Pool state by digest; ``members`` only when the sender chooses to send them."""
-
-    TYPE: ClassVar[int] = 7
-    sender: int
-    digest: int
-    locked: bool = False
-    members: frozenset[int] | None = None
-
-
-@dataclass(frozen=True)
-class SyncPoolAck(Message):
-    """Same digest, or Different with the receiver's members and lock state."""
-
-    TYPE: ClassVar[int] = 8
-    sender: int
-    same: bool
-    locked: bool = False
-    members: frozenset[int] = frozenset()
-
-
-@dataclass(frozen=True)
-class Selection(Message):
-    """A vote: ``candidate`` with ``weight`` in election ``epoch``."""
-
-    TYPE: ClassVar[int] = 9
-    sender: int
-    candidate: int
-    weight: int
-    epoch: int = 0
-
-
-@dataclass(frozen=True)
-class PoseReport(Message):
-    """The pose stream ``swarm/<name>/pose`` (the key names the sender)."""
-
-    TYPE: ClassVar[int] = 10
-    pose: Pose
-
-
-@dataclass(frozen=True)
-class AgentState(Message):
-    """An agent's protocol state on ``swarm/<name>/state``."""
-
-    TYPE: ClassVar[int] = 11
-    sender: int
-    phase: Phase
-    leader: int = 0  # 0: none
-    candidate: int = 0
-    weight: int = 0
-    epoch: int = 0
-    locked: bool = False
-    pool: frozenset[int] = frozenset()
-    members: frozenset[int] = frozenset()
-
-
-@dataclass(frozen=True)
-class GSConnect(Message):
-    """Ground station -> agent: connection request (also re-sent to keep it)."""
-
-    TYPE: ClassVar[int] = 12
-    sender: int
-    seq: int
-
-
-@dataclass(frozen=True)
-class GSConnectAck(Message):
-    TYPE: ClassVar[int] = 13
-    sender: int
-    seq: int
-    hb_interval_ms: int = 1000
-
-
-@dataclass(frozen=True)
-class Telemetry(Message):
-    """Agent -> ground station at the connection's heartbeat rate: doubles as the
-    agent's heartbeat on that connection."""
-
-    TYPE: ClassVar[int] = 14
-    sender: int
-    pose: Pose
-    mode: int = 0
-    flags: int = 0  # bit0 armed, bit1 airborne, bit2 fc link ok, bit3 holding
-    phase: Phase = Phase.IDLE
-    leader: int = 0
-    battery: int = 255
-    rssi: int = 0
-    remrssi: int = 0
-    groundspeed: float = 0.0  # m/s
-
-
-@dataclass(frozen=True)
-class GSHeartbeat(Message):
-    TYPE: ClassVar[int] = 15
-    sender: int
-    seq: int
-
-
-@dataclass(frozen=True)
-class Command(Message):
-    """A command to one agent (``target``) or to the swarm (``target`` 0)."""
-
-    TYPE: ClassVar[int] = 16
-    sender: int
-    seq: int
-    target: int
-    kind: CommandKind
-    lat: float = 0.0
-    lon: float = 0.0
-    alt: float = 0.0
-    heading: float = 0.0
-
-
-@dataclass(frozen=True)
-class CommandAck(Message):
-    TYPE: ClassVar[int] = 17
-    sender: int
-    seq: int
-    result: AckResult
-    reason: str = ""
-
-
-@dataclass(frozen=True)
-class NameConflict(Message):
-    """Sent to both agents when two use the same name or the same id."""
-
-    TYPE: ClassVar[int] = 18
-    sender: int
-    name: str
-    other_id: int
-
 
 # -- primitive codecs -----------------------------------------------------------
 
@@ -414,7 +80,7 @@ class _R:
 def _w_ids(w: _W, ids: Iterable[int]) -> None:
     s = sorted(set(ids))
     for i in s:
-        check_id(i)
+        mt.check_id(i)
     if len(s) <= 32:
         w.u8(len(s))
         w.b += bytes(s)
@@ -465,7 +131,7 @@ def _r_str(r: _R, limit: int = 32) -> str:
 
 def _r_name(r: _R) -> str:
     s = _r_str(r)
-    if not NAME_RE.match(s):
+    if not mt.NAME_RE.match(s):
         raise DecodeError(f"invalid agent name {s!r}")
     return s
 
@@ -474,7 +140,7 @@ def _clamp_i8(v: float, scale: float) -> int:
     return max(-128, min(127, round(v * scale)))
 
 
-def _w_pose(w: _W, p: Pose) -> None:
+def _w_pose(w: _W, p: mt.Pose) -> None:
     w.pack(
         "iiHHbbB",
         round(p.lat * 1e7),
@@ -487,18 +153,18 @@ def _w_pose(w: _W, p: Pose) -> None:
     )
 
 
-def _r_pose(r: _R) -> Pose:
+def _r_pose(r: _R) -> mt.Pose:
     lat, lon, alt, hdg, vn, ve, t = r.unpack("iiHHbbB")
     if not -900_000_000 <= lat <= 900_000_000 or not -1_800_000_000 <= lon <= 1_800_000_000:
         raise DecodeError("pose latitude/longitude out of range")
     if hdg >= 36000:
         raise DecodeError("pose heading out of range")
-    return Pose(lat / 1e7, lon / 1e7, alt / 10.0 - 1000.0, hdg / 100.0, vn / 4.0, ve / 4.0, t / 100.0)
+    return mt.Pose(lat / 1e7, lon / 1e7, alt / 10.0 - 1000.0, hdg / 100.0, vn / 4.0, ve / 4.0, t / 100.0)
 
 
-def _w_task(w: _W, t: Task) -> None:
+def _w_task(w: _W, t: mt.Task) -> None:
     w.u8(int(t.kind))
-    if t.kind == TaskKind.FOLLOW:
+    if t.kind == mt.TaskKind.FOLLOW:
         w.pack(
             "HBBBb",
             round((t.heading % 360.0) * 100) % 36000,
@@ -509,16 +175,16 @@ def _w_task(w: _W, t: Task) -> None:
         )
         w.u8(len(t.assignments))
         for a in t.assignments:
-            w.pack("BBb", check_id(a.member), check_id(a.follows), int(a.side))
+            w.pack("BBb", mt.check_id(a.member), mt.check_id(a.follows), int(a.side))
 
 
-def _r_task(r: _R) -> Task:
+def _r_task(r: _R) -> mt.Task:
     try:
-        kind = TaskKind(r.u8())
+        kind = mt.TaskKind(r.u8())
     except ValueError:
         raise DecodeError("unknown task kind") from None
-    if kind != TaskKind.FOLLOW:
-        return Task(kind)
+    if kind != mt.TaskKind.FOLLOW:
+        return mt.Task(kind)
     hdg, back, side, gen, rate = r.unpack("HBBBb")
     if hdg >= 36000:
         raise DecodeError("task heading out of range")
@@ -532,8 +198,8 @@ def _r_task(r: _R) -> Task:
             raise DecodeError("formation side must be -1 or 1")
         if not (1 <= m <= 250 and 1 <= f <= 250):
             raise DecodeError("formation slot names an id outside 1..250")
-        out.append(Assignment(m, f, Side(s)))
-    return Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen, rate / 2.0)
+        out.append(mt.Assignment(m, f, mt.Side(s)))
+    return mt.Task(kind, hdg / 100.0, back / 4.0, side / 4.0, tuple(out), gen, rate / 2.0)
 
 
 def _enum(cls: type[IntEnum]) -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:
@@ -608,11 +274,11 @@ def _heading() -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:
 
 def _id(gcs: bool = False) -> tuple[Callable[[_W, Any], None], Callable[[_R], Any]]:
     def w(wr: _W, v: int) -> None:
-        wr.u8(check_id(v, gcs=gcs))
+        wr.u8(mt.check_id(v, gcs=gcs))
 
     def r(rd: _R) -> int:
         v = rd.u8()
-        if not 1 <= v <= (GCS_ID if gcs else 250):
+        if not 1 <= v <= (mt.GCS_ID if gcs else 250):
             raise DecodeError(f"agent id {v} out of range")
         return v
 
@@ -623,7 +289,7 @@ def _opt_id() -> Codec:
     """An agent id, or 0 for none (a leader, a candidate, a command's target: the swarm)."""
 
     def w(wr: _W, v: int) -> None:
-        wr.u8(v if v == 0 else check_id(v))
+        wr.u8(v if v == 0 else mt.check_id(v))
 
     def r(rd: _R) -> int:
         v = rd.u8()
@@ -636,28 +302,27 @@ def _opt_id() -> Codec:
 
 U8, U16, U32 = _fmt("B"), _fmt("H"), _fmt("I")
 ID, ANY_ID, OPT_ID = _id(), _id(gcs=True), _opt_id()
-NAME = ((lambda w, v: _w_str(w, check_name(v))), _r_name)
-REASON_MAX = 96  # a CommandAck's reason, bytes of UTF-8 (the frame holds 128)
-TEXT = ((lambda w, v: _w_str(w, v, REASON_MAX)), (lambda r: _r_str(r, REASON_MAX)))
+NAME = ((lambda w, v: _w_str(w, mt.check_name(v))), _r_name)
+TEXT = ((lambda w, v: _w_str(w, v, mt.REASON_MAX)), (lambda r: _r_str(r, mt.REASON_MAX)))
 IDS = (_w_ids, _r_ids)
 POSE = (_w_pose, _r_pose)
 TASK = (_w_task, _r_task)
 BOOL = _bool()
 
-_LAYOUT: dict[type[Message], list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
-    Advertize: [("sender", ID), ("name", NAME), ("flags", U8)],
-    GSAdvertize: [("sender", ANY_ID), ("name", NAME)],
-    Heartbeat: [("sender", ID), ("epoch", U16), ("seq", U8), ("members", IDS), ("task", TASK)],
-    HeartbeatAck: [("sender", ID), ("seq", U8), ("pose", POSE)],
-    StartPool: [("sender", ID)],
-    StartPoolAck: [("sender", ID), ("status", _enum(PoolStatus)), ("locked", BOOL), ("members", IDS)],
-    SyncPool: [("sender", ID), ("digest", U32), ("locked", BOOL), ("members", _opt_ids())],
-    SyncPoolAck: [("sender", ID), ("same", BOOL), ("locked", BOOL), ("members", IDS)],
-    Selection: [("sender", ID), ("candidate", ID), ("weight", U32), ("epoch", U16)],
-    PoseReport: [("pose", POSE)],
-    AgentState: [
+_LAYOUT: dict[type[mt.Message], list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
+    mt.Advertize: [("sender", ID), ("name", NAME), ("flags", U8)],
+    mt.GSAdvertize: [("sender", ANY_ID), ("name", NAME)],
+    mt.Heartbeat: [("sender", ID), ("epoch", U16), ("seq", U8), ("members", IDS), ("task", TASK)],
+    mt.HeartbeatAck: [("sender", ID), ("seq", U8), ("pose", POSE)],
+    mt.StartPool: [("sender", ID)],
+    mt.StartPoolAck: [("sender", ID), ("status", _enum(mt.PoolStatus)), ("locked", BOOL), ("members", IDS)],
+    mt.SyncPool: [("sender", ID), ("digest", U32), ("locked", BOOL), ("members", _opt_ids())],
+    mt.SyncPoolAck: [("sender", ID), ("same", BOOL), ("locked", BOOL), ("members", IDS)],
+    mt.Selection: [("sender", ID), ("candidate", ID), ("weight", U32), ("epoch", U16)],
+    mt.PoseReport: [("pose", POSE)],
+    mt.AgentState: [
         ("sender", ID),
-        ("phase", _enum(Phase)),
+        ("phase", _enum(mt.Phase)),
         ("leader", OPT_ID),
         ("candidate", OPT_ID),
         ("weight", U32),
@@ -666,46 +331,46 @@ _LAYOUT: dict[type[Message], list[tuple[str, tuple[Callable[[_W, Any], None], Ca
         ("pool", IDS),
         ("members", IDS),
     ],
-    GSConnect: [("sender", ANY_ID), ("seq", U16)],
-    GSConnectAck: [("sender", ID), ("seq", U16), ("hb_interval_ms", U16)],
-    Telemetry: [
+    mt.GSConnect: [("sender", ANY_ID), ("seq", U16)],
+    mt.GSConnectAck: [("sender", ID), ("seq", U16), ("hb_interval_ms", U16)],
+    mt.Telemetry: [
         ("sender", ID),
         ("pose", POSE),
         ("mode", U8),
         ("flags", U8),
-        ("phase", _enum(Phase)),
+        ("phase", _enum(mt.Phase)),
         ("leader", OPT_ID),
         ("battery", U8),
         ("rssi", U8),
         ("remrssi", U8),
         ("groundspeed", _scaled("B", 4)),
     ],
-    GSHeartbeat: [("sender", ANY_ID), ("seq", U8)],
-    Command: [("sender", ANY_ID), ("seq", U16), ("target", OPT_ID), ("kind", _enum(CommandKind))],
-    CommandAck: [("sender", ID), ("seq", U16), ("result", _enum(AckResult)), ("reason", TEXT)],
-    NameConflict: [("sender", ID), ("name", NAME), ("other_id", ID)],
+    mt.GSHeartbeat: [("sender", ANY_ID), ("seq", U8)],
+    mt.Command: [("sender", ANY_ID), ("seq", U16), ("target", OPT_ID), ("kind", _enum(mt.CommandKind))],
+    mt.CommandAck: [("sender", ID), ("seq", U16), ("result", _enum(mt.AckResult)), ("reason", TEXT)],
+    mt.NameConflict: [("sender", ID), ("name", NAME), ("other_id", ID)],
 }
 
 # per-kind arguments of a Command
-_CMD_ARGS: dict[CommandKind, list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
-    CommandKind.TAKEOFF: [("alt", _scaled("H", 10))],
-    CommandKind.GOTO: [
+_CMD_ARGS: dict[mt.CommandKind, list[tuple[str, tuple[Callable[[_W, Any], None], Callable[[_R], Any]]]]] = {
+    mt.CommandKind.TAKEOFF: [("alt", _scaled("H", 10))],
+    mt.CommandKind.GOTO: [
         ("lat", _scaled("i", 1e7)),
         ("lon", _scaled("i", 1e7)),
         ("alt", _scaled("H", 10, 1000.0)),
     ],
-    CommandKind.FOLLOW: [("heading", _heading())],
-    CommandKind.WAYPOINT: [
+    mt.CommandKind.FOLLOW: [("heading", _heading())],
+    mt.CommandKind.WAYPOINT: [
         ("lat", _scaled("i", 1e7)),
         ("lon", _scaled("i", 1e7)),
         ("alt", _scaled("H", 10, 1000.0)),
     ],
 }
 
-BY_TYPE: dict[int, type[Message]] = {cls.TYPE: cls for cls in _LAYOUT}
+BY_TYPE: dict[int, type[mt.Message]] = {cls.TYPE: cls for cls in _LAYOUT}
 
 
-def encode(msg: Message) -> bytes:
+def encode(msg: mt.Message) -> bytes:
     """Encode a message.
 
     Raises:
@@ -715,16 +380,16 @@ def encode(msg: Message) -> bytes:
     if layout is None:
         raise MessageError(f"{type(msg).__name__} is not a swarm message")
     w = _W()
-    w.u8(PROTOCOL_VERSION << 5 | msg.TYPE)
+    w.u8(mt.PROTOCOL_VERSION << 5 | msg.TYPE)
     for name, (wr, _) in layout:
         wr(w, getattr(msg, name))
-    if isinstance(msg, Command):
+    if isinstance(msg, mt.Command):
         for name, (wr, _) in _CMD_ARGS.get(msg.kind, []):
             wr(w, getattr(msg, name))
     return bytes(w.b)
 
 
-def decode(data: bytes) -> Message:
+def decode(data: bytes) -> mt.Message:
     """Decode one message.
 
     Raises:
@@ -736,14 +401,14 @@ def decode(data: bytes) -> Message:
             raise DecodeError("empty message")
         head = data[0]
         version, mtype = head >> 5, head & 0x1F
-        if version != PROTOCOL_VERSION:
-            raise VersionMismatch(version, PROTOCOL_VERSION)
+        if version != mt.PROTOCOL_VERSION:
+            raise VersionMismatch(version, mt.PROTOCOL_VERSION)
         cls = BY_TYPE.get(mtype)
         if cls is None:
             raise DecodeError(f"unknown message type {mtype}")
         r = _R(bytes(data))
         values = {name: rd(r) for name, (_, rd) in _LAYOUT[cls]}
-        if cls is Command:
+        if cls is mt.Command:
             for name, (_, rd) in _CMD_ARGS.get(values["kind"], []):
                 values[name] = rd(r)
         if r.i != len(r.d):
@@ -755,9 +420,22 @@ def decode(data: bytes) -> Message:
         raise DecodeError(f"invalid message: {exc}") from None
 
 
-def message_types() -> list[type[Message]]:
+def message_types() -> list[type[mt.Message]]:
     return list(_LAYOUT)
 
 
-def field_names(cls: type[Message]) -> list[str]:
+def field_names(cls: type[mt.Message]) -> list[str]:
     return [f.name for f in fields(cls)]
+
+
+__all__ = [
+    *mt.__all__,
+    "BY_TYPE",
+    "DecodeError",
+    "MessageError",
+    "VersionMismatch",
+    "decode",
+    "encode",
+    "field_names",
+    "message_types",
+]

@@ -21,19 +21,20 @@ swarm/<own>/state      0           swarm/<sender name>/state
 
 * **No loops**: samples the bridge publishes carry an attachment marker and are
   never sent back to the air; a node never forwards what it did not publish.
-* **Names and ids** are learnt from Advertize and GSAdvertize; a name or id claimed by two agents
-  is counted, logged once and reported to both with NameConflict.
-* **Multicast**: the same P2P payload queued for several peers (a leader's
-  heartbeat to its members) goes on air once, listing the addressees.
-* **Priorities and budgets**: three queues (protocol > pose > telemetry), each
-  with a token bucket of air bytes per second, so one agent cannot flood the
-  channel.
+* **Names and ids** are learnt from Advertize and GSAdvertize (:class:`swarm.core.names.NameTable`);
+  a name or id claimed by two agents is counted, logged once and reported to both with NameConflict.
+* **What goes next** is :class:`swarm.core.air_queue.AirQueue`'s (pure): three
+  queues (protocol > pose > telemetry), each with a token bucket of air bytes per
+  second, so one agent cannot flood the channel; the same P2P payload queued for
+  several peers (a leader's heartbeat to its members) goes on air once, listing
+  the addressees.
 * **RADIO_STATUS** (flow control): only a report plausibly from the local radio
   counts (:mod:`swarm.core.radio_guard`: sysid 51 compid 68, one per HEARTBEAT we sent,
   consistent with the bytes we wrote; forged ones are counted in
-  ``radio_status_rejected``), and its effect is bounded: below 50% free transmit
-  buffer telemetry waits; poses are thinned by at most 15%, never held; protocol
-  always goes. Reports older than 5 s are ignored, as ArduPilot and PX4 do with txbuf.
+  ``radio_status_rejected``), and its effect is bounded (the queue's back-off):
+  below 50% free transmit buffer telemetry waits; poses are thinned by at most 15%,
+  never held; protocol always goes. Reports older than 5 s are ignored, as
+  ArduPilot and PX4 do with txbuf.
 * **Radio loss**: when the device goes away (USB radio unplugged, emulator pty
   dropped) the bridge drops its queues, logs about once a second and reopens the
   device at the same path with back-off (``reopen_radio``), keeping its name table
@@ -48,6 +49,11 @@ swarm/<own>/state      0           swarm/<sender name>/state
 * **Signing** (optional): every frame signed with the swarm key and this radio's
   link id; unsigned (but the local RADIO_STATUS), badly signed and replayed frames
   are dropped and counted.
+
+The receiving side (frames into the key space) is
+:class:`swarm.runtime.bridge_rx.AirToLocal`, a part of :class:`RadioBridge`; this
+module keeps the sending side, the radio's loss and reopening, and the life cycle.
+:func:`open_node` (re-exported here) is :mod:`swarm.runtime.node_io`'s.
 """
 
 from __future__ import annotations
@@ -55,55 +61,38 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from enum import IntEnum
 from typing import Any, TypeVar
 
 from radios.errors import LinkClosedError, LinkOpenError, RadioError
 from radios.link import Link
 from radios.mavlink import (
-    MSG_RADIO_STATUS,
-    MSG_TUNNEL,
-    Frame,
     FrameBuilder,
     SigningClock,
-    radio_status_fields,
 )
 from radios.signing import Verifier
+from swarm.core.air_queue import AirItem, AirQueue, Klass
 from swarm.core.messages import (
-    Advertize,
-    GSAdvertize,
     Message,
-    NameConflict,
     Telemetry,
-    decode,
     encode,
 )
+from swarm.core.names import NameTable
 from swarm.core.radio_guard import RadioState, RadioStatusGuard
 from swarm.core.tunnel import (
     COMP_ID,
     PAYLOAD_TYPE_BASE,
     TUNNEL_MAX,
     Kind,
-    fits_multicast,
     pack,
-    unpack_tunnel,
 )
-from swarm.errors import DecodeError, VersionMismatch
-from swarm.runtime.transport import KEY_ADVERTIZE, KEY_GS_ADVERTIZE, PREFIX, inbox_key, pose_key, state_key
+from swarm.runtime.bridge_rx import ATTACHMENT, AirToLocal
+from swarm.runtime.node_io import open_node as open_node  # re-exported: it moved there
+from swarm.runtime.transport import KEY_ADVERTIZE, KEY_GS_ADVERTIZE, PREFIX
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
-
-ATTACHMENT = b"radio-bridge"
-
-
-class Klass(IntEnum):
-    PROTOCOL = 0
-    POSE = 1
-    TELEMETRY = 2
 
 
 @dataclass
@@ -159,39 +148,7 @@ class BridgeStats:
         return asdict(self)
 
 
-@dataclass
-class _Item:
-    klass: Klass
-    kind: Kind
-    targets: list[int]
-    payload: bytes
-    raw_frame: bytes | None = None
-    t: float = 0.0  # when queued
-
-
-@dataclass
-class _Bucket:
-    rate: float
-    burst: float
-    tokens: float
-    t: float
-
-    def refill(self, now: float) -> None:
-        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
-        self.t = now
-
-    def wait_for(self, n: int) -> float:
-        return max(0.0, (min(n, self.burst) - self.tokens) / self.rate) if self.rate > 0 else 1.0
-
-
-@dataclass
-class _Peer:
-    id: int
-    name: str
-    seen: float
-
-
-class RadioBridge:
+class RadioBridge(AirToLocal):
     """Bridges one Zenoh session and one radio link (see the module docstring)."""
 
     def __init__(
@@ -220,12 +177,18 @@ class RadioBridge:
             agent_id, 1, signing_key=self.cfg.signing_key, link_id=self.cfg.link_id, clock=signing
         )
         self._verifier = Verifier(self.cfg.signing_key, signing) if self.cfg.signing_key else None
-        now = clock()
-        self._queues: list[deque[_Item]] = [deque() for _ in Klass]
-        self._buckets = [_Bucket(r, b, b, now) for r, b in zip(self.cfg.rates, self.cfg.bursts, strict=True)]
+        self._queue = AirQueue(
+            rates=self.cfg.rates,
+            bursts=self.cfg.bursts,
+            sizes=self.cfg.queue_sizes,
+            coalesce_s=self.cfg.coalesce_s,
+            signed=bool(self.cfg.signing_key),
+            guard=self.guard,
+            stats=self.stats,
+            now=clock(),
+        )
         self._cond = threading.Condition()
-        self._by_name: dict[str, _Peer] = {name: _Peer(agent_id, name, float("inf"))}
-        self._by_id: dict[int, _Peer] = {agent_id: self._by_name[name]}
+        self.names = NameTable(name, agent_id)
         self._conflicts_logged: set[tuple[str, int]] = set()
         self._vehicle_last: dict[int, float] = {}
         self._closed = False
@@ -265,7 +228,7 @@ class RadioBridge:
             t.join(2.0)
 
     def peers(self) -> dict[str, int]:
-        return {n: p.id for n, p in self._by_name.items()}
+        return self.names.as_dict()
 
     @property
     def radio(self) -> RadioState:
@@ -295,23 +258,23 @@ class RadioBridge:
         if len(parts) < 2 or parts[0] != PREFIX:
             return
         if key == KEY_ADVERTIZE:
-            self._enqueue(_Item(Klass.PROTOCOL, Kind.ADVERTIZE, [0], data))
+            self._enqueue(AirItem(Klass.PROTOCOL, Kind.ADVERTIZE, [0], data))
         elif key == KEY_GS_ADVERTIZE:
-            self._enqueue(_Item(Klass.PROTOCOL, Kind.GS_ADVERTIZE, [0], data))
+            self._enqueue(AirItem(Klass.PROTOCOL, Kind.GS_ADVERTIZE, [0], data))
         elif len(parts) == 2:
-            peer = self._by_name.get(parts[1])
+            peer = self.names.id_of(parts[1])
             if parts[1] == self.name:
                 return  # our own inbox: local delivery only
             if peer is None:
                 self.stats.unroutable += 1
                 return
             klass = Klass.TELEMETRY if data[:1] and (data[0] & 0x1F) == Telemetry.TYPE else Klass.PROTOCOL
-            self._enqueue(_Item(klass, Kind.P2P, [peer.id], data))
+            self._enqueue(AirItem(klass, Kind.P2P, [peer], data))
         elif len(parts) == 3 and parts[1] == self.name:
             if parts[2] == "pose":
-                self._enqueue(_Item(Klass.POSE, Kind.POSE, [0], data))
+                self._enqueue(AirItem(Klass.POSE, Kind.POSE, [0], data))
             elif parts[2] == "state":
-                self._enqueue(_Item(Klass.TELEMETRY, Kind.STATE, [0], data))
+                self._enqueue(AirItem(Klass.TELEMETRY, Kind.STATE, [0], data))
 
     def forward_vehicle(self, msg: Any) -> None:
         """Forward a vehicle HEARTBEAT or GLOBAL_POSITION_INT (a pymavlink message)
@@ -323,91 +286,34 @@ class RadioBridge:
         if now - self._vehicle_last.get(mid, -1e9) < 1.0 / self.cfg.telemetry_hz:
             return
         self._vehicle_last[mid] = now
-        self._enqueue(_Item(Klass.TELEMETRY, Kind.P2P, [0], b"", raw_frame=self._pack_vehicle(msg)))
+        self._enqueue(AirItem(Klass.TELEMETRY, Kind.P2P, [0], b"", raw_frame=self._pack_vehicle(msg)))
 
     def _pack_vehicle(self, msg: Any) -> bytes:
         with self._cond:
             return self._vehicle_builder.build(msg)
 
-    def _enqueue(self, item: _Item) -> None:
+    def _enqueue(self, item: AirItem) -> None:
         if item.raw_frame is None and len(item.payload) > TUNNEL_MAX - 1:
             self.stats.oversize += 1
             return
-        q = self._queues[item.klass]
-        limit = self.cfg.queue_sizes[item.klass]
         with self._cond:
             if self._closed:
                 return
             if self.link_down:
                 self.stats.dropped_radio_down += 1
                 return
-            if len(q) >= limit:
-                q.popleft()  # the oldest is the stalest
-                self.stats.queue_drops += 1
-            item.t = self.clock()
-            q.append(item)
+            self._queue.put(item, self.clock())
             self._cond.notify()
-
-    def _allowed_classes(self, now: float) -> tuple[Klass, ...]:
-        # protocol and poses always go (poses may be thinned, see _next_frame)
-        if self.guard.telemetry_allowed(now):
-            return tuple(Klass)
-        return (Klass.PROTOCOL, Klass.POSE)
 
     def _next_frame(self, now: float) -> tuple[bytes | None, float]:
         """Pick the next frame to send (under the lock). Returns (frame, wait)."""
-        wait = 0.25
-        allowed = self._allowed_classes(now)
-        for klass in Klass:
-            q = self._queues[klass]
-            if not q:
-                continue
-            if klass not in allowed:
-                self.stats.throttled += 1
-                continue
-            bucket = self._buckets[klass]
-            bucket.refill(now)
-            item = q[0]
-            if item.raw_frame is None and item.kind == Kind.P2P:
-                hold = item.t + self.cfg.coalesce_s - now
-                if hold > 0:
-                    wait = min(wait, hold)
-                    continue
-                self._merge_multicast(q, item)
-            size = self._frame_size(item)
-            if bucket.tokens < min(size, bucket.burst):
-                wait = min(wait, bucket.wait_for(size))
-                continue
-            q.popleft()
-            if klass == Klass.POSE and not self.guard.take_pose(now):
-                self.stats.poses_thinned += 1  # bounded txbuf back-off: skip this one
-                return None, 0.0
-            bucket.tokens -= size
-            # packed only now, so sequence numbers and signing timestamps follow air order
-            return (item.raw_frame if item.raw_frame is not None else self._pack(item)), 0.0
-        return None, wait
+        item, wait = self._queue.next_item(now)
+        if item is None:
+            return None, wait
+        # packed only now, so sequence numbers and signing timestamps follow air order
+        return (item.raw_frame if item.raw_frame is not None else self._pack(item)), 0.0
 
-    def _frame_size(self, item: _Item) -> int:
-        if item.raw_frame is not None:
-            return len(item.raw_frame)
-        extra = 1 + len(set(item.targets)) if item.kind == Kind.MULTI else 0
-        return 12 + 5 + len(item.payload) + extra + (13 if self.cfg.signing_key else 0)
-
-    def _merge_multicast(self, q: deque[_Item], item: _Item) -> None:
-        same = [
-            o
-            for o in q
-            if o is not item and o.kind == Kind.P2P and o.raw_frame is None and o.payload == item.payload
-        ]
-        if not same or not fits_multicast(len(item.payload), len(item.targets) + len(same)):
-            return
-        for o in same:
-            item.targets.extend(o.targets)
-            q.remove(o)
-        item.kind = Kind.MULTI
-        self.stats.multicast_merged += len(same)
-
-    def _pack(self, item: _Item) -> bytes:
+    def _pack(self, item: AirItem) -> bytes:
         target, ptype, payload = pack(item.kind, item.targets, item.payload)
         return self._builder.tunnel(payload, target_system=target, payload_type=ptype)
 
@@ -507,9 +413,7 @@ class RadioBridge:
             self.loss_reason = reason
             if not self._lent:
                 self.stats.radio_losses += 1
-            for q in self._queues:
-                self.stats.dropped_radio_down += len(q)
-                q.clear()
+            self.stats.dropped_radio_down += self._queue.clear()
             self.guard.reset()
         url = self.link.url
         if not self._lent and (not self.cfg.reopen_radio or not self.link.can_reopen or self.link.closed):
@@ -525,6 +429,21 @@ class RadioBridge:
         else:
             log.warning("bridge %s: radio %s lost (%s): waiting for it to come back", self.name, url, reason)
             self._tell("lost", reason)
+        if not self._reopen(url, t0):
+            return False
+        away = self.clock() - t0
+        with self._cond:
+            self.link_down = False
+            self.stats.radio_reopens += 1
+            self._next_hb = self.clock()  # a HEARTBEAT at once: the radio reports again
+            self._cond.notify_all()
+        (log.info if lent else log.warning)("bridge %s: radio %s back after %.1f s", self.name, url, away)
+        self._tell("back", f"after {away:.1f} s")
+        return True
+
+    def _reopen(self, url: str, t0: float) -> bool:
+        """Reopen the radio with back-off, not while it is lent out: True once it is
+        open, False if the bridge closes or the radio cannot come back."""
         first, longest = self.cfg.reopen_backoff
         backoff, next_log = first, t0 + 1.0
         while True:
@@ -539,7 +458,7 @@ class RadioBridge:
                     continue
             try:
                 self.link.reopen()
-                break
+                return True
             except LinkOpenError as exc:
                 if not self.cfg.reopen_radio:  # lent, and gone meanwhile: as any loss without reopening
                     log.info("bridge %s: radio %s lost: %s", self.name, url, exc)
@@ -555,170 +474,6 @@ class RadioBridge:
                 log.info("bridge %s: radio %s not reopened: %s", self.name, url, exc)
                 self.link_lost = True
                 return False
-        away = self.clock() - t0
-        with self._cond:
-            self.link_down = False
-            self.stats.radio_reopens += 1
-            self._next_hb = self.clock()  # a HEARTBEAT at once: the radio reports again
-            self._cond.notify_all()
-        (log.info if lent else log.warning)("bridge %s: radio %s back after %.1f s", self.name, url, away)
-        self._tell("back", f"after {away:.1f} s")
-        return True
-
-    def handle_frame(self, frame: Frame) -> None:
-        """Process one frame from the radio (public for tests)."""
-        self.stats.frames_in += 1
-        if self._verifier is not None and not self._verifier.check(frame):
-            vs = self._verifier.stats
-            self.stats.unsigned, self.stats.bad_signature, self.stats.replayed = (
-                vs.unsigned,
-                vs.bad_signature,
-                vs.replayed,
-            )
-            return
-        if frame.msgid == MSG_RADIO_STATUS:
-            f = radio_status_fields(frame)
-            report = RadioState(f["rssi"], f["remrssi"], f["txbuf"], f["noise"], f["remnoise"], f["rxerrors"])
-            with self._cond:
-                why = self.guard.offer(frame.sysid, frame.compid, report, self.clock())
-                if why is None:
-                    self.stats.radio_status_accepted += 1
-                else:
-                    self.stats.radio_status_rejected += 1
-                    self._log_once(
-                        ("radio_status", why),
-                        "bridge %s: RADIO_STATUS rejected (%s): not plausibly from the local radio",
-                        self.name,
-                        why,
-                    )
-            return
-        if frame.msgid != MSG_TUNNEL:
-            return
-        try:
-            tun = unpack_tunnel(frame.payload)
-        except DecodeError:
-            self.stats.decode_errors += 1
-            return
-        if tun is None:
-            return
-        kind, target, ids, data = tun
-        sender = frame.sysid
-        if sender == self.id:
-            self._conflict(self.name, sender, reason="a frame from another radio uses our id")
-            return
-        if target not in (0, self.id):
-            self.stats.not_for_us += 1
-            return
-        if kind == Kind.MULTI:
-            if self.id not in ids:
-                self.stats.not_for_us += 1
-                return
-            kind = Kind.P2P
-        try:
-            msg = decode(data)
-        except VersionMismatch as exc:
-            self.stats.version_mismatch += 1
-            self._log_once(("version", sender), "bridge %s: agent %d: %s", self.name, sender, exc)
-            return
-        except DecodeError:
-            self.stats.decode_errors += 1
-            return
-        if kind == Kind.ADVERTIZE:
-            if not isinstance(msg, Advertize) or msg.sender != sender:
-                self.stats.decode_errors += 1
-                return
-            if not self._learn(msg.name, msg.sender):
-                return
-            self._publish(KEY_ADVERTIZE, data)
-        elif kind == Kind.GS_ADVERTIZE:
-            # agents announce themselves to ground stations here, and a station (id 255)
-            # announces itself the same way: both teach the bridge a name for replies
-            if not isinstance(msg, GSAdvertize) or msg.sender != sender:
-                self.stats.decode_errors += 1
-                return
-            if not self._learn(msg.name, msg.sender):
-                return
-            self._publish(KEY_GS_ADVERTIZE, data)
-        elif kind == Kind.P2P:
-            if isinstance(msg, NameConflict) and msg.sender == sender:
-                self._log_once(
-                    ("nc", msg.name),
-                    "bridge %s: name/id conflict reported by agent %d for %r (other id %d)",
-                    self.name,
-                    sender,
-                    msg.name,
-                    msg.other_id,
-                )
-            self._publish(inbox_key(self.name), data)
-        else:
-            peer = self._by_id.get(sender)
-            if peer is None:
-                self.stats.unknown_sender += 1
-                return
-            key = pose_key(peer.name) if kind == Kind.POSE else state_key(peer.name)
-            self._publish(key, data)
-
-    def _publish(self, key: str, data: bytes) -> None:
-        self.session.put(key, data, attachment=ATTACHMENT)
-        self.stats.published += 1
-
-    def _learn(self, name: str, agent_id: int) -> bool:
-        """Record name <-> id; False (and a conflict report) if it clashes."""
-        now = self.clock()
-        by_name, by_id = self._by_name.get(name), self._by_id.get(agent_id)
-        if (by_name is None or by_name.id == agent_id) and (by_id is None or by_id.name == name):
-            peer = by_name or _Peer(agent_id, name, now)
-            peer.seen = now
-            self._by_name[name] = self._by_id[agent_id] = peer
-            return True
-        # a stale mapping (not heard for 30 s) gives way to the new claim
-        stale = [p for p in (by_name, by_id) if p is not None and now - p.seen > 30.0]
-        if stale and len(stale) == len([p for p in (by_name, by_id) if p is not None]):
-            for p in stale:
-                self._by_name.pop(p.name, None)
-                self._by_id.pop(p.id, None)
-            return self._learn(name, agent_id)
-        other = (
-            by_name.id
-            if by_name is not None and by_name.id != agent_id
-            else (by_id.id if by_id is not None else agent_id)
-        )
-        self._conflict(name, agent_id, reason=f"also claimed by id {other}", other=other)
-        return False
-
-    def _conflict(self, name: str, agent_id: int, *, reason: str, other: int | None = None) -> None:
-        self.stats.conflicts += 1
-        self._log_once(
-            ("conflict", name, agent_id),
-            "bridge %s: name/id conflict: %r id %d %s",
-            self.name,
-            name,
-            agent_id,
-            reason,
-        )
-        if self.id > 250:  # a ground station (251..255) reports nothing to agents
-            return
-        note = (
-            NameConflict(self.id, name, other if other is not None and 1 <= other <= 250 else agent_id)
-            if 1 <= agent_id <= 250
-            else None
-        )
-        if note is None:
-            return
-        data = encode(note)
-        targets = {agent_id} | ({other} if other else set())
-        for t in sorted(targets - {self.id}):
-            if 1 <= t <= 250:
-                self._enqueue(_Item(Klass.PROTOCOL, Kind.P2P, [t], data))
-        # tell our own agent too (it may be one of the two)
-        self._publish(inbox_key(self.name), data)
-
-    def _log_once(self, key: tuple[Any, ...], fmt: str, *args: Any) -> None:
-        k = (str(key), 0)
-        if k in self._conflicts_logged:
-            return
-        self._conflicts_logged.add(k)
-        log.warning(fmt, *args)
 
 
 def bridge_message_frame_bytes(msg: Message, *, signed: bool) -> int:
@@ -729,47 +484,3 @@ def bridge_message_frame_bytes(msg: Message, *, signed: bool) -> int:
             encode(msg), target_system=1, payload_type=PAYLOAD_TYPE_BASE + Kind.P2P
         )
     )
-
-
-def open_node(
-    name: str,
-    agent_id: int,
-    *,
-    radio: str | None = None,
-    listen: Sequence[str] = (),
-    connect: Sequence[str] = (),
-    key_file: str | None = None,
-    capture: str | None = None,
-) -> tuple[Any, Any, RadioBridge | None]:
-    """A node's way into the key space: ``(session, link, bridge)``. With ``radio`` the
-    Zenoh session has no endpoints and no scouting (only the radio), the link is
-    opened (captured to ``capture`` if given) and bridged, MAVLink 2 signed with the
-    key in ``key_file``; otherwise a session on the Zenoh endpoints, no link or bridge.
-    Whatever was opened is closed again if a later step fails.
-
-    Raises:
-        radios.errors.ConfigError: the key file. radios.errors.LinkOpenError: the radio.
-        swarm.errors.TransportError: the Zenoh endpoints.
-    """
-    from radios.link import open_link
-    from radios.signing import load_key
-    from swarm.runtime.transport import open_session
-
-    key = load_key(key_file) if key_file is not None else None
-    if radio is None:
-        return open_session(listen, connect), None, None
-    link = open_link(radio, capture=capture)
-    try:
-        session = open_session()
-    except BaseException:
-        link.close()
-        raise
-    try:
-        bridge = RadioBridge(
-            session, link, name=name, agent_id=agent_id, config=BridgeConfig(signing_key=key)
-        ).start()
-    except BaseException:
-        link.close()
-        session.close()
-        raise
-    return session, link, bridge

@@ -19,6 +19,7 @@ from typing import Any, cast
 from swarm.core.messages import GCS_ID, GSAdvertize, Message
 from swarm.core.station import CommandRefused, CommandSpec, Event, StationConfig, StationCore, StOut, outcome
 from swarm.runtime.loop import EventLoop
+from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ class StationView:
             return a.as_dict(self._now()) if a is not None else None
 
 
-class Station(StationView):
+class Station(StartOnce, StationView):
     """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.
 
     Construction checks arguments (ValueError); :meth:`start` opens everything and may
@@ -103,6 +104,7 @@ class Station(StationView):
         self.transport: Any = None
         self.link: Any = None
         self.bridge: Any = None
+        self.io: NodeIO | None = None  # what start() opened
         self.stats = {"send_errors": 0, "errors": 0}
         self._lock = threading.Lock()
         self._futures: dict[int, Future[tuple[int, dict[str, Any]]]] = {}
@@ -122,23 +124,8 @@ class Station(StationView):
         )
         self._started = self._stopped = False
 
-    def start(self) -> Station:
-        with self._lock:
-            if self._started:
-                return self
-            self._started = True
-        try:
-            self._open()
-        except BaseException:
-            self.stop()
-            raise
-        return self
-
     def _open(self) -> None:
-        from swarm.runtime.bridge import open_node
-        from swarm.runtime.transport import Transport
-
-        self.session, self.link, self.bridge = open_node(
+        self.io = io = open_node_io(
             self.name,
             self.id,
             radio=self.radio_url,
@@ -147,7 +134,8 @@ class Station(StationView):
             key_file=self.key_file,
             capture=self.capture,
         )
-        self.transport = tr = Transport(self.name, self.session)
+        self.session, self.link, self.bridge, self.transport = io.session, io.link, io.bridge, io.transport
+        tr = io.transport
         tr.on_inbox(lambda m: self.loop.put((m, "")))
         tr.on_gs_advertize(lambda m: self.loop.put((m, "")))
         tr.on_pose("*", lambda n, m: self.loop.put((m, n)))
@@ -161,17 +149,8 @@ class Station(StationView):
                 return
             self._stopped = True
         self.loop.stop()
-        for close in (
-            self.transport and self.transport.close,
-            self.bridge and self.bridge.close,
-            self.link and self.link.close,
-            self.session and self.session.close,
-        ):
-            if close:
-                try:
-                    close()
-                except Exception:
-                    log.debug("station: error while closing", exc_info=True)
+        if self.io is not None:
+            self.io.close()
         with self._lock:
             futures, self._futures = self._futures, {}
         for f in futures.values():

@@ -189,12 +189,7 @@ class FlightSim(Sim):
         next_vehicle = [self.rng.uniform(0, 1.0) for _ in range(n)]
         conv_since: float | None = None
         end = fs.duration
-        for i in range(n):
-            self.started[i] = True
-            nd = self.nodes[i]
-            nd.handle(OwnPose(self.pose_of(i, 0.0), True), 0.0)
-            self._send(i, self._node_outs(i, nd.start(0.0), 0.0), 0.0)
-            nd.pilot._hold("hovering")
+        self._start_nodes()
         while t <= end:
             self._maybe_crash(t)
             self.air.advance(t)
@@ -207,43 +202,66 @@ class FlightSim(Sim):
                 for i in range(n):
                     if self.alive[i]:
                         self.nodes[i].handle(OwnPose(self.pose_of(i, t), True), t)
-            for i in range(n):
-                if not self.alive[i]:
-                    continue
-                if self._due[i] <= t + 1e-9:
-                    nd = self.nodes[i]
-                    self._send(i, self._node_outs(i, nd.tick(t), t), t)
-                    self._due[i] = nd.next_deadline()
-                if t + 1e-9 >= next_pose[i]:
-                    next_pose[i] += 1.0 / fs.pose_hz
-                    self._write(i, Kind.POSE, (0,), encode(PoseReport(self.pose_of(i, t))), t)
-                if t + 1e-9 >= next_vehicle[i]:
-                    next_vehicle[i] += 1.0
-                    self._forward_vehicle(i, t)
+            self._step_nodes(t, next_pose, next_vehicle)
             if pilot_due:
                 next_pilot += 0.1
-                if self.follow_at is None:
-                    ok, lead = self._agreement()
-                    conv_since = (conv_since if conv_since is not None else t) if ok else None
-                    if ok and conv_since is not None and t - conv_since >= 1.0:
-                        self._follow(lead, t)
-                        self.elect_s = conv_since
-                elif self.route_at is None and t - self.follow_at >= fs.settle_s:
-                    self._route(t)
-                elif self.route_at is not None and self.arrived_at is None:
-                    lp = self.pilots[self.leader - 1]
-                    if lp.mode.value == "HOLD" and lp.hold_reason == "arrived":
-                        self.arrived_at = t
-                        end = min(end, t + fs.tail_s)
-                if self.follow_at is not None:
-                    self._sample(t)
-            for i in range(n):
-                q = self.pending[i]
-                while q and q[0][0] <= t + 1e-9:
-                    self.targets[i] = q.pop(0)[1]
-                self.bodies[i].step(self.targets[i], self.lim, DT, True)
+                conv_since, end = self._mission(t, conv_since, end)
+            self._move_bodies(t)
             t = round(t + DT, 6)
         return self._result(t)
+
+    def _start_nodes(self) -> None:
+        for i in range(self.fs.agents):
+            self.started[i] = True
+            nd = self.nodes[i]
+            nd.handle(OwnPose(self.pose_of(i, 0.0), True), 0.0)
+            self._send(i, self._node_outs(i, nd.start(0.0), 0.0), 0.0)
+            nd.pilot._hold("hovering")
+
+    def _step_nodes(self, t: float, next_pose: list[float], next_vehicle: list[float]) -> None:
+        """Each live node's timers, pose stream and forwarded vehicle frames at ``t``."""
+        for i in range(self.fs.agents):
+            if not self.alive[i]:
+                continue
+            if self._due[i] <= t + 1e-9:
+                nd = self.nodes[i]
+                self._send(i, self._node_outs(i, nd.tick(t), t), t)
+                self._due[i] = nd.next_deadline()
+            if t + 1e-9 >= next_pose[i]:
+                next_pose[i] += 1.0 / self.fs.pose_hz
+                self._write(i, Kind.POSE, (0,), encode(PoseReport(self.pose_of(i, t))), t)
+            if t + 1e-9 >= next_vehicle[i]:
+                next_vehicle[i] += 1.0
+                self._forward_vehicle(i, t)
+
+    def _mission(self, t: float, conv_since: float | None, end: float) -> tuple[float | None, float]:
+        """The operator's steps (FOLLOW once agreed for 1 s, the route once settled,
+        the tail once arrived) and the formation samples: (conv_since, end) updated."""
+        fs = self.fs
+        if self.follow_at is None:
+            ok, lead = self._agreement()
+            conv_since = (conv_since if conv_since is not None else t) if ok else None
+            if ok and conv_since is not None and t - conv_since >= 1.0:
+                self._follow(lead, t)
+                self.elect_s = conv_since
+        elif self.route_at is None and t - self.follow_at >= fs.settle_s:
+            self._route(t)
+        elif self.route_at is not None and self.arrived_at is None:
+            lp = self.pilots[self.leader - 1]
+            if lp.mode.value == "HOLD" and lp.hold_reason == "arrived":
+                self.arrived_at = t
+                end = min(end, t + fs.tail_s)
+        if self.follow_at is not None:
+            self._sample(t)
+        return conv_since, end
+
+    def _move_bodies(self, t: float) -> None:
+        """Setpoints whose delay has passed reach their vehicles; every body moves one step."""
+        for i in range(self.fs.agents):
+            q = self.pending[i]
+            while q and q[0][0] <= t + 1e-9:
+                self.targets[i] = q.pop(0)[1]
+            self.bodies[i].step(self.targets[i], self.lim, DT, True)
 
     def _maybe_crash(self, t: float) -> None:
         c = self.fs.crash

@@ -141,6 +141,18 @@ POSE = Pose(47.397742, 8.545594, 500.0)
 SPLIT_LIMIT_S = 20.0
 
 
+@dataclass
+class _Watch:
+    """What :meth:`Sim.run` has seen so far: agreement, election, crash and failover."""
+
+    converged_since: float | None = None
+    elect_s: float | None = None
+    failover_s: float | None = None
+    crash_time: float | None = None
+    leader: int = 0
+    last_conv_state: bool = False
+
+
 class Sim:
     """One seeded run."""
 
@@ -277,80 +289,91 @@ class Sim:
 
     def run(self) -> RunResult:
         sc = self.sc
-        n = sc.agents
         t = 0.0
-        converged_since: float | None = None
-        elect_s: float | None = None
-        failover_s: float | None = None
-        crash_time: float | None = None
-        leader = 0
-        last_conv_state = False
+        w = _Watch()
         next_check = 0.0
         while t <= sc.duration:
-            # starts and crashes due now
-            for i in range(n):
-                if not self.started[i] and t >= self.start_at[i]:
-                    self.started[i] = True
-                    self._send(i, self.cores[i].start(t), t)
-                    self._due[i] = t
-            for k, (who, when) in enumerate(list(self.crash_at)):
-                if t >= when:
-                    victim = leader if who == "leader" else int(who)
-                    if who == "leader" and victim == 0:
-                        continue  # no leader yet: wait
-                    self.crash_at.pop(k)
-                    if 1 <= victim <= n and self.alive[victim - 1]:
-                        self.alive[victim - 1] = False
-                        self.dead_at[victim] = t
-                        crash_time = t
-                        converged_since = None
-                        last_conv_state = False
-                    break
+            self._start_and_crash(t, w)
             self.air.advance(t)
-            for i in range(n):
+            for i in range(sc.agents):
                 self._receive(i, t)
-            for i in range(n):
-                if self.alive[i] and self.started[i] and self._due[i] <= t + 1e-9:
-                    core = self.cores[i]
-                    self._send(i, core.tick(t), t)
-                    d = core.next_deadline()
-                    self._due[i] = d if d is not None else float("inf")
+            self._tick_cores(t)
             if t < next_check:
                 t = self._next_time(t)
                 continue
             next_check = t + 0.1
-            ok, lead = self._agreement()
-            if ok and all(self.started):
-                if not last_conv_state:
-                    converged_since = t
-                    leader = lead
-                last_conv_state = True
-                if converged_since is not None and t - converged_since >= sc.settle:
-                    if crash_time is None and elect_s is None:
-                        elect_s = converged_since - max(self.start_at)
-                    if crash_time is not None and failover_s is None and converged_since >= crash_time:
-                        failover_s = converged_since - crash_time
-                    if not self.crash_at and t >= self._last_event:
-                        break
-            else:
-                last_conv_state = False
-            if ok:
-                leader = lead
+            if self._judge(t, w):
+                break
             self._check_dead_leaders(t)
-            self._check_split(t, elect_s is not None or failover_s is not None)
+            self._check_split(t, w.elect_s is not None or w.failover_s is not None)
             t = self._next_time(t)
+        return self._run_result(t, w)
+
+    def _start_and_crash(self, t: float, w: _Watch) -> None:
+        """The starts and the crash due at ``t`` (one crash per step)."""
+        n = self.sc.agents
+        for i in range(n):
+            if not self.started[i] and t >= self.start_at[i]:
+                self.started[i] = True
+                self._send(i, self.cores[i].start(t), t)
+                self._due[i] = t
+        for k, (who, when) in enumerate(list(self.crash_at)):
+            if t >= when:
+                victim = w.leader if who == "leader" else int(who)
+                if who == "leader" and victim == 0:
+                    continue  # no leader yet: wait
+                self.crash_at.pop(k)
+                if 1 <= victim <= n and self.alive[victim - 1]:
+                    self.alive[victim - 1] = False
+                    self.dead_at[victim] = t
+                    w.crash_time = t
+                    w.converged_since = None
+                    w.last_conv_state = False
+                break
+
+    def _tick_cores(self, t: float) -> None:
+        for i in range(self.sc.agents):
+            if self.alive[i] and self.started[i] and self._due[i] <= t + 1e-9:
+                core = self.cores[i]
+                self._send(i, core.tick(t), t)
+                d = core.next_deadline()
+                self._due[i] = d if d is not None else float("inf")
+
+    def _judge(self, t: float, w: _Watch) -> bool:
+        """Agreement at ``t``: the election and failover times once it has held for
+        ``settle``; True when the run can end (nothing more is to happen)."""
         ok, lead = self._agreement()
-        if elect_s is None and not (self.sc.crashes and failover_s is not None):
+        if ok and all(self.started):
+            if not w.last_conv_state:
+                w.converged_since = t
+                w.leader = lead
+            w.last_conv_state = True
+            if w.converged_since is not None and t - w.converged_since >= self.sc.settle:
+                if w.crash_time is None and w.elect_s is None:
+                    w.elect_s = w.converged_since - max(self.start_at)
+                if w.crash_time is not None and w.failover_s is None and w.converged_since >= w.crash_time:
+                    w.failover_s = w.converged_since - w.crash_time
+                if not self.crash_at and t >= self._last_event:
+                    return True
+        else:
+            w.last_conv_state = False
+        if ok:
+            w.leader = lead
+        return False
+
+    def _run_result(self, t: float, w: _Watch) -> RunResult:
+        ok, lead = self._agreement()
+        if w.elect_s is None and not (self.sc.crashes and w.failover_s is not None):
             self.violations.append("never converged (no agreed swarm held for the settle time)")
         util = self.air.utilisation(t)
         if util > 1.0:
             self.violations.append(f"air utilisation {util:.2f} above capacity")
-        live = [i for i in range(n) if self.alive[i]]
+        live = [i for i in range(self.sc.agents) if self.alive[i]]
         return RunResult(
             seed=self.seed,
             converged=ok,
-            elect_s=elect_s,
-            failover_s=failover_s,
+            elect_s=w.elect_s,
+            failover_s=w.failover_s,
             violations=self.violations,
             air_utilisation=util,
             messages_per_agent=sum(self.sent[i] for i in live) / max(len(live), 1),

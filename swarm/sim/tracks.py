@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -191,6 +192,33 @@ def analyse(
     return an
 
 
+def _plot_slots(
+    ax: Any, an: Analysis, ne: Callable[[tuple[float, float]], tuple[float, float]], every_s: float
+) -> None:
+    """Every ``every_s`` from FOLLOW on: each member's slot (a red x) and the line from
+    the agent it follows to it."""
+    times = {a: [x[0] for x in tr] for a, tr in an.tracks.items()}
+    t_end = max(tr[-1][0] for tr in an.tracks.values())
+    task_t = [t for t, _l, _task in an.tasks]
+    assert an.follow_at is not None
+    t = an.follow_at
+    while t <= t_end:
+        k = bisect.bisect_right(task_t, t) - 1
+        task = an.tasks[k][2] if k >= 0 else None
+        if task is not None and task.kind == TaskKind.FOLLOW:
+            for a in task.assignments:
+                if a.follows not in an.tracks:
+                    continue
+                fp = position_at(an.tracks[a.follows], t, times[a.follows])
+                if fp is None:
+                    continue
+                fn, fe = ne(fp)
+                dn, de = slot_offset(task.heading, a.side, task.back_m, task.side_m)
+                ax.plot([fe, fe + de], [fn, fn + dn], color="grey", lw=0.5)
+                ax.plot(fe + de, fn + dn, marker="x", color="red", ms=5)
+        t += every_s
+
+
 def plot(an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "") -> str:
     """Draw the tracks and slots to ``out`` (PNG). Returns ``out``.
 
@@ -221,25 +249,7 @@ def plot(an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "")
         if lead and pts:
             ax.plot(xs[-1], ys[-1], marker="*", ms=16, color="black")
     if an.follow_at is not None and an.tasks:
-        times = {a: [x[0] for x in tr] for a, tr in an.tracks.items()}
-        t_end = max(tr[-1][0] for tr in an.tracks.values())
-        task_t = [t for t, _l, _task in an.tasks]
-        t = an.follow_at
-        while t <= t_end:
-            k = bisect.bisect_right(task_t, t) - 1
-            task = an.tasks[k][2] if k >= 0 else None
-            if task is not None and task.kind == TaskKind.FOLLOW:
-                for a in task.assignments:
-                    if a.follows not in an.tracks:
-                        continue
-                    fp = position_at(an.tracks[a.follows], t, times[a.follows])
-                    if fp is None:
-                        continue
-                    fn, fe = ne(fp)
-                    dn, de = slot_offset(task.heading, a.side, task.back_m, task.side_m)
-                    ax.plot([fe, fe + de], [fn, fn + dn], color="grey", lw=0.5)
-                    ax.plot(fe + de, fn + dn, marker="x", color="red", ms=5)
-            t += slot_every_s
+        _plot_slots(ax, an, ne, slot_every_s)
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.set_aspect("equal", adjustable="datalim")

@@ -32,6 +32,8 @@ import urllib.request
 from typing import Any
 
 from swarm.cli.procs import Child, cpu_seconds, free_tcp_port
+from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+from swarm.core.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
 
 AGENTS = 50
 HZ = 5.0
@@ -99,35 +101,9 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
         )
-        t0 = time.monotonic()
-        connected = 0
-        while time.monotonic() - t0 < 60:
-            if feeder.poll() is not None or station.proc.poll() is not None:
-                raise RuntimeError(
-                    "the feeder or the station exited early: " + " | ".join(station.errors[-3:])
-                )
-            state = _get(url + "api/state")
-            connected = sum(1 for a in state["agents"] if a["connected"])
-            if connected == agents:
-                break
-            time.sleep(0.2)
-        out["connect_all_s"] = round(time.monotonic() - t0, 2) if connected == agents else None
-        out["connected"] = connected
+        out.update(_wait_connected(station, feeder, url, agents))
         time.sleep(warm_up)
-        cpu0, w0 = cpu_seconds(station.pid), time.monotonic()
-        counts = asyncio.run(_ws_count(url.replace("http://", "ws://") + "ws", seconds))
-        cpu1, w1 = cpu_seconds(station.pid), time.monotonic()
-        wall = w1 - w0
-        out["ws_messages_per_s"] = round(counts["messages"] / counts["seconds"], 2)
-        out["ws_states_per_s"] = round(counts["states"] / counts["seconds"], 2)
-        out["ws_state_kb"] = round(counts["state_bytes"] / max(1, counts["states"]) / 1024, 1)
-        out["input_messages_per_s"] = round(agents * hz * 3, 1)  # telemetry + pose + state
-        out["server_cpu_percent"] = round(100.0 * (cpu1 - cpu0) / wall, 1)
-        out["server_cpu_target"] = TARGET_CPU
-        state = _get(url + "api/state")
-        out["connected_at_end"] = sum(1 for a in state["agents"] if a["connected"])
-        out["leader"] = state["leader"]
-        out["trail_points_per_agent"] = max(len(a["trail"]) for a in state["agents"])
+        out.update(_measure(station, url, seconds, agents, hz))
         page = _page(url, 5.0 if quick else 10.0)
         page["page_seconds"] = page.pop("seconds", None)
         out.update(page)
@@ -149,6 +125,49 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     return out
 
 
+def _wait_connected(station: Child, feeder: subprocess.Popen[bytes], url: str, agents: int) -> dict[str, Any]:
+    """Wait (60 s at most) until the station has every fed agent connected.
+
+    Raises:
+        RuntimeError: the feeder or the station exited.
+    """
+    t0 = time.monotonic()
+    connected = 0
+    while time.monotonic() - t0 < 60:
+        if feeder.poll() is not None or station.proc.poll() is not None:
+            raise RuntimeError("the feeder or the station exited early: " + " | ".join(station.errors[-3:]))
+        state = _get(url + "api/state")
+        connected = sum(1 for a in state["agents"] if a["connected"])
+        if connected == agents:
+            break
+        time.sleep(0.2)
+    return {
+        "connect_all_s": round(time.monotonic() - t0, 2) if connected == agents else None,
+        "connected": connected,
+    }
+
+
+def _measure(station: Child, url: str, seconds: float, agents: int, hz: float) -> dict[str, Any]:
+    """One WebSocket client's traffic and the station's CPU over ``seconds``, then the
+    station's state."""
+    out: dict[str, Any] = {}
+    cpu0, w0 = cpu_seconds(station.pid), time.monotonic()
+    counts = asyncio.run(_ws_count(url.replace("http://", "ws://") + "ws", seconds))
+    cpu1, w1 = cpu_seconds(station.pid), time.monotonic()
+    wall = w1 - w0
+    out["ws_messages_per_s"] = round(counts["messages"] / counts["seconds"], 2)
+    out["ws_states_per_s"] = round(counts["states"] / counts["seconds"], 2)
+    out["ws_state_kb"] = round(counts["state_bytes"] / max(1, counts["states"]) / 1024, 1)
+    out["input_messages_per_s"] = round(agents * hz * 3, 1)  # telemetry + pose + state
+    out["server_cpu_percent"] = round(100.0 * (cpu1 - cpu0) / wall, 1)
+    out["server_cpu_target"] = TARGET_CPU
+    state = _get(url + "api/state")
+    out["connected_at_end"] = sum(1 for a in state["agents"] if a["connected"])
+    out["leader"] = state["leader"]
+    out["trail_points_per_agent"] = max(len(a["trail"]) for a in state["agents"])
+    return out
+
+
 def _page(url: str, seconds: float) -> dict[str, Any]:
     try:
         from swarm.cli.bench.gcs_page import measure_frames
@@ -163,44 +182,41 @@ def _page(url: str, seconds: float) -> dict[str, Any]:
 # -- the feeder process ------------------------------------------------------------
 
 
-def feed(ep: str, agents: int, hz: float) -> None:
-    """Play ``agents`` agents at ``hz`` over one Zenoh session until SIGTERM."""
-    import signal
+class _Feeder:
+    """``agents`` agents at ``hz`` over one Zenoh session (see the module docstring)."""
 
-    from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-    from swarm.core.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
-    from swarm.runtime.transport import KEY_GS_ADVERTIZE, inbox_key, open_session, pose_key, state_key
+    def __init__(self, ep: str, agents: int, hz: float) -> None:
+        from swarm.runtime import transport  # Zenoh: in the feeder process only
 
-    stop = [False]
-    signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
-    session = open_session(connect=[ep])
-    period = 1.0 / hz
-    ids = list(range(1, agents + 1))
-    names = {i: f"sim{i}" for i in ids}
-    by_name = {n: i for i, n in names.items()}
-    links = {i: GsLink(i, names[i], GsConfig(hb_interval=period)) for i in ids}
-    inbox: queue.Queue[tuple[int, Any]] = queue.Queue()
-    members = frozenset(ids[1:])
-    pool = frozenset(ids)
+        self.keys = transport
+        self.session = transport.open_session(connect=[ep])
+        self.agents = agents
+        self.period = 1.0 / hz
+        self.ids = list(range(1, agents + 1))
+        self.names = {i: f"sim{i}" for i in self.ids}
+        self.by_name = {n: i for i, n in self.names.items()}
+        self.links = {i: GsLink(i, self.names[i], GsConfig(hb_interval=self.period)) for i in self.ids}
+        self.inbox: queue.Queue[tuple[int, Any]] = queue.Queue()
+        self.members = frozenset(self.ids[1:])
+        self.pool = frozenset(self.ids)
+        self.subs = [self.session.declare_subscriber("swarm/*", self._on_sample)]
 
-    def on_sample(sample: Any) -> None:
+    def _on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
         try:
             msg = decode(sample.payload.to_bytes())
         except ValueError:
             return
-        if key == KEY_GS_ADVERTIZE:
-            for k in ids:
-                inbox.put((k, msg))
+        if key == self.keys.KEY_GS_ADVERTIZE:
+            for k in self.ids:
+                self.inbox.put((k, msg))
         else:
-            to = by_name.get(key.split("/", 1)[1])
+            to = self.by_name.get(key.split("/", 1)[1])
             if to is not None:
-                inbox.put((to, msg))
+                self.inbox.put((to, msg))
 
-    subs = [session.declare_subscriber("swarm/*", on_sample)]
-
-    def pose(i: int, now: float) -> Pose:
-        ang = now * 0.05 + i * 2 * math.pi / agents
+    def pose(self, i: int, now: float) -> Pose:
+        ang = now * 0.05 + i * 2 * math.pi / self.agents
         r = 0.002
         return Pose(
             CENTER[0] + r * math.cos(ang),
@@ -212,10 +228,10 @@ def feed(ep: str, agents: int, hz: float) -> None:
             now,
         )
 
-    def telemetry(i: int, now: float) -> Telemetry:
+    def telemetry(self, i: int, now: float) -> Telemetry:
         return Telemetry(
             i,
-            pose(i, now),
+            self.pose(i, now),
             mode_code("OFFBOARD"),
             FLAG_ARMED | FLAG_AIRBORNE | FLAG_FC_OK,
             Phase.LEADER if i == 1 else Phase.MEMBER,
@@ -226,51 +242,71 @@ def feed(ep: str, agents: int, hz: float) -> None:
             5.0,
         )
 
-    def put(key: str, msg: Any) -> None:
-        session.put(key, encode(msg))
+    def put(self, key: str, msg: Any) -> None:
+        self.session.put(key, encode(msg))
 
-    start = time.monotonic()
-    due = {i: start + period * k / agents for k, i in enumerate(ids)}
-    while not stop[0]:
-        now = time.monotonic()
+    def answer(self, now: float) -> None:
+        """Each agent's answers to what the station sent it."""
         while True:
             try:
-                i, msg = inbox.get_nowait()
+                i, msg = self.inbox.get_nowait()
             except queue.Empty:
-                break
-            for o in links[i].handle(msg, now):
-                st = links[i].station_name(o.to)
+                return
+            for o in self.links[i].handle(msg, now):
+                st = self.links[i].station_name(o.to)
                 if st:
-                    put(inbox_key(st), o.msg)
-        for i in ids:
-            g = links[i]
-            for o in g.tick(now, lambda i=i: telemetry(i, time.monotonic())):  # type: ignore[misc]
-                if o.to == 0:
-                    put(KEY_GS_ADVERTIZE, o.msg)
-                else:
-                    st = g.station_name(o.to)
-                    if st:
-                        put(inbox_key(st), o.msg)
-            if now >= due[i]:
-                due[i] += period
-                if due[i] < now:
-                    due[i] = now + period
-                put(pose_key(names[i]), PoseReport(pose(i, now)))
-                put(
-                    state_key(names[i]),
-                    AgentState(
-                        i,
-                        Phase.LEADER if i == 1 else Phase.MEMBER,
-                        leader=1,
-                        locked=True,
-                        pool=pool,
-                        members=members if i == 1 else frozenset(),
-                    ),
-                )
+                    self.put(self.keys.inbox_key(st), o.msg)
+
+    def speak(self, i: int, now: float, due: dict[int, float]) -> None:
+        """Agent ``i``'s link timers (Telemetry, GSAdvertize) and, when due, its pose and state."""
+        keys = self.keys
+        g = self.links[i]
+        for o in g.tick(now, lambda i=i: self.telemetry(i, time.monotonic())):  # type: ignore[misc]
+            if o.to == 0:
+                self.put(keys.KEY_GS_ADVERTIZE, o.msg)
+            else:
+                st = g.station_name(o.to)
+                if st:
+                    self.put(self.keys.inbox_key(st), o.msg)
+        if now >= due[i]:
+            due[i] += self.period
+            if due[i] < now:
+                due[i] = now + self.period
+            self.put(keys.pose_key(self.names[i]), PoseReport(self.pose(i, now)))
+            self.put(
+                keys.state_key(self.names[i]),
+                AgentState(
+                    i,
+                    Phase.LEADER if i == 1 else Phase.MEMBER,
+                    leader=1,
+                    locked=True,
+                    pool=self.pool,
+                    members=self.members if i == 1 else frozenset(),
+                ),
+            )
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+def feed(ep: str, agents: int, hz: float) -> None:
+    """Play ``agents`` agents at ``hz`` over one Zenoh session until SIGTERM."""
+    import signal
+
+    stop = [False]
+    signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
+    f = _Feeder(ep, agents, hz)
+    start = time.monotonic()
+    due = {i: start + f.period * k / agents for k, i in enumerate(f.ids)}
+    while not stop[0]:
+        now = time.monotonic()
+        f.answer(now)
+        for i in f.ids:
+            f.speak(i, now, due)
         time.sleep(0.01)
-    for s in subs:
-        s.undeclare()
-    session.close()
+    f.close()
 
 
 def _main(argv: list[str] | None = None) -> int:

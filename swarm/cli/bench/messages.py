@@ -27,42 +27,10 @@ from dataclasses import fields
 from enum import IntEnum
 from typing import Any
 
+import swarm.core.messages as sm
 from radios.link import open_link
 from radios.sik.timing import model_latency_s, tdm_timing
 from swarm.cli.procs import start_emulator
-from swarm.core.messages import (
-    AckResult,
-    Advertize,
-    AgentState,
-    Assignment,
-    Command,
-    CommandAck,
-    CommandKind,
-    GSAdvertize,
-    GSConnect,
-    GSConnectAck,
-    GSHeartbeat,
-    Heartbeat,
-    HeartbeatAck,
-    Message,
-    NameConflict,
-    Phase,
-    PoolStatus,
-    Pose,
-    PoseReport,
-    Selection,
-    Side,
-    StartPool,
-    StartPoolAck,
-    SyncPool,
-    SyncPoolAck,
-    Task,
-    TaskKind,
-    Telemetry,
-    encode,
-    message_types,
-    pool_digest,
-)
 from swarm.runtime.bridge import RadioBridge, bridge_message_frame_bytes
 from swarm.runtime.transport import Transport, open_session
 
@@ -74,59 +42,67 @@ FAST_LOCK_SEED = "16"
 LOCK_DEADLINE_S = 60.0
 SAMPLE_DEADLINE_S = 3.0
 
-POSE = Pose(48.8566123, 2.3522219, 135.4, heading=271.5, vn=3.25, ve=-1.5, t=12.34)
+POSE = sm.Pose(48.8566123, 2.3522219, 135.4, heading=271.5, vn=3.25, ve=-1.5, t=12.34)
 POOL = frozenset({1, 2, 3, 4, 5})
 
 
-def representative() -> dict[str, Message]:
+def representative() -> dict[str, sm.Message]:
     """One typical instance of every message type (five agents, ids 1..5, GCS 255)."""
-    task = Task(
-        TaskKind.FOLLOW,
+    task = sm.Task(
+        sm.TaskKind.FOLLOW,
         heading=90.0,
         back_m=10.0,
         side_m=5.0,
         assignments=(
-            Assignment(2, 1, Side.LEFT),
-            Assignment(3, 1, Side.RIGHT),
-            Assignment(4, 2, Side.LEFT),
-            Assignment(5, 3, Side.RIGHT),
+            sm.Assignment(2, 1, sm.Side.LEFT),
+            sm.Assignment(3, 1, sm.Side.RIGHT),
+            sm.Assignment(4, 2, sm.Side.LEFT),
+            sm.Assignment(5, 3, sm.Side.RIGHT),
         ),
     )
-    msgs: list[Message] = [
-        Advertize(1, "agent1", flags=1),
-        GSAdvertize(255, "gcs"),
-        Heartbeat(1, epoch=3, seq=17, members=POOL, task=task),
-        HeartbeatAck(2, seq=17, pose=POSE),
-        StartPool(1),
-        StartPoolAck(2, PoolStatus.ALREADY_IN_POOL, locked=False, members=POOL),
-        SyncPool(1, pool_digest(POOL), locked=True),
-        SyncPoolAck(2, same=True, locked=True),
-        Selection(2, candidate=4, weight=870, epoch=3),
-        PoseReport(POSE),
-        AgentState(
-            1, Phase.LEADER, leader=1, candidate=1, weight=870, epoch=3, locked=True, pool=POOL, members=POOL
+    msgs: list[sm.Message] = [
+        sm.Advertize(1, "agent1", flags=1),
+        sm.GSAdvertize(255, "gcs"),
+        sm.Heartbeat(1, epoch=3, seq=17, members=POOL, task=task),
+        sm.HeartbeatAck(2, seq=17, pose=POSE),
+        sm.StartPool(1),
+        sm.StartPoolAck(2, sm.PoolStatus.ALREADY_IN_POOL, locked=False, members=POOL),
+        sm.SyncPool(1, sm.pool_digest(POOL), locked=True),
+        sm.SyncPoolAck(2, same=True, locked=True),
+        sm.Selection(2, candidate=4, weight=870, epoch=3),
+        sm.PoseReport(POSE),
+        sm.AgentState(
+            1,
+            sm.Phase.LEADER,
+            leader=1,
+            candidate=1,
+            weight=870,
+            epoch=3,
+            locked=True,
+            pool=POOL,
+            members=POOL,
         ),
-        GSConnect(255, seq=1),
-        GSConnectAck(1, seq=1, hb_interval_ms=1000),
-        Telemetry(
+        sm.GSConnect(255, seq=1),
+        sm.GSConnectAck(1, seq=1, hb_interval_ms=1000),
+        sm.Telemetry(
             1,
             POSE,
             mode=4,
             flags=0b0111,
-            phase=Phase.LEADER,
+            phase=sm.Phase.LEADER,
             leader=1,
             battery=87,
             rssi=180,
             remrssi=175,
             groundspeed=3.5,
         ),
-        GSHeartbeat(255, seq=9),
-        Command(255, seq=12, target=0, kind=CommandKind.FOLLOW, heading=45.0),
-        CommandAck(1, seq=12, result=AckResult.ACCEPTED),
-        NameConflict(3, "agent2", other_id=7),
+        sm.GSHeartbeat(255, seq=9),
+        sm.Command(255, seq=12, target=0, kind=sm.CommandKind.FOLLOW, heading=45.0),
+        sm.CommandAck(1, seq=12, result=sm.AckResult.ACCEPTED),
+        sm.NameConflict(3, "agent2", other_id=7),
     ]
     out = {type(m).__name__: m for m in msgs}
-    missing = {t.__name__ for t in message_types()} - set(out)
+    missing = {t.__name__ for t in sm.message_types()} - set(out)
     assert not missing, f"no representative instance of {sorted(missing)}"
     return out
 
@@ -158,41 +134,45 @@ def _naive(obj: Any, name: str = "") -> Any:
     return out
 
 
-def naive_json(msg: Message) -> bytes:
+def naive_json(msg: sm.Message) -> bytes:
     """A message as a naive implementation would send it: JSON with the type name."""
     return json.dumps({"type": type(msg).__name__, **_naive(msg)}).encode("utf-8")
 
 
 def election_traffic(
     agents: int = 5, seconds: float = 60.0, pose_hz: float = 4.0, seed: int = 1
-) -> list[Message]:
+) -> list[sm.Message]:
     """One election's messages and a minute of formation flight for ``agents`` agents."""
     rng = random.Random(seed)
     ids = list(range(1, agents + 1))
     pool = frozenset(ids)
     leader = ids[-1]
     members = frozenset(i for i in ids if i != leader)
-    out: list[Message] = [Advertize(i, _agent_name(i), flags=1) for i in ids]
+    out: list[sm.Message] = [sm.Advertize(i, _agent_name(i), flags=1) for i in ids]
     # pooling: agent 1 starts, everyone acks, pools synced until unchanged and locked
-    out += [StartPool(1) for _ in ids[1:]]
-    out += [StartPoolAck(i, PoolStatus.SUCCESS, members=pool) for i in ids[1:]]
+    out += [sm.StartPool(1) for _ in ids[1:]]
+    out += [sm.StartPoolAck(i, sm.PoolStatus.SUCCESS, members=pool) for i in ids[1:]]
     for locked in (False, True):
         for i in ids:
             for _ in ids[1:]:
-                out.append(SyncPool(i, pool_digest(pool), locked=locked))
-                out.append(SyncPoolAck(i, same=True, locked=locked))
+                out.append(sm.SyncPool(i, sm.pool_digest(pool), locked=locked))
+                out.append(sm.SyncPoolAck(i, same=True, locked=locked))
     # votes: everyone to everyone
     out += [
-        Selection(i, candidate=leader, weight=rng.randrange(100, 1000), epoch=1) for i in ids for _ in ids[1:]
+        sm.Selection(i, candidate=leader, weight=rng.randrange(100, 1000), epoch=1)
+        for i in ids
+        for _ in ids[1:]
     ]
-    task = Task(
-        TaskKind.FOLLOW,
+    task = sm.Task(
+        sm.TaskKind.FOLLOW,
         heading=90.0,
-        assignments=tuple(Assignment(m, leader, Side.LEFT if m % 2 else Side.RIGHT) for m in sorted(members)),
+        assignments=tuple(
+            sm.Assignment(m, leader, sm.Side.LEFT if m % 2 else sm.Side.RIGHT) for m in sorted(members)
+        ),
     )
 
-    def pose(i: int, t: float) -> Pose:
-        return Pose(
+    def pose(i: int, t: float) -> sm.Pose:
+        return sm.Pose(
             48.8566 + 1e-4 * i + rng.uniform(-1e-5, 1e-5),
             2.3522 + 1e-4 * t + rng.uniform(-1e-5, 1e-5),
             135.0 + rng.uniform(-0.5, 0.5),
@@ -204,85 +184,106 @@ def election_traffic(
 
     for s in range(int(seconds)):
         for m in sorted(members):
-            out.append(Heartbeat(leader, epoch=1, seq=s & 0xFF, members=members, task=task))
-            out.append(HeartbeatAck(m, seq=s & 0xFF, pose=pose(m, float(s))))
+            out.append(sm.Heartbeat(leader, epoch=1, seq=s & 0xFF, members=members, task=task))
+            out.append(sm.HeartbeatAck(m, seq=s & 0xFF, pose=pose(m, float(s))))
     for k in range(int(seconds * pose_hz)):
-        out += [PoseReport(pose(i, k / pose_hz)) for i in ids]
+        out += [sm.PoseReport(pose(i, k / pose_hz)) for i in ids]
     return out
 
 
-def json_ratio(msgs: list[Message]) -> tuple[int, int]:
+def json_ratio(msgs: list[sm.Message]) -> tuple[int, int]:
     """(compact bytes, naive JSON bytes) of ``msgs`` as TUNNEL payloads."""
-    return sum(len(encode(m)) for m in msgs), sum(len(naive_json(m)) for m in msgs)
+    return sum(len(sm.encode(m)) for m in msgs), sum(len(naive_json(m)) for m in msgs)
 
 
 # -- bridge latency ------------------------------------------------------------------
 
 
-def _probe(i: int) -> Selection:
+def _probe(i: int) -> sm.Selection:
     # epoch 257 ends the payload with a non-zero byte: MAVLink 2 trims nothing
-    return Selection(1, candidate=2, weight=i, epoch=257)
+    return sm.Selection(1, candidate=2, weight=i, epoch=257)
+
+
+class _Probes:
+    """When each probe (a Selection of epoch 257, numbered by its weight) arrived."""
+
+    def __init__(self) -> None:
+        self.arrivals: dict[int, float] = {}
+        self.cond = threading.Condition()
+
+    def on_inbox(self, msg: sm.Message) -> None:
+        if isinstance(msg, sm.Selection) and msg.epoch == 257:
+            with self.cond:
+                self.arrivals.setdefault(msg.weight, time.monotonic())
+                self.cond.notify_all()
+
+    def wait_for(self, i: int, timeout: float) -> float | None:
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while i not in self.arrivals:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self.cond.wait(left)
+            return self.arrivals[i]
+
+
+def _radio_pair(d: str, closers: list[Any]) -> tuple[Transport, Transport, list[RadioBridge]]:
+    """Two bridged nodes ``a1`` and ``a2`` on the emulator's radios (in ``d``); each
+    thing opened is added to ``closers``."""
+    emu, paths = start_emulator(2, d, "--air-speed", str(AIR_KBPS), "--seed", FAST_LOCK_SEED)
+    closers.append(emu.stop)
+    links = [open_link(p) for p in paths]
+    closers += [lk.close for lk in links]
+    sessions = [open_session(), open_session()]  # no endpoints: isolated
+    closers += [s.close for s in sessions]
+    bridges = [
+        RadioBridge(s, lk, name=f"a{i + 1}", agent_id=i + 1).start()
+        for i, (s, lk) in enumerate(zip(sessions, links, strict=True))
+    ]
+    closers += [b.close for b in bridges]
+    ta, tb = Transport("a1", sessions[0]), Transport("a2", sessions[1])
+    closers += [ta.close, tb.close]
+    return ta, tb, bridges
+
+
+def _lock(ta: Transport, tb: Transport, bridges: list[RadioBridge], probes: _Probes) -> None:
+    """Advertise until each bridge knows the other, then one probe through.
+
+    Raises:
+        RuntimeError: not within LOCK_DEADLINE_S.
+    """
+    deadline = time.monotonic() + LOCK_DEADLINE_S
+    while time.monotonic() < deadline and not all(len(b.peers()) == 2 for b in bridges):
+        ta.advertise(sm.Advertize(1, "a1"))
+        tb.advertise(sm.Advertize(2, "a2"))
+        time.sleep(0.3)
+    warm = 1_000_000
+    while time.monotonic() < deadline:
+        ta.send("a2", _probe(warm))
+        if probes.wait_for(warm, 1.0) is not None:
+            return
+        warm += 1
+    raise RuntimeError(f"the radio pair did not lock within {LOCK_DEADLINE_S:.0f} s")
 
 
 def bench_latency(samples: int) -> dict[str, Any]:
     rng = random.Random(1)
     round_s = tdm_timing(AIR_KBPS).round_s(2)
-    arrivals: dict[int, float] = {}
-    cond = threading.Condition()
+    probes = _Probes()
     lat: list[float] = []
     lost = 0
-
-    def on_inbox(msg: Message) -> None:
-        if isinstance(msg, Selection) and msg.epoch == 257:
-            with cond:
-                arrivals.setdefault(msg.weight, time.monotonic())
-                cond.notify_all()
-
-    def wait_for(i: int, timeout: float) -> float | None:
-        deadline = time.monotonic() + timeout
-        with cond:
-            while i not in arrivals:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                cond.wait(left)
-            return arrivals[i]
-
     with tempfile.TemporaryDirectory() as d:
-        emu, paths = start_emulator(2, d, "--air-speed", str(AIR_KBPS), "--seed", FAST_LOCK_SEED)
-        closers: list[Any] = [emu.stop]
+        closers: list[Any] = []
         try:
-            links = [open_link(p) for p in paths]
-            closers += [lk.close for lk in links]
-            sessions = [open_session(), open_session()]  # no endpoints: isolated
-            closers += [s.close for s in sessions]
-            bridges = [
-                RadioBridge(s, lk, name=f"a{i + 1}", agent_id=i + 1).start()
-                for i, (s, lk) in enumerate(zip(sessions, links, strict=True))
-            ]
-            closers += [b.close for b in bridges]
-            ta, tb = Transport("a1", sessions[0]), Transport("a2", sessions[1])
-            closers += [ta.close, tb.close]
-            tb.on_inbox(on_inbox)
-            # hop lock: advertise until each bridge knows the other, then one probe through
-            deadline = time.monotonic() + LOCK_DEADLINE_S
-            while time.monotonic() < deadline and not all(len(b.peers()) == 2 for b in bridges):
-                ta.advertise(Advertize(1, "a1"))
-                tb.advertise(Advertize(2, "a2"))
-                time.sleep(0.3)
-            warm = 1_000_000
-            while time.monotonic() < deadline:
-                ta.send("a2", _probe(warm))
-                if wait_for(warm, 1.0) is not None:
-                    break
-                warm += 1
-            else:
-                raise RuntimeError(f"the radio pair did not lock within {LOCK_DEADLINE_S:.0f} s")
+            ta, tb, bridges = _radio_pair(d, closers)
+            tb.on_inbox(probes.on_inbox)
+            _lock(ta, tb, bridges, probes)
             for i in range(samples):
                 time.sleep(rng.uniform(0.05, 0.05 + 3 * round_s))  # uniform over the TDM round
                 t0 = time.monotonic()
                 ta.send("a2", _probe(i))
-                t1 = wait_for(i, SAMPLE_DEADLINE_S)
+                t1 = probes.wait_for(i, SAMPLE_DEADLINE_S)
                 if t1 is None:
                     lost += 1
                 else:
@@ -293,6 +294,11 @@ def bench_latency(samples: int) -> dict[str, Any]:
                     close()
                 except Exception:  # best effort: every resource gets its chance
                     pass
+    return _latency_figures(lat, lost, samples)
+
+
+def _latency_figures(lat: list[float], lost: int, samples: int) -> dict[str, Any]:
+    """The measured latencies against the TDM model's for the probe's frame."""
     frame_len = bridge_message_frame_bytes(_probe(samples), signed=False)
     model = model_latency_s(tdm_timing(AIR_KBPS), frame_len, SERIAL_BAUD)
     lat.sort()
@@ -313,7 +319,7 @@ def bench_latency(samples: int) -> dict[str, Any]:
 def run(quick: bool = False) -> dict[str, Any]:
     msgs = representative()
     out: dict[str, Any] = {
-        "payload_bytes": {k: len(encode(m)) for k, m in msgs.items()},
+        "payload_bytes": {k: len(sm.encode(m)) for k, m in msgs.items()},
         "frame_bytes": {k: bridge_message_frame_bytes(m, signed=True) for k, m in msgs.items()},
         "frame_bytes_unsigned": {k: bridge_message_frame_bytes(m, signed=False) for k, m in msgs.items()},
     }
@@ -328,11 +334,11 @@ def run(quick: bool = False) -> dict[str, Any]:
             "naive_json_ratio": round(naive / compact, 2),
         }
     )
-    unchanged = SyncPool(1, pool_digest(POOL), locked=False)
+    unchanged = sm.SyncPool(1, sm.pool_digest(POOL), locked=False)
     out["targets"] = {
         "pose_payload_le_16": out["payload_bytes"]["PoseReport"] <= 16,
         "heartbeat_ack_payload_le_18": out["payload_bytes"]["HeartbeatAck"] <= 18,
-        "unchanged_syncpool_le_8": len(encode(unchanged)) <= 8,
+        "unchanged_syncpool_le_8": len(sm.encode(unchanged)) <= 8,
         "signed_heartbeat_ack_frame_le_48": out["frame_bytes"]["HeartbeatAck"] <= 48,
         "latency_p50_within_1_5x_model": out["latency_ratio_p50"] <= 1.5,
         "naive_json_ratio_ge_4": out["naive_json_ratio"] >= 4,

@@ -1,0 +1,222 @@
+"""Command delivery for the ground station: sending, retrying, matching answers.
+
+Theory of operation
+-------------------
+:meth:`CommandDelivery.submit` checks a :class:`~swarm.core.station_commands.CommandSpec`
+against what the station knows (unknown agent, not connected, no leader: refused
+with a reason and an HTTP-like status, nothing sent) and returns a
+:class:`~swarm.core.station_commands.Request` holding one command per addressee.
+Each is re-sent with the same seq after ``command_backoff`` gaps (0.5, 1, 2, 3, 4 s,
+then 4 s) until its CommandAck arrives or ``command_give_up`` (12 s) has passed since
+the first send. Answers are matched by seq and by the agents the command went to
+(duplicates and late answers are counted and dropped). Swarm FOLLOW and STOP go to
+the leader as Command(target=0), and every retry goes to the leader the station sees
+*then*: a command sent just before an election reaches the new leader
+(:meth:`CommandDelivery.leader_changed` retries at once). A "not the leader" or "no
+leader" answer to a swarm command is not final while time remains (the agent does
+not remember it, so the new leader answers for itself). Swarm STOP also goes to
+every connected agent; swarm ARM/DISARM/TAKEOFF/LAND/RETURN go to every connected
+agent. At give-up, evidence seen in Telemetry (:meth:`CommandDelivery.look_for_evidence`)
+makes the result ``CARRIED_OUT``, a swarm refusal is final, else ``NO_ANSWER``.
+
+Owned by :class:`swarm.core.station.StationCore`, which shares its agents, counters
+and event log with it and passes the leader it sees. Pure: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections import deque
+from collections.abc import Callable, Iterator
+
+from swarm.core.messages import AckResult, Command, CommandAck, CommandKind
+from swarm.core.station_commands import (
+    CARRIED_OUT,
+    NO_ANSWER,
+    CommandRefused,
+    CommandSpec,
+    Pending,
+    Request,
+    Seen,
+    evidence,
+)
+from swarm.core.station_view import AgentView, StationConfig, StationCounters, StOut
+
+
+class CommandDelivery:
+    """The station's commands in flight. See the module docstring."""
+
+    def __init__(
+        self,
+        station_id: int,
+        cfg: StationConfig,
+        counters: StationCounters,
+        agents: dict[int, AgentView],
+        label: Callable[[int], str],
+        event: Callable[[float, str, str], None],
+        first_seq: int = 1,
+    ) -> None:
+        self.id = station_id
+        self.cfg = cfg
+        self.counters = counters
+        self.agents = agents  # the station's own dict, shared
+        self._label = label
+        self._event = event
+        # the runtime starts commands at a random seq: an agent remembers answers by
+        # (station, seq), and a restarted station must not reuse the seqs it just used
+        self._seq = itertools.count(first_seq)
+        self._request_ids = itertools.count(1)
+        self._pending: dict[int, Pending] = {}  # by seq
+        self._answered: deque[tuple[int, int]] = deque(maxlen=256)  # (agent, seq) completed
+        self._finished: list[Request] = []
+
+    @property
+    def in_flight(self) -> bool:
+        """Whether a command awaits its result."""
+        return bool(self._pending)
+
+    def submit(self, spec: CommandSpec, now: float, leader: int) -> tuple[Request, list[StOut]]:
+        """Start a command.
+
+        Raises:
+            CommandRefused: 404 unknown agent, 409 agent not connected, no leader
+                (FOLLOW), nothing connected (a swarm fan-out).
+        """
+        kind = spec.kind
+        args = {"lat": spec.lat, "lon": spec.lon, "alt": spec.alt, "heading": spec.heading}
+        plan: list[tuple[int, int]] = []  # (agent, Command.target)
+        if spec.target is not None:
+            a = self.agents.get(spec.target)
+            if a is None:
+                raise CommandRefused(404, f"unknown agent {spec.target}")
+            if not a.connected:
+                raise CommandRefused(409, f"{self._label(a.id)} is not connected")
+            plan.append((a.id, a.id))
+        else:
+            connected = sorted(i for i, a in self.agents.items() if a.connected)
+            if kind in (CommandKind.FOLLOW, CommandKind.STOP):
+                if leader:
+                    plan.append((leader, 0))
+                elif kind == CommandKind.FOLLOW:
+                    raise CommandRefused(409, "no leader elected yet")
+            if kind != CommandKind.FOLLOW:
+                plan += [(i, i) for i in connected]
+            if not plan:
+                raise CommandRefused(409, "no connected agents")
+        req = Request(next(self._request_ids), spec)
+        out: list[StOut] = []
+        for agent, target in plan:
+            seq = self._next_seq()
+            p = Pending(req, agent, target == 0, Command(self.id, seq, target, kind, **args), first_sent=now)
+            req.pending.append(p)
+            self._pending[seq] = p
+            out += self._send(p, now, leader)
+        return req, out
+
+    def ack(self, msg: CommandAck, now: float, leader: int) -> None:
+        """A CommandAck heard (the station is not passive)."""
+        p = self._pending.get(msg.seq)
+        if p is None or msg.sender not in p.sent_to:
+            if (msg.sender, msg.seq) in self._answered:
+                self.counters.duplicate_acks += 1
+            else:
+                self.counters.late_acks += 1
+            return
+        if p.swarm and msg.result in (AckResult.REJECTED, AckResult.NO_LEADER):
+            # "not the leader" / "no leader": not final while there is time to find the
+            # leader (the agent keeps no record of it, so it will answer again)
+            p.refusal = (msg.sender, msg.result.name, msg.reason)
+            if now - p.first_sent < self.cfg.command_give_up:
+                if leader and msg.sender != leader:
+                    p.next_try = min(p.next_try, now)  # it already sees another leader: go now
+                return
+        p.agent = msg.sender
+        self._complete(p, msg.result.name, msg.reason, now)
+
+    def tick(self, now: float, leader: int) -> list[StOut]:
+        """Retries due and give-ups."""
+        out: list[StOut] = []
+        for p in list(self._pending.values()):
+            if now + 1e-9 >= p.first_sent + self.cfg.command_give_up:
+                self._give_up(p, now)
+            elif now + 1e-9 >= p.next_try:
+                out += self._send(p, now, leader)
+        return out
+
+    def deadlines(self) -> Iterator[float]:
+        for p in self._pending.values():
+            yield min(p.next_try, p.first_sent + self.cfg.command_give_up)
+
+    def leader_changed(self, leader: int, now: float) -> None:
+        for p in self._pending.values():
+            if p.swarm and leader and p.agent != leader:
+                p.next_try = min(p.next_try, now)  # to the new leader at the next tick
+
+    def look_for_evidence(self, a: AgentView) -> None:
+        """Telemetry from ``a``: does it show a pending command carried out?"""
+        now_seen = None
+        for p in self._pending.values():
+            before = p.before.get(a.id)
+            if before is None or p.shown is not None:
+                continue
+            now_seen = now_seen or self._seen(a)
+            what = evidence(p.msg.kind, before, now_seen)
+            if what is not None:
+                p.shown = f"{a.id}:{what}"
+
+    def take_finished(self) -> list[Request]:
+        done, self._finished = self._finished, []
+        return done
+
+    # -- internals ---------------------------------------------------------------------
+    def _next_seq(self) -> int:
+        while True:
+            seq = next(self._seq) & 0xFFFF
+            if seq and seq not in self._pending:
+                return seq
+
+    def _send(self, p: Pending, now: float, leader: int) -> list[StOut]:
+        if p.swarm and leader and leader in self.agents:
+            p.agent = leader  # re-resolved at every try: elections happen
+        if p.agent not in p.before:
+            p.before[p.agent] = self._seen(self.agents[p.agent])
+        p.sent_to.add(p.agent)
+        p.tries += 1
+        gaps = self.cfg.command_backoff
+        p.next_try = now + gaps[min(p.tries, len(gaps)) - 1]
+        if p.tries == 1:
+            self.counters.commands_sent += 1
+        else:
+            self.counters.command_retries += 1
+        return [StOut(p.agent, self.agents[p.agent].name, p.msg)]
+
+    @staticmethod
+    def _seen(a: AgentView) -> Seen:
+        return Seen(a.mode, a.armed, a.airborne, a.holding)
+
+    def _complete(self, p: Pending, result: str, reason: str, now: float) -> None:
+        p.result, p.reason = result, reason
+        del self._pending[p.msg.seq]
+        for agent in p.sent_to:
+            self._answered.append((agent, p.msg.seq))
+        what = p.msg.kind.name + (" (swarm)" if p.swarm else "")
+        text = (
+            f"{what} -> {self._label(p.agent)}: {result}"
+            + (f" ({reason})" if reason else "")
+            + f" [seq {p.msg.seq}]"
+        )  # the agent's own log names the same seq
+        self._event(now, "command", text)
+        if p.request.done:
+            self._finished.append(p.request)
+
+    def _give_up(self, p: Pending, now: float) -> None:
+        tries = f"{p.tries} {'try' if p.tries == 1 else 'tries'} in {now - p.first_sent:.0f} s"
+        if p.shown is not None:
+            agent, _, what = p.shown.partition(":")
+            p.agent = int(agent)
+            self._complete(p, CARRIED_OUT, f"no answer after {tries}, but it shows {what}", now)
+        elif p.refusal is not None:
+            p.agent, result, reason = p.refusal
+            self._complete(p, result, reason, now)
+        else:
+            self._complete(p, NO_ANSWER, f"no answer after {tries}", now)

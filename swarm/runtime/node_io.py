@@ -1,0 +1,156 @@
+"""A node's way into the swarm's key space: a Zenoh session, and a radio bridged to it.
+
+Theory of operation
+-------------------
+An agent or a ground station meets the others either over Zenoh endpoints (its
+session listens on or connects to them) or through a radio: then its Zenoh session
+has no endpoints and no scouting, and a :class:`~swarm.runtime.bridge.RadioBridge`
+carries the key space over the radio link (captured to a file if asked, MAVLink 2
+signed with the swarm key if given). :func:`open_node` opens one or the other as
+``(session, link, bridge)``; :func:`open_node_io` adds the node's
+:class:`~swarm.runtime.transport.Transport` and returns them as one :class:`NodeIO`,
+which closes them in the reverse order. Whatever was opened is closed again if a
+later step fails. ``open_node`` stays importable from :mod:`swarm.runtime.bridge`.
+:class:`StartOnce` is the node's ``start()``: open once, close again on failure.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Self
+
+if TYPE_CHECKING:
+    from swarm.runtime.bridge import RadioBridge
+    from swarm.runtime.transport import Transport
+
+log = logging.getLogger(__name__)
+
+
+class StartOnce:
+    """The life cycle of a node (a station, an agent): :meth:`start` runs ``_open``
+    once, however often it is called; if opening fails, ``stop`` closes what was
+    opened and the error goes on. Subclasses give ``_open``, ``stop`` and the
+    ``_lock`` and ``_started`` attributes."""
+
+    _lock: threading.Lock | threading.RLock
+    _started: bool
+
+    def start(self) -> Self:
+        with self._lock:
+            if self._started:
+                return self
+            self._started = True
+        try:
+            self._open()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _open(self) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+
+@dataclass
+class NodeIO:
+    """What :func:`open_node_io` opened. ``link`` and ``bridge`` are None over Zenoh
+    endpoints."""
+
+    session: Any
+    link: Any
+    bridge: RadioBridge | None
+    transport: Transport
+
+    def close(self) -> None:
+        """Close the transport, the bridge, the link and the session, in that order;
+        an error closing one is logged and the rest still closed. Safe twice."""
+        for close in (self.transport.close, self.bridge and self.bridge.close, self.link and self.link.close):
+            if close:
+                try:
+                    close()
+                except Exception:
+                    log.debug("node: error while closing", exc_info=True)
+        try:
+            self.session.close()
+        except Exception:
+            log.debug("node: error while closing the session", exc_info=True)
+
+
+def open_node(
+    name: str,
+    agent_id: int,
+    *,
+    radio: str | None = None,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    key_file: str | None = None,
+    capture: str | None = None,
+) -> tuple[Any, Any, RadioBridge | None]:
+    """A node's way into the key space: ``(session, link, bridge)``. With ``radio`` the
+    Zenoh session has no endpoints and no scouting (only the radio), the link is
+    opened (captured to ``capture`` if given) and bridged, MAVLink 2 signed with the
+    key in ``key_file``; otherwise a session on the Zenoh endpoints, no link or bridge.
+    Whatever was opened is closed again if a later step fails.
+
+    Raises:
+        radios.errors.ConfigError: the key file. radios.errors.LinkOpenError: the radio.
+        swarm.errors.TransportError: the Zenoh endpoints.
+    """
+    from radios.link import open_link
+    from radios.signing import load_key
+    from swarm.runtime.bridge import BridgeConfig, RadioBridge
+    from swarm.runtime.transport import open_session
+
+    key = load_key(key_file) if key_file is not None else None
+    if radio is None:
+        return open_session(listen, connect), None, None
+    link = open_link(radio, capture=capture)
+    try:
+        session = open_session()
+    except BaseException:
+        link.close()
+        raise
+    try:
+        bridge = RadioBridge(
+            session, link, name=name, agent_id=agent_id, config=BridgeConfig(signing_key=key)
+        ).start()
+    except BaseException:
+        link.close()
+        session.close()
+        raise
+    return session, link, bridge
+
+
+def open_node_io(
+    name: str,
+    agent_id: int,
+    *,
+    radio: str | None = None,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    key_file: str | None = None,
+    capture: str | None = None,
+) -> NodeIO:
+    """:func:`open_node` and the node's :class:`Transport` as ``name`` on its session.
+
+    Raises:
+        what :func:`open_node` raises.
+    """
+    from swarm.runtime.transport import Transport
+
+    session, link, bridge = open_node(
+        name, agent_id, radio=radio, listen=listen, connect=connect, key_file=key_file, capture=capture
+    )
+    try:
+        return NodeIO(session, link, bridge, Transport(name, session))
+    except BaseException:
+        for close in (bridge and bridge.close, link and link.close, session.close):
+            if close:
+                close()
+        raise

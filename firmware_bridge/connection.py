@@ -3,15 +3,15 @@
 Theory of operation. :func:`parse_url` parses the driver's connection strings
 (serial, udp/udpin, udpout, tcp, a bare ``/dev/...`` path, or a radio link's
 ``/dev/x?baud=N``) with the link layer's grammar (:func:`radios.url.parse_endpoint`:
-one grammar for radios and flight controllers); it is pure and opens nothing. :func:`open_link` opens the pymavlink connection for
-an :class:`Endpoint` (its blocking TCP connect and reconnect loop replaced by
-:class:`TcpLink`, which has a connect timeout and reports EOF instead of
-retrying), sets up MAVLink 2 signing, and waits for the autopilot's HEARTBEAT
-with our own deadline while sending the companion's heartbeat once a second
-(udpout and serial peers may wait to hear from us first). On any failure the
-connection is closed again before the error leaves. :func:`close_link` closes it,
-never raising. Errors are one-line :class:`ConnectError` or
-:class:`HeartbeatTimeout`.
+one grammar for radios and flight controllers); it is pure and opens nothing.
+:func:`open_link` opens the pymavlink connection for an :class:`Endpoint` (its
+blocking TCP connect and reconnect loop replaced by :class:`TcpLink`, which has a
+connect timeout and reports EOF instead of retrying), sets up MAVLink 2 signing, and
+waits for the autopilot's HEARTBEAT with our own deadline while sending the
+companion's heartbeat once a second (udpout and serial peers may wait to hear from
+us first). On any failure the connection is closed again before the error leaves.
+:func:`close_link` closes it, never raising. Errors are one-line
+:class:`ConnectError` or :class:`HeartbeatTimeout`.
 """
 
 from __future__ import annotations

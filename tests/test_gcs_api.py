@@ -300,7 +300,7 @@ def test_files_tiles_and_traversal(live: dict[str, Any]) -> None:
 
 def test_disconnected_agent_and_no_leader_are_409(live: dict[str, Any]) -> None:
     base, station, agents = live["base"], live["station"], live["agents"]
-    ep = station.zenoh_listen[0]
+    ep = station.node.zenoh_listen[0]
     extra = ScriptedAgent(ep, 9, phase=Phase.IDLE, leader=0)
     try:
         wait_until(lambda: (station.agent(9) or {}).get("connected"), "agent9 connected", 20)

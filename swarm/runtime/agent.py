@@ -97,6 +97,7 @@ from swarm.core.node import (
 from swarm.core.pilot import Call, Setpoint
 from swarm.core.protocol import BatteryVote, LinkQualityVote, Profile, RandomVote, VotePolicy, profile_by_name
 from swarm.runtime.loop import EventLoop
+from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
 from swarm.runtime.options import PROFILES, VOTES, AgentConfig, NodeOptions
 from swarm.runtime.vehicle import pose_from_state, state_dict, vehicle_info, vehicle_messages
 
@@ -138,7 +139,7 @@ STATS = (
 )
 
 
-class Agent:
+class Agent(StartOnce):
     """One swarm agent: a protocol core, its threads, Zenoh, optionally a radio and a
     flight controller. See the module docstring.
 
@@ -185,6 +186,7 @@ class Agent:
         self.transport: Any = None
         self.link: Any = None
         self.bridge: Any = None
+        self.io: NodeIO | None = None  # what start() opened
         self.vehicle: Any = None
         self.started_at = 0.0
         self.loop = EventLoop(
@@ -217,46 +219,11 @@ class Agent:
         return self.node.names if self.node is not None else {}
 
     # -- life cycle -------------------------------------------------------------
-    def start(self) -> Agent:
-        """Open the session, radio, bridge and flight controller and start the threads."""
-        with self._lock:
-            if self._started:
-                return self
-            self._started = True
-        try:
-            self._open()
-        except BaseException:
-            self.stop()
-            raise
-        return self
-
-    def _open_node(self) -> None:
-        """The session, and with a radio the link (unless handed one) and its bridge."""
-        from swarm.runtime.bridge import BridgeConfig, RadioBridge, open_node
-        from swarm.runtime.transport import open_session
-
-        n = self.options
-        if n.link is None:
-            self.session, self.link, self.bridge = open_node(
-                self.name,
-                self.id,
-                radio=n.radio,
-                listen=n.zenoh_listen,
-                connect=n.zenoh_connect,
-                key_file=n.key_file,
-            )
-            return
-        from radios.signing import load_key
-
-        key = load_key(n.key_file) if n.key_file is not None else None
-        self.session = open_session()  # no endpoints, no scouting: only the radio
-        cfg = BridgeConfig(signing_key=key)
-        self.bridge = RadioBridge(self.session, n.link, name=self.name, agent_id=self.id, config=cfg).start()
-
     def _open(self) -> None:
-        from swarm.runtime.transport import Transport
-
-        self._open_node()
+        """Open the session, radio (unless handed a link), bridge and flight controller
+        and start the threads (:meth:`start`, from :class:`StartOnce`)."""
+        self.io = io = open_node_io(self.name, self.id, self.options)
+        self.session, self.link, self.bridge, self.transport = io.session, io.link, io.bridge, io.transport
         if self.fc_url is not None:
             from firmware_bridge.driver import connect
 
@@ -276,7 +243,6 @@ class Agent:
             pilot=self.config.pilot,
             stats=self.stats,
         )
-        self.transport = Transport(self.name, self.session)
         self.transport.on_inbox(self.loop.put)
         self.transport.on_advertize(self.loop.put)
         self.transport.on_gs_advertize(self.loop.put)
@@ -322,18 +288,13 @@ class Agent:
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(2.0)
-        for close in (
-            self.transport and self.transport.close,
-            self.bridge and self.bridge.close,
-            self.link and self.link.close,
-            self.vehicle and self.vehicle.close,
-            self.session and self.session.close,
-        ):
-            if close:
-                try:
-                    close()
-                except Exception:  # every part gets its chance to close
-                    log.debug("agent %s: error while closing", self.name, exc_info=True)
+        if self.vehicle is not None:
+            try:
+                self.vehicle.close()
+            except Exception:  # every part gets its chance to close
+                log.debug("agent %s: error while closing the vehicle", self.name, exc_info=True)
+        if self.io is not None:
+            self.io.close()  # transport, bridge, link (unless handed), session
 
     close = stop
 

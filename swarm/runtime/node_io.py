@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Self
 
 if TYPE_CHECKING:
     from swarm.runtime.bridge import RadioBridge
+    from swarm.runtime.options import NodeOptions
     from swarm.runtime.transport import Transport
 
 log = logging.getLogger(__name__)
@@ -91,12 +92,15 @@ def open_node(
     connect: Sequence[str] = (),
     key_file: str | None = None,
     capture: str | None = None,
+    link: Any = None,
 ) -> tuple[Any, Any, RadioBridge | None]:
     """A node's way into the key space: ``(session, link, bridge)``. With ``radio`` the
     Zenoh session has no endpoints and no scouting (only the radio), the link is
     opened (captured to ``capture`` if given) and bridged, MAVLink 2 signed with the
     key in ``key_file``; otherwise a session on the Zenoh endpoints, no link or bridge.
-    Whatever was opened is closed again if a later step fails.
+    A ``link`` already open is bridged instead of opening ``radio``; it is not
+    returned (its opener closes it). Whatever was opened is closed again if a later
+    step fails.
 
     Raises:
         radios.errors.ConfigError: the key file. radios.errors.LinkOpenError: the radio.
@@ -108,36 +112,32 @@ def open_node(
     from swarm.runtime.transport import open_session
 
     key = load_key(key_file) if key_file is not None else None
-    if radio is None:
-        return open_session(listen, connect), None, None
-    link = open_link(radio, capture=capture)
+    ours = link is None  # a handed link is closed by whoever opened it
+    if link is None:
+        if radio is None:
+            return open_session(listen, connect), None, None
+        link = open_link(radio, capture=capture)
     try:
-        session = open_session()
+        session = open_session()  # no endpoints, no scouting: only the radio
     except BaseException:
-        link.close()
+        if ours:
+            link.close()
         raise
     try:
         bridge = RadioBridge(
             session, link, name=name, agent_id=agent_id, config=BridgeConfig(signing_key=key)
         ).start()
     except BaseException:
-        link.close()
+        if ours:
+            link.close()
         session.close()
         raise
-    return session, link, bridge
+    return session, link if ours else None, bridge
 
 
-def open_node_io(
-    name: str,
-    agent_id: int,
-    *,
-    radio: str | None = None,
-    listen: Sequence[str] = (),
-    connect: Sequence[str] = (),
-    key_file: str | None = None,
-    capture: str | None = None,
-) -> NodeIO:
-    """:func:`open_node` and the node's :class:`Transport` as ``name`` on its session.
+def open_node_io(name: str, agent_id: int, node: NodeOptions, *, capture: str | None = None) -> NodeIO:
+    """:func:`open_node` for ``node`` (radio URL, open link or Zenoh endpoints, key)
+    and the node's :class:`Transport` as ``name`` on its session.
 
     Raises:
         what :func:`open_node` raises.
@@ -145,7 +145,14 @@ def open_node_io(
     from swarm.runtime.transport import Transport
 
     session, link, bridge = open_node(
-        name, agent_id, radio=radio, listen=listen, connect=connect, key_file=key_file, capture=capture
+        name,
+        agent_id,
+        radio=node.radio,
+        listen=node.zenoh_listen,
+        connect=node.zenoh_connect,
+        key_file=node.key_file,
+        capture=capture,
+        link=node.link,
     )
     try:
         return NodeIO(session, link, bridge, Transport(name, session))

@@ -20,6 +20,7 @@ from swarm.core.messages import GCS_ID, GSAdvertize, Message
 from swarm.core.station import CommandRefused, CommandSpec, Event, StationConfig, StationCore, StOut, outcome
 from swarm.runtime.loop import EventLoop
 from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
+from swarm.runtime.options import NodeOptions
 
 log = logging.getLogger(__name__)
 
@@ -77,26 +78,22 @@ class Station(StartOnce, StationView):
         zenoh_listen: Sequence[str] = (),
         zenoh_connect: Sequence[str] = (),
         key_file: str | None = None,
+        node: NodeOptions | None = None,
         capture: str | None = None,
         config: StationConfig | None = None,
         clock: Callable[[], float] = time.monotonic,
         wall: Callable[[], float] = time.time,
     ) -> None:
-        if radio is not None and (zenoh_listen or zenoh_connect):
-            raise ValueError("a station joins either through a radio or over Zenoh endpoints")
-        if radio is None and not (zenoh_listen or zenoh_connect):
-            raise ValueError("give a radio or at least one Zenoh endpoint (listen or connect)")
-        if capture is not None and radio is None:
+        if node is None:  # NodeOptions checks the way in (ValueError)
+            node = NodeOptions(radio, None, zenoh_listen, zenoh_connect, key_file)
+        if capture is not None and node.radio is None:
             raise ValueError("a capture records the radio's traffic: it needs a radio")
         self.core = StationCore(
             name, station_id, config, wall_offset=wall() - clock(), first_seq=random.randrange(1, 0x10000)
         )
         self.name = name
         self.id = station_id
-        self.radio_url = radio
-        self.zenoh_listen = list(zenoh_listen)
-        self.zenoh_connect = list(zenoh_connect)
-        self.key_file = key_file
+        self.node = node
         self.capture = capture
         self.clock = clock
         self.replay = None
@@ -125,15 +122,7 @@ class Station(StartOnce, StationView):
         self._started = self._stopped = False
 
     def _open(self) -> None:
-        self.io = io = open_node_io(
-            self.name,
-            self.id,
-            radio=self.radio_url,
-            listen=self.zenoh_listen,
-            connect=self.zenoh_connect,
-            key_file=self.key_file,
-            capture=self.capture,
-        )
+        self.io = io = open_node_io(self.name, self.id, self.node, capture=self.capture)
         self.session, self.link, self.bridge, self.transport = io.session, io.link, io.bridge, io.transport
         tr = io.transport
         tr.on_inbox(lambda m: self.loop.put((m, "")))
@@ -171,14 +160,7 @@ class Station(StartOnce, StationView):
         return self._started and not self._stopped and radio_ok and self.loop.alive
 
     def describe(self) -> str:
-        if self.radio_url is not None:
-            return f"radio={self.radio_url}"
-        parts = []
-        if self.zenoh_listen:
-            parts.append("listen=" + ",".join(self.zenoh_listen))
-        if self.zenoh_connect:
-            parts.append("connect=" + ",".join(self.zenoh_connect))
-        return "zenoh " + " ".join(parts)
+        return self.node.describe()
 
     # -- for the server (any thread): snapshot, snapshot_json, agent from StationView --
     def _now(self) -> float:

@@ -270,15 +270,7 @@ def _open_station(a: argparse.Namespace) -> Any:
     from swarm.runtime.station import Station
 
     n = a.node
-    st = Station(
-        a.name,
-        a.id,
-        radio=n.radio,
-        zenoh_listen=n.zenoh_listen,
-        zenoh_connect=n.zenoh_connect,
-        key_file=n.key_file,
-        capture=a.capture,
-    )
+    st = Station(a.name, a.id, node=n, capture=a.capture)
     try:
         return st.start()
     except CaptureError as exc:  # the capture file is the user's input too

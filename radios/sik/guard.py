@@ -38,9 +38,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from radios.errors import ATError, ConfigError, RadioError
+from radios.errors import ATError, ConfigError, LinkOpenError, RadioError
+from radios.seriallink import DEFAULT_BAUD
 from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port
 from radios.sik.params import FLAVOURS, spec_for, validate_user_value
+from radios.url import Options, parse_link_url
 
 REBOOT_SETTLE = 0.5  # seconds for a rebooted radio to start before talking to it again
 
@@ -166,21 +168,20 @@ def describe(mismatches: list[Mismatch]) -> str:
 
 def split_radio_url(url: str) -> tuple[str, int]:
     """``serial:/dev/ttyUSB0?baud=115200`` -> (``/dev/ttyUSB0``, 115200); default 57600.
+    Parsed with the links' grammar (:func:`radios.url.parse_link_url`).
 
     Raises :class:`ConfigError` for a URL that is not a local serial device.
     """
-    target = url[len("serial:") :] if url.startswith("serial:") else url
-    path, _, query = target.partition("?")
-    if "://" in path or not path:
-        raise ConfigError(f"the radio check needs a serial device, not {url!r}")
-    baud = 57600
-    for item in filter(None, query.split("&")):
-        key, _, value = item.partition("=")
-        if key == "baud":
-            if not value.isdigit() or int(value) <= 0:
-                raise ConfigError(f"{url}: bad baud rate {value!r}")
-            baud = int(value)
-    return path, baud
+    try:
+        link = parse_link_url(url)
+        if link.scheme != "serial" or "://" in link.target or not link.target:
+            raise ConfigError(f"the radio check needs a serial device, not {url!r}")
+        baud = Options(link).integer("baud", DEFAULT_BAUD)
+    except LinkOpenError as exc:
+        raise ConfigError(str(exc)) from None
+    if baud <= 0:
+        raise ConfigError(f"{url}: bad baud rate {baud}")
+    return link.target, baud
 
 
 def check_radio(url: str, expected: Mapping[str, int], *, restore: bool = False) -> GuardReport:

@@ -49,6 +49,7 @@ from radios.replay import (
     format_time,
 )
 from radios.tlog import TlogReader, read_tlog
+from radios.url import parse_link_url
 from swarm.cli.util import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
@@ -211,7 +212,7 @@ def _stats_table(path: str, s: dict[str, Any]) -> str:
 def _with_baud(url: str, baud: int | None) -> str:
     if baud is None:
         return url
-    if "baud=" in url.split("?", 1)[-1] and "?" in url:
+    if "baud" in parse_link_url(url).options:
         raise UsageError("give the baud rate either in the URL or with --baud, not both")
     return f"{url}{'&' if '?' in url else '?'}baud={baud}"
 

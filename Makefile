@@ -10,7 +10,7 @@ NODE_STAMP := node_modules/.installed
 CHROMIUM_PKGS := chromium fonts-dejavu-core
 CHROMIUM_BIN ?= chromium
 
-.PHONY: setup browser demo test lint clean
+.PHONY: setup browser demo test test-quick lint check clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -47,12 +47,21 @@ setup: $(STAMP) $(NODE_STAMP) browser
 demo: setup
 	$(BIN)/swarm demo
 
-test: setup
+# Static checks, shared by both test targets.
+check: setup
 	$(BIN)/ruff check radios firmware_bridge swarm tests
 	$(BIN)/ruff format --check radios firmware_bridge swarm tests
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
+
+# Everything (what CI runs).
+test: check
 	$(BIN)/pytest
+
+# The checks and the tests that need no processes, real-time radios, simulators or
+# browser (the `processes` marker): about a minute, for the edit-test loop.
+test-quick: check
+	$(BIN)/pytest -m 'not slow and not hardware and not processes'
 
 clean:
 	rm -rf $(VENV) node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -1,10 +1,11 @@
 """Test helpers for the radio link layer: frames, garbage, polling, a running emulator.
 
-Nothing here sleeps to hope that something happened: :func:`wait_until` and
-:func:`recv_until` poll for an outcome until a generous deadline and fail with a
-message saying what never happened. :class:`RunningEmulator` runs a real
-:class:`~radios.emulator.Emulator` (real ptys, real clock) in a thread and always
-stops it, so a failing test leaves no thread or pty behind.
+Nothing here sleeps to hope that something happened: :func:`recv_until` (and
+``net_helpers.wait_until``, which the emulator's waits use) poll for an outcome
+until a generous deadline and fail with a message saying what never happened.
+:class:`RunningEmulator` runs a real :class:`~radios.emulator.Emulator` (real ptys,
+real clock) in a thread and always stops it, so a failing test leaves no thread or
+pty behind.
 """
 
 from __future__ import annotations
@@ -17,13 +18,13 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
+
+from net_helpers import wait_until
 
 from radios.emulator import Emulator, EmulatorConfig
 from radios.link import Link, open_link
 from radios.mavlink import STX_V1, STX_V2, Frame, FrameBuilder, FrameParser
-
-T = TypeVar("T")
 
 #: Deadline for anything that crosses the emulated air (a few TDM rounds on a
 #: busy two-core machine need far less; this only bounds a failing test).
@@ -35,18 +36,6 @@ AIR_DEADLINE = 10.0
 #: locks in about 0.4 s, just keeps them quick. Nothing depends on it for correctness.
 FAST_LOCK_SEED = 16
 LOCK_DEADLINE = 60.0
-
-
-def wait_until(predicate: Callable[[], T], timeout: float, what: str, interval: float = 0.02) -> T:
-    """Poll ``predicate`` until it returns something truthy; fail after ``timeout`` s."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
 
 
 def recv_until(
@@ -145,13 +134,13 @@ class RunningEmulator:
         """Wait until the emulator has seen a host open each of ``radios``: bytes a
         host writes before that are discarded (see test_emulator)."""
         for i in radios:
-            wait_until(partial(self.emu.connected.__getitem__, i), AIR_DEADLINE, f"radio{i} connected")
+            wait_until(partial(self.emu.connected.__getitem__, i), f"radio{i} connected", AIR_DEADLINE)
 
     def wait_locked(self, *radios: int) -> None:
         """Wait until each of ``radios`` has locked onto its peers' hopping sequence:
         until then it hears a packet only by chance, as a SiK radio that just booted."""
         for i in radios:
-            wait_until(partial(self._locked, i), LOCK_DEADLINE, f"radio{i} locked")
+            wait_until(partial(self._locked, i), f"radio{i} locked", LOCK_DEADLINE)
 
     def _locked(self, i: int) -> bool:
         return bool(self.radio(i)["locked"])

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from net_helpers import free_port, wait_until
+from net_helpers import wait_until
 
 from swarm.cli.bench.gcs_page import find_browser, launch_browser
 from swarm.cli.procs import Child
@@ -112,23 +112,13 @@ def start_station(argv: Sequence[str], timeout: float = 30.0) -> tuple[Child, st
         raise
 
 
-__all__ = ["browser", "distance_m", "free_port", "poll", "screenshot", "start_station", "write_tiles"]
+__all__ = ["browser", "distance_m", "poll", "screenshot", "start_station", "write_tiles"]
 
 
 def poll(pred: Callable[[], Any], what: str, timeout: float, children: Sequence[Child] = ()) -> Any:
-    """Call ``pred`` until it returns something true; fail after ``timeout`` seconds
-    or as soon as one of ``children`` exits (with its last stderr lines)."""
-
-    def check() -> Any:
-        for c in children:
-            if c.proc.poll() is not None:
-                raise AssertionError(
-                    f"{c.name} exited with {c.proc.returncode} while waiting for "
-                    f"{what}: {' | '.join(c.errors[-5:])}"
-                )
-        return pred()
-
-    return wait_until(check, what, timeout, interval=0.2)
+    """``wait_until`` at a page's pace (each call of ``pred`` may evaluate script in
+    the browser): fail after ``timeout`` s, or as soon as one of ``children`` exits."""
+    return wait_until(pred, what, timeout, 0.2, children=children)
 
 
 def screenshot(page: Any, name: str) -> Path:

@@ -1,5 +1,5 @@
 """pymavlink client helpers shared by the simulator tests (plain scripts of the kind
-PX4's and ArduPilot's documentation show)."""
+PX4's and ArduPilot's documentation show): the one ``wait_msg`` and ``command``."""
 
 from __future__ import annotations
 
@@ -8,16 +8,24 @@ from collections.abc import Callable
 
 from pymavlink import mavutil
 
+#: Wall seconds a simulator test waits for a message or an answer: the simulators run
+#: faster than real time, so this only bounds a failing test.
+MAV_DEADLINE = 20.0
+
+
+def _any(_msg: object) -> bool:
+    return True
+
 
 def wait_msg(
     conn: mavutil.mavfile,
     types: str | list[str],
-    cond: Callable[[object], bool],
-    timeout: float,
+    cond: Callable[[object], bool] = _any,
+    timeout: float = MAV_DEADLINE,
     tick: Callable[[], None] | None = None,
 ) -> object:
-    """The first message of ``types`` satisfying ``cond`` within ``timeout`` s; ``tick``
-    runs between reads (e.g. to keep a setpoint stream going)."""
+    """The first message of ``types`` satisfying ``cond`` (any, by default) within
+    ``timeout`` s; ``tick`` runs between reads (e.g. to keep a setpoint stream going)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if tick is not None:
@@ -32,7 +40,7 @@ def command(
     conn: mavutil.mavfile,
     cmd: int,
     *params: float,
-    timeout: float,
+    timeout: float = MAV_DEADLINE,
     tick: Callable[[], None] | None = None,
     texts: list[str] | None = None,
 ) -> int:

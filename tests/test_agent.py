@@ -15,8 +15,7 @@ from functools import partial
 from typing import Any
 
 import pytest
-from net_helpers import free_port
-from net_helpers import wait_until as _wait_until
+from net_helpers import free_port, wait_until
 
 from swarm.core.messages import AgentState, Phase
 from swarm.runtime.agent import (
@@ -30,11 +29,9 @@ from swarm.runtime.agent import (
 )
 from swarm.runtime.transport import Transport
 
+pytestmark = pytest.mark.processes  # agents over Zenoh and radios, in real time
+
 DEADLINE = 40.0  # paper profile: three 2 s windows plus discovery, with lots of margin
-
-
-def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
-    return _wait_until(pred, what, timeout, 0.05)
 
 
 def agreed(states: dict[str, AgentState], names: list[str]) -> int | None:
@@ -87,7 +84,7 @@ def trio() -> Iterator[tuple[list[Agent], dict[str, AgentState], dict[str, Agent
 def test_three_agents_elect_one_leader(trio: Any) -> None:
     agents, own, seen, t0 = trio
     names = [a.name for a in agents]
-    leader = wait_until(lambda: agreed(dict(own), names), "three agents to agree on a leader")
+    leader = wait_until(lambda: agreed(dict(own), names), "three agents to agree on a leader", DEADLINE)
     elect_s = time.monotonic() - t0
     assert leader in (1, 2, 3)
     st = {n: own[n] for n in names}
@@ -95,7 +92,7 @@ def test_three_agents_elect_one_leader(trio: Any) -> None:
     assert leaders == [f"agent{leader}"]
     assert st[f"agent{leader}"].members == frozenset({1, 2, 3} - {leader})
     # the same picture on the key space, seen by a fourth session
-    wait_until(lambda: agreed(dict(seen), names) == leader, "the observer to see the same leader")
+    wait_until(lambda: agreed(dict(seen), names) == leader, "the observer to see the same leader", DEADLINE)
     for a in agents:
         assert a.stats["errors"] == 0
         assert a.running
@@ -107,7 +104,7 @@ def test_three_agents_elect_one_leader(trio: Any) -> None:
 def test_leader_stops_and_the_others_elect_again(trio: Any) -> None:
     agents, own, _seen, _t0 = trio
     names = [a.name for a in agents]
-    leader = wait_until(lambda: agreed(dict(own), names), "a first leader")
+    leader = wait_until(lambda: agreed(dict(own), names), "a first leader", DEADLINE)
     gone = agents[leader - 1]
     gone.stop()
     rest = [n for n in names if n != gone.name]
@@ -117,7 +114,7 @@ def test_leader_stops_and_the_others_elect_again(trio: Any) -> None:
         return lead if lead not in (None, leader) else None
 
     t = time.monotonic()
-    lead2 = wait_until(new_leader, "the survivors to agree on a new leader")
+    lead2 = wait_until(new_leader, "the survivors to agree on a new leader", DEADLINE)
     print(f"failover_s={time.monotonic() - t:.2f}")
     assert lead2 in {1, 2, 3} - {leader}
 
@@ -126,7 +123,7 @@ def test_stop_is_clean_and_safe_twice() -> None:
     ep = f"tcp/127.0.0.1:{free_port()}"
     before = {t.ident for t in threading.enumerate()}
     with Agent("solo", 7, NodeOptions(zenoh_listen=[ep])) as a:
-        wait_until(lambda: a.state() is not None, "the first state")
+        wait_until(lambda: a.state() is not None, "the first state", DEADLINE)
         assert a.running
     a.stop()
     assert not a.running
@@ -232,7 +229,9 @@ def test_two_agents_over_signed_radios_with_the_fast_profile(tmp_path: Any) -> N
                 ).start()
             )
         assert agents[0].profile.vote_window == pytest.approx(1.5 * default_round_s(2))
-        leader = wait_until(lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the radios")
+        leader = wait_until(
+            lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the radios", DEADLINE
+        )
         print(f"fast profile, signed pair: leader agent{leader} after {time.monotonic() - t0:.2f} s")
         for a in agents:
             assert a.bridge is not None and a.bridge.stats.bad_signature == 0
@@ -287,9 +286,11 @@ def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
             Transport.open("observer", connect=[ep]) as obs,
         ):
             obs.on_pose("flyer", lambda _n, p: poses.append(p))
-            wait_until(lambda: poses, "a pose on swarm/flyer/pose")
+            wait_until(lambda: poses, "a pose on swarm/flyer/pose", DEADLINE)
             assert a.core is not None and a.core.has_fc
-            wait_until(lambda: a.core is not None and a.core.pose is not None, "the pose in the core")
+            wait_until(
+                lambda: a.core is not None and a.core.pose is not None, "the pose in the core", DEADLINE
+            )
             p = poses[-1].pose
             assert 47.0 < p.lat < 48.0 and 8.0 < p.lon < 9.0  # the simulator's default home
             assert 0 <= a._battery() <= 255
@@ -317,7 +318,9 @@ def test_agents_handed_open_links_elect_and_leave_them_open(tmp_path: Any) -> No
             a.on_state = partial(own.__setitem__, f"agent{i}")
             agents.append(a.start())
         assert agents[0].describe() == f"radio={paths[0]}"
-        leader = wait_until(lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the handed links")
+        leader = wait_until(
+            lambda: agreed(dict(own), ["agent1", "agent2"]), "a leader over the handed links", DEADLINE
+        )
         assert leader in (1, 2)
         for a in agents:
             assert a.bridge is not None and a.bridge.stats.frames_in > 0

@@ -17,35 +17,22 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
+from net_helpers import wait_until
+
 from radios.link import open_link
 from swarm.cli.procs import Child, start_emulator
 from swarm.core.messages import AgentState, Phase
 from swarm.runtime.bridge import RadioBridge
 from swarm.runtime.transport import Transport, open_session
 
+pytestmark = pytest.mark.processes  # five agent processes on emulated radios
+
 N = 5
 ELECT_DEADLINE = 90.0  # radios' hop lock plus three 2 s windows: ~8 s seen; bounds a failure
 FAILOVER_DEADLINE = 60.0  # ack/leader timeout (3 s) plus one election
 EXIT_DEADLINE = 2.0  # the CLI promise for SIGTERM
 SETTLED = ("LEADER", "MEMBER")
-
-
-def wait_until(pred: Callable[[], Any], what: str, timeout: float, children: list[Child]) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        for c in children:
-            if c.proc.poll() is not None:
-                raise AssertionError(
-                    f"{c.name} exited with {c.proc.returncode} while waiting for "
-                    f"{what}: {' | '.join(c.errors[-5:])}"
-                )
-        if time.monotonic() > deadline:
-            tails = {c.name: c.lines[-1:] for c in children}
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}; last lines: {tails}")
-        time.sleep(0.05)
 
 
 def last_state(child: Child) -> dict[str, Any] | None:
@@ -119,7 +106,10 @@ def test_five_agent_processes_elect_fail_over_and_stop(tmp_path: Path) -> None:
         t_ready = time.monotonic()
 
         leader = wait_until(
-            lambda: stdout_leader(children), "five agents to agree on a leader", ELECT_DEADLINE, children
+            lambda: stdout_leader(children),
+            "five agents to agree on a leader",
+            ELECT_DEADLINE,
+            children=children,
         )
         t_elected = time.monotonic()
         names = [c.name for c in children]
@@ -128,7 +118,7 @@ def test_five_agent_processes_elect_fail_over_and_stop(tmp_path: Path) -> None:
                 lambda: keyspace_leader(names),
                 "swarm/<name>/state of all five on the air",
                 ELECT_DEADLINE,
-                children,
+                children=children,
             )
             == leader
         )
@@ -157,14 +147,14 @@ def test_five_agent_processes_elect_fail_over_and_stop(tmp_path: Path) -> None:
             return lead if s is not None and set(s["members"]) == others else None
 
         leader2 = wait_until(
-            new_leader, "the survivors to agree on a new leader", FAILOVER_DEADLINE, survivors
+            new_leader, "the survivors to agree on a new leader", FAILOVER_DEADLINE, children=survivors
         )
         print(f"agent{leader} killed: agent{leader2} leads {time.monotonic() - t_crash:.2f} s later")
         assert wait_until(
             lambda: keyspace_leader([c.name for c in survivors]) == leader2,
             "the new leader on swarm/<name>/state",
             FAILOVER_DEADLINE,
-            survivors,
+            children=survivors,
         )
 
         # SIGTERM: every survivor exits 0, promptly

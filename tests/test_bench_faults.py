@@ -14,6 +14,8 @@ from net_helpers import wait_until
 from swarm.cli.bench.faults import FAULTS_QUICK, run_faults
 from swarm.cli.procs import Child
 
+pytestmark = pytest.mark.processes  # the bench's processes through a fault campaign
+
 
 @pytest.mark.timeout(900)
 def test_signed_swarm_survives_the_bounded_fault_campaign() -> None:

@@ -8,6 +8,10 @@ import json
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.processes  # the radio benchmark's processes
+
 FIELDS = (
     "air_speed_kbps",
     "goodput_bytes_per_s",

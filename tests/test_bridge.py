@@ -55,6 +55,8 @@ from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 from swarm.runtime.bridge import BridgeConfig, RadioBridge
 from swarm.runtime.transport import Transport, open_session
 
+pytestmark = pytest.mark.processes  # bridges on a radio emulator process and Zenoh
+
 DEADLINE = 20.0  # anything crossing the emulated air (a TDM round is 0.24-0.4 s)
 LOCK_DEADLINE = 60.0  # radios find each other's hopping sequence
 QUIET = 1.5  # several TDM rounds: watched for anything *more* arriving
@@ -66,7 +68,8 @@ POSE = Pose(48.8566, 2.3522, 135.0, heading=90.0, vn=1.0, ve=-0.5, t=1.0)
 
 
 def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
-    return _wait_until(pred, what, timeout, 0.02)
+    """``net_helpers.wait_until`` with this module's deadline by default."""
+    return _wait_until(pred, what, timeout)
 
 
 class Recorder:
@@ -120,7 +123,8 @@ class Net:
         self.emu, self.paths, self.nodes, self.stack = emu, paths, nodes, stack
 
     def learn(self) -> None:
-        """Advertise until every bridge knows every name (the radios lock meanwhile)."""
+        """Advertise every 0.5 s until every bridge knows every name (the radios lock
+        meanwhile)."""
         n = len(self.nodes)
 
         def known() -> bool:
@@ -128,10 +132,9 @@ class Net:
                 return True
             for x in self.nodes:
                 x.transport.advertise(Advertize(x.id, x.name))
-            time.sleep(0.5)
             return False
 
-        wait_until(known, "every bridge to learn every name", LOCK_DEADLINE)
+        _wait_until(known, "every bridge to learn every name", LOCK_DEADLINE, 0.5)
 
     def by(self, name: str) -> Node:
         return next(x for x in self.nodes if x.name == name)

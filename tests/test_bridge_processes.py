@@ -7,7 +7,6 @@ number twice (a duplicate could only come from a loop)."""
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 from collections.abc import Iterator, Sequence
@@ -15,19 +14,18 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import pytest
+from net_helpers import free_port
+
 from swarm.cli.procs import start_emulator
+
+pytestmark = pytest.mark.processes  # bridge processes on emulated radios and Zenoh
 
 NODE = Path(__file__).resolve().parent / "bridge_node.py"
 ROOT = NODE.parent.parent
 NAMES = ("a1", "a2", "a3")
 SECONDS = 6.0
 RUN_DEADLINE = 90.0  # start-up, lock, sending, linger: far less unless the machine is stuck
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @contextmanager

@@ -1,6 +1,6 @@
 """Capture wrapper, the replay link, the Player, decoding and statistics.
 
-Pacing tests run on a fake clock whose sleep only records the request and moves
+Pacing tests run on a manual clock whose sleep only records the request and moves
 the clock: no test waits for real time.
 """
 
@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from net_helpers import ManualClock
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
@@ -44,22 +45,6 @@ from radios.seriallink import open_serial
 from radios.tlog import TlogRecord, TlogWriter, read_tlog
 
 T0 = 1_700_000_000.0
-
-
-class FakeClock:
-    """A monotonic clock that moves only when someone sleeps on it."""
-
-    def __init__(self, start: float = 1000.0) -> None:
-        self.now = start
-        self.sleeps: list[float] = []
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        assert seconds >= 0
-        self.sleeps.append(seconds)
-        self.now += seconds
 
 
 def make_capture(path: Path, times: list[float]) -> list[bytes]:
@@ -181,18 +166,17 @@ def test_open_link_capture_on_a_pty_records_both_directions(tmp_path: Path) -> N
 # -- the replay link ---------------------------------------------------------------------
 
 
-def test_tlog_link_paces_with_scaled_capped_gaps(tmp_path: Path) -> None:
+def test_tlog_link_paces_with_scaled_capped_gaps(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "flight.tlog"
     times = [T0, T0 + 0.5, T0 + 2.0, T0 + 100.0, T0 + 99.0, T0 + 103.0]
     frames = make_capture(path, times)
-    clock = FakeClock()
-    link = open_link(f"tlog:{path}?speed=2&max_gap=5", clock=clock, sleep=clock.sleep)
+    link = open_link(f"tlog:{path}?speed=2&max_gap=5", clock=manual_clock, sleep=manual_clock.sleep)
     assert isinstance(link, TlogLink)
     assert not link.can_send
     got = [link.recv().raw for _ in frames]  # type: ignore[union-attr]
     assert got == frames
     # gaps 0.5, 1.5, 98 (capped), -1 (none), 4 -> halved, capped at 5 s
-    assert clock.sleeps == pytest.approx([0.25, 0.75, 5.0, 2.0])
+    assert manual_clock.sleeps == pytest.approx([0.25, 0.75, 5.0, 2.0])
     with pytest.raises(LinkClosedError, match="end of capture"):
         link.recv()
     with pytest.raises(LinkClosedError, match="end of capture"):
@@ -204,42 +188,41 @@ def test_tlog_link_paces_with_scaled_capped_gaps(tmp_path: Path) -> None:
     link.close()
 
 
-def test_tlog_link_recv_timeout_shorter_than_the_gap(tmp_path: Path) -> None:
+def test_tlog_link_recv_timeout_shorter_than_the_gap(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "f.tlog"
     frames = make_capture(path, [T0, T0 + 3.0])
-    clock = FakeClock()
-    link = open_tlog_link(str(path), clock=clock, sleep=clock.sleep)  # plain path, speed 1
+    link = open_tlog_link(str(path), clock=manual_clock, sleep=manual_clock.sleep)  # plain path, speed 1
     assert link.recv(timeout=0) is not None  # the first frame is due at once
     assert link.recv(timeout=0) is None  # poll: no sleep
-    assert clock.sleeps == []
+    assert manual_clock.sleeps == []
     assert link.recv(timeout=1.0) is None
     assert link.recv(timeout=1.0) is None
     frame = link.recv(timeout=10.0)
     assert frame is not None and frame.raw == frames[1]
-    assert clock.sleeps == pytest.approx([1.0, 1.0, 1.0])
+    assert manual_clock.sleeps == pytest.approx([1.0, 1.0, 1.0])
 
 
-def test_tlog_link_late_consumer_catches_up_without_waiting(tmp_path: Path) -> None:
+def test_tlog_link_late_consumer_catches_up_without_waiting(
+    tmp_path: Path, manual_clock: ManualClock
+) -> None:
     path = tmp_path / "f.tlog"
     make_capture(path, [T0, T0 + 1, T0 + 2, T0 + 3])
-    clock = FakeClock()
-    link = open_tlog_link(f"tlog:{path}", clock=clock, sleep=clock.sleep)
+    link = open_tlog_link(f"tlog:{path}", clock=manual_clock, sleep=manual_clock.sleep)
     link.recv()
-    clock.now += 2.5  # the consumer was busy for 2.5 s
+    manual_clock.now += 2.5  # the consumer was busy for 2.5 s
     link.recv()
     link.recv()
-    assert clock.sleeps == []
+    assert manual_clock.sleeps == []
     link.recv()
-    assert clock.sleeps == pytest.approx([0.5])
+    assert manual_clock.sleeps == pytest.approx([0.5])
 
 
-def test_tlog_link_speed_zero_never_sleeps(tmp_path: Path) -> None:
+def test_tlog_link_speed_zero_never_sleeps(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "f.tlog"
     frames = make_capture(path, [T0 + i * 10 for i in range(20)])
-    clock = FakeClock()
-    link = open_link(f"{path}?speed=0", clock=clock, sleep=clock.sleep)
+    link = open_link(f"{path}?speed=0", clock=manual_clock, sleep=manual_clock.sleep)
     assert [link.recv(timeout=0).raw for _ in frames] == frames  # type: ignore[union-attr]
-    assert clock.sleeps == []
+    assert manual_clock.sleeps == []
 
 
 def test_tlog_link_is_receive_only(tmp_path: Path) -> None:
@@ -249,13 +232,14 @@ def test_tlog_link_is_receive_only(tmp_path: Path) -> None:
         link.send(frames[0])
 
 
-def test_tlog_link_damaged_capture_delivers_whole_frames_then_ends(tmp_path: Path) -> None:
+def test_tlog_link_damaged_capture_delivers_whole_frames_then_ends(
+    tmp_path: Path, manual_clock: ManualClock
+) -> None:
     path = tmp_path / "d.tlog"
     frames = make_capture(path, [T0, T0 + 0.1, T0 + 0.2])
     data = path.read_bytes()
     path.write_bytes(data[:-3])
-    clock = FakeClock()
-    link = open_tlog_link(f"tlog:{path}", clock=clock, sleep=clock.sleep)
+    link = open_tlog_link(f"tlog:{path}", clock=manual_clock, sleep=manual_clock.sleep)
     assert [link.recv().raw for _ in range(2)] == frames[:2]  # type: ignore[union-attr]
     with pytest.raises(LinkClosedError, match="end of capture"):
         link.recv()
@@ -323,36 +307,33 @@ def test_capture_of_a_replay(tmp_path: Path) -> None:
 # -- Player -----------------------------------------------------------------------------
 
 
-def test_player_writes_with_recorded_gaps(tmp_path: Path) -> None:
+def test_player_writes_with_recorded_gaps(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "f.tlog"
     times = [T0, T0 + 0.2, T0 + 0.2, T0 + 30.0, T0 + 31.0]
     frames = make_capture(path, times)
-    clock = FakeClock()
     written: list[bytes] = []
-    player = Player(read_tlog(path), speed=0.5, max_gap=10.0, clock=clock, sleep=clock.sleep)
+    player = Player(read_tlog(path), speed=0.5, max_gap=10.0, clock=manual_clock, sleep=manual_clock.sleep)
     stats = player.play(written.append)
     assert written == frames
-    assert clock.sleeps == pytest.approx([0.4, 10.0, 2.0])
+    assert manual_clock.sleeps == pytest.approx([0.4, 10.0, 2.0])
     assert stats.frames == 5 and stats.bytes == sum(map(len, frames))
     assert stats.recorded == pytest.approx(31.0)
     assert stats.elapsed == pytest.approx(12.4)
     assert not stats.stopped
 
 
-def test_player_as_an_iterator(tmp_path: Path) -> None:
+def test_player_as_an_iterator(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "f.tlog"
     make_capture(path, [T0, T0 + 1, T0 + 3])
-    clock = FakeClock()
     due: list[float] = []
-    for _rec in Player(read_tlog(path), clock=clock, sleep=clock.sleep):
-        due.append(clock.now - 1000.0)
+    for _rec in Player(read_tlog(path), clock=manual_clock, sleep=manual_clock.sleep):
+        due.append(manual_clock.now - 1000.0)
     assert due == pytest.approx([0.0, 1.0, 3.0])
 
 
-def test_player_stops_before_the_next_record(tmp_path: Path) -> None:
+def test_player_stops_before_the_next_record(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "f.tlog"
     make_capture(path, [T0 + i for i in range(10)])
-    clock = FakeClock()
     stop = threading.Event()
     written: list[bytes] = []
 
@@ -361,7 +342,7 @@ def test_player_stops_before_the_next_record(tmp_path: Path) -> None:
         if len(written) == 3:
             stop.set()  # as a SIGINT handler would
 
-    player = Player(read_tlog(path), clock=clock, sleep=clock.sleep, stop=stop)
+    player = Player(read_tlog(path), clock=manual_clock, sleep=manual_clock.sleep, stop=stop)
     stats = player.play(write)
     assert len(written) == 3 and stats.frames == 3 and stats.stopped
 
@@ -399,13 +380,14 @@ def test_player_into_a_link(tmp_path: Path) -> None:
     assert got == frames
 
 
-def test_player_on_damaged_capture_writes_whole_frames_then_raises(tmp_path: Path) -> None:
+def test_player_on_damaged_capture_writes_whole_frames_then_raises(
+    tmp_path: Path, manual_clock: ManualClock
+) -> None:
     path = tmp_path / "f.tlog"
     frames = make_capture(path, [T0 + i for i in range(4)])
     path.write_bytes(path.read_bytes()[:-1])
-    clock = FakeClock()
     written: list[bytes] = []
-    player = Player(read_tlog(path), clock=clock, sleep=clock.sleep)
+    player = Player(read_tlog(path), clock=manual_clock, sleep=manual_clock.sleep)
     with pytest.raises(CaptureDamagedError) as info:
         player.play(written.append)
     assert written == frames[:3]

@@ -158,6 +158,7 @@ def test_global_options_refuse_bad_input(capsys: pytest.CaptureFixture[str]) -> 
     assert "--log-level LEVEL" in out and "-v, -vv" in out
 
 
+@pytest.mark.processes
 def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> None:
     """Two agents, one started with ``swarm -v``; a third node advertises both their
     ids under another name. Both report it (a pilot event on stdout); only the one
@@ -193,6 +194,7 @@ def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> Non
     assert quiet.errors == []  # without -v: nothing configured, INFO stays quiet
 
 
+@pytest.mark.processes
 def test_log_level_debug_shows_the_hidden_traceback_after_the_error_line() -> None:
     import subprocess
     import sys

@@ -20,6 +20,8 @@ from swarm.core.station import StationConfig
 from swarm.runtime.server import GcsServer, ServerConfig
 from swarm.runtime.station import Station
 
+pytestmark = pytest.mark.processes  # a browser against a running station
+
 
 class HomingAgent(ScriptedAgent):
     """Answers nothing; RETURN switches its mode to AUTO.RTL (its answers 'lost')."""

@@ -12,6 +12,8 @@ import pytest
 
 from swarm.cli.bench.commands import run
 
+pytestmark = pytest.mark.processes  # agent and station processes at 20 % loss
+
 
 def check(figures: dict[str, Any], n: int) -> None:
     assert figures["silently_lost"] == 0 and figures["wrongly_reported"] == 0, figures

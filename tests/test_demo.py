@@ -9,13 +9,17 @@ import math
 import os
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import pytest
+from net_helpers import wait_until
 
 from radios.tlog import TlogWriter
 from swarm.cli.commands.replay import main as replay_main
 from swarm.sim.tracks import analyse
+
+pytestmark = pytest.mark.processes  # the whole demo
 
 
 def run_swarm(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
@@ -120,7 +124,6 @@ def _processes_mentioning(text: str) -> list[int]:
 
 def test_sigterm_stops_the_demo_and_everything_it_started(tmp_path: Path) -> None:
     import signal
-    import time
 
     p = subprocess.Popen(
         [
@@ -150,7 +153,5 @@ def test_sigterm_stops_the_demo_and_everything_it_started(tmp_path: Path) -> Non
     finally:
         if p.poll() is None:
             p.kill()
-    deadline = time.monotonic() + 20
-    while _processes_mentioning(str(tmp_path)) and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert _processes_mentioning(str(tmp_path)) == [], "nothing left behind"
+    left = partial(_processes_mentioning, str(tmp_path))
+    wait_until(lambda: left() == [], "nothing left behind", 20, 0.2, detail=left)

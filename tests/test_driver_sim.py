@@ -8,16 +8,18 @@ generous; nothing asserts tight timing.
 from __future__ import annotations
 
 import math
-import socket
 import threading
 import time
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from net_helpers import free_port
 
 from firmware_bridge import driver as drv
 from firmware_bridge.errors import CommandRejected
+
+pytestmark = pytest.mark.processes  # the driver flying the vehicle simulator, in real time
 
 sim_mod = pytest.importorskip("firmware_bridge.sim")
 
@@ -25,22 +27,14 @@ SPEEDUP = 4.0
 PROFILES = ["px4", "ardupilot"]
 
 
-def free_port(profile: str) -> int:
-    kind = socket.SOCK_DGRAM if profile == "px4" else socket.SOCK_STREAM
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture
 def make_sim() -> Iterator[Any]:
     started: list[Any] = []
 
     def make(profile: str, speedup: float = SPEEDUP) -> tuple[Any, str]:
+        port = free_port("udp" if profile == "px4" else "tcp")
         sim = sim_mod.VehicleSim(
-            sim_mod.SimConfig(
-                vehicles=1, profile=profile, speedup=speedup, seed=0, base_port=free_port(profile)
-            )
+            sim_mod.SimConfig(vehicles=1, profile=profile, speedup=speedup, seed=0, base_port=port)
         )
         endpoints = sim.start()
         started.append(sim)

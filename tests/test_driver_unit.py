@@ -10,6 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from net_helpers import free_port
 from pymavlink import mavutil
 
 from firmware_bridge import driver as drv
@@ -32,9 +33,7 @@ mavlink: Any = mavutil.mavlink
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_port("udp")
 
 
 class FakeAutopilot:

@@ -33,14 +33,16 @@ from emu_helpers import (
     recv_until,
     running_emulator,
     tunnel,
-    wait_until,
 )
+from net_helpers import wait_until
 from pymavlink import mavutil
 
 from radios.air import RADIO_STATUS_COMPID, RADIO_STATUS_SYSID
 from radios.link import open_link
 from radios.mavlink import MSG_RADIO_STATUS, STX_V1, STX_V2, Frame, FrameBuilder, pack_frame
 from radios.tlog import read_tlog
+
+pytestmark = pytest.mark.processes  # the radio emulator, in real time and as a process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -240,7 +242,7 @@ def test_garbage_and_flood_on_one_port_hurt_only_that_radio(tmp_path: Path) -> N
         assert l2.stats.bytes_skipped > 0  # radio2 did hear radio0's garbage, skipped it
         # the last bytes written may still sit in the pty: wait until radio0 has them all
         wait_until(
-            lambda: emu.radio(0)["serial_in"] == len(flood), AIR_DEADLINE, "the whole flood to reach radio0"
+            lambda: emu.radio(0)["serial_in"] == len(flood), "the whole flood to reach radio0", AIR_DEADLINE
         )
         r = [emu.radio(i) for i in range(3)]
         assert r[0]["srx"] > 0, "radio0's host wrote faster than the air carries: it must lose bytes"
@@ -266,7 +268,7 @@ def test_capture_holds_every_frame_sent_and_pymavlink_reads_it(tmp_path: Path, m
                 src.send(raw)
                 sent.append(raw)
                 assert recv_until(dst, is_raw(raw)) is not None
-        wait_until(lambda: emu.emu.frames_captured >= len(sent), AIR_DEADLINE, "the capture")
+        wait_until(lambda: emu.emu.frames_captured >= len(sent), "the capture", AIR_DEADLINE)
         st = emu.emu.stats()
         assert st["frames_captured"] == len(sent)
     t_end = time.time()

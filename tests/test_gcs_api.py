@@ -17,7 +17,7 @@ from typing import Any
 
 import aiohttp
 import pytest
-from net_helpers import free_port, wait_until
+from net_helpers import ManualClock, free_port, wait_until
 
 from radios.mavlink import FrameBuilder, dialect
 from radios.tlog import TlogWriter
@@ -192,6 +192,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         station.stop()
 
 
+@pytest.mark.processes
 def test_config_state_and_agent(live: dict[str, Any]) -> None:
     base = live["base"]
     st, cfg, _ = http(base, "GET", "/api/config")
@@ -220,6 +221,7 @@ def test_config_state_and_agent(live: dict[str, Any]) -> None:
     assert st == 404 and "replay" in err["error"]
 
 
+@pytest.mark.processes
 def test_commands_acked_rejected_and_unanswered(live: dict[str, Any]) -> None:
     base, agents = live["base"], live["agents"]
     st, body, _ = http(base, "POST", "/api/command", {"target": 3, "kind": "takeoff", "alt": 12.5})
@@ -298,6 +300,7 @@ def test_files_tiles_and_traversal(live: dict[str, Any]) -> None:
         assert st == 404
 
 
+@pytest.mark.processes
 def test_disconnected_agent_and_no_leader_are_409(live: dict[str, Any]) -> None:
     base, station, agents = live["base"], live["station"], live["agents"]
     ep = station.node.zenoh_listen[0]
@@ -421,26 +424,17 @@ def write_capture(path: Path) -> None:
             )
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
-def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path) -> None:
+def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "flight.tlog"
     write_capture(path)
     cap = load_capture(str(path))
     assert cap.t0 == T0 and cap.duration == pytest.approx(20.01) and cap.decode_errors == 0
     assert cap.station_name == "fieldgcs" and cap.center == pytest.approx([HOME[0] - 1e-3, HOME[1]])
-    clock = FakeClock()
-    rp = ReplayStation(cap, clock=clock)
+    rp = ReplayStation(cap, clock=manual_clock)
     assert rp.name == "fieldgcs"
     events: list[dict[str, Any]] = []
     rp.add_listener(events.append)
-    clock.t += 3.0
+    manual_clock.advance(3.0)
     rp.step()
     s = rp.snapshot()
     assert s["time"] == pytest.approx(T0 + 3.0) and s["leader"] == 1
@@ -457,12 +451,12 @@ def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path) -> None:
         with pytest.raises(CommandRefused):
             rp.control("seek", bad)
     assert rp.control("speed", 2.0)["speed"] == 2.0
-    clock.t += 2.0
+    manual_clock.advance(2.0)
     rp.step()
     assert rp.status()["position_s"] == pytest.approx(7.0)
     assert any("LAND" in e["text"] for e in events) and any("ACCEPTED" in e["text"] for e in events)
     rp.control("pause")
-    clock.t += 100.0
+    manual_clock.advance(100.0)
     rp.step()
     assert rp.status() == {"playing": False, "speed": 2.0, "position_s": 7.0, "duration_s": 20.01}
     rp.control("seek", 18.0)  # agent 1 silent since 12.1 s: disconnected
@@ -474,7 +468,7 @@ def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path) -> None:
     s = rp.snapshot()
     assert s["agents"][0]["connected"] is True and s["agents"][0]["lat"] == pytest.approx(HOME[0] + 8e-5)
     rp.control("play")
-    clock.t += 100.0
+    manual_clock.advance(100.0)
     rp.step()  # runs to the end and stops there
     assert rp.status()["playing"] is False and rp.status()["position_s"] == pytest.approx(20.01)
     assert rp.control("play")["position_s"] == 0.0  # play at the end starts again
@@ -489,11 +483,10 @@ def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path) -> None:
             rp.control(action, value)
 
 
-def test_replay_served(tmp_path: Path) -> None:
+def test_replay_served(tmp_path: Path, manual_clock: ManualClock) -> None:
     path = tmp_path / "flight.tlog"
     write_capture(path)
-    clock = FakeClock()
-    rp = ReplayStation(load_capture(str(path)), clock=clock, playing=False)
+    rp = ReplayStation(load_capture(str(path)), clock=manual_clock, playing=False)
     server = GcsServer(rp, ServerConfig(port=free_port(), tiles=None)).start()
     base = server.url
     try:

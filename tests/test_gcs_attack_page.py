@@ -23,6 +23,8 @@ from net_helpers import free_port, wait_until
 from swarm.cli.bench.gcs_page import BROWSER_ARGS, find_browser
 from swarm.runtime.server import GcsServer, ServerConfig
 
+pytestmark = pytest.mark.processes  # a browser against a running station
+
 TOKEN = "page-test-token-0123456789abcdef"
 DEADLINE = 30.0
 RESOLVE = "MAP attacker.test 127.0.0.1, MAP rebind.test 127.0.0.1, MAP gcs.field 127.0.0.1"

@@ -16,7 +16,6 @@ Screenshots are kept in ``test-artifacts/``.
 from __future__ import annotations
 
 import json
-import socket
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,16 +25,18 @@ import pytest
 from gcs_browser import (
     browser,
     distance_m,
-    free_port,
     poll,
     screenshot,
     start_station,
     write_tiles,
 )
+from net_helpers import free_port, free_port_range
 
 from radios.errors import CaptureDamagedError
 from radios.tlog import TlogWriter, read_tlog
 from swarm.cli.procs import Child, start_emulator
+
+pytestmark = pytest.mark.processes  # a browser against a bench of processes
 
 N = 3
 HOME = (47.397742, 8.545594)  # the simulator's default home (PX4 SITL's)
@@ -46,25 +47,6 @@ ELECT_DEADLINE = 90.0
 MOVE_DEADLINE = 90.0
 DROP_DEADLINE = 30.0  # station's telemetry timeout: 3 heartbeats (at least 2 s)
 UI_DEADLINE = 15.0
-
-
-def free_udp_base(count: int) -> int:
-    """A port P such that UDP P..P+count-1 are free now (the simulator's vehicles)."""
-    for _ in range(50):
-        base = free_port()
-        socks: list[socket.socket] = []
-        try:
-            for i in range(count):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", base + i))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free UDP port range")
 
 
 @dataclass
@@ -87,9 +69,9 @@ def bench(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Bench]:
     emu, paths = start_emulator(N + 1, radios, "--capture", str(capture))
     children: list[Child] = []
     try:
+        base = free_port_range(N, "udp")  # the simulator's vehicles
         sim = Child(
-            ["sim", "--vehicles", str(N), "--spacing", str(SPACING_M), "--base-port", str(free_udp_base(N))],
-            name="sim",
+            ["sim", "--vehicles", str(N), "--spacing", str(SPACING_M), "--base-port", str(base)], name="sim"
         )
         children.append(sim)
         fcs = [line.split(" -> ")[1].split()[0] for line in sim.wait_lines(N + 1, START_DEADLINE)[:N]]

@@ -63,6 +63,7 @@ def post(url: str, body: Any) -> tuple[int, Any]:
         return e.code, json.loads(e.read())
 
 
+@pytest.mark.processes
 def test_agents_connect_answer_commands_drop_when_killed_and_reconnect(tmp_path: Path) -> None:
     ep, ep1 = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
     gcs = Child(
@@ -137,6 +138,7 @@ def test_agents_connect_answer_commands_drop_when_killed_and_reconnect(tmp_path:
             c.stop(grace=3)
 
 
+@pytest.mark.processes
 def test_over_the_radio_with_a_capture_then_replayed(tmp_path: Path) -> None:
     emu, links = start_emulator(2, tmp_path)
     cap = tmp_path / "gcs.tlog"

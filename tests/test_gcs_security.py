@@ -27,7 +27,7 @@ import pytest
 from gcs_security_helpers import JSON, TAKEOFF, Swarm, live_swarm, request
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from net_helpers import free_port, wait_until
+from net_helpers import ManualClock, free_port, wait_until
 
 from swarm.core.station import KINDS, CommandRefused, parse_command
 from swarm.runtime.server import GcsServer, ServerConfig
@@ -423,14 +423,14 @@ def test_parse_command_takes_any_json_value() -> None:
         assert ei.value.status == 400 and len(ei.value.reason) < 300 and "\n" not in ei.value.reason
 
 
-def test_replay_controls_take_extreme_values(tmp_path: Any) -> None:
-    from test_gcs_api import FakeClock, write_capture
+def test_replay_controls_take_extreme_values(tmp_path: Any, manual_clock: ManualClock) -> None:
+    from test_gcs_api import write_capture
 
     from swarm.runtime.replay import ReplayStation, load_capture
 
     path = tmp_path / "flight.tlog"
     write_capture(path)
-    rp = ReplayStation(load_capture(str(path)), clock=FakeClock(), playing=False)
+    rp = ReplayStation(load_capture(str(path)), clock=manual_clock, playing=False)
     server = GcsServer(rp, ServerConfig(port=0, tiles=None)).start()
     try:
         for body in (
@@ -523,6 +523,7 @@ def test_the_websocket_stays_open_after_extreme_messages(swarm: Swarm, open_serv
 # -- slow clients ---------------------------------------------------------------------
 
 
+@pytest.mark.processes
 def test_slow_clients_do_not_hold_the_station(swarm: Swarm) -> None:
     cfg = ServerConfig(port=0, tiles=None, body_timeout=2.0, idle_timeout=2.0)
     server = GcsServer(swarm.station, cfg).start()

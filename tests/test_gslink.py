@@ -27,6 +27,8 @@ from swarm.core.messages import (
 from swarm.runtime.agent import Agent, AgentConfig, NodeOptions
 from swarm.runtime.transport import Transport
 
+pytestmark = pytest.mark.processes  # a real agent and its station link, in real time
+
 POSE = Pose(47.0, 8.0, 500.0)
 
 

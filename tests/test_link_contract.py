@@ -33,8 +33,8 @@ from emu_helpers import (
     raw_pty,
     running_emulator,
     tunnel,
-    wait_until,
 )
+from net_helpers import ManualClock, wait_until
 
 from radios.errors import (
     CaptureError,
@@ -166,7 +166,7 @@ def test_recv_zero_polls(pair: Pair) -> None:
     assert time.monotonic() - t0 < 1.0
     raw = tunnel(3, b"polled")
     pair.a.send(raw)
-    got = wait_until(lambda: pair.b.recv(0), pair.deadline, "the frame by polling", interval=0.01)
+    got = wait_until(lambda: pair.b.recv(0), "the frame by polling", pair.deadline, interval=0.01)
     assert got is not None and got.raw == raw
 
 
@@ -300,19 +300,6 @@ def test_capture_records_both_directions(tmp_path: Path) -> None:
 # -- replay: the receive-only subset -----------------------------------------------------------
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 1000.0
-        self.sleeps: list[float] = []
-
-    def now(self) -> float:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.sleeps.append(seconds)
-        self.t += seconds
-
-
 RECORDED = [
     (1_700_000_000.0, heartbeat(1)),
     (1_700_000_000.5, tunnel(2, b"second")),
@@ -330,36 +317,35 @@ def capture_file(tmp_path: Path) -> Path:
 
 
 @pytest.mark.parametrize("url_form", ["plain", "tlog:"])
-def test_replay_yields_recorded_frames_in_order_with_their_gaps(capture_file: Path, url_form: str) -> None:
-    clock = FakeClock()
+def test_replay_yields_recorded_frames_in_order_with_their_gaps(
+    capture_file: Path, url_form: str, manual_clock: ManualClock
+) -> None:
     url = str(capture_file) if url_form == "plain" else f"tlog:{capture_file}"
-    with open_link(url, clock=clock.now, sleep=clock.sleep) as link:
+    with open_link(url, clock=manual_clock, sleep=manual_clock.sleep) as link:
         assert isinstance(link, TlogLink)
         got = [link.recv() for _ in RECORDED]
         assert [f.raw for f in got if f is not None] == [raw for _, raw in RECORDED]
-        assert clock.sleeps == pytest.approx([0.5, 2.0])
+        assert manual_clock.sleeps == pytest.approx([0.5, 2.0])
         assert (link.stats.frames_in, link.stats.bytes_in) == (3, sum(len(raw) for _, raw in RECORDED))
         with pytest.raises(LinkClosedError, match="end of capture"):
             link.recv(0)
 
 
-def test_replay_timeouts_use_the_injected_clock(capture_file: Path) -> None:
-    clock = FakeClock()
-    with open_link(f"tlog:{capture_file}?speed=2", clock=clock.now, sleep=clock.sleep) as link:
+def test_replay_timeouts_use_the_injected_clock(capture_file: Path, manual_clock: ManualClock) -> None:
+    with open_link(f"tlog:{capture_file}?speed=2", clock=manual_clock, sleep=manual_clock.sleep) as link:
         assert link.recv(0) is not None  # the first frame is due at once
         assert link.recv(0) is None  # the next is due in 0.25 s: polling does not wait
-        assert clock.sleeps == []
+        assert manual_clock.sleeps == []
         assert link.recv(0.1) is None  # waits the timeout, not more
-        assert clock.sleeps == pytest.approx([0.1])
+        assert manual_clock.sleeps == pytest.approx([0.1])
         f = link.recv(1.0)
         assert f is not None and f.raw == RECORDED[1][1]
-        assert clock.t == pytest.approx(1000.25)
+        assert manual_clock.now == pytest.approx(1000.25)
 
 
-def test_replay_is_receive_only(capture_file: Path) -> None:
+def test_replay_is_receive_only(capture_file: Path, manual_clock: ManualClock) -> None:
     before = capture_file.read_bytes()
-    clock = FakeClock()
-    link = open_link(str(capture_file), clock=clock.now, sleep=clock.sleep)
+    link = open_link(str(capture_file), clock=manual_clock, sleep=manual_clock.sleep)
     with pytest.raises(LinkClosedError, match="receive-only"):
         link.send(heartbeat(1))
     assert link.stats.frames_out == 0
@@ -441,6 +427,6 @@ def test_capture_that_cannot_be_created_closes_the_link(tmp_path: Path) -> None:
         # the serial link opened first was closed again: nobody holds the slave
         p = select.poll()
         p.register(master, select.POLLIN)
-        wait_until(lambda: any(ev & select.POLLHUP for _, ev in p.poll(0)), 5.0, "the pty hang-up")
+        wait_until(lambda: any(ev & select.POLLHUP for _, ev in p.poll(0)), "the pty hang-up", 5.0)
     finally:
         os.close(master)

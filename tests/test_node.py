@@ -8,6 +8,7 @@ import heapq
 import random
 
 import pytest
+from net_helpers import ManualClock
 
 from swarm.core.messages import (
     AckResult,
@@ -44,11 +45,6 @@ from swarm.core.protocol import profile_by_name
 
 HOME = Pose(47.397742, 8.545594, 508.0)
 STATION = 255
-
-
-class ManualClock:
-    def __init__(self) -> None:
-        self.now = 0.0
 
 
 class Air:

@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from emu_helpers import AIR_DEADLINE, heartbeat, recv_until, running_emulator, tunnel, wait_until
-from net_helpers import free_port
+from emu_helpers import AIR_DEADLINE, heartbeat, recv_until, running_emulator, tunnel
+from net_helpers import free_port, wait_until
 
 from radios.errors import LinkClosedError, LinkOpenError
 from radios.link import open_link
@@ -35,6 +35,8 @@ from swarm.cli.procs import Child, start_emulator
 from swarm.core.messages import Advertize, Selection, encode
 from swarm.runtime.bridge import RadioBridge
 from swarm.runtime.transport import Transport, open_session
+
+pytestmark = pytest.mark.processes  # radios unplugged and replugged under running processes
 
 DEADLINE = 60.0  # a failing wait only; radios lock in seconds, elections take a few windows
 OUTAGE_S = 3.0
@@ -64,14 +66,14 @@ def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Pat
         assert recv_until(a, lambda f: f.sysid == 2) is not None
         run.emu.unplug(1)
         path = Path(run.paths[1])
-        wait_until(lambda: not path.exists(), AIR_DEADLINE, "radio1's device node to disappear")
+        wait_until(lambda: not path.exists(), "radio1's device node to disappear", AIR_DEADLINE)
         with pytest.raises(LinkClosedError):  # reads fail, as on a pulled USB radio
-            wait_until(lambda: b.recv(0.1) and False, AIR_DEADLINE, "a failing read")
+            wait_until(lambda: b.recv(0.1) and False, "a failing read", AIR_DEADLINE)
         with pytest.raises(LinkOpenError, match="no such device"):
             b.reopen()
         assert run.radio(1)["locked"] and not run.radio(1)["plugged"]
         run.emu.replug(1)
-        wait_until(path.exists, AIR_DEADLINE, "radio1's device node back")
+        wait_until(path.exists, "radio1's device node back", AIR_DEADLINE)
         b.reopen()
         run.wait_connected(1)
         assert run.radio(1)["locked"], "a radio powered on its own keeps its lock"
@@ -82,9 +84,9 @@ def test_emulator_unplugs_and_replugs_a_radio_that_keeps_its_place(tmp_path: Pat
         # the control FIFO: an unplug for a while, and a bad line that changes nothing
         control(tmp_path, "unplug 0 1.5")
         control(tmp_path, "unplug seven")
-        wait_until(lambda: not Path(run.paths[0]).exists(), AIR_DEADLINE, "radio0 unplugged")
-        wait_until(lambda: Path(run.paths[0]).exists(), AIR_DEADLINE, "radio0 back by itself")
-        wait_until(lambda: len(events) >= 5, AIR_DEADLINE, "an event line for each")
+        wait_until(lambda: not Path(run.paths[0]).exists(), "radio0 unplugged", AIR_DEADLINE)
+        wait_until(lambda: Path(run.paths[0]).exists(), "radio0 back by itself", AIR_DEADLINE)
+        wait_until(lambda: len(events) >= 5, "an event line for each", AIR_DEADLINE)
     assert events[0] == "radio1 unplugged" and events[1].startswith("radio1 plugged back: ")
     assert sorted(events[2:4]) == [
         "control: 'unplug seven': expected unplug I [FOR_S] | replug I | loss P",
@@ -124,7 +126,7 @@ def _two_bridged_nodes(
         n2.t.advertise(Advertize(2, "a2"))
         return "a2" in n1.bridge.peers() and "a1" in n2.bridge.peers()
 
-    wait_until(learnt, DEADLINE, "both bridges to learn the other's name", 0.5)
+    wait_until(learnt, "both bridges to learn the other's name", DEADLINE, 0.5)
     return n1, n2
 
 
@@ -140,19 +142,19 @@ def test_bridge_lends_its_radio_for_an_at_check_and_takes_it_back(tmp_path: Path
         b2.add_listener(lambda what, text: heard.append((what, text)))
         report = b2.lend_radio(lambda: check_radio(run.paths[1], {"NETID": 25}), why="radio check")
         assert report.ok and report.values["NETID"] == 25
-        wait_until(lambda: b2.stats.radio_reopens == 1, AIR_DEADLINE, "a2's radio taken back")
+        wait_until(lambda: b2.stats.radio_reopens == 1, "a2's radio taken back", AIR_DEADLINE)
         assert not b2.link_lost and heard[0] == ("paused", "radio check") and heard[1][0] == "back"
         wait_until(
             lambda: (t1.send("a2", Selection(1, 2, 9, 3)), any(m == Selection(1, 2, 9, 3) for m in in2))[1],
-            AIR_DEADLINE,
             "a1 -> a2 after the check",
+            AIR_DEADLINE,
             0.5,
         )
         assert "a1" in b2.peers()  # the name table survived
         b2.cfg.reopen_radio = False  # --exit-on-radio-loss: a lend is not a loss
         with pytest.raises(ValueError):  # what the borrower raises comes out; the radio comes back
             b2.lend_radio(lambda: (_ for _ in ()).throw(ValueError("boom")))
-        wait_until(lambda: b2.stats.radio_reopens == 2, AIR_DEADLINE, "a2's radio taken back again")
+        wait_until(lambda: b2.stats.radio_reopens == 2, "a2's radio taken back again", AIR_DEADLINE)
         assert not b2.link_lost and b2.stats.radio_losses == 0
 
 
@@ -165,7 +167,7 @@ def test_emulator_loss_can_be_changed_while_running(tmp_path: Path) -> None:
         b = stack.enter_context(run.open(1))
         run.wait_ready(0, 1)
         control(tmp_path, "loss 1")
-        wait_until(lambda: "loss 1" in events, AIR_DEADLINE, "the loss change reported")
+        wait_until(lambda: "loss 1" in events, "the loss change reported", AIR_DEADLINE)
         lost_before = run.radio(0).get("lost", 0)
         for k in range(5):
             b.send(tunnel(2, b"gone%d" % k))
@@ -173,7 +175,7 @@ def test_emulator_loss_can_be_changed_while_running(tmp_path: Path) -> None:
         assert [f for f in drain_frames(a) if f.sysid == 2 and f.msgid == 385] == []
         control(tmp_path, "loss 0")
         control(tmp_path, "loss 1.5")  # refused: changes nothing
-        wait_until(lambda: len(events) >= 3, AIR_DEADLINE, "both lines answered")
+        wait_until(lambda: len(events) >= 3, "both lines answered", AIR_DEADLINE)
         b.send(tunnel(2, b"back"))
         assert recv_until(a, lambda f: f.sysid == 2 and f.payload[5:9] == b"back") is not None
         assert lost_before is not None
@@ -220,22 +222,22 @@ def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytes
         b2.add_listener(lambda what, text: heard.append((what, text)))
         t0 = time.monotonic()
         run.emu.unplug(1, OUTAGE_S)
-        wait_until(lambda: b2.link_down, AIR_DEADLINE, "a2's bridge to notice its radio gone")
+        wait_until(lambda: b2.link_down, "a2's bridge to notice its radio gone", AIR_DEADLINE)
         t1.send("a2", Selection(1, 2, 7, 3))  # goes on air into nowhere; nothing breaks
-        wait_until(lambda: b2.stats.radio_reopens == 1, AIR_DEADLINE + OUTAGE_S, "a2's radio reopened")
+        wait_until(lambda: b2.stats.radio_reopens == 1, "a2's radio reopened", AIR_DEADLINE + OUTAGE_S)
         away = time.monotonic() - t0
         assert not b2.link_lost and b2.stats.radio_losses == 1
         assert heard[0][0] == "lost" and heard[1][0] == "back" and heard[1][1].startswith("after ")
         # traffic both ways again, and the name table survived (no new Advertize)
         t2.send("a1", Selection(2, 1, 8, 3))
-        wait_until(lambda: any(m == Selection(2, 1, 8, 3) for m in in1), AIR_DEADLINE, "a2 -> a1")
+        wait_until(lambda: any(m == Selection(2, 1, 8, 3) for m in in1), "a2 -> a1", AIR_DEADLINE)
         wait_until(
             lambda: (t1.send("a2", Selection(1, 2, 9, 3)), any(m == Selection(1, 2, 9, 3) for m in in2))[1],
-            AIR_DEADLINE,
             "a1 -> a2",
+            AIR_DEADLINE,
             0.5,
         )
-        wait_until(lambda: b2.stats.radio_status_accepted > 0, AIR_DEADLINE, "RADIO_STATUS again")
+        wait_until(lambda: b2.stats.radio_status_accepted > 0, "RADIO_STATUS again", AIR_DEADLINE)
     lines = [
         r.getMessage() for r in caplog.records if r.name == "swarm.runtime.bridge" and "a2" in r.getMessage()
     ]
@@ -317,15 +319,15 @@ def test_agent_and_station_stay_up_and_return_after_an_unplug(tmp_path: Path) ->
             alive()
             return {a["id"] for a in get(url + "api/state")["agents"] if a["connected"]}
 
-        before = wait_until(swarm, DEADLINE, "agent1 and agent2 to agree on a leader", 0.1)
-        wait_until(lambda: connected() == {1, 2}, DEADLINE, "the station to connect both", 0.2)
+        before = wait_until(swarm, "agent1 and agent2 to agree on a leader", DEADLINE, 0.1)
+        wait_until(lambda: connected() == {1, 2}, "the station to connect both", DEADLINE, 0.2)
         # agent2's radio is pulled out for a few seconds
         control(tmp_path, f"unplug 1 {OUTAGE_S}")
-        lost = wait_until(lambda: (alive(), events(a2, "radio"))[1], DEADLINE, "agent2: radio lost", 0.1)
+        lost = wait_until(lambda: (alive(), events(a2, "radio"))[1], "agent2: radio lost", DEADLINE, 0.1)
         assert lost[0]["state"] == "lost" and lost[0]["name"] == "agent2"
-        wait_until(lambda: len(events(a2, "radio")) >= 2, DEADLINE, "agent2: radio back", 0.1)
+        wait_until(lambda: len(events(a2, "radio")) >= 2, "agent2: radio back", DEADLINE, 0.1)
         assert events(a2, "radio")[1]["state"] == "back"
-        after = wait_until(swarm, DEADLINE, "agent1 and agent2 to agree again", 0.1)
+        after = wait_until(swarm, "agent1 and agent2 to agree again", DEADLINE, 0.1)
         print(
             f"\nbefore the unplug: leader {before[0]} members {set(before[1])}; "
             f"after: leader {after[0]} members {set(after[1])}"
@@ -335,19 +337,19 @@ def test_agent_and_station_stay_up_and_return_after_an_unplug(tmp_path: Path) ->
         control(tmp_path, f"unplug 2 {OUTAGE_S}")
         wait_until(
             lambda: (alive(), [e for e in events(gcs, "log") if e["kind"] == "radio"])[1],
-            DEADLINE,
             "gcs: radio lost",
+            DEADLINE,
             0.1,
         )
         wait_until(
             lambda: len([e for e in events(gcs, "log") if e["kind"] == "radio"]) >= 2,
-            DEADLINE,
             "gcs: radio back",
+            DEADLINE,
             0.1,
         )
         radio = [e["text"] for e in events(gcs, "log") if e["kind"] == "radio"]
         assert radio[0].startswith("radio lost: ") and radio[1].startswith("radio back after "), radio
-        wait_until(lambda: connected() == {1, 2}, DEADLINE, "the station to see both agents again", 0.2)
+        wait_until(lambda: connected() == {1, 2}, "the station to see both agents again", DEADLINE, 0.2)
         for c in children:
             c.proc.send_signal(signal.SIGTERM)
         for c in children:

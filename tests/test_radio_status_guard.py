@@ -31,6 +31,8 @@ from swarm.core.radio_guard import RadioState, RadioStatusGuard
 from swarm.runtime.bridge import RadioBridge
 from swarm.runtime.transport import Transport, open_session
 
+pytestmark = pytest.mark.processes  # bridges on emulated radios, in real time
+
 LOCAL = (51, 68)
 
 
@@ -222,10 +224,9 @@ def swarm(tmp_path: Path) -> Iterator[tuple[list[RadioBridge], PoseRecorder, Any
                 return True
             for i, name in enumerate(AGENTS):
                 transports[i].advertise(Advertize(i + 1, name))
-            time.sleep(0.5)
             return False
 
-        wait_until(known, "the observer to learn every agent's name", LOCK_DEADLINE, 0.0)
+        wait_until(known, "the observer to learn every agent's name", LOCK_DEADLINE, 0.5)
         yield bridges[:3], rec, rogue, transports[:3]
 
 

@@ -17,6 +17,8 @@ from radios.sik.at import ATEngine
 from radios.sik.params import ENCRYPTION_LEVEL, NETID, SikParams, validate_key_hex
 from swarm.cli.commands.radio_config import main
 
+pytestmark = pytest.mark.processes  # radios on ptys with real +++ guard times
+
 KEY = "00112233445566778899aabbccddeeff"
 
 

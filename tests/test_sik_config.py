@@ -16,12 +16,17 @@ from typing import Any
 
 import pytest
 import serial
+from net_helpers import wait_until
 from sik_pty_radio import PtyRadio, SilentPty, make_engine
 
 from radios.errors import ATError, ATTimeoutError, ConfigError, LinkOpenError
 from radios.sik import config as config_module
 from radios.sik.config import SikConfigurator, open_port, parse_param_lines, strip_node
 from swarm.cli.commands.radio_config import main
+
+pytestmark = pytest.mark.processes  # a radio on a pty with real +++ guard times
+
+DEADLINE = 10.0  # the pty radio answers in milliseconds: this only bounds a failing test
 
 
 @pytest.fixture
@@ -102,8 +107,7 @@ def test_enter_command_mode_from_data_mode() -> None:
             assert b"+++" in radio.air  # the pluses went to the air, as on a real radio
             assert conf.version() == "SiK 2.2 on HM-TRP"
             conf.exit_command_mode()
-            time.sleep(0.1)
-            assert not radio.engine.in_command_mode
+            wait_until(lambda: not radio.engine.in_command_mode, "ATO to leave command mode", DEADLINE)
         finally:
             p.close()
 
@@ -129,7 +133,7 @@ def test_read_set_save_reboot(radio: PtyRadio, port: Any) -> None:
     assert conf.read_params()["TXPOWER"] == 11
     conf.save()
     conf.reboot()
-    time.sleep(0.1)
+    wait_until(lambda: radio.reboots, "the reboot (ATZ)", DEADLINE)
     with radio.lock:
         assert radio.reboots == 1
         assert not radio.engine.in_command_mode
@@ -190,7 +194,7 @@ def test_remote_mode() -> None:
             conf.save()
             conf.reboot()
             conf.exit_command_mode()
-            time.sleep(0.1)
+            wait_until(lambda: radio.peer_reboots, "the peer's reboot (RTZ)", DEADLINE)
             assert radio.remote_commands == ["RTI", "RTI5", "RTS3=7", "RT&W", "RTZ"]
             assert radio.peer_reboots == 1
             assert peer.params.active_value("NETID") == 7
@@ -227,8 +231,7 @@ def test_never_answering_port() -> None:
 def test_cli_show_from_data_mode(capsys: pytest.CaptureFixture[str]) -> None:
     with PtyRadio() as radio:
         assert main([radio.path, "--show"]) == 0
-        time.sleep(0.1)
-        assert not radio.engine.in_command_mode  # left with ATO
+        wait_until(lambda: not radio.engine.in_command_mode, "ATO to leave command mode", DEADLINE)
     out = capsys.readouterr().out.splitlines()
     assert len(out) == 16
     assert out[1].split() == ["S1", "SERIAL_SPEED", "57"]
@@ -252,7 +255,7 @@ def test_cli_set_saves_reboots_and_reads_back(radio: PtyRadio, capsys: pytest.Ca
     assert values["AIR_SPEED"] == 128  # as the radio runs it after the reboot
     assert values["TXPOWER"] == 11
     assert values["NETID"] == 77
-    time.sleep(0.1)
+    wait_until(lambda: not radio.engine.in_command_mode, "ATO to leave command mode", DEADLINE)
     with radio.lock:
         assert radio.reboots == 1
         assert not radio.engine.in_command_mode
@@ -323,7 +326,7 @@ def test_cli_remote_set(capsys: pytest.CaptureFixture[str]) -> None:
         captured = capsys.readouterr()
         assert json.loads(captured.out)["NETID"] == 9
         assert "remote radio saved" in captured.err
-        time.sleep(0.1)
+        wait_until(lambda: not radio.engine.in_command_mode, "ATO to leave command mode", DEADLINE)
         assert peer.params.active_value("NETID") == 9
         assert radio.engine.params.active_value("NETID") == 25
         assert not radio.engine.in_command_mode

@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from emu_helpers import running_emulator, wait_until
+from emu_helpers import running_emulator
+from net_helpers import wait_until
 
 from radios.errors import ConfigError
 from radios.sik.config import SikConfigurator, open_port
@@ -28,6 +29,8 @@ from radios.sik.guard import (
 from radios.sik.params import NETID
 from swarm.cli.commands import agent as agent_cmd
 from swarm.cli.procs import Child, json_events
+
+pytestmark = pytest.mark.processes  # agents on emulated radios, in real time
 
 SWARM = {"NETID": 25, "AIR_SPEED": 64}
 
@@ -188,15 +191,15 @@ def test_isolated_agent_rechecks_and_restores_its_radio(tmp_path: Path) -> None:
         try:
             wait_until(
                 lambda: _events(agent, "radio-checked") or agent.proc.poll() is not None,
-                90.0,
                 "the agent's first re-check",
+                90.0,
             )
             assert agent.proc.poll() is None, agent.errors
             emu.wait_locked(0, 1)
             _rogue_moves_radio0(emu.paths[1])
             assert emu.emu.params[0].eeprom[NETID] == 77
             restored = wait_until(
-                lambda: _events(agent, "radio-restored") or agent.proc.poll() is not None, 90.0, "the restore"
+                lambda: _events(agent, "radio-restored") or agent.proc.poll() is not None, "the restore", 90.0
             )
             assert agent.proc.poll() is None, agent.errors
             assert restored[0]["differed"] == {"NETID": 77}

@@ -7,41 +7,22 @@ faster than wall time and every wait polls until a generous deadline.
 from __future__ import annotations
 
 import math
-import socket
 import time
 from collections.abc import Callable, Iterator
 
-import mav_helpers
 import pytest
+from mav_helpers import command, wait_msg
+from net_helpers import free_port_range, wait_until
 from pymavlink import mavutil
 
 from firmware_bridge.sim import SimConfig, VehicleSim
+
+pytestmark = pytest.mark.processes  # the vehicle simulator, in real time
 
 SPEEDUP = 5.0
 DEADLINE = 20.0
 GUIDED = (1, 4)
 POS_MASK = 3576
-
-
-def free_tcp_base(n: int) -> int:
-    for _ in range(50):
-        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        s.bind(("127.0.0.1", 0))
-        base = s.getsockname()[1]
-        s.close()
-        if base + 10 * n > 65000:
-            continue
-        ok = True
-        for i in range(n):
-            t = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            try:
-                t.bind(("127.0.0.1", base + 10 * i))
-            except OSError:
-                ok = False
-            t.close()
-        if ok:
-            return base
-    raise RuntimeError("no free TCP ports")
 
 
 @pytest.fixture
@@ -52,7 +33,7 @@ def sim() -> Iterator[VehicleSim]:
             profile="ardupilot",
             speedup=SPEEDUP,
             home=(-35.363261, 149.165230, 584.0),
-            base_port=free_tcp_base(2),
+            base_port=free_port_range(2, "tcp", step=10),
         )
     )
     s.start()
@@ -68,33 +49,8 @@ def conn(sim: VehicleSim) -> Iterator[mavutil.mavfile]:
     c.close()
 
 
-def wait_msg(
-    conn: mavutil.mavfile,
-    types: str | list[str],
-    cond: Callable[[object], bool] = lambda m: True,
-    timeout: float = DEADLINE,
-    tick: Callable[[], None] | None = None,
-) -> object:
-    return mav_helpers.wait_msg(conn, types, cond, timeout, tick)
-
-
-def command(
-    conn: mavutil.mavfile,
-    cmd: int,
-    *params: float,
-    tick: Callable[[], None] | None = None,
-    texts: list[str] | None = None,
-) -> int:
-    return mav_helpers.command(conn, cmd, *params, timeout=DEADLINE, tick=tick, texts=texts)
-
-
 def wait_state(sim: VehicleSim, pred: Callable[[object], bool], what: str, timeout: float = DEADLINE) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred(sim.vehicle(0).state):
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"never {what}: {sim.vehicle(0).state}")
+    wait_until(lambda: pred(sim.vehicle(0).state), what, timeout, detail=lambda: sim.vehicle(0).state)
 
 
 def settle(sim: VehicleSim, target: tuple[float, float, float], tol: float) -> None:

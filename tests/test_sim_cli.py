@@ -8,7 +8,11 @@ import subprocess
 import sys
 import time
 
+import net_helpers
+import pytest
 from pymavlink import mavutil
+
+pytestmark = pytest.mark.processes  # swarm sim processes
 
 
 def run(*args: str) -> subprocess.Popen[str]:
@@ -21,11 +25,7 @@ def run(*args: str) -> subprocess.Popen[str]:
 
 
 def free_port(kind: int) -> int:
-    s = socket.socket(socket.AF_INET, kind)
-    s.bind(("127.0.0.1", 0))
-    port = int(s.getsockname()[1])
-    s.close()
-    return port
+    return net_helpers.free_port("udp" if kind == socket.SOCK_DGRAM else "tcp")
 
 
 def test_ready_lines_client_and_sigterm() -> None:

@@ -9,16 +9,18 @@ for the outcome until a generous deadline.
 from __future__ import annotations
 
 import math
-import socket
 import time
 from collections.abc import Callable, Iterator
 
-import mav_helpers
 import pytest
+from mav_helpers import command, wait_msg
+from net_helpers import free_port_range
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_bridge.sim import Autopilot, SimConfig, VehicleSim
+
+pytestmark = pytest.mark.processes  # the vehicle simulator, in real time
 
 SPEEDUP = 5.0
 DEADLINE = 20.0  # wall seconds, only bounds a failing test
@@ -28,31 +30,9 @@ POS_MASK = 3576
 M = mavlink
 
 
-def free_udp_ports(n: int) -> int:
-    """A base port with ``n`` consecutive free UDP ports."""
-    for _ in range(50):
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        s.bind(("127.0.0.1", 0))
-        base = s.getsockname()[1]
-        s.close()
-        if base + n > 65000:
-            continue
-        ok = True
-        for p in range(base, base + n):
-            t = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            try:
-                t.bind(("127.0.0.1", p))
-            except OSError:
-                ok = False
-            t.close()
-        if ok:
-            return base
-    raise RuntimeError("no free UDP ports")
-
-
 @pytest.fixture
 def sim() -> Iterator[VehicleSim]:
-    s = VehicleSim(SimConfig(vehicles=2, profile="px4", speedup=SPEEDUP, base_port=free_udp_ports(2)))
+    s = VehicleSim(SimConfig(vehicles=2, profile="px4", speedup=SPEEDUP, base_port=free_port_range(2, "udp")))
     s.start()
     yield s
     s.stop()
@@ -61,7 +41,7 @@ def sim() -> Iterator[VehicleSim]:
 @pytest.fixture
 def slow_sim() -> Iterator[VehicleSim]:
     """2x only: the offboard stream must beat COM_OF_LOSS_T (0.5 s wall) on a busy machine."""
-    s = VehicleSim(SimConfig(vehicles=1, profile="px4", speedup=2.0, base_port=free_udp_ports(1)))
+    s = VehicleSim(SimConfig(vehicles=1, profile="px4", speedup=2.0, base_port=free_port_range(1, "udp")))
     s.start()
     yield s
     s.stop()
@@ -71,26 +51,6 @@ def connect(endpoint: str) -> mavutil.mavfile:
     conn = mavutil.mavlink_connection(endpoint, source_system=255)
     assert conn.wait_heartbeat(timeout=DEADLINE) is not None
     return conn
-
-
-def wait_msg(
-    conn: mavutil.mavfile,
-    types: str | list[str],
-    cond: Callable[[object], bool] = lambda m: True,
-    timeout: float = DEADLINE,
-    tick: Callable[[], None] | None = None,
-) -> object:
-    return mav_helpers.wait_msg(conn, types, cond, timeout, tick)
-
-
-def command(
-    conn: mavutil.mavfile,
-    cmd: int,
-    *params: float,
-    tick: Callable[[], None] | None = None,
-    texts: list[str] | None = None,
-) -> int:
-    return mav_helpers.command(conn, cmd, *params, timeout=DEADLINE, tick=tick, texts=texts)
 
 
 class Streamer:

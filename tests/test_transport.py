@@ -14,8 +14,7 @@ from functools import partial
 from typing import Any
 
 import pytest
-from net_helpers import free_port
-from net_helpers import wait_until as _wait_until
+from net_helpers import free_port, wait_until
 
 from swarm.core.messages import (
     Advertize,
@@ -35,21 +34,18 @@ DEADLINE = 20.0
 QUIET = 0.5  # how long "nothing else arrives" is watched after the expected did
 
 
-def wait_until(pred: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
-    return _wait_until(pred, what, timeout, 0.02)
-
-
 def prime(put: Callable[[], None], seen: Callable[[], Any], what: str) -> None:
     """Zenoh propagates a new subscriber's interest asynchronously: re-send a
-    sentinel until the new subscribers see it, so that what follows is counted
-    exactly (tests ignore the sentinels)."""
+    sentinel every 50 ms until the new subscribers see it, so that what follows is
+    counted exactly (tests ignore the sentinels)."""
 
     def attempt() -> Any:
+        if seen():
+            return True
         put()
-        time.sleep(0.05)
-        return seen()
+        return False
 
-    wait_until(attempt, what)
+    wait_until(attempt, what, DEADLINE, 0.05)
 
 
 SENTINEL_POSE = PoseReport(Pose(0.0, 0.0, 0.0, t=0.5))
@@ -103,11 +99,12 @@ def trio() -> Iterator[list[Transport]]:
                 probe = Selection(i + 1, candidate=1, weight=999_000 + i, epoch=7)
 
                 def arrived(src: Transport = src, dst: Transport = dst, probe: Message = probe) -> bool:
+                    if probes[dst.name].count(probe) > 0:
+                        return True
                     src.send(dst.name, probe)
-                    time.sleep(0.05)
-                    return probes[dst.name].count(probe) > 0
+                    return False
 
-                wait_until(arrived, f"{src.name} -> {dst.name} over Zenoh")
+                wait_until(arrived, f"{src.name} -> {dst.name} over Zenoh", DEADLINE, 0.05)
         yield ts
     finally:
         for t in ts:
@@ -134,7 +131,7 @@ def test_p2p_reaches_only_the_addressee(trio: list[Transport]) -> None:
     for (src, dst), msg in sent.items():
         next(t for t in trio if t.name == src).send(dst, msg)
     for (_src, dst), msg in sent.items():
-        wait_until(partial(boxes[dst].count, msg), f"{msg} in {dst}'s inbox")
+        wait_until(partial(boxes[dst].count, msg), f"{msg} in {dst}'s inbox", DEADLINE)
     time.sleep(QUIET)
     for name, box in boxes.items():
         got = sorted(m.weight for m in box.snapshot() if isinstance(m, Selection) and m.epoch == 1)
@@ -172,8 +169,9 @@ def test_advertize_and_gs_advertize_reach_everyone(trio: list[Transport]) -> Non
             wait_until(
                 partial(adv[t.name].count, Advertize(i + 1, other.name, 1)),
                 f"{other.name}'s Advertize at {t.name}",
+                DEADLINE,
             )
-        wait_until(partial(gs[t.name].count, GSAdvertize(255, "gcs")), f"GSAdvertize at {t.name}")
+        wait_until(partial(gs[t.name].count, GSAdvertize(255, "gcs")), f"GSAdvertize at {t.name}", DEADLINE)
     time.sleep(QUIET)
     for t in trio:
         # once each (its own included: same key space); late sentinels aside
@@ -211,9 +209,9 @@ def test_pose_and_state_streams_with_wildcards(trio: list[Transport]) -> None:
     a1.publish_pose(p1)
     a3.publish_pose(p2)
     a2.publish_state(st)
-    wait_until(lambda: {("a1", p1), ("a3", p2)} <= set(poses_all.snapshot()), "both poses at a2")
-    wait_until(lambda: poses_a1.count(("a1", p1)), "a1's pose at a3")
-    wait_until(lambda: states.count(("a2", st)), "a2's state at a3")
+    wait_until(lambda: {("a1", p1), ("a3", p2)} <= set(poses_all.snapshot()), "both poses at a2", DEADLINE)
+    wait_until(lambda: poses_a1.count(("a1", p1)), "a1's pose at a3", DEADLINE)
+    wait_until(lambda: states.count(("a2", st)), "a2's state at a3", DEADLINE)
     time.sleep(QUIET)
     assert [x for x in poses_a1.snapshot() if x[1] != SENTINEL_POSE] == [("a1", p1)]  # not a3's
     assert [x for x in states.snapshot() if x[1] != sentinel_state] == [("a2", st)]
@@ -222,7 +220,7 @@ def test_pose_and_state_streams_with_wildcards(trio: list[Transport]) -> None:
     a3.subscribe("swarm/*", lambda k, m: seen.add(k, m))
     prime(lambda: a1.send("a2", SENTINEL), lambda: seen.count(("swarm/a2", SENTINEL)), "swarm/* at a3")
     a1.send("a2", StartPool(1))
-    wait_until(lambda: seen.count(("swarm/a2", StartPool(1))), "swarm/* sees a2's inbox")
+    wait_until(lambda: seen.count(("swarm/a2", StartPool(1))), "swarm/* sees a2's inbox", DEADLINE)
 
 
 def test_undecodable_sample_counted_not_delivered(trio: list[Transport]) -> None:
@@ -234,8 +232,8 @@ def test_undecodable_sample_counted_not_delivered(trio: list[Transport]) -> None
     for junk in (b"", b"\xff\x00", bytes([1 << 5 | 4, 2]), bytes([2 << 5 | 5, 1])):
         a1.session.put(inbox_key("a2"), junk)
     a1.send("a2", StartPool(9))  # a good one after the junk
-    wait_until(lambda: box.count(StartPool(9)), "the valid message after the junk")
-    wait_until(lambda: a2.decode_errors - before >= 4, "4 decode errors counted")
+    wait_until(lambda: box.count(StartPool(9)), "the valid message after the junk", DEADLINE)
+    wait_until(lambda: a2.decode_errors - before >= 4, "4 decode errors counted", DEADLINE)
     assert [m for m in box.snapshot() if m not in (StartPool(9), SENTINEL)] == []
     assert a2.last_decode_error
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import urllib.error
 import urllib.request
 from typing import Any
 
+import pytest
 from gcs_browser import browser
 from net_helpers import free_port, wait_until
 
@@ -22,6 +22,8 @@ from swarm.cli.procs import Child
 from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, mode_code
 from swarm.core.messages import GSAdvertize, GSConnect, GSConnectAck, Phase, Pose, Telemetry
 from swarm.core.station import StationCore
+
+pytestmark = pytest.mark.processes  # simulator, agent and station processes
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)
 
@@ -82,9 +84,7 @@ def _json_lines(c: Child, event: str) -> list[dict[str, Any]]:
 
 
 def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> None:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port("udp")
     ep = f"tcp/127.0.0.1:{free_port()}"
     sim_argv = ["sim", "--vehicles", "1", "--base-port", str(port)]
     children: list[Child] = []
@@ -160,11 +160,7 @@ def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> No
 def test_the_leader_whose_vehicle_simulator_dies_hands_over() -> None:
     """Two agents over Zenoh, each flying a simulated vehicle of its own; the leader's
     simulator is killed: the other agent leads and the old leader follows it."""
-    ports = []
-    for _ in range(2):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            s.bind(("127.0.0.1", 0))
-            ports.append(s.getsockname()[1])
+    ports = [free_port("udp") for _ in range(2)]
     ep = f"tcp/127.0.0.1:{free_port()}"
     children: list[Child] = []
     try:

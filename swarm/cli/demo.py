@@ -12,7 +12,10 @@ drives a ground station on the last radio: the real one,
 :class:`swarm.runtime.station.Station` (id 254, name ``demo``), which connects the
 agents and sends Commands with acknowledgement and retry, exactly as an operator's
 station does (a command counts once an agent accepted it or its Telemetry shows
-it carried out).
+it carried out). A command the station refuses for a moment (409: no leader, an
+agent not connected: at 10-20 % loss its view drops an agent silent for 3 s) is
+tried again for ``REFUSED_WAIT_S`` before the demo gives up with the station's
+reason.
 
 The flight: wait for one leader that every agent agrees on (from the agents'
 ``--json`` state lines) and for every agent to be connected to the demo's
@@ -57,6 +60,8 @@ DEMO_ID = 254
 DEMO_NAME = "demo"
 #: how long the demo's station tries a command before it gives up on an agent
 COMMAND_GIVE_UP_S = 20.0
+#: how long a 409 from the demo's station (no leader, agent not connected) may last
+REFUSED_WAIT_S = 30.0
 
 
 class DemoError(SwarmError):
@@ -252,10 +257,23 @@ class _Demo:
         from swarm.core.station import DONE_RESULTS, CommandRefused, CommandSpec
 
         assert self.station is not None
-        try:
-            fut = self.station.submit(CommandSpec(target, kind, **args))
-        except CommandRefused as exc:
-            raise DemoError(f"{what}: the station refused it: {exc.reason}") from None
+        # A 409 (agent not connected, no leader) can be a moment's view at 10-20 % loss:
+        # the station drops an agent silent for 3 s and the leader with it. Wait for the
+        # view to come back, as an operator would, then give up with the station's reason.
+        end = time.monotonic() + REFUSED_WAIT_S
+        said = False
+        while True:
+            try:
+                fut = self.station.submit(CommandSpec(target, kind, **args))
+                break
+            except CommandRefused as exc:
+                if exc.status != 409 or time.monotonic() > end:
+                    raise DemoError(f"{what}: the station refused it: {exc.reason}") from None
+                if not said:
+                    self.out(f"   {what}: waiting, the station says: {exc.reason}")
+                    said = True
+            self.check_stop()
+            self.stop.wait(0.25)
         while not fut.done():
             self.check_stop()
             self.stop.wait(0.1)

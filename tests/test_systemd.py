@@ -453,3 +453,25 @@ def test_gcs_ready_once_its_server_answers(monkeypatch: pytest.MonkeyPatch) -> N
             assert sink.count("STOPPING", "1") == 1 and sink.statuses()[-1] == "stopping"
         finally:
             gcs.stop()
+
+
+@pytest.mark.processes
+def test_an_agent_and_a_station_on_a_radio_report_every_loop_alive() -> None:
+    """The watchdog's probe over a radio (a ``virtual://`` bus): the protocol loop and the
+    bridge's two threads, all fresh. A probe that raised would stop the petting for good."""
+    from swarm.runtime.agent import Agent, NodeOptions
+    from swarm.runtime.station import Station
+
+    bus = f"virtual://notify-{uuid.uuid4().hex}"
+    with Agent("a1", 1, NodeOptions(radio=bus)) as agent, Station(radio=bus) as station:
+        for what, probe in (("agent", agent.loop_beats), ("station", station.loop_beats)):
+            beats = probe()
+            assert set(beats) == {"protocol", "radio-send", "radio-receive"}, what
+            # every loop goes round within its own longest wait (plus a scheduling margin)
+            wait_until(
+                lambda probe=probe: stale_loops(probe(), time.monotonic(), 0.5) == [],
+                f"every {what} loop fresh",
+                30,
+            )
+            loop_beat, _ = beats["protocol"]
+            wait_until(lambda probe=probe, b=loop_beat: probe()["protocol"][0] > b, f"{what} beats", 30)

@@ -10,7 +10,7 @@ NODE_STAMP := node_modules/.installed
 CHROMIUM_PKGS := chromium fonts-dejavu-core
 CHROMIUM_BIN ?= chromium
 
-.PHONY: setup browser demo test test-quick lint check clean
+.PHONY: setup browser systemd-analyze demo test test-quick lint check clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -42,7 +42,24 @@ browser:
 	  cat "$$log" >&2; rm -f "$$log"; echo "setup: installing chromium failed" >&2; exit 1; fi; \
 	rm -f "$$log"
 
-setup: $(STAMP) $(NODE_STAMP) browser
+# systemd-analyze checks the shipped unit files (tests/test_systemd.py): Debian's
+# systemd package, installed only when missing (root, or sudo).
+systemd-analyze:
+	@if command -v systemd-analyze >/dev/null 2>&1; then exit 0; fi; \
+	if ! command -v apt-get >/dev/null 2>&1; then \
+	  echo "setup: no systemd-analyze and no apt-get: install systemd, or the unit test fails" >&2; exit 0; fi; \
+	SUDO=; if [ "$$(id -u)" != 0 ]; then \
+	  if sudo -n true 2>/dev/null; then SUDO="sudo -n"; else \
+	    echo "setup: systemd-analyze missing and no root or sudo: apt-get install systemd" >&2; \
+	    exit 0; fi; fi; \
+	echo "setup: installing Debian's systemd (systemd-analyze verify for the unit files)"; \
+	log=$$(mktemp); \
+	if ! { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	       $$SUDO apt-get install -y -qq --no-install-recommends systemd; } >"$$log" 2>&1; then \
+	  cat "$$log" >&2; rm -f "$$log"; echo "setup: installing systemd failed" >&2; exit 1; fi; \
+	rm -f "$$log"
+
+setup: $(STAMP) $(NODE_STAMP) browser systemd-analyze
 
 demo: setup
 	$(BIN)/swarm demo

@@ -20,6 +20,10 @@ used only under the session's lock; the threads feed them ``time.monotonic()``.
 * the *streamer* (:class:`~firmware_bridge.streamer.SetpointStreamer`, only while a
   target is set) sends the current position target at a fixed rate.
 
+Both threads note ``time.monotonic()`` at every round (:meth:`Session.beats`): a
+supervisor (the service watchdog) sees one that hangs, such as the housekeeper in a
+serial write to an autopilot whose USB port stopped taking bytes.
+
 Commands go out one at a time: :meth:`Session.command` makes a
 :class:`~firmware_bridge.commands.CommandExchange`, sends what it returns and
 sleeps on the condition until its next deadline or an answer; the exchange's
@@ -141,6 +145,7 @@ class Session:
             closing=self._stop,
         )
         self._handle(heartbeat, time.monotonic())
+        self._beat_rx = self._beat_hk = time.monotonic()  # each thread's last round
         self._threads = [
             threading.Thread(target=self._receive_loop, name="fb-receiver", daemon=True),
             threading.Thread(target=self._housekeeping_loop, name="fb-housekeeping", daemon=True),
@@ -173,6 +178,11 @@ class Session:
     @property
     def closed(self) -> bool:
         return self._closed
+
+    def beats(self) -> dict[str, tuple[float, float]]:
+        """The receiver's and the housekeeper's last round (``time.monotonic()``) and the
+        longest each waits between rounds (a TCP reconnect takes up to a second)."""
+        return {"fc-receive": (self._beat_rx, 1.1), "fc-housekeeping": (self._beat_hk, 0.1)}
 
     @property
     def link_ok(self) -> bool:
@@ -385,6 +395,7 @@ class Session:
         conn = self._conn
         last_reconnect = 0.0
         while not self._stop.is_set():
+            self._beat_rx = time.monotonic()
             try:
                 if getattr(conn, "eof", False):
                     now = time.monotonic()
@@ -400,6 +411,7 @@ class Session:
                     msg = conn.recv_msg()
                     if msg is None:
                         break
+                    self._beat_rx = time.monotonic()
                     self._handle(msg, time.monotonic())
             except Exception as e:  # a dying link must not kill the thread silently
                 if self._stop.is_set():
@@ -421,7 +433,7 @@ class Session:
         next_hb = time.monotonic()
         next_check = next_hb + 1.0
         while not self._stop.wait(0.05):
-            now = time.monotonic()
+            now = self._beat_hk = time.monotonic()
             if now >= next_hb:
                 with contextlib.suppress(BridgeError):
                     self._send(companion_heartbeat())

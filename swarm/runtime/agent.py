@@ -43,6 +43,12 @@ the paper has it (section 2.2: one thread per protocol or link, queues between t
 * **Vehicle thread**: runs the pilot's blocking calls (arm, take-off, land...) and
   queues each result back.
 
+:meth:`Agent.loop_beats` names every loop that must keep going round (the protocol
+loop, the bridge's two threads, the flight-controller session's receiver and
+housekeeper, the pose thread) with its last round: the service watchdog's input
+(:mod:`swarm.runtime.notify`). The vehicle thread is not among them: a take-off
+legitimately blocks it for up to a minute.
+
 Profiles: ``paper`` (the default) or ``fast``, whose windows follow the radio
 network's TDM round (``round_s``). The round is not read from the radio: pass it,
 or it defaults to a SiK pair at 64 kbit/s (0.2368 s); a multipoint network of N
@@ -204,6 +210,7 @@ class Agent(StartOnce):
         self._started = False
         self._stopped = False
         self._radio_seen = (0, 0)
+        self._pose_beat = time.monotonic()  # the pose thread's last round
 
     # -- the node's parts (None before start) ---------------------------------------
     @property
@@ -315,6 +322,17 @@ class Agent(StartOnce):
             and self.loop.alive
             and all(t.is_alive() for t in self._threads)
         )
+
+    def loop_beats(self) -> dict[str, tuple[float, float]]:
+        """Each loop's last round (``time.monotonic()``) and the longest it waits between
+        rounds (see the module docstring); the vehicle thread is left out."""
+        beats = {"protocol": (self.loop.beat, self.loop.max_wait)}
+        if self.bridge is not None:
+            beats.update(self.bridge.beats())
+        if self.vehicle is not None:
+            beats.update(self.vehicle.beats())
+            beats["pose"] = (self._pose_beat, 1.0 / self.config.pose_hz)
+        return beats
 
     def state(self) -> AgentState | None:
         """The last state the protocol thread published (None before the first)."""
@@ -455,6 +473,7 @@ class Agent(StartOnce):
     def _pose_loop(self) -> None:
         period = 1.0 / self.config.pose_hz
         while not self._stop.wait(period):
+            self._pose_beat = time.monotonic()
             try:
                 self._pose_once()
             except Exception:

@@ -46,6 +46,10 @@ swarm/<own>/state      0           swarm/<sender name>/state
 * **HEARTBEAT** into the local radio once a second (that makes a SiK radio report
   RADIO_STATUS), and the vehicle's HEARTBEAT and GLOBAL_POSITION_INT forwarded at
   1 Hz under the agent's system id so MAVProxy or QGroundControl list vehicles.
+* **Liveness**: each thread notes ``time.monotonic()`` at every round
+  (:meth:`RadioBridge.beats`, the service watchdog's input): the send thread at least
+  once per HEARTBEAT period (or per ``write_timeout`` of a radio that stopped taking
+  bytes), the receiving one every 0.2 s and while it waits for a lost radio.
 * **Signing** (optional): every frame signed with the swarm key and this radio's
   link id; unsigned (but the local RADIO_STATUS), badly signed and replayed frames
   are dropped and counted.
@@ -202,6 +206,7 @@ class RadioBridge(AirToLocal):
         self._next_hb = 0.0
         self._sub: Any = None
         self._threads: list[threading.Thread] = []
+        self._beat_tx = self._beat_rx = time.monotonic()  # each thread's last round
 
     # -- life cycle -------------------------------------------------------------
     def start(self) -> RadioBridge:
@@ -226,6 +231,13 @@ class RadioBridge(AirToLocal):
                 pass
         for t in self._threads:
             t.join(2.0)
+
+    def beats(self) -> dict[str, tuple[float, float]]:
+        """Each thread's last round (``time.monotonic()``) and its longest wait between rounds."""
+        return {
+            "radio-send": (self._beat_tx, 1.0 / self.cfg.heartbeat_hz),
+            "radio-receive": (self._beat_rx, max(0.2, self.cfg.reopen_backoff[1])),
+        }
 
     def peers(self) -> dict[str, int]:
         return self.names.as_dict()
@@ -320,6 +332,7 @@ class RadioBridge(AirToLocal):
     def _tx_loop(self) -> None:
         self._next_hb = self.clock()
         while True:
+            self._beat_tx = time.monotonic()
             with self._cond:
                 if self._closed:
                     return
@@ -356,6 +369,7 @@ class RadioBridge(AirToLocal):
     # -- air -> local -------------------------------------------------------------
     def _rx_loop(self) -> None:
         while not self._closed:
+            self._beat_rx = time.monotonic()
             try:
                 frame = self.link.recv(0.2)
             except RadioError as exc:
@@ -447,6 +461,7 @@ class RadioBridge(AirToLocal):
         first, longest = self.cfg.reopen_backoff
         backoff, next_log = first, t0 + 1.0
         while True:
+            self._beat_rx = time.monotonic()  # the receive thread, waiting for the radio
             with self._cond:
                 if self._closed:
                     return False

@@ -9,7 +9,10 @@ loop waits on the queue until the core's next deadline, hands every queued item 
 ``handle(item, now)``, then calls ``tick(now)`` and ``after()``. ``min_tick_gap``
 bounds how often a busy loop ticks (at hundreds of messages a second a tick after
 every batch would cost more than the messages); a tick is never later than the
-core's deadline. ``clock`` is the runtime's monotonic clock.
+core's deadline. ``clock`` is the runtime's monotonic clock. :attr:`EventLoop.beat`
+is ``time.monotonic()`` at the loop's last round or item (at least every ``max_wait``
+seconds while it runs): the service watchdog's sign that the loop is not stuck
+(:mod:`swarm.runtime.notify`).
 
 A callback that raises is logged and counted in ``errors``: a bug must not
 silence a drone (``on_error`` hears of it too). :meth:`stop` ends the loop (from any thread, also its own) and
@@ -55,6 +58,7 @@ class EventLoop:
         self.min_tick_gap = min_tick_gap
         self.max_wait = max_wait
         self.errors = 0
+        self.beat = time.monotonic()  # the last round or item (liveness, real time)
         self._q: queue.Queue[object] = queue.Queue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -86,6 +90,7 @@ class EventLoop:
     def run(self) -> None:
         deadline, last_tick = -math.inf, -math.inf
         while not self._stop.is_set():
+            self.beat = time.monotonic()
             wait = min(self.max_wait, max(0.0, deadline - self.clock()))
             try:
                 item: object = self._q.get(timeout=wait)
@@ -97,6 +102,7 @@ class EventLoop:
                         self._stop.set()
                         return
                     if item is not _WAKE:
+                        self.beat = time.monotonic()
                         self._handle(item, self.clock())
                     try:
                         item = self._q.get_nowait()

@@ -28,7 +28,9 @@ re-exports the security module's public names.
 Every error is a JSON object ``{"error": reason}`` with a 4xx status (a handler
 that fails unexpectedly answers 500 and logs the traceback, which never reaches
 the client). Idle connections (and clients that never finish their headers) are
-closed after ``idle_timeout``.
+closed after ``idle_timeout``. A task notes the event loop's time twice a second
+(:meth:`GcsServer.beats`): a handler that blocks the loop stops it, and the service
+watchdog sees it (:mod:`swarm.runtime.notify`).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import logging
 import math
 import secrets
 import threading
+import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -178,6 +181,7 @@ class GcsServer:
         self.ws = WsHub(self.station, self.cfg.ws_hz, self.stats, self.run_command, self._spawn)
         self._tasks: set[asyncio.Task[Any]] = set()
         self._stopped = False
+        self._beat = time.monotonic()  # the event loop's last round (liveness)
 
     @property
     def url(self) -> str:
@@ -282,6 +286,16 @@ class GcsServer:
             self.port = int(addrs[0][1])
         self.ws.attach(asyncio.get_running_loop())
         self._spawn(self.ws.broadcast())
+        self._spawn(self._pulse())
+
+    async def _pulse(self) -> None:
+        while True:
+            self._beat = time.monotonic()
+            await asyncio.sleep(0.5)
+
+    def beats(self) -> dict[str, tuple[float, float]]:
+        """The event loop's last round (``time.monotonic()``) and its longest wait."""
+        return {"http": (self._beat, 0.5)}
 
     async def _shutdown(self) -> None:
         self.ws.detach()

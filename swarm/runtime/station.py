@@ -154,6 +154,14 @@ class Station(StartOnce, StationView):
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def loop_beats(self) -> dict[str, tuple[float, float]]:
+        """The protocol loop's and the bridge's last rounds (``time.monotonic()``) and
+        longest waits: the service watchdog's input (:mod:`swarm.runtime.notify`)."""
+        beats = {"protocol": (self.loop.beat, self.loop.max_wait)}
+        if self.bridge is not None:
+            beats.update(self.bridge.beats())
+        return beats
+
     @property
     def running(self) -> bool:
         radio_ok = self.bridge is None or not self.bridge.link_lost

@@ -76,6 +76,7 @@ from swarm.runtime.agent import (
     default_round_s,
     state_dict,
 )
+from swarm.runtime.notify import Service
 
 PROG = "swarm agent"
 
@@ -377,8 +378,10 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
             agent.bridge.cfg.reopen_radio = False
         agent.bridge.add_listener(out.radio)
     recheck = RecheckTimer(a.radio_recheck) if a.radio_recheck else None
+    service = Service(agent.loop_beats)  # systemd's READY and WATCHDOG (README, "Run as a service")
     try:
         out.open(agent)
+        service.ready(f"agent {a.name} id={a.id} {agent.describe()} ready")
         while not stop.wait(0.5):
             if (
                 recheck is not None
@@ -390,5 +393,6 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
             if not agent.running:
                 return exit_when_stopped(PROG, agent, "the agent's protocol thread")
     finally:
+        service.stopping()
         agent.stop()
     return 0

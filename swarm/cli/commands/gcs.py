@@ -23,6 +23,7 @@ s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import signal
@@ -45,6 +46,7 @@ from swarm.cli.util import (
 from swarm.core.gslink import STATION_IDS
 from swarm.core.messages import check_name
 from swarm.errors import MessageError
+from swarm.runtime.notify import Service
 from swarm.runtime.server import (
     MAX_WS_HZ,
     OSM_ATTRIBUTION,
@@ -308,9 +310,16 @@ def _ready_line(a: argparse.Namespace, cfg: ServerConfig, station: Any, server: 
     print(f"gcs {station.name} id={station.id} {station.describe()} {where}{note} ready", flush=True)
 
 
+def _beats(station: Any, server: GcsServer) -> dict[str, tuple[float, float]]:
+    """What the service watchdog watches: the station's loops (a replay has none) and the server's."""
+    beats = dict(station.loop_beats()) if hasattr(station, "loop_beats") else {}
+    return {**beats, **server.beats()}
+
+
 def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
     station = _open_station(a)
     server = None
+    service: Service | None = None  # systemd's READY and WATCHDOG (README, "Run as a service")
     lock = threading.Lock()
 
     def on_event(ev: dict[str, Any]) -> None:
@@ -337,6 +346,8 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
             bridge.cfg.reopen_radio = False  # before "ready": a radio pulled at once ends it too
         with lock:
             _ready_line(a, cfg, station, server)
+        service = Service(functools.partial(_beats, station, server))
+        service.ready(f"gcs {station.name} {station.describe()} {server.url} ready")
         station.add_listener(on_event)
         if bridge is not None:
             bridge.add_listener(on_radio)
@@ -344,6 +355,8 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
             if not station.running:
                 return exit_when_stopped(PROG, station, "the station's thread")
     finally:
+        if service is not None:
+            service.stopping()
         if server is not None:
             server.stop()
         station.stop()

@@ -287,6 +287,11 @@ def test_files_tiles_and_traversal(live: dict[str, Any]) -> None:
         "/static/%2e%2e/station.py",
         "/static/..%2fstation.py",
         "/vendor/leaflet/../../package.json",
+        # Leaflet now sits in the package beside the server's own sources
+        "/vendor/leaflet/../../server.py",
+        "/vendor/leaflet/%2e%2e/%2e%2e/server.py",
+        "/vendor/leaflet/..%2f..%2fserver.py",
+        "/vendor/leaflet/images/..%2f..%2f..%2fsecurity.py",
         "/static/nope.js",
     ):
         st, err, _ = http(base, "GET", path)

@@ -14,8 +14,8 @@ Theory of operation
   ``swarm --version`` and ``swarm gcs`` from there (cwd outside the checkout, no
   ``PYTHONPATH``): the page, its scripts and Leaflet must answer 200 with the bytes of
   the checkout. The dependencies come from a wheel folder built once from the pinned
-  set with pip (under ``.venv``, refreshed when ``pyproject.toml`` changes), so a
-  warm run needs no network.
+  set with pip (in the test environment, ``.venv/wheelhouse``, per set of pins), so
+  a warm run needs no network.
 * The Raspberry Pi check asks pip to resolve the pinned runtime set and all that it
   pulls in for CPython 3.11 on aarch64 with glibc 2.36 (Raspberry Pi OS bookworm,
   64-bit) with wheels only: metadata only by default (seconds, needs PyPI), every

@@ -1,16 +1,16 @@
-# Set-up is idempotent: stamp files record that .venv matches pyproject.toml and
-# node_modules matches package-lock.json; the browser step is a quick check once
-# chromium is there.
+# Set-up is idempotent: a stamp file records that .venv matches pyproject.toml;
+# the browser step is a quick check once chromium is there. No npm: Leaflet is
+# vendored in the package (swarm/runtime/vendor/leaflet, see `make leaflet`).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-NODE_STAMP := node_modules/.installed
+LEAFLET := swarm/runtime/vendor/leaflet
 # Debian's chromium drives the page tests and the page benchmark (headless).
 CHROMIUM_PKGS := chromium fonts-dejavu-core
 CHROMIUM_BIN ?= chromium
 
-.PHONY: setup browser systemd-analyze demo test test-quick lint check clean
+.PHONY: setup browser systemd-analyze demo test test-quick lint check clean leaflet
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -18,12 +18,19 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-# Leaflet for the ground station page, pinned in package-lock.json; served by
-# swarm gcs from node_modules/leaflet/dist (never a CDN).
-$(NODE_STAMP): package.json package-lock.json
-	@command -v npm >/dev/null 2>&1 || { echo "setup: npm not found (install Node.js and npm: apt-get install -y npm)" >&2; exit 1; }
+# Leaflet for the ground station page, pinned in package.json and package-lock.json,
+# is vendored into the package with its licence and checksums (the wheel and the
+# sdist carry it; never a CDN). Only to change or re-check the pin (needs npm):
+# `make leaflet` copies it from the npm package (npm ci checks the lock's hash);
+# `git diff` then shows any change, and tests/test_packaging.py checks the sums.
+leaflet:
+	@command -v npm >/dev/null 2>&1 || { echo "leaflet: npm not found (apt-get install -y npm)" >&2; exit 1; }
 	npm ci --no-audit --no-fund --loglevel=error
-	touch $(NODE_STAMP)
+	rm -rf $(LEAFLET)
+	mkdir -p $(LEAFLET)/images
+	cp node_modules/leaflet/dist/leaflet.js node_modules/leaflet/dist/leaflet.css node_modules/leaflet/LICENSE $(LEAFLET)/
+	cp node_modules/leaflet/dist/images/*.png $(LEAFLET)/images/
+	cd $(LEAFLET) && sha256sum LICENSE leaflet.css leaflet.js images/*.png > SHA256SUMS
 
 # A headless browser for the page tests: Debian's chromium, installed only when
 # missing (root, or sudo). Elsewhere set CHROMIUM=/path/to/chromium instead.
@@ -59,7 +66,7 @@ systemd-analyze:
 	  cat "$$log" >&2; rm -f "$$log"; echo "setup: installing systemd failed" >&2; exit 1; fi; \
 	rm -f "$$log"
 
-setup: $(STAMP) $(NODE_STAMP) browser systemd-analyze
+setup: $(STAMP) browser systemd-analyze
 
 demo: setup
 	$(BIN)/swarm demo

@@ -14,7 +14,8 @@ retries) and :mod:`firmware_bridge.setpoints` (validation, SET_POSITION_TARGET_*
 return, hold, and position targets. Mode changes, arming and OFFBOARD are verified
 on the next heartbeats, not only by the ACK (PX4 accepts OFFBOARD while disarmed
 without a stream); a refusal raises :class:`CommandRejected` with the autopilot's
-STATUSTEXT. Facts: reference/autopilot.md.
+STATUSTEXT. Facts from the autopilots' sources: PX4's commander (UserModeIntention,
+offboard checks) and mavlink_receiver, ArduCopter's GCS_MAVLink_Copter and mode_guided.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Flight-mode names <-> HEARTBEAT ``custom_mode`` and DO_SET_MODE parameters.
 
-Pure tables, no I/O (reference/autopilot.md sections 2 and 3):
+Pure tables, no I/O (from PX4's commander and px4_custom_mode.h, and ArduCopter's mode
+numbers in its mode.h):
 
 * PX4 packs ``custom_mode = main << 16 | sub << 24``; DO_SET_MODE takes
   param1 = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, param2 = main mode, param3 = sub mode

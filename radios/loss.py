@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-SiK radios lose whole packets (no retransmission, see reference/sik.md), so loss is
+SiK radios lose whole packets (the firmware has no ACK and no retransmission), so loss is
 decided once per (packet, receiver). Three models compose; a packet is lost if any
 of them loses it:
 
@@ -201,5 +201,5 @@ class RangeLoss:
 
 
 def dbm_to_rssi(dbm: float) -> int:
-    """SiK RSSI units: dBm ~ RSSI/1.9 - 127 (reference/sik.md)."""
+    """SiK RSSI units: dBm ~ RSSI/1.9 - 127 (ArduPilot's SiK radio documentation)."""
     return max(0, min(255, round((dbm + 127.0) * 1.9)))

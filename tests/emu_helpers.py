@@ -31,8 +31,8 @@ from radios.mavlink import STX_V1, STX_V2, Frame, FrameBuilder, FrameParser
 AIR_DEADLINE = 10.0
 
 #: Two standard radios find each other's hopping sequence after 0.4 to 20 s of model
-#: time depending on the seed, as real SiK radios take seconds to sync (reference/
-#: sik.md). Tests only wait for the lock (up to LOCK_DEADLINE); this seed, whose pair
+#: time depending on the seed, as real SiK radios take seconds to sync (their frequency
+#: hopping). Tests only wait for the lock (up to LOCK_DEADLINE); this seed, whose pair
 #: locks in about 0.4 s, just keeps them quick. Nothing depends on it for correctness.
 FAST_LOCK_SEED = 16
 LOCK_DEADLINE = 60.0

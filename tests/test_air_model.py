@@ -1,4 +1,4 @@
-"""The SiK air model (radios.air.AirModel) in virtual time, against reference/sik.md.
+"""The SiK air model (radios.air.AirModel) in virtual time, against the SiK firmware's behaviour.
 
 Every test drives the pure model with a manual clock (tests/air_helpers.py): no
 sleeping, no threads, fixed seeds. Hosts write pymavlink-built frames; outputs are
@@ -720,7 +720,7 @@ def _standard_goodput(n: int) -> tuple[float, int]:
 
 
 def test_three_standard_radios_collide() -> None:
-    """sik.md: TDM assumes two radios; with three every radio re-syncs to whatever
+    """SiK's TDM (tdm.c) assumes two radios; with three every radio re-syncs to whatever
     it heard last, so windows overlap and packets collide."""
     pair, pair_collisions = _standard_goodput(2)
     three, collisions = _standard_goodput(3)

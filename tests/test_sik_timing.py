@@ -1,6 +1,6 @@
-"""The firmware's TDM formulas (radios.sik.timing) against reference/sik.md.
+"""The firmware's TDM formulas (radios.sik.timing) against a table worked by hand.
 
-The table in reference/sik.md section 2 was computed by hand from tdm.c; these
+The table below was computed by hand from the SiK firmware's tdm.c; these
 tests pin tdm_timing() to it, then check the analytic goodput and latency models
 for the properties every caller relies on (never faster than the serial port or
 the air, latency never below the time the bytes physically need).
@@ -27,7 +27,7 @@ AIR_RATES = [2, 4, 8, 16, 19, 24, 32, 48, 64, 96, 128, 192, 250]
 BAUDS = [9600, 19200, 38400, 57600, 115200, 230400]
 
 
-# -- the table of reference/sik.md section 2 ---------------------------------------------
+# -- the table worked by hand from tdm.c -------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -210,7 +210,7 @@ def test_model_goodput_shape() -> None:
     assert len(set(g)) == 4
     # ECC halves the byte rate: well under the plain rate
     assert model_goodput(tdm_timing(64, ecc=True), 50, 115200) < 0.6 * model_goodput(t, 50, 115200)
-    # sik.md: ~5-6 kB/s at 64 kbps
+    # about 5-6 kB/s at 64 kbps (ArduPilot's SiK documentation: ~90 % of the air rate one way)
     assert 5000 < model_goodput(t, 50, 115200) < 6500
 
 

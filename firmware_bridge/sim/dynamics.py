@@ -1,8 +1,8 @@
 """Point-mass multicopter: a position controller, a velocity lag and ground contact.
 
 Pure arithmetic, no I/O and no clock: :meth:`Body.step` advances the body by a fixed
-step ``dt`` (simulated seconds) toward a :class:`Target`. The law is the one of
-reference/autopilot.md section 5::
+step ``dt`` (simulated seconds) toward a :class:`Target`. The law is a simplified PX4
+multicopter position controller (its MPC_* parameters; an approximation, not PX4's code)::
 
     v_cmd = v_ff + Kp * (p_sp - p)         per axis, Kp = MPC_XY_P / MPC_Z_P
     |v_cmd_xy| <= min(v_max_xy, |v_ff| + sqrt(2 a_xy |e_xy|))   (braking-distance limit)

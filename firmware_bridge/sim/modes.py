@@ -1,4 +1,4 @@
-"""Flight-mode tables of the two simulated autopilots (reference/autopilot.md sections 2-3).
+"""Flight-mode tables of the two simulated autopilots (PX4 and ArduCopter, as in their sources).
 
 A mode is known by its name in the simulator (``"OFFBOARD"``, ``"AUTO.LOITER"``,
 ``"GUIDED"``...). Each profile maps names to the HEARTBEAT ``custom_mode`` encoding:

@@ -61,7 +61,9 @@ class RadioConfig:
         return binascii.crc_hqx((self.key + bytes(32))[:32], 0)
 
     def compatible(self, other: RadioConfig) -> bool:
-        """Both ends must match on these to hear each other (reference/sik.md)."""
+        """Both ends must match on these to hear each other (ArduPilot's SiK radio
+        documentation: NETID, air speed, ECC, the band and its channels, and the
+        firmware: a 1.9 radio does not hear a 2.0 one)."""
         return (
             self.netid == other.netid
             and self.air_kbps == other.air_kbps

@@ -7,13 +7,15 @@ Only working subcommands are listed here.
 Global options come before the subcommand: ``-v`` (INFO; ``-vv`` DEBUG) or
 ``--log-level LEVEL`` sends the project's log lines at that level to stderr, one
 line each with the time, the logger's name and the level. Without them nothing is
-configured: only warnings and errors reach stderr, as bare lines.
+configured: only warnings and errors reach stderr, as bare lines. ``--version``
+prints the installed release (the package's metadata) and exits 0.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import sys
 
 from swarm.cli.util import EXIT_USAGE, LOG_LEVELS, configure_logging
@@ -33,13 +35,26 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+DIST_NAME = "uav-swarm"
+
+
+def version_line() -> str:
+    """``swarm (uav-swarm) X.Y.Z``, from the installed package's metadata."""
+    try:
+        version = importlib.metadata.version(DIST_NAME)
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown (not installed: pip install . or make setup)"
+    return f"swarm ({DIST_NAME}) {version}"
+
+
 def _usage() -> str:
     width = max(len(n) for n in COMMANDS)
-    lines = ["usage: swarm [-v | -vv | --log-level LEVEL] <command> [options]", "", "commands:"]
+    lines = ["usage: swarm [--version] [-v | -vv | --log-level LEVEL] <command> [options]", "", "commands:"]
     lines += [f"  {name:<{width}}  {summary}" for name, (_, summary) in COMMANDS.items()]
     lines += [
         "",
         "options (before the command):",
+        "  --version          print the installed release and exit",
         "  -v, -vv            log INFO (-v) or DEBUG (-vv) lines to stderr",
         f"  --log-level LEVEL  log lines at LEVEL and above ({', '.join(LOG_LEVELS)}) to stderr",
         "",
@@ -57,6 +72,7 @@ class _Parser(argparse.ArgumentParser):
 def _global_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="swarm", add_help=False)
     p.add_argument("-h", "--help", action="store_true")
+    p.add_argument("--version", action="store_true")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS)
     p.add_argument("command", nargs="?")
@@ -79,6 +95,9 @@ def main(argv: list[str] | None = None) -> int:
         a = _global_parser().parse_args(args)
     except SystemExit as exc:
         return int(exc.code or 0)
+    if a.version:
+        print(version_line())
+        return 0
     if a.help or a.command is None:
         print(_usage())
         return 0 if a.help else EXIT_USAGE

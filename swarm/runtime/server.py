@@ -12,7 +12,9 @@ feed (``add_listener``). The server runs an asyncio loop on its own thread;
 Routes (README, "Ground station", documents the bodies):
 
 * ``GET /``, ``/static/<path>`` (``swarm/runtime/static``), ``/vendor/leaflet/<path>``
-  (``node_modules/leaflet/dist``), ``/tiles/{z}/{x}/{y}.png`` (``--tiles-dir``);
+  (``swarm/runtime/vendor/leaflet``: the pinned Leaflet, vendored with its licence),
+  ``/tiles/{z}/{x}/{y}.png`` (``--tiles-dir``). The page and Leaflet are package data:
+  found beside this module, in a checkout as in an installed wheel;
 * ``GET /api/config``, ``/api/state``, ``/api/agents/<id>``; ``POST /api/command``;
   ``GET|POST /api/replay`` (replay mode);
 * ``GET /ws``: the state pushed at ``ws_hz``, events as they happen, commands and
@@ -81,8 +83,7 @@ from swarm.runtime.websocket import WsHub
 log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
-REPO_DIR = Path(__file__).resolve().parents[2]
-LEAFLET_DIR = REPO_DIR / "node_modules" / "leaflet" / "dist"
+LEAFLET_DIR = Path(__file__).resolve().parent / "vendor" / "leaflet"
 OSM_TILES = "https://tile.openstreetmap.org/{z}/{x}/{y}.png"
 OSM_ATTRIBUTION = '&copy; <a href="https://www.openstreetmap.org/copyright">OpenStreetMap</a> contributors'
 LOCAL_TILES = "/tiles/{z}/{x}/{y}.png"
@@ -354,11 +355,7 @@ class GcsServer:
         return await self._file(self.cfg.static_dir, request.match_info["path"], "file")
 
     async def _leaflet(self, request: web.Request) -> web.StreamResponse:
-        return await self._file(
-            self.cfg.leaflet_dir,
-            request.match_info["path"],
-            "Leaflet file (install it with the set-up: npm ci)",
-        )
+        return await self._file(self.cfg.leaflet_dir, request.match_info["path"], "Leaflet file")
 
     async def _tile(self, request: web.Request) -> web.StreamResponse:
         if self.cfg.tiles_dir is None:

@@ -23,7 +23,7 @@ from net_helpers import ManualClock, free_port, wait_until
 from radios.capture import CaptureLink
 from radios.errors import CaptureDamagedError, ConfigError
 from radios.link import open_link
-from radios.mavlink import MSG_RADIO_STATUS, FrameBuilder, pack_frame
+from radios.mavlink import MSG_RADIO_STATUS, FrameBuilder, decode, pack_frame
 from radios.rotating import FlightLog, RotationPolicy, flight_log_files, read_flight_log
 from radios.tlog import read_tlog
 from swarm.cli.commands.agent import main as agent_main
@@ -352,3 +352,92 @@ def test_a_folder_without_permission_is_exit_2_for_another_user() -> None:
             for n in dirs:
                 os.rmdir(os.path.join(root, n))
         os.rmdir(base)
+
+
+# the agent's command in a process of its own, stopped (SIGTERM) once its flight log has
+# both sources; then the modules it loaded that it must not need
+AGENT_RUN = textwrap.dedent(
+    """
+    import json, os, signal, sys, threading, time
+    from swarm.cli import main
+    folder = sys.argv[2]
+
+    def stop_when_logged():
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            names = os.listdir(folder) if os.path.isdir(folder) else []
+            if any(n.endswith(".fc.tlog") for n in names) and time.monotonic() > t0 + 4:
+                break
+            time.sleep(0.1)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    t0 = time.monotonic()
+    threading.Thread(target=stop_when_logged, daemon=True).start()
+    code = main(json.loads(sys.argv[1]))
+    loaded = {m.split(".")[0] for m in sys.modules}
+    print(json.dumps({"code": code, "heavy": sorted(loaded & {"matplotlib", "aiohttp", "PIL"})}))
+    """
+)
+
+
+@pytest.mark.processes
+def test_a_real_agent_logs_its_radio_both_ways_and_its_flight_controller(tmp_path: Path) -> None:
+    from swarm.cli.bench.sim import _free_udp_range
+    from swarm.cli.procs import Child, start_emulator
+    from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind
+
+    emu, links = start_emulator(2, tmp_path)
+    port = _free_udp_range(1)
+    sim = Child(["sim", "--vehicles", "1", "--base-port", str(port)], name="vehicle")
+    logs = tmp_path / "logs"
+    try:
+        sim.wait_lines(2, 60)
+        argv = [
+            "agent",
+            "--name",
+            "agent1",
+            "--id",
+            "1",
+            "--radio",
+            links[0],
+            "--fc",
+            f"udpin:127.0.0.1:{port}",
+        ]
+        run = subprocess.run(
+            [sys.executable, "-c", AGENT_RUN, json.dumps([*argv, "--capture", str(logs)]), str(logs)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        sim.stop()
+        emu.stop()
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout.splitlines()[-1]) == {"code": 0, "heavy": []}
+    radio = [r.frame for r in read_flight_log(str(logs))]
+    sent_advertize = [
+        f
+        for f in radio
+        if f.sysid == 1
+        and f.compid == 191
+        and f.name == "TUNNEL"
+        and decode(f).payload_type == PAYLOAD_TYPE_BASE + Kind.ADVERTIZE
+    ]
+    assert sent_advertize, "the agent's own Advertize, as sent"
+    assert any(f.name == "RADIO_STATUS" and f.sysid == 51 for f in radio), "the radio's reports, as received"
+    assert any(f.name == "HEARTBEAT" and f.compid == 191 for f in radio), (
+        "the bridge's HEARTBEAT to its radio"
+    )
+    fc = {f.name for f in (r.frame for r in read_flight_log(str(logs), source="fc"))}
+    assert {"HEARTBEAT", "GLOBAL_POSITION_INT", "SYS_STATUS"} <= fc, fc
+    assert fc <= {
+        "HEARTBEAT",
+        "SYS_STATUS",
+        "GPS_RAW_INT",
+        "GLOBAL_POSITION_INT",
+        "COMMAND_ACK",
+        "BATTERY_STATUS",
+        "HOME_POSITION",
+        "EXTENDED_SYS_STATE",
+        "STATUSTEXT",
+    }, fc

@@ -132,15 +132,15 @@ class FlightLogStats:
 
     records: int = 0
     bytes: int = 0
+    paused: bool = False
     files: int = 0
     removed: int = 0
-    syncs: int = 0
     sync_max_s: float = 0.0
+    syncs: int = 0
     sync_total_s: float = 0.0
     dropped: int = 0
     lost: int = 0
     errors: int = 0
-    paused: bool = False
 
 
 @dataclass

@@ -475,7 +475,7 @@ class FlightLogSink:
 
 def flight_log_files(directory: str, *, prefix: str | None = None, source: str = RADIO) -> list[str]:
     """The paths of ``source``'s files in ``directory``, in time order, for ``prefix``
-    (an agent's name; None: the only prefix there).
+    (an agent's name; None: the only prefix there). Only regular files count.
 
     Raises:
         ConfigError: an unknown source, a folder that cannot be listed, several
@@ -490,7 +490,8 @@ def flight_log_files(directory: str, *, prefix: str | None = None, source: str =
     found: dict[str, list[tuple[str, int, str]]] = {}
     for n in names:
         m = _NAME.match(n)
-        if m is not None and bool(m["fc"]) == (source == FC):
+        # only regular files: a FIFO or a device named like a log would block or never end
+        if m is not None and bool(m["fc"]) == (source == FC) and os.path.isfile(os.path.join(directory, n)):
             found.setdefault(m["prefix"], []).append((m["stamp"], int(m["seq"]), n))
     if prefix is None:
         if len(found) > 1:

@@ -213,6 +213,14 @@ def test_damage_that_is_not_a_torn_tail_still_ends_the_reading(tmp_path: Path) -
         list(read_flight_log(str(tmp_path)))
 
 
+def test_a_fifo_or_folder_named_like_a_log_is_not_read(tmp_path: Path) -> None:
+    with FlightLog(str(tmp_path), "a1", clock=ManualClock(T0)) as log:
+        put_all(log, frames(3))
+    os.mkfifo(tmp_path / "a1-20990101T000000Z-0001.tlog")  # opening it would block for ever
+    (tmp_path / "a1-20990101T000000Z-0002.tlog").mkdir()
+    assert [r.raw for r in read_flight_log(str(tmp_path))] == frames(3)
+
+
 def test_replay_reads_a_folder_its_sources_and_agents(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -19,9 +19,12 @@ cut without warning. :class:`FlightLog` therefore writes one folder of ordinary
   loses at most about the last second and a ``kill -9`` only what is queued.
 * **Rotation**: a file is closed (synced first) and the next opened when a record
   would take it past ``max_bytes`` or it is ``rotate_s`` old; both sources rotate
-  together. After each rotation the oldest files of this prefix are removed until
-  the set, plus room for the new files, fits ``budget_bytes``; an open file is
-  never removed, and files of other prefixes are not this log's.
+  together. A clock that jumps by more than ``rotate_s`` (a Pi without a real-time
+  clock setting its time from GPS or NTP after take-off) starts a new file too, so
+  no file holds the jump (readers take a day's step inside a file for damage). After
+  each rotation the oldest files of this prefix are removed until the set, plus room
+  for the new files, fits ``budget_bytes``; an open file is never removed, and files
+  of other prefixes are not this log's.
 * **A full disk never stops the aircraft.** A failing write, open or sync pauses
   the log: ``on_error`` hears one line, records are counted as ``lost``, and every
   ``retry_s`` (5 s) the writer frees space by the budget and tries a new file; when
@@ -158,6 +161,7 @@ class _Writer:
     files: dict[str, _Open] = field(default_factory=dict)
     stem: str | None = None
     stem_t: float = 0.0
+    last_usec: int | None = None  # the stamp of the last record written
     seq: int = 0
     dirty: bool = False
     synced: float = 0.0
@@ -286,14 +290,18 @@ class FlightLog:
         """Append ``recs`` to ``src``'s file, rotating when the file is old or a record
         would take it past ``max_bytes`` (a record is never split between files)."""
         w = self._w
-        if w.stem is None or now - w.stem_t >= self.policy.rotate_s:
+        if w.stem is None or abs(now - w.stem_t) >= self.policy.rotate_s:
             self._rotate(now)
         chunk: list[bytes] = []
         pending = 0
+        jump = int(self.policy.rotate_s * 1e6)
         for rec in recs:
             f = w.files.get(src)
             used = (f.size if f is not None else 0) + pending
-            if used > 0 and used + len(rec) > self.policy.max_bytes:
+            (usec,) = TIMESTAMP.unpack_from(rec)
+            stepped = w.last_usec is not None and abs(usec - w.last_usec) > jump
+            w.last_usec = usec
+            if (used > 0 and used + len(rec) > self.policy.max_bytes) or (used > 0 and stepped):
                 if chunk:
                     self._append(src, chunk, now)
                     chunk, pending = [], 0

@@ -94,6 +94,20 @@ def test_rotation_by_age_from_the_clock(tmp_path: Path) -> None:
     assert names(tmp_path) == [f"a1-{STAMP0}-0001.tlog", "a1-20261118T110741Z-0002.tlog"]
 
 
+def test_a_clock_that_jumps_starts_a_new_file_each_readable_alone(tmp_path: Path) -> None:
+    raws = frames(6)
+    stamps = [T0, T0 + 1, T0 + 3 * 86400, T0 + 3 * 86400 + 1, T0 - 86400, T0 - 86399]  # GPS time, then back
+    clock = ManualClock(T0)
+    with FlightLog(str(tmp_path), "a1", clock=clock) as log:
+        for raw, t in zip(raws, stamps, strict=True):
+            clock.now = t
+            log.put("radio", raw, t)
+    files = flight_log_files(str(tmp_path))
+    assert len(files) == 3
+    got = sorted([r.t for r in read_tlog(f)] for f in files)  # names sort by a clock that jumped
+    assert got == sorted([stamps[0:2], stamps[2:4], stamps[4:6]])
+
+
 def test_budget_removes_the_oldest_only_ours_never_open_nor_through_links(tmp_path: Path) -> None:
     d = tmp_path / "logs"
     d.mkdir()

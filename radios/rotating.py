@@ -36,10 +36,7 @@ cut without warning. :class:`FlightLog` therefore writes one folder of ordinary
   link planted later at a file's name, or the folder swapped for a link, cannot
   send the log elsewhere.
 
-:func:`flight_log_files` lists a folder's sets (by agent prefix and source) in
-time order and :func:`read_flight_log` reads one as a single capture: a record
-torn by a power cut at the end of a file is skipped (and named in ``torn``),
-other damage ends the reading as in :func:`radios.tlog.read_tlog`.
+:mod:`radios.tlogset` reads such a set back as one capture.
 """
 
 from __future__ import annotations
@@ -50,19 +47,20 @@ import stat
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from radios.errors import CaptureDamagedError, CaptureError, ConfigError
-from radios.mavlink import STX_V1, STX_V2, frame_length
-from radios.tlog import TIMESTAMP, TIMESTAMP_LEN, TlogRecord, read_tlog
+from radios.errors import ConfigError
+from radios.mavlink import frame_length
+from radios.tlog import TIMESTAMP
 
 MB = 1 << 20
 RADIO = "radio"
 FC = "fc"
 SOURCES = (RADIO, FC)
-_SUFFIX = {RADIO: ".tlog", FC: ".fc.tlog"}
-_NAME = re.compile(
+SUFFIX = {RADIO: ".tlog", FC: ".fc.tlog"}
+#: a flight log file's name: prefix, stamp, seq and whether it is the flight controller's
+NAME = re.compile(
     r"^(?P<prefix>[A-Za-z0-9_-]{1,32})-(?P<stamp>\d{8}T\d{6}Z)-(?P<seq>\d{4,})(?P<fc>\.fc)?\.tlog$"
 )
 _PREFIX = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
@@ -220,14 +218,14 @@ class FlightLog:
         data = bytes(raw)
         stamp = self.clock() if t is None else t
         usec = round(stamp * 1e6) if stamp == stamp and 0 <= stamp < 1.8e13 else -1
-        if usec < 0 or source not in _SUFFIX or frame_length(data) != len(data):
+        if usec < 0 or source not in SUFFIX or frame_length(data) != len(data):
             self.stats.dropped += 1
             return
         self._queue.append((source, TIMESTAMP.pack(usec) + data))
 
     def sink(self, source: str) -> FlightLogSink:
         """A capture sink for :class:`radios.capture.CaptureLink` writing to ``source``."""
-        if source not in _SUFFIX:
+        if source not in SUFFIX:
             raise ConfigError(f"unknown flight log source {source!r}: {', '.join(SOURCES)}")
         return FlightLogSink(self, source)
 
@@ -328,7 +326,7 @@ class FlightLog:
     def _open(self, src: str, now: float) -> _Open:
         w = self._w
         assert w.stem is not None
-        name = w.stem + _SUFFIX[src]
+        name = w.stem + SUFFIX[src]
         flags = (
             os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
         )
@@ -344,7 +342,7 @@ class FlightLog:
         taken = self._names()
         while True:
             stem = f"{self.prefix}-{_stamp(now)}-{w.seq:04d}"
-            if not any(stem + s in taken for s in _SUFFIX.values()):
+            if not any(stem + s in taken for s in SUFFIX.values()):
                 break
             w.seq += 1
         w.stem, w.stem_t = stem, now
@@ -387,7 +385,7 @@ class FlightLog:
         try:
             with os.scandir(self._dir_fd) as it:
                 for e in it:
-                    m = _NAME.match(e.name)
+                    m = NAME.match(e.name)
                     if m is None or m["prefix"] != self.prefix:
                         continue
                     st = e.stat(follow_symlinks=False)
@@ -469,7 +467,7 @@ class FlightLogSink:
 
     @property
     def path(self) -> str:
-        return os.path.join(self.log.directory, f"{self.log.prefix}-*{_SUFFIX[self.source]}")
+        return os.path.join(self.log.directory, f"{self.log.prefix}-*{SUFFIX[self.source]}")
 
     def write(self, raw: bytes | bytearray, t: float | None = None) -> None:
         self.log.put(self.source, bytes(raw), t)
@@ -478,119 +476,15 @@ class FlightLogSink:
         """Nothing: the flight log outlives the link."""
 
 
-# -- reading a set ------------------------------------------------------------------------
-
-
-def flight_log_files(directory: str, *, prefix: str | None = None, source: str = RADIO) -> list[str]:
-    """The paths of ``source``'s files in ``directory``, in time order, for ``prefix``
-    (an agent's name; None: the only prefix there). Only regular files count.
-
-    Raises:
-        ConfigError: an unknown source, a folder that cannot be listed, several
-            prefixes and none chosen, or no file of that prefix and source.
-    """
-    if source not in _SUFFIX:
-        raise ConfigError(f"unknown flight log source {source!r}: {', '.join(SOURCES)}")
-    try:
-        names = os.listdir(directory)
-    except OSError as exc:
-        raise ConfigError(f"cannot list {directory}: {exc.strerror or exc}") from None
-    found: dict[str, list[tuple[str, int, str]]] = {}
-    for n in names:
-        m = _NAME.match(n)
-        # only regular files: a FIFO or a device named like a log would block or never end
-        if m is not None and bool(m["fc"]) == (source == FC) and os.path.isfile(os.path.join(directory, n)):
-            found.setdefault(m["prefix"], []).append((m["stamp"], int(m["seq"]), n))
-    if prefix is None:
-        if len(found) > 1:
-            raise ConfigError(f"{directory} holds the flight logs of {', '.join(sorted(found))}: choose one")
-        prefix = next(iter(found), None)
-    if prefix is None or prefix not in found:
-        who = f" of {prefix}" if prefix else ""
-        raise ConfigError(f"{directory}: no {source} flight log{who} (*{_SUFFIX[source]})")
-    return [os.path.join(directory, n) for _, _, n in sorted(found[prefix])]
-
-
-def torn_tail(path: str, offset: int) -> bool:
-    """Whether the bytes of ``path`` from ``offset`` to its end are one record cut
-    short (what a power cut leaves), rather than damage."""
-    try:
-        with open(path, "rb") as f:
-            f.seek(offset)
-            rest = f.read(TIMESTAMP_LEN + 300)
-    except OSError:
-        return False
-    if len(rest) <= TIMESTAMP_LEN:
-        return True
-    if len(rest) < TIMESTAMP_LEN + 3:
-        return rest[TIMESTAMP_LEN] in (STX_V1, STX_V2)
-    total = frame_length(rest[TIMESTAMP_LEN:])
-    return total is not None and len(rest) < TIMESTAMP_LEN + total
-
-
-class FlightLogReader:
-    """The records of several ``.tlog`` files as one capture (see
-    :func:`read_flight_log`); ``torn`` lists ``(path, offset)`` of the torn records
-    skipped, ``records`` counts the records read, ``path`` names the set."""
-
-    def __init__(self, paths: list[str], name: str) -> None:
-        self.paths = paths
-        self.path = name
-        self.torn: list[tuple[str, int]] = []
-        self.records = 0
-        self._it = self._records()
-
-    def __iter__(self) -> Iterator[TlogRecord]:
-        return self
-
-    def __next__(self) -> TlogRecord:
-        rec = next(self._it)
-        self.records += 1
-        return rec
-
-    def _records(self) -> Generator[TlogRecord, None, None]:
-        for path in self.paths:
-            reader = read_tlog(path)
-            try:
-                yield from reader
-            except CaptureDamagedError as exc:
-                if not torn_tail(path, exc.offset):
-                    raise
-                self.torn.append((path, exc.offset))
-            finally:
-                reader.close()
-
-    def close(self) -> None:
-        self._it.close()
-
-
-def read_flight_log(directory: str, *, prefix: str | None = None, source: str = RADIO) -> FlightLogReader:
-    """Read one agent's rotated set (:func:`flight_log_files`) as one capture.
-
-    Raises:
-        ConfigError: as :func:`flight_log_files`.
-
-    Iterating raises:
-        CaptureError: a file of the set cannot be opened.
-        CaptureDamagedError: damage other than a torn last record (after every good
-            record before it).
-    """
-    paths = flight_log_files(directory, prefix=prefix, source=source)
-    return FlightLogReader(paths, directory)
-
-
 __all__ = [
     "FC",
+    "NAME",
     "RADIO",
     "SOURCES",
-    "CaptureError",
+    "SUFFIX",
     "FlightLog",
-    "FlightLogReader",
     "FlightLogSink",
     "FlightLogStats",
     "RotationPolicy",
-    "flight_log_files",
     "prepare_directory",
-    "read_flight_log",
-    "torn_tail",
 ]

@@ -24,8 +24,9 @@ from radios.capture import CaptureLink
 from radios.errors import CaptureDamagedError, ConfigError
 from radios.link import open_link
 from radios.mavlink import MSG_RADIO_STATUS, FrameBuilder, decode, pack_frame
-from radios.rotating import FlightLog, RotationPolicy, flight_log_files, read_flight_log
+from radios.rotating import FlightLog, RotationPolicy
 from radios.tlog import read_tlog
+from radios.tlogset import flight_log_files, read_flight_log
 from swarm.cli.commands.agent import main as agent_main
 from swarm.cli.commands.replay import main as replay_main
 

@@ -36,8 +36,9 @@ import time
 from typing import Any
 
 from radios.mavlink import MSG_TUNNEL, FrameBuilder, decode, frame_length
-from radios.rotating import FlightLog, read_flight_log
+from radios.rotating import FlightLog
 from radios.tlog import TIMESTAMP
+from radios.tlogset import read_flight_log
 from swarm.cli.bench.sim import _free_udp_range
 from swarm.cli.procs import Child, cpu_seconds, json_events, start_emulator
 from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind

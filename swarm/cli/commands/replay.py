@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 One capture file, or a folder holding an agent's flight log (``swarm agent
---capture DIR``: :func:`radios.rotating.read_flight_log` reads its rotated files as
+--capture DIR``: :func:`radios.tlogset.read_flight_log` reads its rotated files as
 one capture, in time order; ``--agent NAME`` chooses among several agents' logs and
 ``--fc`` reads the flight controller's files instead of the radio's; a record torn
 by a power cut at the end of a file is skipped with one note on stderr). Four
@@ -53,8 +53,9 @@ from radios.replay import (
     format_record,
     format_time,
 )
-from radios.rotating import FC, RADIO, FlightLogReader, read_flight_log
+from radios.rotating import FC, RADIO
 from radios.tlog import TlogReader, read_tlog
+from radios.tlogset import FlightLogReader, read_flight_log
 from radios.url import parse_link_url
 from swarm.cli.util import (
     EXIT_FAILURE,

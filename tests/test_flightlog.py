@@ -467,3 +467,43 @@ def test_a_real_agent_logs_its_radio_both_ways_and_its_flight_controller(tmp_pat
     fc = {f.name for f in (r.frame for r in read_flight_log(str(logs), source="fc"))}
     assert {"HEARTBEAT", "GLOBAL_POSITION_INT", "SYS_STATUS"} <= fc, fc
     assert fc <= FC_KEPT, fc
+
+
+@pytest.mark.processes
+def test_a_full_disk_never_stops_a_real_agent(tmp_path: Path) -> None:
+    import resource
+
+    from swarm.cli.bench.sim import _free_udp_range
+    from swarm.cli.procs import Child, json_events
+
+    def paused() -> list[dict[str, str]]:
+        return [
+            e for e in json_events(agent.lines, "flight-log") if e["text"].startswith("flight log paused")
+        ]
+
+    port = _free_udp_range(1)
+    sim = Child(["sim", "--vehicles", "1", "--base-port", str(port)], name="vehicle")
+    argv = ["agent", "--name", "a1", "--id", "1", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"]
+    argv += ["--fc", f"udpin:127.0.0.1:{port}", "--json", "--capture", str(tmp_path / "logs")]
+    try:
+        sim.wait_lines(2, 60)
+        agent = Child(argv, name="agent")
+        agent.wait_lines(1, 60)  # ready: its Zenoh session has made its shared-memory file
+        # the kernel now refuses its files past 1000 bytes (EFBIG), as a full card would;
+        # Python ignores SIGXFSZ, so the write fails instead of killing it
+        resource.prlimit(agent.pid, resource.RLIMIT_FSIZE, (1000, 1000))
+        try:
+            wait_until(paused, "the flight log to pause", 60, children=[agent])
+            seen = len(agent.lines)
+            wait_until(lambda: len(agent.lines) > seen, "the agent going on", 60, children=[agent])
+            assert agent.proc.poll() is None
+        finally:
+            code = agent.stop()
+    finally:
+        sim.stop()
+    assert code == 0 and agent.errors == [], agent.errors
+    assert "File too large" in paused()[0]["text"]
+    # one line when it pauses and one when a new file takes records again (each new
+    # file here fills its 1000 bytes too): never a line per failed write
+    said = [e["text"].split(" ")[2] for e in json_events(agent.lines, "flight-log")]
+    assert said == ["paused:", "resumed"] * (len(said) // 2) + ["paused:"] * (len(said) % 2), said

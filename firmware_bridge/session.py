@@ -189,6 +189,20 @@ class Session:
         """False while the autopilot is silent for longer than ``link_timeout``."""
         return self._link.ok
 
+    def add_message_hook(self, fn: Callable[[Any], object]) -> None:
+        """Call ``fn(msg)`` with every message received on the autopilot's link (a
+        pymavlink message: ``get_msgbuf()`` is the frame as received), on the receiver
+        thread, so ``fn`` must not block (a flight log queues the frame). An error in
+        ``fn`` is logged, never raised into the receiver."""
+
+        def hook(_conn: Any, msg: Any) -> None:
+            try:
+                fn(msg)
+            except Exception:
+                log.debug("%s: message hook failed", self.endpoint, exc_info=True)
+
+        self._conn.message_hooks.append(hook)
+
     # -- state access
     @property
     def state(self) -> VehicleState:

@@ -10,7 +10,10 @@ behaves exactly like it, except that
 * each frame :meth:`~CaptureLink.recv` returns,
 
 is also written, with the time it passed (``clock``, default :func:`time.time`,
-seconds since the epoch), to a :class:`~radios.tlog.TlogWriter`. Both directions go
+seconds since the epoch), to a :class:`~radios.tlog.TlogWriter`, or to any
+:class:`CaptureSink` handed in instead of a path (an aircraft's rotated flight log,
+:class:`radios.rotating.FlightLogSink`, which stamps frames itself and never
+raises: a full disk must not cost the radio a frame). Both directions go
 to one file in the order they happened, as MAVProxy's telemetry logs do. The
 wrapper adds no parsing, buffering or thread of its own: the inner link does the
 work and its statistics are the wrapper's. ``close()`` closes the link, then the
@@ -24,6 +27,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
+from typing import Protocol, runtime_checkable
 
 from radios.errors import LinkClosedError
 from radios.linkbase import Link, LinkStats
@@ -31,8 +35,21 @@ from radios.mavlink import Frame
 from radios.tlog import TlogWriter
 
 
+@runtime_checkable
+class CaptureSink(Protocol):
+    """Where a :class:`CaptureLink` writes: ``write(raw)`` one frame, ``close()``, ``path``."""
+
+    @property
+    def path(self) -> str: ...
+
+    def write(self, raw: bytes) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class CaptureLink(Link):
-    """``inner`` with every frame sent and received also written to ``path``.
+    """``inner`` with every frame sent and received also written to ``path`` (a file
+    name, or a :class:`CaptureSink`: the sink is closed with the link).
 
     Raises:
         CaptureError: the capture file cannot be created (the inner link is left
@@ -42,7 +59,7 @@ class CaptureLink(Link):
     def __init__(
         self,
         inner: Link,
-        path: str | os.PathLike[str],
+        path: str | os.PathLike[str] | CaptureSink,
         *,
         clock: Callable[[], float] = time.time,
     ) -> None:
@@ -50,7 +67,7 @@ class CaptureLink(Link):
         self.inner = inner
         self.can_send = inner.can_send
         self.can_recv = inner.can_recv
-        self.writer = TlogWriter(path, clock=clock)
+        self.writer: CaptureSink = path if isinstance(path, CaptureSink) else TlogWriter(path, clock=clock)
 
     @property
     def path(self) -> str:

@@ -32,7 +32,7 @@ from collections.abc import Callable
 from types import MappingProxyType
 from typing import Any
 
-from radios.capture import CaptureLink
+from radios.capture import CaptureLink, CaptureSink
 from radios.errors import FrameError, LinkOpenError
 from radios.linkbase import Link, LinkStats
 from radios.url import PYSERIAL_SCHEMES, LinkURL, parse_link_url
@@ -68,12 +68,15 @@ def backend(scheme: str, url: str = "") -> Callable[..., Link]:
     return factory
 
 
-def open_link(url: str, *, capture: str | os.PathLike[str] | None = None, **options: Any) -> Link:
+def open_link(
+    url: str, *, capture: str | os.PathLike[str] | CaptureSink | None = None, **options: Any
+) -> Link:
     """Open a link by URL (see the module docstring for the forms).
 
     ``capture`` wraps the link so every frame sent and received is also written to
-    that ``.tlog``. Extra keyword ``options`` go to the backend (the replay backend
-    takes ``clock`` and ``sleep``; the others take none).
+    that ``.tlog`` (or to that :class:`~radios.capture.CaptureSink`). Extra keyword
+    ``options`` go to the backend (the replay backend takes ``clock`` and ``sleep``;
+    the others take none).
 
     Raises:
         LinkOpenError: unknown scheme, malformed URL or option, missing device.

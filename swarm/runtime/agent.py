@@ -42,6 +42,13 @@ the paper has it (section 2.2: one thread per protocol or link, queues between t
   without FLAG_FC_OK and with the mode unknown).
 * **Vehicle thread**: runs the pilot's blocking calls (arm, take-off, land...) and
   queues each result back.
+* **Flight log** (optional, a :class:`radios.rotating.FlightLog` handed in): the radio
+  link is wrapped for capture (:class:`radios.capture.CaptureLink`: every frame the
+  bridge writes and reads, raw, so signatures and RADIO_STATUS are in it) and the
+  flight controller's key messages (:data:`FC_LOG_MESSAGES`) are queued from the
+  driver's receiver thread, each source to its own files. Queuing never waits for
+  the disk; the log's writer thread does the writing. :meth:`Agent.stop` closes it
+  last, after the radio and the vehicle, so their last frames are in it.
 
 :meth:`Agent.loop_beats` names every loop that must keep going round (the protocol
 loop, the bridge's two threads, the flight-controller session's receiver and
@@ -111,6 +118,11 @@ log = logging.getLogger(__name__)
 
 DEFAULT_AIR_KBPS = 64
 
+#: the flight controller's messages a flight log keeps (by message id): HEARTBEAT,
+#: SYS_STATUS, GPS_RAW_INT, GLOBAL_POSITION_INT, COMMAND_ACK, BATTERY_STATUS,
+#: HOME_POSITION, EXTENDED_SYS_STATE, STATUSTEXT
+FC_LOG_MESSAGES = frozenset({0, 1, 24, 33, 77, 147, 242, 245, 253})
+
 
 def default_round_s(slots: int = 2, air_kbps: int = DEFAULT_AIR_KBPS) -> float:
     """The SiK TDM round for ``slots`` radios at ``air_kbps`` (2: a standard pair)."""
@@ -159,6 +171,9 @@ class Agent(StartOnce):
     :class:`radios.errors.ConfigError` (key file), :class:`radios.errors.LinkOpenError`
     (radio), :class:`swarm.errors.TransportError` (Zenoh endpoints),
     :class:`firmware_bridge.errors.BridgeError` (flight controller).
+
+    ``flight_log``: an open :class:`radios.rotating.FlightLog` the agent writes its
+    radio traffic and its flight controller's key messages to; the agent closes it.
     """
 
     def __init__(
@@ -172,6 +187,7 @@ class Agent(StartOnce):
         on_state: Callable[[AgentState], None] | None = None,
         on_event: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        flight_log: Any = None,
     ) -> None:
         check_name(name)
         check_id(agent_id)
@@ -194,6 +210,7 @@ class Agent(StartOnce):
         self.bridge: Any = None
         self.io: NodeIO | None = None  # what start() opened
         self.vehicle: Any = None
+        self.flight_log = flight_log
         self.started_at = 0.0
         self.loop = EventLoop(
             f"agent-{name}-protocol",
@@ -229,7 +246,8 @@ class Agent(StartOnce):
     def _open(self) -> None:
         """Open the session, radio (unless handed a link), bridge and flight controller
         and start the threads (:meth:`start`, from :class:`StartOnce`)."""
-        self.io = io = open_node_io(self.name, self.id, self.options)
+        sink = self.flight_log.sink("radio") if self.flight_log is not None else None
+        self.io = io = open_node_io(self.name, self.id, self.options, capture=sink)
         self.session, self.link, self.bridge, self.transport = io.session, io.link, io.bridge, io.transport
         if self.fc_url is not None:
             from firmware_bridge.driver import connect
@@ -240,6 +258,8 @@ class Agent(StartOnce):
                 on_link_lost=lambda: self.loop.put(VehicleLink(False)),
                 on_link_restored=lambda: self.loop.put(VehicleLink(True)),
             )
+            if self.flight_log is not None:
+                self.vehicle.add_message_hook(self._log_fc)
         self.node = AgentNode(
             self.id,
             self.name,
@@ -302,6 +322,8 @@ class Agent(StartOnce):
                 log.debug("agent %s: error while closing the vehicle", self.name, exc_info=True)
         if self.io is not None:
             self.io.close()  # transport, bridge, link (unless handed), session
+        if self.flight_log is not None:
+            self.flight_log.close()  # last: the frames of the closing are in it
 
     close = stop
 
@@ -469,6 +491,11 @@ class Agent(StartOnce):
                 except Exception:
                     log.exception("agent %s: on_state callback failed", self.name)
 
+    def _log_fc(self, msg: Any) -> None:
+        """The driver's receiver thread: queue a key message for the flight log."""
+        if msg.get_msgId() in FC_LOG_MESSAGES:
+            self.flight_log.put("fc", msg.get_msgbuf())
+
     # -- pose thread -------------------------------------------------------------------
     def _pose_loop(self) -> None:
         period = 1.0 / self.config.pose_hz
@@ -502,6 +529,7 @@ class Agent(StartOnce):
 
 
 __all__ = [
+    "FC_LOG_MESSAGES",
     "PROFILES",
     "SETPOINT_PERIOD",
     "STATS",

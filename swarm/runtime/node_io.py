@@ -91,7 +91,7 @@ def open_node(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     key_file: str | None = None,
-    capture: str | None = None,
+    capture: Any = None,
     link: Any = None,
 ) -> tuple[Any, Any, RadioBridge | None]:
     """A node's way into the key space: ``(session, link, bridge)``. With ``radio`` the
@@ -99,8 +99,10 @@ def open_node(
     opened (captured to ``capture`` if given) and bridged, MAVLink 2 signed with the
     key in ``key_file``; otherwise a session on the Zenoh endpoints, no link or bridge.
     A ``link`` already open is bridged instead of opening ``radio``; it is not
-    returned (its opener closes it). Whatever was opened is closed again if a later
-    step fails.
+    returned (its opener closes it). ``capture`` is a ``.tlog`` path or a capture
+    sink (:class:`radios.capture.CaptureSink`: an agent's flight log); a handed link
+    is captured to a sink too, through a wrapper its opener need not know of.
+    Whatever was opened is closed again if a later step fails.
 
     Raises:
         radios.errors.ConfigError: the key file. radios.errors.LinkOpenError: the radio.
@@ -117,6 +119,10 @@ def open_node(
         if radio is None:
             return open_session(listen, connect), None, None
         link = open_link(radio, capture=capture)
+    elif capture is not None and not isinstance(capture, str):
+        from radios.capture import CaptureLink
+
+        link = CaptureLink(link, capture)  # not closed by us: the sink outlives it, the opener closes link
     try:
         session = open_session()  # no endpoints, no scouting: only the radio
     except BaseException:
@@ -135,7 +141,7 @@ def open_node(
     return session, link if ours else None, bridge
 
 
-def open_node_io(name: str, agent_id: int, node: NodeOptions, *, capture: str | None = None) -> NodeIO:
+def open_node_io(name: str, agent_id: int, node: NodeOptions, *, capture: Any = None) -> NodeIO:
     """:func:`open_node` for ``node`` (radio URL, open link or Zenoh endpoints, key)
     and the node's :class:`Transport` as ``name`` on its session.
 

@@ -37,11 +37,20 @@ too: its protocol state, its pilot and its flight controller are not touched, an
 a radio that hears no one loses nothing by the pause. A re-check that finds the
 radio silent, or different without ``--restore-radio``, prints one line
 (``radio-check-failed``) and the agent carries on; it tries again S seconds later.
+
+``--capture DIR`` keeps a flight log (:mod:`radios.rotating`): the radio's traffic
+both ways in ``NAME-YYYYmmddTHHMMSSZ-NNNN.tlog`` and the flight controller's key
+messages in ``...NNNN.fc.tlog``, rotated at ``--capture-max-mb`` or
+``--capture-rotate-s``, the oldest removed to stay under ``--capture-budget-mb``,
+synced about once a second. A folder that is a symbolic link, a file, or not
+writable is refused at start (exit 2); a full disk later pauses the log with one
+line (``{"event": "flight-log", ...}`` with ``--json``) and the agent flies on.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -105,8 +114,63 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
     _add_flight_arguments(p)
+    _add_capture_arguments(p)
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
     return p
+
+
+#: flag -> (default, what): the flight log's sizes and age (defaults for a Pi's SD card)
+CAPTURE_FLAGS = {
+    "--capture-max-mb": (16.0, "start a new file past this size"),
+    "--capture-rotate-s": (600.0, "start a new file after this many seconds"),
+    "--capture-budget-mb": (512.0, "remove the oldest files to keep the set under this size"),
+}
+
+
+def _add_capture_arguments(p: argparse.ArgumentParser) -> None:
+    c = p.add_argument_group("flight log")
+    c.add_argument(
+        "--capture",
+        metavar="DIR",
+        help="keep a flight log in DIR (created if missing): the radio's traffic both ways and "
+        "the flight controller's key messages, as rotated .tlog files",
+    )
+    for flag, (default, what) in CAPTURE_FLAGS.items():
+        c.add_argument(
+            flag,
+            type=float,
+            metavar="MB" if flag.endswith("mb") else "S",
+            help=f"{what} (default {default:g})",
+        )
+
+
+def _flight_log(a: argparse.Namespace, out: _Lines) -> Any:
+    """The flight log ``--capture`` asks for (None without it). Raises UsageError for
+    its flags and ConfigError for a folder that is a link, a file or not writable."""
+    given = {f: getattr(a, f[2:].replace("-", "_")) for f in CAPTURE_FLAGS}
+    if a.capture is None:
+        if any(v is not None for v in given.values()):
+            raise UsageError(f"{', '.join(f for f, v in given.items() if v is not None)} need --capture")
+        return None
+    from radios.rotating import MB, FlightLog, RotationPolicy
+
+    v = {f: CAPTURE_FLAGS[f][0] if x is None else x for f, x in given.items()}
+    for flag, x in v.items():
+        if not (math.isfinite(x) and x > 0):
+            raise UsageError(f"{flag} {x:g}: must be a positive number")
+    try:
+        policy = RotationPolicy(
+            max_bytes=int(v["--capture-max-mb"] * MB),
+            rotate_s=v["--capture-rotate-s"],
+            budget_bytes=int(v["--capture-budget-mb"] * MB),
+        )
+    except ValueError as exc:
+        raise UsageError(f"--capture: {exc}") from None
+
+    def say(text: str) -> None:
+        out.line({"event": "flight-log", "name": a.name, "id": a.id, "text": text}, f"agent {a.name}: {text}")
+
+    return FlightLog(a.capture, a.name, policy, on_error=say)
 
 
 def _add_timing_arguments(p: argparse.ArgumentParser) -> None:
@@ -308,7 +372,9 @@ def _check_arguments(a: argparse.Namespace) -> None:
 
 
 def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
-    """The agent the arguments describe (not started). Raises UsageError."""
+    """The agent the arguments describe (not started), with its flight log open. Raises
+    UsageError, or ConfigError for the flight log's folder."""
+    flight_log = _flight_log(a, out)
     try:
         formation = FormationConfig(
             back_m=a.back, side_m=a.side, stagger_m=a.stagger, min_separation_m=a.min_separation
@@ -317,8 +383,19 @@ def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
         config = AgentConfig(
             profile=a.profile, round_s=a.round_s, vote=a.vote, pose_hz=a.pose_hz, pilot=pilot
         )
-        return Agent(a.name, a.id, a.node, fc=a.fc, config=config, on_state=out.state, on_event=out.pilot)
+        return Agent(
+            a.name,
+            a.id,
+            a.node,
+            fc=a.fc,
+            config=config,
+            on_state=out.state,
+            on_event=out.pilot,
+            flight_log=flight_log,
+        )
     except (MessageError, ValueError) as exc:
+        if flight_log is not None:
+            flight_log.close()
         raise UsageError(str(exc)) from None
 
 

@@ -18,6 +18,7 @@ AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
     "gcs": ("gcs", "ground station: 50 agents at 5 Hz, WebSocket rate, server CPU, page frames"),
     "formation": ("formation", "V formation slot error and air use vs pose rate and loss"),
     "faults": ("faults", "a signed swarm in flight: crashes, restarts, unplugs, a rogue radio"),
+    "agent": ("agent", "one agent: start-up to first Advertize, imports, CPU, memory, flight-log loss"),
 }
 
 

@@ -1,8 +1,13 @@
-"""`swarm replay`: decode, summarise or re-feed a radio capture (.tlog).
+"""`swarm replay`: decode, summarise or re-feed a radio capture (.tlog) or a flight log.
 
 Theory of operation
 -------------------
-One capture file, four modes (each its own function below; only one runs):
+One capture file, or a folder holding an agent's flight log (``swarm agent
+--capture DIR``: :func:`radios.tlogset.read_flight_log` reads its rotated files as
+one capture, in time order; ``--agent NAME`` chooses among several agents' logs and
+``--fc`` reads the flight controller's files instead of the radio's; a record torn
+by a power cut at the end of a file is skipped with one note on stderr). Four
+modes (each its own function below; only one runs):
 
 * dump (default): one line per frame, MAVProxy-like text or, with ``--json``, one
   JSON object per line (:func:`radios.replay.decode_record`);
@@ -18,10 +23,10 @@ One capture file, four modes (each its own function below; only one runs):
   (:class:`radios.replay.Player`), then a summary is printed. SIGINT or SIGTERM
   stops it before the next frame (exit 130 for SIGINT, 0 for SIGTERM).
 
-The capture is streamed, never loaded whole. A damaged capture is used up to the
-damage: every whole record is printed (or counted, or sent), then the damage
-message goes to stderr and the exit code is 1. A missing file is bad input (exit
-2). Errors never show a traceback (:func:`swarm.cli.util.guarded`).
+``--plot`` reads one file. The capture is streamed, never loaded whole. A damaged
+capture is used up to the damage: every whole record is printed (or counted, or
+sent), then the damage message goes to stderr and the exit code is 1. A missing
+file is bad input (exit 2). Errors never show a traceback (:func:`swarm.cli.util.guarded`).
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from radios.errors import CaptureDamagedError, LinkError
+from radios.errors import CaptureDamagedError, ConfigError, LinkError
 from radios.link import open_link
 from radios.replay import (
     DEFAULT_MAX_GAP,
@@ -48,7 +53,9 @@ from radios.replay import (
     format_record,
     format_time,
 )
+from radios.rotating import FC, RADIO
 from radios.tlog import TlogReader, read_tlog
+from radios.tlogset import FlightLogReader, read_flight_log
 from radios.url import parse_link_url
 from swarm.cli.util import (
     EXIT_FAILURE,
@@ -65,7 +72,11 @@ PROG = "swarm replay"
 
 def _build_parser() -> argparse.ArgumentParser:
     p = parser(PROG, "Decode, summarise or re-feed a radio capture (.tlog).")
-    p.add_argument("file", metavar="FILE", help="the capture (.tlog)")
+    p.add_argument("file", metavar="FILE", help="the capture (.tlog), or a flight log's folder")
+    p.add_argument("--agent", metavar="NAME", help="with a folder: whose flight log (if it holds several)")
+    p.add_argument(
+        "--fc", action="store_true", help="with a folder: the flight controller's messages, not the radio's"
+    )
     p.add_argument("--json", action="store_true", help="JSON lines / one JSON object")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--stats", action="store_true", help="print statistics, not frames")
@@ -110,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
         if given:
             raise UsageError(f"{', '.join(given)} only appl{'ies' if len(given) == 1 else 'y'} with --to")
-    reader = _open(args.file)
+    reader = _open(args.file, args)
     try:
         if args.to is not None:
             return _feed(reader, args)
@@ -124,15 +135,34 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_FAILURE
     finally:
         reader.close()
+        _torn_notes(reader)
 
 
-def _open(path: str) -> TlogReader:
-    """Raises UsageError for a path that is not a file, CaptureError otherwise."""
+def _open(path: str, args: argparse.Namespace) -> TlogReader | FlightLogReader:
+    """A file's reader, or a flight log folder's. Raises UsageError for a path that is
+    neither (or flags that do not fit it), CaptureError otherwise."""
     if not os.path.exists(path):
         raise UsageError(f"{path}: no such capture file")
     if os.path.isdir(path):
-        raise UsageError(f"{path}: is a directory, not a capture file")
+        if args.plot is not None:
+            raise UsageError(f"--plot reads one capture file, not the folder {path}")
+        try:
+            return read_flight_log(path, prefix=args.agent, source=FC if args.fc else RADIO)
+        except ConfigError as exc:
+            raise UsageError(str(exc)) from None
+    if args.agent is not None or args.fc:
+        raise UsageError("--agent and --fc choose among a flight log folder's files: give the folder")
     return read_tlog(path)
+
+
+def _torn_notes(reader: TlogReader | FlightLogReader) -> None:
+    for path, offset in getattr(reader, "torn", ()):
+        print(
+            f"{PROG}: note: {path}: the last record (from byte {offset}) was cut short, "
+            "as a power cut leaves it: skipped",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def _damaged(exc: CaptureDamagedError) -> int:
@@ -152,7 +182,7 @@ def _silence_stdout() -> None:
 # -- dump -----------------------------------------------------------------------
 
 
-def _dump(reader: TlogReader, *, as_json: bool) -> int:
+def _dump(reader: TlogReader | FlightLogReader, *, as_json: bool) -> int:
     write = sys.stdout.write
     try:
         for rec in reader:
@@ -166,7 +196,7 @@ def _dump(reader: TlogReader, *, as_json: bool) -> int:
 # -- statistics -------------------------------------------------------------------
 
 
-def _stats(reader: TlogReader, path: str, *, as_json: bool) -> int:
+def _stats(reader: TlogReader | FlightLogReader, path: str, *, as_json: bool) -> int:
     acc = CaptureStats()
     damage: CaptureDamagedError | None = None
     try:
@@ -232,7 +262,7 @@ def _signals(flag: StopFlag) -> Iterator[None]:
             signal.signal(sig, handler)
 
 
-def _feed(reader: TlogReader, args: argparse.Namespace) -> int:
+def _feed(reader: TlogReader | FlightLogReader, args: argparse.Namespace) -> int:
     url = _with_baud(args.to, args.baud)
     speed = DEFAULT_SPEED if args.speed is None else args.speed
     max_gap = DEFAULT_MAX_GAP if args.max_gap is None else args.max_gap

@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "gcs": ("gcs", "ground control station: web map, JSON API, commands, replay"),
     "demo": ("demo", "the whole bench on one machine: election, take-off, V formation, route"),
     "bench": ("bench", "run a benchmark and print its figures"),
+    "doctor": ("doctor", "pre-flight check of a field set-up: radio, flight controller, key, clock"),
 }
 
 

@@ -1,0 +1,117 @@
+"""Probe of the flight controller: who it is and whether it knows where it is.
+
+Theory of operation
+-------------------
+:func:`vehicle_facts` parses the agent's ``--fc`` string and opens the link with the
+driver's own connection code (:func:`firmware_bridge.connection.open_link`: a
+deadline on the TCP connect and on the first autopilot HEARTBEAT, the companion's
+heartbeat sent once a second meanwhile). Then, for at most :data:`LISTEN_S` seconds,
+it asks the autopilot (MAV_CMD_REQUEST_MESSAGE, again after :data:`ASK_AGAIN_S` for
+what has not come) for AUTOPILOT_VERSION, GPS_RAW_INT, HOME_POSITION and
+GPS_GLOBAL_ORIGIN, and keeps the fields of those that come from the autopilot's
+system and component (anything else on the link is ignored). It commands nothing:
+requests for messages are all it sends. Any failure becomes facts with
+``answered=False`` and the reason; the link is always closed.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from typing import Any
+
+from firmware_bridge.connection import (
+    COMPANION_COMPONENT,
+    close_link,
+    companion_heartbeat,
+    open_link,
+    parse_url,
+)
+from firmware_bridge.errors import BridgeError
+from firmware_bridge.modes import MAV_MODE_FLAG_SAFETY_ARMED
+from swarm.core.doctor.vehicle import VehicleFacts
+
+HEARTBEAT_S = 5.0  # the flight controller answers within this, or fails the check
+LISTEN_S = 2.5  # then at most this long for the requested messages
+ASK_AGAIN_S = 1.0
+MAV_CMD_REQUEST_MESSAGE = 512
+WANTED = {"AUTOPILOT_VERSION": 148, "GPS_RAW_INT": 24, "HOME_POSITION": 242, "GPS_GLOBAL_ORIGIN": 49}
+DOCTOR_SYSID = 245  # our own system id on the link (no agent uses it: agents are 1..250, GCS 255)
+
+
+def vehicle_facts(url: str, *, timeout: float = HEARTBEAT_S, listen: float = LISTEN_S) -> VehicleFacts:
+    """What the flight controller at ``url`` says of itself (never raises for what it does)."""
+    try:
+        ep = parse_url(url)
+    except BridgeError as exc:
+        return VehicleFacts(url, "?", answered=False, error=str(exc))
+    base = VehicleFacts(url, ep.scheme, answered=False, baud=ep.baud if ep.scheme == "serial" else 0)
+    try:
+        conn, hb = open_link(
+            ep, timeout=timeout, source_system=DOCTOR_SYSID, source_component=COMPANION_COMPONENT
+        )
+    except BridgeError as exc:
+        return replace(base, error=str(exc))
+    facts = replace(
+        base,
+        answered=True,
+        sysid=hb.get_srcSystem(),
+        autopilot=int(hb.autopilot),
+        vehicle_type=int(hb.type),
+        armed=bool(hb.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
+    )
+    try:
+        return _listen(conn, facts, (hb.get_srcSystem(), hb.get_srcComponent()), listen)
+    except OSError as exc:  # the link broke after the heartbeat: keep what was heard
+        return replace(facts, error=f"link error: {exc}")
+    finally:
+        close_link(conn)
+
+
+def _ask(conn: Any, src: tuple[int, int], names: list[str]) -> None:
+    for name in names:
+        conn.mav.send(
+            conn.mav.command_long_encode(
+                src[0], src[1], MAV_CMD_REQUEST_MESSAGE, 0, WANTED[name], 0, 0, 0, 0, 0, 0
+            )
+        )
+    conn.mav.send(companion_heartbeat())
+
+
+def _listen(conn: Any, facts: VehicleFacts, src: tuple[int, int], listen: float) -> VehicleFacts:
+    heard: set[str] = set()
+    deadline = time.monotonic() + listen
+    next_ask = 0.0
+    while len(heard) < len(WANTED):
+        now = time.monotonic()
+        if now >= deadline:
+            break
+        if now >= next_ask:
+            _ask(conn, src, [n for n in WANTED if n not in heard])
+            next_ask = now + ASK_AGAIN_S
+        conn.select(min(0.1, deadline - now))
+        while (msg := conn.recv_msg()) is not None:
+            if (msg.get_srcSystem(), msg.get_srcComponent()) != src:
+                continue
+            facts = _fold(facts, msg)
+            if msg.get_type() in WANTED:
+                heard.add(msg.get_type())
+    return facts
+
+
+def _fold(f: VehicleFacts, msg: Any) -> VehicleFacts:
+    kind = msg.get_type()
+    if kind == "HEARTBEAT":
+        return replace(f, armed=bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED))
+    if kind == "AUTOPILOT_VERSION":
+        return replace(f, version=int(msg.flight_sw_version))
+    if kind == "GPS_RAW_INT":
+        return replace(f, gps_fix=int(msg.fix_type), satellites=int(msg.satellites_visible))
+    if kind == "HOME_POSITION":
+        return replace(f, home=True)
+    if kind == "GPS_GLOBAL_ORIGIN":
+        return replace(f, origin=True)
+    return f
+
+
+__all__ = ["vehicle_facts"]

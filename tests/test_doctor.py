@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import socket
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -150,6 +151,36 @@ def test_radio_multipoint_nodeid() -> None:
     assert fast["radio AIR_SPEED"].status == "warn" and "--air-speed 64" in fast["radio AIR_SPEED"].fix
 
 
+def test_radio_peers_answering_rti() -> None:
+    mp = {**GOOD_PARAMS, "NODEID": 1, "NODECOUNT": 3}
+    banner = "MP SiK 2.2 on HM-TRP"
+
+    def checks(peers: tuple[str, ...] | None, params: dict[str, int] = mp) -> dict[str, Check]:
+        f = RadioFacts("/dev/ttyUSB0", 57600, answered=True, banner=banner, params=params, peers=peers)
+        return by_name(radio_checks(f, RadioPlan()))
+
+    heard = checks(("[2] [2] MP SiK 2.2 on HM-TRP", "[0] [0] MP SiK 2.2 on HM-TRP"))
+    assert (
+        heard["radio NODEID unique"].status == "pass"
+        and "nodes 0, 2 answered" in heard["radio NODEID unique"].seen
+    )
+    assert heard["radio peers"].status == "pass"
+    twin = checks(("[1] [1] MP SiK 2.2 on HM-TRP", "[0] MP SiK 2.2 on HM-TRP"))["radio NODEID unique"]
+    assert twin.status == "fail" and "--set NODEID=2" in twin.fix
+    alone = checks(())
+    assert alone["radio NODEID unique"].status == "info" and alone["radio peers"].status == "info"
+    older = checks(("[2] MP SiK 2.0 on HM-TRP",))["radio peers"]
+    assert older.status == "warn" and "2.0" in older.seen
+    assert "radio peers" not in checks(None)  # not asked
+    standard = RadioFacts("/d", 57600, answered=True, banner="SiK 2.2 on HM-TRP", params=GOOD_PARAMS)
+    pair = by_name(radio_checks(replace(standard, peers=("SiK 2.2 on HM-TRP",)), RadioPlan()))
+    assert pair["radio peers"].status == "pass" and "radio NODEID unique" not in pair
+    hostile = by_name(
+        radio_checks(replace(standard, peers=("[", "]]]", "[99999999999999999999] x")), RadioPlan())
+    )
+    assert hostile["radio peers"].status == "warn"  # garbage is another firmware, not a crash
+
+
 def test_silent_radio_fails_with_the_baud_hint() -> None:
     f = RadioFacts(
         "/dev/ttyUSB0", 115200, answered=False, error="no answer to +++ on /dev/ttyUSB0 at 115200 baud"
@@ -202,8 +233,6 @@ def test_ready_flight_controller_passes() -> None:
     ],
 )
 def test_flight_controller_faults(change: dict[str, object], name: str, status: str) -> None:
-    from dataclasses import replace
-
     c = by_name(vehicle_checks(replace(READY_FC, **change)))  # type: ignore[arg-type]
     assert c[name].status == status
 

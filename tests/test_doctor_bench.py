@@ -109,7 +109,7 @@ def test_world_readable_key(bench: dict[str, Any]) -> None:
     key = Path(bench["dir"]) / "open.key"
     key.write_bytes(os.urandom(32))
     key.chmod(0o644)
-    checks = examine(bench_setup(bench, key=str(key)), now=time.time())
+    checks = examine(bench_setup(bench, key=str(key), radio=None), now=time.time())
     assert failed(checks) == ["key mode"]
     assert by_name(checks)["key mode"].fix == f"chmod 600 {key}"
 
@@ -168,6 +168,18 @@ def test_a_radio_held_by_another_program_is_not_touched(bench: dict[str, Any]) -
     assert "radio firmware" not in c  # not probed
 
 
+def test_multipoint_radios_see_each_others_node_ids(tmp_path: Path) -> None:
+    """Three multipoint radios: the doctor on node 1 hears nodes 0 and 2 answer RTI."""
+    with running_emulator(tmp_path, 3) as emu:
+        emu.wait_locked(0, 1, 2)
+        checks = examine(Setup(radio=emu.paths[1], key=None), now=time.time())
+    c = by_name(checks)
+    assert c["radio NODEID"].seen == "NODEID 1 < NODECOUNT 3"
+    assert c["radio NODEID unique"].status == "pass", c["radio NODEID unique"]
+    assert "nodes 0, 2 answered" in c["radio NODEID unique"].seen
+    assert c["radio peers"].status == "pass"
+
+
 def test_a_silent_radio_fails_without_a_traceback() -> None:
     """What a radio at another serial speed looks like on real hardware: no answer."""
     with SilentPty() as pty:
@@ -180,7 +192,7 @@ def test_a_silent_radio_fails_without_a_traceback() -> None:
 def test_a_hostile_radio_banner_is_escaped(capsys: pytest.CaptureFixture[str]) -> None:
     engine = make_engine()
     engine.version = "2.2\x1b]0;owned\x07\x1b[2J"
-    with PtyRadio(engine) as radio:
+    with PtyRadio(engine, peer=make_engine()) as radio:
         code = doctor.main(["--radio", radio.path])
     out = capsys.readouterr().out
     assert code == 0

@@ -11,8 +11,9 @@ command line, before the agent starts. Each line is ``PASS``, ``INFO``, ``WARN``
 Checked: the radio's serial device (present, openable by this user, held by no
 other program), the radio in AT command mode (answers; ``--radio-params`` agree;
 SERIAL_SPEED is the baud rate of ``--radio``; MAVLink framing; ECC; multipoint
-NODEID and NODECOUNT), the flight controller (answers within 5 s; autopilot,
-firmware, vehicle type, armed, GPS fix, home or EKF origin, serial rate), the key
+NODEID and NODECOUNT; the other radios' answers to ``RTI``), the flight controller
+(answers within 5 s; autopilot, firmware, vehicle type, armed, GPS fix, home or EKF
+origin, serial rate), the key
 file (present, mode 0600, 32 bytes), the clock (plausible for MAVLink signing), the
 Zenoh endpoints (well formed; listen endpoints free) and, when the agent captures,
 the disk. ``--json`` prints one object ``{"ok": bool, "checks": [{"status", "name",

@@ -15,14 +15,20 @@ the radio must agree with. :func:`radio_checks` judges:
   answer); MAVLINK framing is on (1 or 2: whole frames per air packet and the
   RADIO_STATUS the bridge's flow control needs); ECC=1 warns (stock SiK builds
   compile the Golay code out, so ECC=1 drops the CRC and NETID filter with nothing in
-  their place); on multipoint firmware NODEID < NODECOUNT, and NODEID's uniqueness,
-  which one radio cannot see, is stated; with the ``fast`` profile the TDM round the
-  agent computes (``--slots``, ``--air-speed``) must match NODECOUNT and AIR_SPEED.
+  their place); on multipoint firmware NODEID < NODECOUNT; with the ``fast`` profile
+  the TDM round the agent computes (``--slots``, ``--air-speed``) must match
+  NODECOUNT and AIR_SPEED.
+* **the other radios** (their answers to ``RTI``, when the probe asked): one answering
+  with this radio's NODEID fails (two radios in one slot); others answering pass, or
+  warn when they run another firmware than this one (both ends must match); nobody
+  answering is reported (the others may be off), as is a NODEID no one else was seen
+  to have.
 * without expected parameters the radio's main values are reported as ``info``.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -31,6 +37,8 @@ from swarm.core.doctor import Check, fail, info, passed, warn
 #: SiK SERIAL_SPEED code -> baud rate (the firmware's table)
 SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600, 115: 115200, 230: 230400}
 SIK_DEFAULT_BAUD = 57600
+_NODE = re.compile(r"^(?:\[\d+\]\s*)+")  # multipoint prefixes of an RT reply: "[2] [2] MP SiK..."
+_FIRST_NODE = re.compile(r"^\[(\d+)\]")  # the node that answered
 #: what the doctor reports of a radio given no expected parameters
 SHOWN = ("NETID", "AIR_SPEED", "SERIAL_SPEED", "ECC", "MAVLINK", "TXPOWER", "NUM_CHANNELS", "MAX_WINDOW")
 
@@ -46,6 +54,7 @@ class RadioFacts:
     error: str = ""
     banner: str = ""
     params: Mapping[str, int] = field(default_factory=dict)
+    peers: tuple[str, ...] | None = None  # the other radios' answers to RTI; None: not asked
 
 
 @dataclass(frozen=True)
@@ -96,6 +105,7 @@ def radio_checks(f: RadioFacts, plan: RadioPlan) -> list[Check]:
         )
     if "NODEID" in p:
         out += _multipoint(f, p)
+    out += _peer_checks(f)
     out += _round(p, plan)
     return out
 
@@ -162,15 +172,58 @@ def _multipoint(f: RadioFacts, p: Mapping[str, int]) -> list[Check]:
                 _set(f.device, f.baud, "NODECOUNT", node + 1) + " on every radio",
             )
         ]
-    return [
-        passed("radio NODEID", f"NODEID {node} < NODECOUNT {count}"),
-        info(
-            "radio NODEID unique",
-            f"NODEID {node}{' (the base, which keeps the sync)' if node == 0 else ''}: "
-            "one radio cannot see the others' ids",
-            "give every radio of the swarm its own NODEID (0 for one of them)",
-        ),
-    ]
+    out = [passed("radio NODEID", f"NODEID {node} < NODECOUNT {count}")]
+    ids = sorted({int(m.group(1)) for line in f.peers or () if (m := _FIRST_NODE.match(line))})
+    base = " (the base, which keeps the sync)" if node == 0 else ""
+    if node in ids:
+        out.append(
+            fail(
+                "radio NODEID unique",
+                f"another radio answers RTI as node {node}, this radio's NODEID",
+                "give every radio of the swarm its own NODEID (0 for one of them): "
+                + _set(f.device, f.baud, "NODEID", max([*ids, node]) + 1),
+            )
+        )
+    elif ids:
+        heard = ", ".join(map(str, ids))
+        out.append(
+            passed("radio NODEID unique", f"NODEID {node}{base}; nodes {heard} answered RTI, none as {node}")
+        )
+    else:
+        out.append(
+            info(
+                "radio NODEID unique",
+                f"NODEID {node}{base}: no other radio answered RTI, so no other id was seen",
+                "power the swarm's other radios and check again, to see their ids",
+            )
+        )
+    return out
+
+
+def _peer_checks(f: RadioFacts) -> list[Check]:
+    """Did another radio answer RTI, and does it run the same firmware as this one?"""
+    if f.peers is None:
+        return []
+    banners = sorted({_NODE.sub("", line).strip() for line in f.peers} - {""})
+    if not banners:
+        return [
+            info(
+                "radio peers",
+                "no other radio answered RTI within 2 s",
+                "if the others are on: check NETID, AIR_SPEED, frequencies and antennas on both ends",
+            )
+        ]
+    mine = _NODE.sub("", f.banner).strip()
+    other = [b for b in banners if b != mine]
+    if other:
+        return [
+            warn(
+                "radio peers",
+                f"another radio runs {other[0]!r}, this one {mine!r}",
+                "run the same SiK firmware version on every radio of the swarm",
+            )
+        ]
+    return [passed("radio peers", f"{len(f.peers)} answer(s) to RTI, all {mine!r}")]
 
 
 def _round(p: Mapping[str, int], plan: RadioPlan) -> list[Check]:

@@ -5,7 +5,10 @@ Theory of operation
 :func:`radio_facts` opens the radio's serial device at the baud rate the agent would
 use (its ``--radio`` URL, parsed as the radio guard parses it), enters command mode
 (1 s of silence, ``+++``, 1 s of silence: the radio's link pauses for about 3 s),
-reads ``ATI`` and ``ATI5`` and leaves with ``ATO``, writing nothing to the radio.
+reads ``ATI`` and ``ATI5``, asks the other radios for their banner (``RTI``: every
+radio in range on the same network answers it over the air, multipoint ones with
+their ``[node id]``; nobody answering within 2 s is a fact too) and leaves with
+``ATO``, writing nothing to any radio.
 Whatever the radio prints is parsed by the SiK configurator, which keeps only
 ``S<n>:NAME=<digits>`` lines. A radio that does not answer, answers garbage or goes
 away yields facts with ``answered=False`` and the reason; the port is always closed.
@@ -15,9 +18,19 @@ Call it only on a device no one else holds (:func:`~swarm.runtime.doctor.host.de
 
 from __future__ import annotations
 
-from radios.errors import RadioError
+from radios.errors import ATTimeoutError, RadioError
 from radios.sik.config import SikConfigurator, open_port
 from swarm.core.doctor.radio import RadioFacts
+
+MAX_PEER_LINES = 64  # reply lines kept from the other radios (each sends at most 252 bytes)
+
+
+def _peers(conf: SikConfigurator) -> tuple[str, ...]:
+    """The other radios' answers to ``RTI`` (their banners; multipoint: ``[id] ...``)."""
+    try:
+        return tuple(conf.command("RTI")[:MAX_PEER_LINES])
+    except ATTimeoutError:  # nobody answered within 2 s
+        return ()
 
 
 def radio_facts(device: str, baud: int) -> RadioFacts:
@@ -33,8 +46,9 @@ def radio_facts(device: str, baud: int) -> RadioFacts:
         banner = conf.version()
         conf.flavour = "multipoint" if banner.startswith("MP ") else "standard"
         params = conf.read_params()
+        peers = _peers(conf)
         conf.exit_command_mode()
-        return RadioFacts(device, baud, answered=True, banner=banner, params=params)
+        return RadioFacts(device, baud, answered=True, banner=banner, params=params, peers=peers)
     except RadioError as exc:
         return RadioFacts(device, baud, answered=False, error=str(exc))
     finally:

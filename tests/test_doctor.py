@@ -434,3 +434,22 @@ def test_bad_arguments_exit_2_with_one_line(argv: list[str], capsys: pytest.Capt
     err = capsys.readouterr().err
     assert exc.value.code == 2
     assert "Traceback" not in err and err.strip()
+
+
+@pytest.mark.parametrize(
+    "setup",
+    [
+        Setup(radio="/dev/x\x00y"),
+        Setup(fc="/dev/x\x00y"),
+        Setup(fc="/dev/" + "x" * 5000),
+        Setup(key="/k\x00y", zenoh_connect=("tcp/127.0.0.1:7447",)),
+        Setup(capture="/tmp\x00/c", zenoh_connect=("tcp/127.0.0.1:7447",)),
+        Setup(zenoh_listen=("tcp/" + "9" * 5000 + ":1", "\x00/\x00:\x00")),
+    ],
+)
+def test_hostile_config_values_become_lines_not_tracebacks(setup: Setup) -> None:
+    """Values a config file could carry (a NUL, 5000 characters): each one becomes a
+    checklist line; nothing escapes as an exception."""
+    checks = examine(setup, now=NOW)
+    assert checks and any(c.status in ("fail", "warn") for c in checks)
+    assert all(len(text_line(c)) < 1000 for c in checks)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -204,7 +205,7 @@ def test_a_hostile_radio_banner_is_escaped(capsys: pytest.CaptureFixture[str]) -
 class FakeAutopilot:
     """A PX4 autopilot (system 1, component 1) that sends only heartbeats, and an
     intruder on the same link (system 9, and a second component of system 1) that
-    sends everything the doctor asks for: none of it may count."""
+    sends everything the doctor asks for, and garbage: none of it may count."""
 
     def __init__(self, port: int) -> None:
         from pymavlink.dialects.v20 import common
@@ -221,8 +222,12 @@ class FakeAutopilot:
 
     def run(self) -> None:
         ap, intruders = self.mav[0], self.mav[1:]
+        rng = random.Random(7)
         while not self.stop.wait(0.2):
             self.send(ap.heartbeat_encode(2, 12, 0, 0, 3, 3), ap)
+            hb = ap.heartbeat_encode(2, 12, 0, 0, 3, 3).pack(ap)
+            for junk in (rng.randbytes(300), b"\xfd" + rng.randbytes(40), hb[:7], b"\xfd\xff" + bytes(300)):
+                self.sock.sendto(junk, ("127.0.0.1", self.port))
             for m in intruders:
                 self.send(m.gps_raw_int_encode(0, 6, 1, 1, 1, 1, 1, 1, 0, 20), m)
                 self.send(m.home_position_encode(1, 1, 1, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0), m)

@@ -111,7 +111,7 @@ def device_facts(path: str, role: str) -> DeviceFacts:
     user = _user()
     try:
         st = os.stat(path)
-    except FileNotFoundError:
+    except (FileNotFoundError, ValueError):  # ValueError: a NUL in the path, no device has one
         return DeviceFacts(role, path, exists=False, user=user)
     except OSError as exc:
         return DeviceFacts(
@@ -154,7 +154,7 @@ def key_facts(path: str) -> KeyFacts:
     """The key file ``path`` as this process sees it (contents classified, not kept)."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
-    except FileNotFoundError:
+    except (FileNotFoundError, ValueError):  # ValueError: a NUL in the path, no file has one
         return KeyFacts(path, exists=False)
     except OSError as exc:
         try:
@@ -183,7 +183,7 @@ def _bind_error(proto: str, host: str, port: int) -> str:
     kind = socket.SOCK_STREAM if BINDABLE[proto] == "tcp" else socket.SOCK_DGRAM
     try:
         infos = socket.getaddrinfo(host, port, type=kind)
-    except (socket.gaierror, UnicodeError) as exc:
+    except (socket.gaierror, UnicodeError, ValueError) as exc:
         return f"cannot resolve {host!r}: {exc}"
     family, socktype, sockproto, _, address = infos[0]
     try:
@@ -199,7 +199,7 @@ def _bind_error(proto: str, host: str, port: int) -> str:
 def _resolve_error(host: str, port: int) -> str:
     try:
         socket.getaddrinfo(host, port)
-    except (socket.gaierror, UnicodeError) as exc:
+    except (socket.gaierror, UnicodeError, ValueError) as exc:
         return f"cannot resolve host {host!r}: {exc}"
     return ""
 
@@ -218,6 +218,8 @@ def zenoh_facts(endpoint: str, role: str) -> ZenohFacts:
 def disk_facts(path: str) -> DiskFacts:
     """Free space and write access where captures go (``path`` or its nearest existing
     parent; the parent of an existing file)."""
+    if "\x00" in path:
+        return DiskFacts(path, error="a path cannot contain a NUL character")
     p = Path(path)
     try:
         while not p.exists() and p != p.parent:

@@ -230,6 +230,10 @@ def test_ready_flight_controller_passes() -> None:
         ({"version": None}, "fc firmware", "warn"),
         ({"kind": "serial", "baud": 9600}, "fc link", "warn"),
         ({"kind": "serial", "baud": 921600}, "fc link", "pass"),
+        ({"clock_offset_s": 0.3}, "fc clock", "pass"),
+        ({"clock_offset_s": -20.0}, "fc clock", "warn"),
+        ({"clock_offset_s": 3600.0}, "fc clock", "fail"),
+        ({"clock_offset_s": float("nan")}, "fc clock", "warn"),
     ],
 )
 def test_flight_controller_faults(change: dict[str, object], name: str, status: str) -> None:

@@ -32,6 +32,7 @@ from firmware_bridge.sim import SimConfig, VehicleSim
 from swarm.cli.commands import doctor
 from swarm.core.doctor import Check
 from swarm.core.doctor.radio import RadioPlan
+from swarm.core.doctor.vehicle import vehicle_checks
 from swarm.runtime.doctor import Setup, examine
 from swarm.runtime.doctor.vehicle import vehicle_facts
 
@@ -207,10 +208,11 @@ class FakeAutopilot:
     intruder on the same link (system 9, and a second component of system 1) that
     sends everything the doctor asks for, and garbage: none of it may count."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, clock_ahead_s: float = 0.0) -> None:
         from pymavlink.dialects.v20 import common
 
         self.port = port
+        self.clock_ahead_s = clock_ahead_s
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.stop = threading.Event()
         self.mav = [common.MAVLink(None, srcSystem=s, srcComponent=c) for s, c in ((1, 1), (9, 1), (1, 42))]
@@ -225,6 +227,7 @@ class FakeAutopilot:
         rng = random.Random(7)
         while not self.stop.wait(0.2):
             self.send(ap.heartbeat_encode(2, 12, 0, 0, 3, 3), ap)
+            self.send(ap.system_time_encode(int((time.time() + self.clock_ahead_s) * 1e6), 0), ap)
             hb = ap.heartbeat_encode(2, 12, 0, 0, 3, 3).pack(ap)
             for junk in (rng.randbytes(300), b"\xfd" + rng.randbytes(40), hb[:7], b"\xfd\xff" + bytes(300)):
                 self.sock.sendto(junk, ("127.0.0.1", self.port))
@@ -232,6 +235,7 @@ class FakeAutopilot:
                 self.send(m.gps_raw_int_encode(0, 6, 1, 1, 1, 1, 1, 1, 0, 20), m)
                 self.send(m.home_position_encode(1, 1, 1, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0), m)
                 self.send(m.gps_global_origin_encode(1, 1, 1), m)
+                self.send(m.system_time_encode(0, 0), m)
                 self.send(
                     m.autopilot_version_encode(0, 1 << 24, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0), m
                 )
@@ -252,3 +256,16 @@ def test_messages_from_another_system_do_not_count() -> None:
     assert facts.answered and facts.sysid == 1 and facts.autopilot == 12
     assert facts.gps_fix is None and facts.version is None
     assert not facts.home and not facts.origin
+    assert facts.clock_offset_s is not None and abs(facts.clock_offset_s) < 5.0  # the intruder's 0 ignored
+
+
+def test_a_clock_an_hour_behind_the_autopilots_gps_time_fails() -> None:
+    port = free_port("udp")
+    fake = FakeAutopilot(port, clock_ahead_s=3600.0)
+    try:
+        facts = vehicle_facts(f"udpin:127.0.0.1:{port}", timeout=5.0, listen=1.0)
+    finally:
+        fake.close()
+    c = by_name(vehicle_checks(facts))["fc clock"]
+    assert c.status == "fail" and "s behind the autopilot's GPS time" in c.seen
+    assert facts.clock_offset_s is not None and 3590 < facts.clock_offset_s < 3610

@@ -17,11 +17,15 @@ judges them:
 * **GPS**: a 3D fix (or better) passes, 2D warns, none fails; not heard warns.
 * **home / EKF origin**: HOME_POSITION or GPS_GLOBAL_ORIGIN heard passes; neither fails
   (positions and return-to-launch need them).
+* **clock** (when the autopilot sent SYSTEM_TIME with a GPS time): our wall clock within
+  5 s of it passes, within a minute warns, further fails (signing peers refuse a stream
+  a minute behind theirs and follow one ahead).
 * **serial link rate**: reported; under 57600 baud warns (setpoints and telemetry share it).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from swarm.core.doctor import Check, fail, info, passed, warn
@@ -43,6 +47,8 @@ OTHER_TYPES = {1: "fixed wing", 10: "ground rover", 11: "surface boat", 12: "sub
 FIX_NAMES = {0: "no GPS", 1: "no fix", 2: "2D fix", 3: "3D fix", 4: "DGPS", 5: "RTK float", 6: "RTK fixed"}
 FIRMWARE_TYPES = {0: "dev", 64: "alpha", 128: "beta", 192: "rc", 255: ""}
 MIN_SERIAL_BAUD = 57600
+CLOCK_CLOSE_S = 5.0  # our clock this close to the autopilot's GPS time passes
+CLOCK_FAR_S = 60.0  # further than this fails: signing refuses a stream a minute old
 
 
 @dataclass(frozen=True)
@@ -65,6 +71,7 @@ class VehicleFacts:
     satellites: int | None = None
     home: bool = False
     origin: bool = False
+    clock_offset_s: float | None = None  # the autopilot's GPS time minus our clock (SYSTEM_TIME)
 
 
 def firmware_version(v: int) -> str:
@@ -97,6 +104,8 @@ def vehicle_checks(f: VehicleFacts) -> list[Check]:
             )
         )
     out += [_gps(f), _home(f)]
+    if f.clock_offset_s is not None:
+        out.append(_clock(f.clock_offset_s))
     if f.kind == "serial":
         out.append(_rate(f.baud))
     return out
@@ -151,6 +160,21 @@ def _home(f: VehicleFacts) -> Check:
         "neither HOME_POSITION nor GPS_GLOBAL_ORIGIN answered: no home or EKF origin",
         "wait for a 3D GPS fix (the autopilot sets its origin then), then check again",
     )
+
+
+def _clock(offset: float) -> Check:
+    """Our wall clock against the autopilot's GPS time: signing peers refuse a stream a
+    minute behind theirs, and follow one ahead."""
+    if not math.isfinite(offset):
+        return warn("fc clock", f"the autopilot's time is {offset}", "check the autopilot's GPS")
+    way = "ahead of" if offset < 0 else "behind"
+    seen = f"this computer's clock is {abs(offset):.1f} s {way} the autopilot's GPS time"
+    fix = "set the clock before the agent starts (NTP, or GPS time: chrony with gpsd)"
+    if abs(offset) <= CLOCK_CLOSE_S:
+        return passed("fc clock", seen)
+    if abs(offset) <= CLOCK_FAR_S:
+        return warn("fc clock", seen, fix)
+    return fail("fc clock", seen + ": signed frames would be refused or drag the swarm's clock", fix)
 
 
 def _rate(baud: int) -> Check:

@@ -8,8 +8,10 @@ deadline on the TCP connect and on the first autopilot HEARTBEAT, the companion'
 heartbeat sent once a second meanwhile). Then, for at most :data:`LISTEN_S` seconds,
 it asks the autopilot (MAV_CMD_REQUEST_MESSAGE, again after :data:`ASK_AGAIN_S` for
 what has not come) for AUTOPILOT_VERSION, GPS_RAW_INT, HOME_POSITION and
-GPS_GLOBAL_ORIGIN, and keeps the fields of those that come from the autopilot's
-system and component (anything else on the link is ignored). It commands nothing:
+GPS_GLOBAL_ORIGIN (it stops listening once they have come) and SYSTEM_TIME (kept if
+it came by then: its Unix time, set from GPS, less our wall clock at its arrival is
+how far our clock is off), and keeps the fields of those that come from the
+autopilot's system and component (anything else on the link is ignored). It commands nothing:
 requests for messages are all it sends. Any failure becomes facts with
 ``answered=False`` and the reason; the link is always closed.
 """
@@ -36,7 +38,8 @@ LISTEN_S = 2.5  # then at most this long for the requested messages
 ASK_AGAIN_S = 1.0
 MAV_CMD_REQUEST_MESSAGE = 512
 WANTED = {"AUTOPILOT_VERSION": 148, "GPS_RAW_INT": 24, "HOME_POSITION": 242, "GPS_GLOBAL_ORIGIN": 49}
-DOCTOR_SYSID = 245  # our own system id on the link (no agent uses it: agents are 1..250, GCS 255)
+OPTIONAL = {"SYSTEM_TIME": 2}  # asked for too, not waited for (an autopilot without GPS time may not send it)
+SIGNING_EPOCH_US = 1420070400 * 1_000_000  # an autopilot's time before 2015 is no GPS time
 
 
 def vehicle_facts(url: str, *, timeout: float = HEARTBEAT_S, listen: float = LISTEN_S) -> VehicleFacts:
@@ -46,12 +49,11 @@ def vehicle_facts(url: str, *, timeout: float = HEARTBEAT_S, listen: float = LIS
     except BridgeError as exc:
         return VehicleFacts(url, "?", answered=False, error=str(exc))
     base = VehicleFacts(url, ep.scheme, answered=False, baud=ep.baud if ep.scheme == "serial" else 0)
-    try:
-        conn, hb = open_link(
-            ep, timeout=timeout, source_system=DOCTOR_SYSID, source_component=COMPANION_COMPONENT
-        )
+    try:  # system id 1 until the heartbeat says the vehicle's: a companion shares its vehicle's
+        conn, hb = open_link(ep, timeout=timeout, source_system=1, source_component=COMPANION_COMPONENT)
     except BridgeError as exc:
         return replace(base, error=str(exc))
+    conn.mav.srcSystem = hb.get_srcSystem()
     facts = replace(
         base,
         answered=True,
@@ -70,10 +72,9 @@ def vehicle_facts(url: str, *, timeout: float = HEARTBEAT_S, listen: float = LIS
 
 def _ask(conn: Any, src: tuple[int, int], names: list[str]) -> None:
     for name in names:
+        msg_id = WANTED.get(name) or OPTIONAL[name]
         conn.mav.send(
-            conn.mav.command_long_encode(
-                src[0], src[1], MAV_CMD_REQUEST_MESSAGE, 0, WANTED[name], 0, 0, 0, 0, 0, 0
-            )
+            conn.mav.command_long_encode(*src, MAV_CMD_REQUEST_MESSAGE, 0, msg_id, 0, 0, 0, 0, 0, 0)
         )
     conn.mav.send(companion_heartbeat())
 
@@ -82,24 +83,24 @@ def _listen(conn: Any, facts: VehicleFacts, src: tuple[int, int], listen: float)
     heard: set[str] = set()
     deadline = time.monotonic() + listen
     next_ask = 0.0
-    while len(heard) < len(WANTED):
+    while not heard.issuperset(WANTED):
         now = time.monotonic()
         if now >= deadline:
             break
         if now >= next_ask:
-            _ask(conn, src, [n for n in WANTED if n not in heard])
+            _ask(conn, src, [n for n in (*WANTED, *OPTIONAL) if n not in heard])
             next_ask = now + ASK_AGAIN_S
         conn.select(min(0.1, deadline - now))
         while (msg := conn.recv_msg()) is not None:
             if (msg.get_srcSystem(), msg.get_srcComponent()) != src:
                 continue
-            facts = _fold(facts, msg)
-            if msg.get_type() in WANTED:
-                heard.add(msg.get_type())
+            facts = _fold(facts, msg, time.time())
+            heard.add(msg.get_type())
     return facts
 
 
-def _fold(f: VehicleFacts, msg: Any) -> VehicleFacts:
+def _fold(f: VehicleFacts, msg: Any, wall: float) -> VehicleFacts:
+    """``f`` with what ``msg`` says; ``wall``: our clock when it arrived."""
     kind = msg.get_type()
     if kind == "HEARTBEAT":
         return replace(f, armed=bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED))
@@ -111,6 +112,8 @@ def _fold(f: VehicleFacts, msg: Any) -> VehicleFacts:
         return replace(f, home=True)
     if kind == "GPS_GLOBAL_ORIGIN":
         return replace(f, origin=True)
+    if kind == "SYSTEM_TIME" and msg.time_unix_usec > SIGNING_EPOCH_US:
+        return replace(f, clock_offset_s=msg.time_unix_usec / 1e6 - wall)
     return f
 
 

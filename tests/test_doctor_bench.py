@@ -11,14 +11,17 @@ hardware the radio would not answer at all, which the silent-pty test covers.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
 import socket
 import subprocess
 import sys
+import termios
 import threading
 import time
+import tty
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -269,3 +272,52 @@ def test_a_clock_an_hour_behind_the_autopilots_gps_time_fails() -> None:
     c = by_name(vehicle_checks(facts))["fc clock"]
     assert c.status == "fail" and "s behind the autopilot's GPS time" in c.seen
     assert facts.clock_offset_s is not None and 3590 < facts.clock_offset_s < 3610
+
+
+class UartAutopilot:
+    """An autopilot on a pty that, like one on a real UART, is heard only at its own
+    baud rate: at any other rate the host set on its side, what it sends is noise."""
+
+    def __init__(self, baud: int) -> None:
+        from pymavlink.dialects.v20 import common
+
+        self.speed = getattr(termios, f"B{baud}")
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        os.close(slave)
+        os.set_blocking(self.master, False)
+        self.mav = common.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.thread.start()
+
+    def run(self) -> None:
+        rng = random.Random(3)
+        while not self.stop.wait(0.2):
+            with contextlib.suppress(OSError):  # nobody has the slave open, or its buffer is full
+                os.read(self.master, 4096)
+                same = termios.tcgetattr(self.master)[5] == self.speed
+                data = (
+                    self.mav.heartbeat_encode(2, 12, 0, 0, 3, 3).pack(self.mav) if same else rng.randbytes(40)
+                )
+                os.write(self.master, data)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5)
+        os.close(self.master)
+
+
+def test_flight_controller_at_another_baud_rate_is_found() -> None:
+    """The agent opens the autopilot's UART at 57600; it runs at 921600."""
+    fc = UartAutopilot(921600)
+    try:
+        facts = vehicle_facts(f"{fc.path}:57600", timeout=1.0, scan=1.0)
+        assert vehicle_facts(f"{fc.path}:921600", timeout=3.0, listen=0.5).answered
+    finally:
+        fc.close()
+    assert not facts.answered and facts.found_baud == 921600
+    (c,) = vehicle_checks(facts)
+    assert c.status == "fail" and "the autopilot answers at 921600 baud" in c.seen
+    assert "--fc with :921600" in c.fix

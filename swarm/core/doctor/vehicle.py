@@ -9,7 +9,8 @@ the numbers it saw (raw MAVLink enum values, never judged there). :func:`vehicle
 judges them:
 
 * **answers**: no HEARTBEAT within the deadline fails, with the fix for the link's
-  kind (a serial port: cable, MAVLink protocol and baud rate on the autopilot's side).
+  kind (a serial port: cable, MAVLink protocol and baud rate on the autopilot's side;
+  the rate it does answer at, when the probe found one).
 * **autopilot and vehicle type**: PX4 and ArduPilot are what the driver speaks (another
   autopilot warns); the formation law flies multicopters (another type warns).
 * **armed** warns: check on the ground, disarmed.
@@ -72,6 +73,7 @@ class VehicleFacts:
     home: bool = False
     origin: bool = False
     clock_offset_s: float | None = None  # the autopilot's GPS time minus our clock (SYSTEM_TIME)
+    found_baud: int | None = None  # silent at ``baud``, the autopilot answered at this rate
 
 
 def firmware_version(v: int) -> str:
@@ -112,6 +114,13 @@ def vehicle_checks(f: VehicleFacts) -> list[Check]:
 
 
 def _silent(f: VehicleFacts) -> Check:
+    seen = f.error if f.url in f.error or ":" in f.error else f"{f.url}: {f.error}"
+    if f.kind == "serial" and f.found_baud is not None:
+        return fail(
+            "fc",
+            f"{seen}; the autopilot answers at {f.found_baud} baud",
+            f"give the agent --fc with :{f.found_baud} (or set the autopilot's port to {f.baud} baud)",
+        )
     if f.kind == "serial":
         fix = (
             f"check the cable and that the autopilot's port speaks MAVLink 2 at {f.baud} baud "
@@ -122,7 +131,7 @@ def _silent(f: VehicleFacts) -> Check:
         fix = "check that the autopilot (or SITL) sends to this port, and that nothing else listens there"
     else:
         fix = "check that the autopilot (or SITL) runs and listens at this address and port"
-    return fail("fc", f.error if f.url in f.error or ":" in f.error else f"{f.url}: {f.error}", fix)
+    return fail("fc", seen, fix)
 
 
 def _identity(f: VehicleFacts) -> Check:

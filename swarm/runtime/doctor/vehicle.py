@@ -13,7 +13,10 @@ it came by then: its Unix time, set from GPS, less our wall clock at its arrival
 how far our clock is off), and keeps the fields of those that come from the
 autopilot's system and component (anything else on the link is ignored). It commands nothing:
 requests for messages are all it sends. Any failure becomes facts with
-``answered=False`` and the reason; the link is always closed.
+``answered=False`` and the reason; the link is always closed. A serial port (not a
+USB CDC ``ttyACM`` one, which ignores the rate) that stays silent is tried at the
+other usual rates (:data:`SCAN_BAUDS`, :data:`SCAN_S` each): an autopilot at another
+baud rate is the usual reason, and the rate it answers at is the fix.
 """
 
 from __future__ import annotations
@@ -24,12 +27,13 @@ from typing import Any
 
 from firmware_bridge.connection import (
     COMPANION_COMPONENT,
+    Endpoint,
     close_link,
     companion_heartbeat,
     open_link,
     parse_url,
 )
-from firmware_bridge.errors import BridgeError
+from firmware_bridge.errors import BridgeError, HeartbeatTimeout
 from firmware_bridge.modes import MAV_MODE_FLAG_SAFETY_ARMED
 from swarm.core.doctor.vehicle import VehicleFacts
 
@@ -40,10 +44,38 @@ MAV_CMD_REQUEST_MESSAGE = 512
 WANTED = {"AUTOPILOT_VERSION": 148, "GPS_RAW_INT": 24, "HOME_POSITION": 242, "GPS_GLOBAL_ORIGIN": 49}
 OPTIONAL = {"SYSTEM_TIME": 2}  # asked for too, not waited for (an autopilot without GPS time may not send it)
 SIGNING_EPOCH_US = 1420070400 * 1_000_000  # an autopilot's time before 2015 is no GPS time
+#: the rates autopilots' telemetry ports run at, most common first (tried on a silent UART)
+SCAN_BAUDS = (57600, 115200, 921600, 460800, 230400)
+SCAN_S = 1.5  # per rate: an autopilot sends a heartbeat every second
 
 
-def vehicle_facts(url: str, *, timeout: float = HEARTBEAT_S, listen: float = LISTEN_S) -> VehicleFacts:
-    """What the flight controller at ``url`` says of itself (never raises for what it does)."""
+def _scan(ep: Endpoint, per_rate: float) -> int | None:
+    """The first other baud rate at which an autopilot's heartbeat comes on the serial
+    device of ``ep``, or None (not serial, a USB CDC port, or none)."""
+    if ep.scheme != "serial" or per_rate <= 0 or "ttyACM" in ep.device:  # CDC ACM ignores the rate
+        return None
+    for baud in SCAN_BAUDS:
+        if baud == ep.baud:
+            continue
+        try:
+            conn, _ = open_link(
+                replace(ep, baud=baud),
+                timeout=per_rate,
+                source_system=1,
+                source_component=COMPANION_COMPONENT,
+            )
+        except BridgeError:
+            continue
+        close_link(conn)
+        return baud
+    return None
+
+
+def vehicle_facts(
+    url: str, *, timeout: float = HEARTBEAT_S, listen: float = LISTEN_S, scan: float = SCAN_S
+) -> VehicleFacts:
+    """What the flight controller at ``url`` says of itself (never raises for what it
+    does). ``scan``: seconds per other baud rate tried on a silent UART (0: none)."""
     try:
         ep = parse_url(url)
     except BridgeError as exc:
@@ -51,6 +83,8 @@ def vehicle_facts(url: str, *, timeout: float = HEARTBEAT_S, listen: float = LIS
     base = VehicleFacts(url, ep.scheme, answered=False, baud=ep.baud if ep.scheme == "serial" else 0)
     try:  # system id 1 until the heartbeat says the vehicle's: a companion shares its vehicle's
         conn, hb = open_link(ep, timeout=timeout, source_system=1, source_component=COMPANION_COMPONENT)
+    except HeartbeatTimeout as exc:
+        return replace(base, error=str(exc), found_baud=_scan(ep, scan))
     except BridgeError as exc:
         return replace(base, error=str(exc))
     conn.mav.srcSystem = hb.get_srcSystem()

@@ -429,6 +429,9 @@ def test_doctor_takes_the_agents_flags_without_name_and_id() -> None:
         ["--radio", "/dev/x", "--radio-params", "/no/such/file.toml"],
         ["--zenoh-listen", "tcp/127.0.0.1:7447", "--id", "251"],
         ["--zenoh-listen", "tcp/127.0.0.1:7447", "--bogus"],
+        ["--zenoh-listen", "tcp/127.0.0.1:7447", "--name", "a b\x1b[2J"],
+        ["--zenoh-listen", "tcp/127.0.0.1:7447", "--speed", "-5"],
+        ["--zenoh-listen", "tcp/127.0.0.1:7447", "--pose-hz", "nan"],
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:

@@ -63,8 +63,9 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     None) and ``a.plan``."""
     a = _build_parser().parse_args(argv)
     round_given = a.round_s is not None
-    probe = argparse.Namespace(**{**vars(a), "id": 1 if a.id is None else a.id})
+    probe = argparse.Namespace(**{**vars(a), "id": 1 if a.id is None else a.id, "name": a.name or "doctor"})
     agent._check_arguments(probe)  # raises UsageError for what the agent refuses
+    agent._agent(probe, agent._Lines(probe))  # builds (opens nothing): refuses what the agent would
     a.node, a.round_s = probe.node, probe.round_s
     a.expected = parse_expected(a.radio_params) if a.radio_params else None
     fast = a.profile == "fast" and not round_given  # the round comes from --slots and --air-speed

@@ -6,7 +6,8 @@ The bench: two emulated radios (radio0 on NETID 25, radio1 on NETID 77, both at
 check it plants fails. The emulator's ptys ignore the baud rate a host sets (a pty has
 no line speed), so an emulated radio answers AT at any baud: the wrong-baud test
 checks what the doctor reads (SERIAL_SPEED against the agent's ``?baud=``); on real
-hardware the radio would not answer at all, which the silent-pty test covers.
+hardware the radio would not answer at all, which a radio on a pty that hears its host
+only at its own line speed stands in for (``UartRadio``; ``UartAutopilot`` likewise).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import contextlib
 import json
 import os
 import random
+import select
 import socket
 import subprocess
 import sys
@@ -29,7 +31,7 @@ from typing import Any
 import pytest
 from emu_helpers import running_emulator
 from net_helpers import free_port
-from sik_pty_radio import PtyRadio, SilentPty, make_engine
+from sik_pty_radio import PtyRadio, make_engine
 
 from firmware_bridge.sim import SimConfig, VehicleSim
 from swarm.cli.commands import doctor
@@ -185,13 +187,54 @@ def test_multipoint_radios_see_each_others_node_ids(tmp_path: Path) -> None:
     assert c["radio peers"].status == "pass"
 
 
-def test_a_silent_radio_fails_without_a_traceback() -> None:
-    """What a radio at another serial speed looks like on real hardware: no answer."""
-    with SilentPty() as pty:
-        checks = examine(Setup(radio=pty.path), now=time.time())
+class UartRadio:
+    """A SiK radio (the AT engine) on a pty that, like one on a real UART, understands
+    its host only at its own serial speed: at any other rate the pty's line is set to,
+    what the host writes is noise to it and it answers nothing."""
+
+    def __init__(self, baud: int) -> None:
+        self.speed = getattr(termios, f"B{baud}")
+        self.engine = make_engine()
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        os.close(slave)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.thread.start()
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.02)
+            with contextlib.suppress(OSError):  # no host has the slave open
+                data = os.read(self.master, 4096) if ready else b""
+                heard = termios.tcgetattr(self.master)[5] == self.speed
+                out = (
+                    self.engine.feed(data, time.monotonic())
+                    if heard and data
+                    else self.engine.poll(time.monotonic())
+                )
+                if heard and out.to_host:
+                    os.write(self.master, out.to_host)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5)
+        os.close(self.master)
+
+
+def test_a_radio_at_another_serial_speed_is_found() -> None:
+    """What a radio at another serial speed does on real hardware: nothing, at the
+    agent's rate (115200). The doctor finds the rate it answers at (57600)."""
+    radio = UartRadio(57600)
+    try:
+        checks = examine(Setup(radio=f"{radio.path}?baud=115200"), now=time.time())
+    finally:
+        radio.close()
     c = by_name(checks)["radio"]
     assert c.status == "fail" and "no answer to +++" in c.seen
-    assert "--baud 57600 --show" in c.fix
+    assert "the radio answers at 57600 baud" in c.seen
+    assert f"--radio {radio.path}?baud=57600" in c.fix and "--set SERIAL_SPEED=115" in c.fix
 
 
 def test_a_hostile_radio_banner_is_escaped(capsys: pytest.CaptureFixture[str]) -> None:

@@ -7,7 +7,8 @@ The probe enters AT command mode, reads the banner (``ATI``) and every parameter
 agent opens the radio at (its ``--radio`` URL) and, from the agent's options, what
 the radio must agree with. :func:`radio_checks` judges:
 
-* **answers**: no answer to ``+++`` fails (wrong baud rate, port held, not a SiK radio).
+* **answers**: no answer to ``+++`` fails (wrong baud rate, port held, not a SiK radio);
+  when the probe found the rate the radio does answer at, the fix names it.
 * **expected parameters** (the agent's ``--radio-params``): each one passes or fails
   by name (``radio NETID 77 (expected 25)``).
 * **always checkable**, expected or not: SERIAL_SPEED is the baud rate the agent opens
@@ -55,6 +56,7 @@ class RadioFacts:
     banner: str = ""
     params: Mapping[str, int] = field(default_factory=dict)
     peers: tuple[str, ...] | None = None  # the other radios' answers to RTI; None: not asked
+    found_baud: int | None = None  # silent at ``baud``, the radio answered +++ at this rate
 
 
 @dataclass(frozen=True)
@@ -111,12 +113,20 @@ def radio_checks(f: RadioFacts, plan: RadioPlan) -> list[Check]:
 
 
 def _silent(f: RadioFacts) -> Check:
+    seen = f.error if f.device in f.error else f"{f.device} at {f.baud} baud: {f.error}"
+    if f.found_baud is not None:
+        code = {b: c for c, b in SERIAL_BAUD.items()}.get(f.baud)
+        also = f", or {_set(f.device, f.found_baud, 'SERIAL_SPEED', code)}" if code is not None else ""
+        return fail(
+            "radio",
+            f"{seen}; the radio answers at {f.found_baud} baud",
+            f"give the agent --radio {f.device}?baud={f.found_baud}{also}",
+        )
     hint = (
         f"check that the radio runs SERIAL_SPEED for {f.baud} baud (the SiK default is "
         f"{SIK_DEFAULT_BAUD}: try swarm radio-config {f.device} --baud {SIK_DEFAULT_BAUD} --show), "
         "that no other program holds the port, and that it is a SiK radio"
     )
-    seen = f.error if f.device in f.error else f"{f.device} at {f.baud} baud: {f.error}"
     return fail("radio", seen, hint)
 
 

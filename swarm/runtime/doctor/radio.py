@@ -12,17 +12,24 @@ their ``[node id]``; nobody answering within 2 s is a fact too) and leaves with
 Whatever the radio prints is parsed by the SiK configurator, which keeps only
 ``S<n>:NAME=<digits>`` lines. A radio that does not answer, answers garbage or goes
 away yields facts with ``answered=False`` and the reason; the port is always closed.
+A radio silent at the agent's rate is tried at the SiK default (57600) and 115200
+(:data:`SCAN_BAUDS`; about 5 s each when silent there too): a radio at another serial
+speed is the usual reason, and the rate it answers at is the fix.
 Call it only on a device no one else holds (:func:`~swarm.runtime.doctor.host.device_facts`):
 ``+++`` in the middle of a running agent's traffic would cost it 3 s of link.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from radios.errors import ATTimeoutError, RadioError
 from radios.sik.config import SikConfigurator, open_port
 from swarm.core.doctor.radio import RadioFacts
 
 MAX_PEER_LINES = 64  # reply lines kept from the other radios (each sends at most 252 bytes)
+ENTER_TIMEOUT = 2.0  # per +++ try: the radio prints OK 1 s after it
+SCAN_BAUDS = (57600, 115200)  # tried on a silent radio: the SiK default, and the usual other rate
 
 
 def _peers(conf: SikConfigurator) -> tuple[str, ...]:
@@ -33,16 +40,47 @@ def _peers(conf: SikConfigurator) -> tuple[str, ...]:
         return ()
 
 
-def radio_facts(device: str, baud: int) -> RadioFacts:
+def _leave(conf: SikConfigurator) -> None:
+    """Back to data mode, if the radio is (or may be) in command mode; never raises."""
+    if conf.in_command_mode:
+        try:
+            conf.exit_command_mode()
+        except RadioError:
+            pass
+
+
+def _answers_at(device: str, baud: int) -> bool:
+    """Does a radio on ``device`` answer ``+++`` at ``baud``? (Left in data mode.)"""
+    try:
+        port = open_port(device, baud)
+    except RadioError:
+        return False
+    conf = SikConfigurator(port, port_name=device)
+    try:
+        conf.enter_command_mode(timeout=ENTER_TIMEOUT)
+        return True
+    except RadioError:
+        return False
+    finally:
+        _leave(conf)
+        port.close()
+
+
+def radio_facts(device: str, baud: int, *, scan: Sequence[int] = SCAN_BAUDS) -> RadioFacts:
     """Banner and parameters of the radio on ``device`` at ``baud`` (never raises for
-    what the radio does)."""
+    what the radio does). A radio silent at ``baud`` is tried at each of ``scan``."""
     try:
         port = open_port(device, baud)
     except RadioError as exc:
         return RadioFacts(device, baud, answered=False, error=str(exc))
     conf = SikConfigurator(port, port_name=device)
     try:
-        conf.enter_command_mode()
+        try:
+            conf.enter_command_mode(timeout=ENTER_TIMEOUT)
+        except ATTimeoutError as exc:
+            port.close()
+            found = next((b for b in scan if b != baud and _answers_at(device, b)), None)
+            return RadioFacts(device, baud, answered=False, error=str(exc), found_baud=found)
         banner = conf.version()
         conf.flavour = "multipoint" if banner.startswith("MP ") else "standard"
         params = conf.read_params()
@@ -52,11 +90,7 @@ def radio_facts(device: str, baud: int) -> RadioFacts:
     except RadioError as exc:
         return RadioFacts(device, baud, answered=False, error=str(exc))
     finally:
-        if conf.in_command_mode:  # leave the radio in data mode whatever happened
-            try:
-                conf.exit_command_mode()
-            except RadioError:
-                pass
+        _leave(conf)  # whatever happened
         port.close()
 
 

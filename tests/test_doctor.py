@@ -175,10 +175,11 @@ def test_radio_peers_answering_rti() -> None:
     standard = RadioFacts("/d", 57600, answered=True, banner="SiK 2.2 on HM-TRP", params=GOOD_PARAMS)
     pair = by_name(radio_checks(replace(standard, peers=("SiK 2.2 on HM-TRP",)), RadioPlan()))
     assert pair["radio peers"].status == "pass" and "radio NODEID unique" not in pair
-    hostile = by_name(
-        radio_checks(replace(standard, peers=("[", "]]]", "[99999999999999999999] x")), RadioPlan())
-    )
+    hostile_peers = ("[", "]]]", "[99999999999999999999] x", "[" + "9" * 5000 + "] y", "[\u0663] z")
+    hostile = by_name(radio_checks(replace(standard, peers=hostile_peers), RadioPlan()))
     assert hostile["radio peers"].status == "warn"  # garbage is another firmware, not a crash
+    mp_hostile = replace(standard, params=mp, peers=hostile_peers)
+    assert by_name(radio_checks(mp_hostile, RadioPlan()))["radio NODEID unique"].status == "info"
 
 
 def test_silent_radio_fails_with_the_baud_hint() -> None:
@@ -321,9 +322,23 @@ def test_zenoh_endpoint_grammar() -> None:
     assert parse_zenoh_endpoint("tcp/127.0.0.1:7447") == ("tcp", "127.0.0.1", 7447)
     assert parse_zenoh_endpoint("udp/[::1]:7447#iface=lo") == ("udp", "::1", 7447)
     assert parse_zenoh_endpoint("TCP/host.local:0?prio=1") == ("tcp", "host.local", 0)
-    for bad in ("", "tcp", "tcp/", "tcp/127.0.0.1", "tcp/127.0.0.1:99999", "tcp/:7447", "tcp/h:x", "foo/h:1"):
-        with pytest.raises(ValueError):
+    long_port = "tcp/h:" + "9" * 5000
+    for bad in (
+        "",
+        "tcp",
+        "tcp/",
+        "tcp/127.0.0.1",
+        "tcp/127.0.0.1:99999",
+        "tcp/:7447",
+        "tcp/h:x",
+        "foo/h:1",
+        long_port,
+    ):
+        with pytest.raises(ValueError, match=r"expected|protocol|no host"):  # our message, not int()'s
             parse_zenoh_endpoint(bad)
+    for digit in ("\u00b2", "\u0663"):  # a superscript two, an Arabic-Indic three: str.isdigit() says yes
+        with pytest.raises(ValueError, match="expected"):
+            parse_zenoh_endpoint("tcp/h:" + digit)
 
 
 def free_tcp_port() -> int:

@@ -35,7 +35,7 @@ from sik_pty_radio import PtyRadio, make_engine
 
 from firmware_bridge.sim import SimConfig, VehicleSim
 from swarm.cli.commands import doctor
-from swarm.core.doctor import Check
+from swarm.core.doctor import Check, text_line
 from swarm.core.doctor.radio import RadioPlan
 from swarm.core.doctor.vehicle import vehicle_checks
 from swarm.runtime.doctor import Setup, examine
@@ -247,6 +247,18 @@ def test_a_hostile_radio_banner_is_escaped(capsys: pytest.CaptureFixture[str]) -
     assert "\x1b" not in out and "\x07" not in out
     firmware = next(line for line in out.splitlines() if line.startswith("INFO radio firmware"))
     assert "\\x1b" in firmware
+
+
+def test_a_radio_answering_a_number_of_5000_digits_fails_one_line() -> None:
+    """``int()`` refuses more than 4300 digits: the radio's answer is garbage, not a crash."""
+    engine = make_engine()
+    info = engine._info
+    engine._info = lambda arg: ["S3:NETID=" + "9" * 5000] if arg[:1] == "5" else info(arg)  # type: ignore[method-assign]
+    with PtyRadio(engine) as radio:
+        checks = examine(Setup(radio=radio.path), now=time.time())
+    c = by_name(checks)["radio"]
+    assert c.status == "fail" and "does not parse" in c.seen
+    assert len(text_line(c)) < 1000
 
 
 class FakeAutopilot:

@@ -243,7 +243,8 @@ def parse_zenoh_endpoint(text: str) -> tuple[str, str, int]:
         raise ValueError(f"{text!r}: protocol {proto!r} is not checked here ({', '.join(BINDABLE)} are)")
     address = rest.split("?", 1)[0].split("#", 1)[0]
     host, colon, port_s = address.rpartition(":")
-    if not colon or not port_s.isdigit() or not 0 <= int(port_s) <= 65535:
+    digits = port_s.isascii() and port_s.isdigit() and len(port_s) <= 5
+    if not colon or not digits or not 0 <= int(port_s) <= 65535:
         raise ValueError(f"{text!r}: expected {proto}/HOST:PORT with a port 0..65535")
     host = host.strip("[]")
     if not host:

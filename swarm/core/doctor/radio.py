@@ -39,7 +39,7 @@ from swarm.core.doctor import Check, fail, info, passed, warn
 SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600, 115: 115200, 230: 230400}
 SIK_DEFAULT_BAUD = 57600
 _NODE = re.compile(r"^(?:\[\d+\]\s*)+")  # multipoint prefixes of an RT reply: "[2] [2] MP SiK..."
-_FIRST_NODE = re.compile(r"^\[(\d+)\]")  # the node that answered
+_FIRST_NODE = re.compile(r"^\[([0-9]{1,5})\]")  # the node that answered (16 bits)
 #: what the doctor reports of a radio given no expected parameters
 SHOWN = ("NETID", "AIR_SPEED", "SERIAL_SPEED", "ECC", "MAVLINK", "TXPOWER", "NUM_CHANNELS", "MAX_WINDOW")
 

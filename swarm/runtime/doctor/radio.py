@@ -89,6 +89,8 @@ def radio_facts(device: str, baud: int, *, scan: Sequence[int] = SCAN_BAUDS) -> 
         return RadioFacts(device, baud, answered=True, banner=banner, params=params, peers=peers)
     except RadioError as exc:
         return RadioFacts(device, baud, answered=False, error=str(exc))
+    except ValueError as exc:  # a number of thousands of digits in ATI5: not a SiK radio's answer
+        return RadioFacts(device, baud, answered=False, error=f"its answer does not parse: {exc}")
     finally:
         _leave(conf)  # whatever happened
         port.close()

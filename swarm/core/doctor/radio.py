@@ -219,7 +219,7 @@ def _peer_checks(f: RadioFacts) -> list[Check]:
         return [
             info(
                 "radio peers",
-                "no other radio answered RTI within 2 s",
+                "no other radio answered RTI in three TDM rounds",
                 "if the others are on: check NETID, AIR_SPEED, frequencies and antennas on both ends",
             )
         ]

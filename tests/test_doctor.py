@@ -37,6 +37,7 @@ from swarm.core.doctor.radio import RadioFacts, RadioPlan, radio_checks
 from swarm.core.doctor.vehicle import VehicleFacts, firmware_version, vehicle_checks
 from swarm.runtime.doctor import Setup, examine
 from swarm.runtime.doctor.host import disk_facts, key_facts, zenoh_facts
+from swarm.runtime.doctor.radio import rti_wait
 
 NOW = 1795555200.0  # 2026-11-24
 GOOD_PARAMS = {"NETID": 25, "AIR_SPEED": 64, "SERIAL_SPEED": 57, "ECC": 0, "MAVLINK": 1}
@@ -475,3 +476,19 @@ def test_hostile_config_values_become_lines_not_tracebacks(setup: Setup) -> None
     checks = examine(setup, now=NOW)
     assert checks and any(c.status in ("fail", "warn") for c in checks)
     assert all(len(text_line(c)) < 1000 for c in checks)
+
+
+def test_rti_wait_follows_the_radio_network() -> None:
+    """Three TDM rounds of the radio's own network, between 1 and 10 s; parameters no
+    firmware boots with (a hostile or broken radio) give the longest wait, no error."""
+    assert rti_wait({"AIR_SPEED": 64}) == 1.0  # a pair: 0.24 s rounds
+    assert 7.0 < rti_wait({"AIR_SPEED": 64, "NODECOUNT": 20}) < 7.2  # 2.37 s rounds
+    assert rti_wait({"AIR_SPEED": 2, "NODECOUNT": 32}) == 10.0
+    for odd in ({"AIR_SPEED": 0}, {"AIR_SPEED": -1, "NODECOUNT": -5}, {"AIR_SPEED": 10**30}):
+        assert 1.0 <= rti_wait(odd) <= 10.0
+
+
+def test_capture_disk_in_the_whole_check(tmp_path: Path) -> None:
+    setup = Setup(zenoh_connect=("tcp/127.0.0.1:7447",), capture=str(tmp_path / "captures"))
+    disk = by_name(examine(setup, now=NOW))["disk"]
+    assert disk.status in ("pass", "warn") and disk.seen.startswith(str(tmp_path))

@@ -125,7 +125,7 @@ def _listen(conn: Any, facts: VehicleFacts, src: tuple[int, int], listen: float)
             _ask(conn, src, [n for n in (*WANTED, *OPTIONAL) if n not in heard])
             next_ask = now + ASK_AGAIN_S
         conn.select(min(0.1, deadline - now))
-        while (msg := conn.recv_msg()) is not None:
+        while time.monotonic() < deadline and (msg := conn.recv_msg()) is not None:  # a flood ends too
             if (msg.get_srcSystem(), msg.get_srcComponent()) != src:
                 continue
             facts = _fold(facts, msg, time.time())

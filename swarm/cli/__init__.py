@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("demo", "the whole bench on one machine: election, take-off, V formation, route"),
     "bench": ("bench", "run a benchmark and print its figures"),
     "service": ("service", "print or install the systemd unit of an agent or the ground station"),
+    "doctor": ("doctor", "pre-flight check of a field set-up: radio, flight controller, key, clock"),
 }
 
 

@@ -338,3 +338,29 @@ def test_the_global_log_format_is_refused_when_unknown(capsys: pytest.CaptureFix
     with pytest.raises(SystemExit):
         swarm_main(["radio-emu", "--log-format", "xml"])
     assert "invalid choice: 'xml'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["radio-emu", "--nodes", "0", "--dir", "/nonexistent"],
+        ["sim", "--vehicles", "0"],
+        ["demo", "--agents", "1"],
+        ["gcs", "--zenoh-listen", "tcp/127.0.0.1:1", "--id", "7"],
+    ],
+    ids=lambda argv: argv[0],
+)
+def test_every_long_running_command_takes_the_log_options(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """After the command (and before it: handed over as the command's first options)."""
+    for full in (
+        [*argv, "--log-format", "json", "--log-level", "info"],
+        ["--log-format", "json", "-v", *argv],
+    ):
+        logging.getLogger().handlers.clear()
+        assert swarm_main(full) == 2  # bad input, once the options are read
+        assert capsys.readouterr().err.startswith(f"swarm {argv[0]}: error: ")
+        root = logging.getLogger()
+        assert root.level == logging.INFO
+        assert [type(h.formatter) for h in root.handlers] == [JsonLogFormatter]

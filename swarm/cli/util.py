@@ -7,6 +7,11 @@ interrupted). The guard knows the three error roots, one per package
 (:class:`radios.errors.RadioError`, :class:`firmware_bridge.errors.BridgeError`,
 :class:`swarm.errors.SwarmError`); :func:`exit_code` maps an error to its code in one
 place. With ``swarm --log-level DEBUG`` the guard also logs the traceback it hides.
+
+Logging: :func:`configure_logging` sends log lines to stderr as text or, with
+``--log-format json``, as one JSON object a line (:class:`JsonLogFormatter`);
+:func:`add_log_arguments` gives a long-running command its ``--log-level`` and
+``--log-format`` and :func:`apply_log_arguments` acts on them once parsed.
 """
 
 from __future__ import annotations

@@ -162,6 +162,8 @@ def load_file(path: str) -> dict[str, Any]:
         raise UsageError(f"{path}: not TOML: {exc}") from None
     except RecursionError:
         raise UsageError(f"{path}: not TOML: nested too deep") from None
+    except ValueError:  # an integer of more digits than Python converts (4300)
+        raise UsageError(f"{path}: not TOML: a number too long to read") from None
 
 
 def file_values(p: argparse.ArgumentParser, path: str, table: dict[str, Any]) -> dict[str, tuple[str, Any]]:
@@ -220,7 +222,10 @@ def _scalar(key: Key, value: Any) -> Any:
     if not ok:
         raise ValueError(f"{_toml_type(value)}, not {_TOML_KINDS[kind]}")
     if kind == "float":
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:  # an integer beyond any float
+            value = math.inf
         if not math.isfinite(value):
             raise ValueError("not a finite number")
     if kind == "str":

@@ -22,15 +22,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from net_helpers import free_port
 
 from swarm.cli import main as swarm_main
 from swarm.cli.commands import agent as agent_cmd
 from swarm.cli.commands import gcs as gcs_cmd
 from swarm.cli.commands.config import command_parser
-from swarm.cli.configfile import MAX_FILE_BYTES, keys, read_arguments
+from swarm.cli.configfile import MAX_FILE_BYTES, file_values, keys, load_file, read_arguments
 from swarm.cli.procs import Child
-from swarm.cli.util import JsonLogFormatter
+from swarm.cli.util import JsonLogFormatter, UsageError
 
 NODE = 'zenoh_listen = ["tcp/127.0.0.1:1"]\n'  # a way in that nothing opens before the checks
 
@@ -367,3 +369,40 @@ def test_every_long_running_command_takes_the_log_options(
         root = logging.getLogger()
         assert root.level == logging.INFO
         assert [type(h.formatter) for h in root.handlers] == [JsonLogFormatter]
+
+
+# -- properties: whatever the file holds, only the one-line error escapes -------------
+
+_NUMBERS = st.integers() | st.floats() | st.sampled_from([10**400, -(10**400), 2**63, 0, -1, 65536])
+_SCALARS = _NUMBERS | st.booleans() | st.text(max_size=30) | st.dates() | st.datetimes() | st.times()
+_VALUES = st.recursive(
+    _SCALARS,
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=3),
+)
+# the known keys most of the time (an unknown one is refused before its value is read)
+_KEY_NAMES = st.sampled_from(sorted(keys(command_parser("gcs")))) | st.text(max_size=20)
+PROPS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@PROPS
+@given(table=st.dictionaries(_KEY_NAMES, _NUMBERS | _VALUES, max_size=4))
+def test_property_any_table_is_taken_or_refused_in_one_line(table: dict[str, Any]) -> None:
+    p = command_parser("gcs")
+    try:
+        values = file_values(p, "/etc/swarm/gcs.toml", table)
+    except UsageError as exc:
+        text = str(exc)
+        assert text.startswith("/etc/swarm/gcs.toml: ") and "\n" not in text and len(text) < 600
+        return
+    assert {key for key, _ in values.values()} == set(table)
+
+
+@PROPS
+@given(raw=st.binary(max_size=300) | st.text(max_size=300).map(str.encode))
+def test_property_any_bytes_are_read_or_refused_in_one_line(raw: bytes, tmp_path_factory: Any) -> None:
+    path = tmp_path_factory.mktemp("prop") / "x.toml"
+    path.write_bytes(raw)
+    try:
+        load_file(str(path))
+    except UsageError as exc:
+        assert str(exc).startswith(f"{path}: ") and "\n" not in str(exc)

@@ -54,8 +54,9 @@ def _usage() -> str:
         "  -v, -vv            log INFO (-v) or DEBUG (-vv) lines to stderr",
         f"  --log-level LEVEL  log lines at LEVEL and above ({', '.join(LOG_LEVELS)}) to stderr",
         f"  --log-format F     {' or '.join(LOG_FORMATS)}: one JSON object a line with json",
-        f"  ({', '.join(LOG_COMMANDS)} take both after the command too, and in --config FILE;",
-        "   the command line beats the file, after the command beats before it)",
+        f"  ({', '.join(LOG_COMMANDS)} also take both after the command; agent and gcs",
+        "   also as keys of --config FILE: the command line beats the file, after the",
+        "   command beats before it)",
         "",
         "Run 'swarm <command> --help' for a command's options.",
     ]

@@ -114,7 +114,7 @@ def keys(p: argparse.ArgumentParser) -> dict[str, Key]:
 
 
 def _key(name: str, action: argparse.Action) -> Key:
-    if isinstance(action, argparse._StoreTrueAction):
+    if isinstance(action, (argparse._StoreTrueAction, argparse.BooleanOptionalAction)):
         return Key(name, action, "bool")
     array = isinstance(action, argparse._AppendAction) or action.nargs in ("+", "*")
     if type(action) is not argparse._StoreAction and not isinstance(action, argparse._AppendAction):

@@ -24,7 +24,9 @@ times. ``choices`` are checked here; ranges stay in the command's own checks.
    that :func:`file_errors` can turn the command's own range checks ("--id 300:
    ...") into "agent.toml: id = 300: ..." when the value came from the file.
 Logging (``--log-level``, ``--log-format``, keys ``log_level`` and ``log_format``)
-is configured once the arguments are read.
+is configured once the arguments are read. The parser is read through argparse's
+``_actions`` and action classes: private names, unchanged since Python 3.2; a flag
+of a kind a file cannot give raises TypeError, which the tests catch.
 """
 
 from __future__ import annotations

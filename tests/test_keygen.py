@@ -75,6 +75,7 @@ def test_keygen_wants_an_existing_folder(tmp_path: Path, capsys: pytest.CaptureF
     assert not path.parent.exists()
 
 
+@pytest.mark.processes
 def test_a_failed_write_leaves_no_file(tmp_path: Path) -> None:
     """A write that fails half way (a file-size limit of 16 bytes: the first 16 bytes
     go, then EFBIG) exits 1 with one line and removes what it created."""

@@ -6,8 +6,13 @@ Only working subcommands are listed here.
 
 Global options come before the subcommand: ``-v`` (INFO; ``-vv`` DEBUG) or
 ``--log-level LEVEL`` sends the project's log lines at that level to stderr, one
-line each with the time, the logger's name and the level. Without them nothing is
-configured: only warnings and errors reach stderr, as bare lines. ``--version``
+line each with the time, the logger's name and the level; ``--log-format json``
+makes each line one JSON object (time, level, logger, message). Without them
+nothing is configured: only warnings and errors reach stderr, as bare lines. The
+long-running commands (:data:`LOG_COMMANDS`) also take ``--log-level`` and
+``--log-format`` after the command and as config-file keys: the global options are
+handed to them as their first options, so the rule is one: the command line beats
+the config file, and after the command beats before it. ``--version``
 prints the installed release (the package's metadata) and exits 0.
 """
 
@@ -18,7 +23,7 @@ import importlib
 import importlib.metadata
 import sys
 
-from swarm.cli.util import EXIT_USAGE, LOG_LEVELS, configure_logging
+from swarm.cli.util import EXIT_USAGE, LOG_FORMATS, LOG_LEVELS, configure_logging
 
 # name -> (module in swarm.cli.commands, one-line summary)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -31,9 +36,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "gcs": ("gcs", "ground control station: web map, JSON API, commands, replay"),
     "demo": ("demo", "the whole bench on one machine: election, take-off, V formation, route"),
     "bench": ("bench", "run a benchmark and print its figures"),
+    "config": ("config", "print a commented example config file: swarm config example agent|gcs"),
+    "keygen": ("keygen", "write a new swarm signing key (32 random bytes, mode 0600)"),
     "service": ("service", "print or install the systemd unit of an agent or the ground station"),
     "doctor": ("doctor", "pre-flight check of a field set-up: radio, flight controller, key, clock"),
 }
+
+#: the long-running commands: they take --log-level and --log-format themselves
+#: (after the command, or in their config file), and are handed the global ones
+LOG_COMMANDS = ("agent", "gcs", "radio-emu", "sim", "demo")
 
 
 DIST_NAME = "uav-swarm"
@@ -50,7 +61,9 @@ def version_line() -> str:
 
 def _usage() -> str:
     width = max(len(n) for n in COMMANDS)
-    lines = ["usage: swarm [--version] [-v | -vv | --log-level LEVEL] <command> [options]", "", "commands:"]
+    usage = "usage: swarm [--version] [-v | -vv | --log-level LEVEL] [--log-format F] <command> [options]"
+    lines = [usage, ""]
+    lines += ["commands:"]
     lines += [f"  {name:<{width}}  {summary}" for name, (_, summary) in COMMANDS.items()]
     lines += [
         "",
@@ -58,6 +71,10 @@ def _usage() -> str:
         "  --version          print the installed release and exit",
         "  -v, -vv            log INFO (-v) or DEBUG (-vv) lines to stderr",
         f"  --log-level LEVEL  log lines at LEVEL and above ({', '.join(LOG_LEVELS)}) to stderr",
+        f"  --log-format F     {' or '.join(LOG_FORMATS)}: one JSON object a line with json",
+        f"  ({', '.join(LOG_COMMANDS)} also take both after the command; agent and gcs",
+        "   also as keys of --config FILE: the command line beats the file, after the",
+        "   command beats before it)",
         "",
         "Run 'swarm <command> --help' for a command's options.",
     ]
@@ -76,6 +93,7 @@ def _global_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="store_true")
     p.add_argument("-v", "--verbose", action="count", default=0)
     p.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS)
+    p.add_argument("--log-format", choices=LOG_FORMATS)
     p.add_argument("command", nargs="?")
     p.add_argument("args", nargs=argparse.REMAINDER)
     return p
@@ -105,11 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     if a.command not in COMMANDS:
         print(f"swarm: unknown command {a.command!r}\n\n{_usage()}", file=sys.stderr)
         return EXIT_USAGE
-    level = _level(a)
-    if level is not None:
-        configure_logging(level)
+    level, fmt, rest = _level(a), a.log_format, list(a.args)
+    if a.command in LOG_COMMANDS:  # the command's own options, first: its later ones win
+        rest[:0] = [*(["--log-level", level] if level else []), *(["--log-format", fmt] if fmt else [])]
+    elif level is not None or fmt is not None:
+        configure_logging(level or "WARNING", fmt or "text")
     module = importlib.import_module(f"swarm.cli.commands.{COMMANDS[a.command][0]}")
-    code: int = module.main(a.args)
+    code: int = module.main(rest)
     return code
 
 

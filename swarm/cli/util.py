@@ -7,6 +7,11 @@ interrupted). The guard knows the three error roots, one per package
 (:class:`radios.errors.RadioError`, :class:`firmware_bridge.errors.BridgeError`,
 :class:`swarm.errors.SwarmError`); :func:`exit_code` maps an error to its code in one
 place. With ``swarm --log-level DEBUG`` the guard also logs the traceback it hides.
+
+Logging: :func:`configure_logging` sends log lines to stderr as text or, with
+``--log-format json``, as one JSON object a line (:class:`JsonLogFormatter`);
+:func:`add_log_arguments` gives a long-running command its ``--log-level`` and
+``--log-format`` and :func:`apply_log_arguments` acts on them once parsed.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import logging
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -178,10 +184,63 @@ def print_json(obj: Any) -> None:
 
 #: ``--log-level`` names, quietest last
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+#: ``--log-format`` names: text lines, or one JSON object a line
+LOG_FORMATS = ("text", "json")
 LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s: %(message)s"
 
 
-def configure_logging(level: str) -> None:
-    """Send the project's loggers at ``level`` and above to stderr, one line each
-    (time, logger name, level, message)."""
-    logging.basicConfig(level=level, format=LOG_FORMAT, stream=sys.stderr, force=True)
+class JsonLogFormatter(logging.Formatter):
+    """One JSON object a line: ``time`` (UTC, ISO 8601, milliseconds), ``level``,
+    ``logger``, ``message``, and ``exc`` (the traceback) when there is one. Newlines in
+    a message or a traceback are escaped, so a record is always exactly one line."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        t = time.gmtime(record.created)
+        obj: dict[str, Any] = {
+            "time": time.strftime("%Y-%m-%dT%H:%M:%S", t) + f".{int(record.msecs):03d}Z",
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        if record.exc_info:
+            obj["exc"] = self.formatException(record.exc_info)
+        elif record.exc_text:
+            obj["exc"] = record.exc_text
+        return json.dumps(obj, ensure_ascii=False)
+
+
+def configure_logging(level: str, fmt: str = "text") -> None:
+    """Send the project's loggers at ``level`` and above to stderr, one line each:
+    ``fmt`` "text" (time, logger name, level, message) or "json"
+    (:class:`JsonLogFormatter`). Replaces any earlier configuration."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonLogFormatter() if fmt == "json" else logging.Formatter(LOG_FORMAT))
+    logging.basicConfig(level=level, handlers=[handler], force=True)
+
+
+def add_log_arguments(p: argparse.ArgumentParser) -> None:
+    """``--log-level`` and ``--log-format`` for a long-running command (agent, gcs,
+    radio-emu, sim, demo); :func:`apply_log_arguments` acts on them."""
+    g = p.add_argument_group("log lines (stderr)")
+    g.add_argument(
+        "--log-level",
+        type=str.upper,
+        choices=LOG_LEVELS,
+        metavar="LEVEL",
+        help=f"log lines at LEVEL and above ({', '.join(LOG_LEVELS)}); default: only "
+        "warnings and errors, as bare lines",
+    )
+    g.add_argument(
+        "--log-format",
+        choices=LOG_FORMATS,
+        help="text (time, logger, level, message) or json (one object a line: time, "
+        "level, logger, message); default text",
+    )
+
+
+def apply_log_arguments(a: argparse.Namespace) -> None:
+    """Configure logging as :func:`add_log_arguments`' values ask (WARNING when only a
+    format is given); neither given: leave logging as it is."""
+    level, fmt = getattr(a, "log_level", None), getattr(a, "log_format", None)
+    if level is not None or fmt is not None:
+        configure_logging(level or "WARNING", fmt or "text")

@@ -60,6 +60,7 @@ from typing import Any
 from firmware_bridge.errors import BridgeError
 from radios.errors import ATError, RadioError
 from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
+from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.util import (
     StopFlag,
     UsageError,
@@ -90,7 +91,7 @@ from swarm.runtime.notify import Service
 PROG = "swarm agent"
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     p = parser(
         PROG,
         "Run one swarm agent: dynamic leader selection and membership over a "
@@ -401,8 +402,9 @@ def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    a = _build_parser().parse_args(argv)
-    _check_arguments(a)
+    a = read_arguments(build_parser(), argv)
+    with file_errors(a):
+        _check_arguments(a)
     out = _Lines(a)
     if a.radio_params:
         _check_radio(a, out)

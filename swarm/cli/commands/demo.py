@@ -18,6 +18,7 @@ import argparse
 import sys
 import webbrowser
 
+from swarm.cli.configfile import read_arguments
 from swarm.cli.demo import DemoConfig, run_demo
 from swarm.cli.util import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
 
@@ -112,7 +113,7 @@ SUMMARY_KEYS = (
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    a = _build_parser().parse_args(argv)
+    a = read_arguments(_build_parser(), argv, config=False)
     cfg = _config(a)
     stream = sys.stderr if a.json else sys.stdout
     opened = False

@@ -31,6 +31,7 @@ import time
 
 from radios.sik.guard import parse_expected
 from swarm.cli.commands import agent
+from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.util import guarded, print_json
 from swarm.core.doctor import exit_code, report_json, summary, text_line
 from swarm.core.doctor.radio import RadioPlan
@@ -41,8 +42,9 @@ PROG = "swarm doctor"
 
 def _build_parser() -> argparse.ArgumentParser:
     """The agent's parser, with --name and --id optional and --json meaning one report."""
-    p = agent._build_parser()
+    p = agent.build_parser()
     p.prog = PROG
+    p.config_example = "agent"  # type: ignore[attr-defined]  # doctor reads an agent's config file
     p.description = (
         "Pre-flight check of a field set-up: give it the agent's flags. One line per "
         "check (PASS, INFO, WARN, FAIL) with the fix; exit 0 when nothing fails."
@@ -61,11 +63,16 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     """The agent's flags, checked as the agent checks them (UsageError or ConfigError:
     exit 2). Sets ``a.node``, ``a.round_s``, ``a.expected`` (parsed --radio-params or
     None) and ``a.plan``."""
-    a = _build_parser().parse_args(argv)
+    a = read_arguments(_build_parser(), argv)  # --config FILE: the agent's config file
     round_given = a.round_s is not None
     probe = argparse.Namespace(**{**vars(a), "id": 1 if a.id is None else a.id, "name": a.name or "doctor"})
-    agent._check_arguments(probe)  # raises UsageError for what the agent refuses
-    agent._agent(probe, agent._Lines(probe))  # builds (opens nothing): refuses what the agent would
+    # the agent would open (and create) its flight log folder: the doctor only looks at it
+    probe.capture = None
+    for flag in agent.CAPTURE_FLAGS:
+        setattr(probe, flag[2:].replace("-", "_"), None)
+    with file_errors(a):
+        agent._check_arguments(probe)  # raises UsageError for what the agent refuses
+        agent._agent(probe, agent._Lines(probe))  # builds (opens nothing): refuses what the agent would
     a.node, a.round_s = probe.node, probe.round_s
     a.expected = parse_expected(a.radio_params) if a.radio_params else None
     fast = a.profile == "fast" and not round_given  # the round comes from --slots and --air-speed

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from radios.errors import CaptureError
+from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.util import (
     StopFlag,
     UsageError,
@@ -62,7 +63,7 @@ from swarm.runtime.server import (
 PROG = "swarm gcs"
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     p = parser(
         PROG,
         "Ground control station: connects the agents that announce themselves, shows "
@@ -244,9 +245,10 @@ def _check(a: argparse.Namespace) -> None:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    a = _build_parser().parse_args(argv)
-    _check(a)
-    cfg = _server_config(a)
+    a = read_arguments(build_parser(), argv)
+    with file_errors(a):
+        _check(a)
+        cfg = _server_config(a)
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     stop = StopFlag().install()
     try:

@@ -7,6 +7,7 @@ import sys
 
 from radios.emulator import Emulator, EmulatorConfig, check_capture_path, parse_param
 from radios.errors import CaptureError, ConfigError
+from swarm.cli.configfile import read_arguments
 from swarm.cli.util import StopFlag, UsageError, guarded, parser
 
 PROG = "swarm radio-emu"
@@ -90,7 +91,7 @@ def _add_channel_arguments(p: argparse.ArgumentParser) -> None:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = read_arguments(build_parser(), argv, config=False)
     try:
         params = dict(parse_param(x) for x in args.param)
         cfg = EmulatorConfig(

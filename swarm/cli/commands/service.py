@@ -155,8 +155,9 @@ def next_steps(kind: str, path: Path) -> list[str]:
         f"sudo useradd --system --user-group --groups dialout --home-dir {STATE_DIR} "
         f"--no-create-home --shell /usr/sbin/nologin {USER}",
         f"sudo install -d -m 0750 -o root -g {USER} {CONFIG_DIR}",
-        f"sudo install -m 0640 -o root -g {USER} {Path(conf).name} {conf}"
-        "   # the settings; the swarm key file likewise",
+        f"sudo install -m 0640 -o root -g {USER} {Path(conf).name} {conf}   # the settings",
+        f"sudo install -m 0400 -o {USER} -g {USER} swarm.key {CONFIG_DIR}/swarm.key"
+        "   # the swarm key: its user only",
     ]
     if path.parent != Path(UNIT_DIR):
         steps.append(f"sudo cp {path} {UNIT_DIR}/")

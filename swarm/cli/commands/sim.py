@@ -14,6 +14,7 @@ import math
 
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.sim import SimConfig, VehicleSim
+from swarm.cli.configfile import read_arguments
 from swarm.cli.util import StopFlag, UsageError, guarded, parser
 
 PROG = "swarm sim"
@@ -85,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = read_arguments(build_parser(), argv, config=False)
     home = parse_home(args.home)
     if not 1 <= args.vehicles <= 250:
         raise UsageError(f"--vehicles must be 1..250, got {args.vehicles}")

@@ -100,8 +100,8 @@ def instructions(path: str, key: bytes) -> str:
         [
             f"wrote a new swarm signing key to {where} (32 random bytes, mode 0600)",
             "copy it to every aircraft and to the ground station, keeping it mode 0600, e.g.",
-            f"  scp -p {where} USER@HOST:/etc/swarm/swarm.key   (-p keeps the mode)",
-            f"  install -m 0600 {where} /etc/swarm/swarm.key     (from a USB stick)",
+            f"  scp -p {where} USER@HOST:/etc/uav-swarm/swarm.key   (-p keeps the mode)",
+            f"  install -m 0600 {where} /etc/uav-swarm/swarm.key     (from a USB stick)",
             f"check each copy: 'sha256sum FILE' must print {digest}",
             "then give it to every node: swarm agent --key FILE, swarm gcs --key FILE",
             '(or key = "FILE" in their config files). Whoever has it can command the swarm:',

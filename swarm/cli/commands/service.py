@@ -155,6 +155,8 @@ def next_steps(kind: str, path: Path) -> list[str]:
         f"sudo useradd --system --user-group --groups dialout --home-dir {STATE_DIR} "
         f"--no-create-home --shell /usr/sbin/nologin {USER}",
         f"sudo install -d -m 0750 -o root -g {USER} {CONFIG_DIR}",
+        f"sudo install -d -m 0750 -o {USER} -g {USER} {STATE_DIR}"
+        "   # captures (StateDirectory=): there before the first start, for swarm doctor",
         f"sudo install -m 0640 -o root -g {USER} {Path(conf).name} {conf}   # the settings",
         f"sudo install -m 0400 -o {USER} -g {USER} swarm.key {CONFIG_DIR}/swarm.key"
         "   # the swarm key: its user only",

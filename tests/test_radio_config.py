@@ -111,6 +111,10 @@ def test_a_radio_that_reads_back_other_values_exits_1_naming_them(
         (["--network", "3", "--node", "0", "--netid", "30", "--set", "BOGUS=1"], "unknown"),
         (["--remote-node", "1", "--show"], "--remote-node I needs --remote"),
         (["--show", "--set", "NETID=3"], "--show only reads"),
+        (
+            ["--network", "2", "--node", "0", "--netid", "3", "--write-params", "/nonexistent/a.toml"],
+            "does not exist",
+        ),
     ],
 )
 def test_bad_requests_exit_2_before_the_port_is_touched(

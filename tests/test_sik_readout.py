@@ -95,6 +95,8 @@ def test_whole_lines_in_every_form() -> None:
     assert parse_register_line("S17:ANT_MODE=0", STANDARD) is None
     assert parse_register_line("S17:ANT_MODE=0", STANDARD, known_only=False) == ("ANT_MODE", 17, 0)
     assert parse_register_line("S3:ANT_MODE=0", STANDARD, known_only=False) is None  # S3 is NETID
+    assert parse_register_line("S17:GPI1_1R/CIN=0", STANDARD, known_only=False) == ("GPI1_1R/CIN", 17, 0)
+    assert parse_register_line("S17:GPI1_1R/CIN=0", STANDARD) is None
 
 
 def test_parse_value() -> None:

@@ -322,11 +322,15 @@ class SikConfigurator:
 
     def version(self) -> str:
         """The radio's banner (``ATI``), e.g. ``'SiK 2.2 on HM-TRP'`` (node prefix removed).
+        A local radio's banner also sets :attr:`flavour` (``MP SiK ...``: multipoint).
 
         Raises :class:`ATTimeoutError` without an answer.
         """
         lines = self.command(self._op("ATI"), lines=1)
-        return strip_node(lines[0])
+        banner = strip_node(lines[0])
+        if not self.remote:  # the local banner says which table the registers follow
+            self.flavour = "multipoint" if banner.startswith("MP ") else "standard"
+        return banner
 
     def read_params(self) -> dict[str, int]:
         """All parameters as name -> value, in register order, read strictly

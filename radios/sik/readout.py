@@ -11,8 +11,9 @@ and the S number is that register's number. :func:`parse_register_line` is that 
 * **Local** (:func:`parse_local`): the serial line between host and radio does not lose
   bytes, so any line of an ``ATI5`` answer that is not a register line is an error
   (:class:`~radios.errors.ATError` naming the line), and so is a known name under the
-  wrong number or twice. A well-formed line with a name the table does not know is kept
-  (firmware variants add registers).
+  wrong number or twice. A well-formed line with a name the table does not know, under
+  a number the table does not use, is kept (firmware variants add registers, such as
+  ``S16:GPI1_1R/CIN=0``).
 * **Remote** (:func:`read_remote`, ``RT`` commands): the answer crosses the air in
   packets of at most 32 bytes, with no retransmission, and the remote captures at most
   252 bytes (a multipoint ``RTI5`` with its ``[id] `` prefixes does not fit). A lost
@@ -40,7 +41,7 @@ from dataclasses import dataclass, field
 from radios.errors import ATError, ATTimeoutError
 from radios.sik.param_table import AES_PARAM, UINT32_MAX, params_for
 
-_REGISTER = re.compile(r"^(?:\[(\d{1,5})\] )?S(\d{1,2}):\s?([A-Z][A-Z0-9_]*)=(\d{1,10})$")
+_REGISTER = re.compile(r"^(?:\[(\d{1,5})\] )?S(\d{1,2}):\s?([A-Z][A-Z0-9_/]*)=(\d{1,10})$")
 _VALUE = re.compile(r"^(?:\[(\d{1,5})\] )?(\d{1,10})$")
 
 DEFAULT_TRIES = 5  # answers asked for per register over the air (RTI5 counts as one)

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from radios.errors import ATError, ConfigError, RadioError
-from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port
+from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port, strip_node
 from radios.sik.network import (
     NetworkPlan,
     agent_params,
@@ -203,6 +203,8 @@ def _request(args: argparse.Namespace) -> Request:
         plan.check()
     elif args.node is not None or args.netid is not None or args.write_params:
         raise UsageError("--node, --netid and --write-params belong to --network N")
+    if args.write_params and not Path(args.write_params).resolve().parent.is_dir():
+        raise UsageError(f"--write-params {args.write_params}: its directory does not exist")
     if args.show and (args.sets or plan):
         raise UsageError("--show only reads: drop it to write")
     if args.remote_node is not None and not args.remote:
@@ -287,8 +289,7 @@ def _read_key(path: str | None, level: int, remote: bool) -> bytes | None:
 def _detect(conf: SikConfigurator, req: Request) -> str:
     """The local radio's banner; sets ``conf.flavour`` to its firmware. Raises ConfigError
     if ``--firmware`` disagrees, UsageError for a multipoint ``--remote`` without a node."""
-    lines = conf.command("ATI", lines=1)
-    banner = lines[0].partition("] ")[2] if lines[0].startswith("[") else lines[0]
+    banner = strip_node(conf.command("ATI", lines=1)[0])
     detected: Flavour = "multipoint" if banner.startswith("MP ") else "standard"
     if req.firmware is not None and req.firmware != detected:
         raise ConfigError(
@@ -312,7 +313,7 @@ def _configure(
     flavour = conf.flavour
     sets = _for_firmware(req.sets, flavour, banner)
     settings = plan_settings(req.plan, flavour, sets) if req.plan is not None else sets
-    band = None if req.remote else band_of(conf.command("ATI3", lines=1)[0])
+    band = None if req.remote else band_of(strip_node(conf.command("ATI3", lines=1)[0]))
     values = conf.read_params()
     if not req.writes:
         conf.exit_command_mode()

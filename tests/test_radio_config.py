@@ -17,6 +17,7 @@ from net_helpers import wait_until
 from sik_pty_radio import PtyRadio, make_engine
 
 from radios.sik.at import ATEngine, RemoteResult
+from radios.sik.config import SikConfigurator, open_port
 from radios.sik.guard import parse_expected
 from swarm.cli.commands.radio_config import main
 
@@ -181,3 +182,20 @@ def test_remote_show_over_a_lossy_emulated_link(tmp_path: Path, capsys: pytest.C
         assert code == 1 and ", ".join(missing) in captured.err
     else:
         assert code == 0 and captured.err == ""
+
+
+def test_emulated_multipoint_rti5_comes_back_whole_a_line_per_packet(tmp_path: Path) -> None:
+    """The multipoint firmware answers RTI5 one register per packet, all 19 of them, each
+    line with one [id] prefix (the emulator cut it at 252 bytes and doubled the prefix)."""
+    with running_emulator(tmp_path, 3, air_speed=128) as emu:
+        emu.wait_locked(0, 1, 2)
+        port = open_port(emu.paths[0])
+        try:
+            conf = SikConfigurator(port, remote=True, remote_node=2)
+            conf.enter_command_mode()
+            lines = conf.command("RTI5,2")
+            conf.exit_command_mode()
+        finally:
+            port.close()
+    assert len(lines) == 19
+    assert lines[0] == "[2] S0: FORMAT=26" and lines[18] == "[2] S18: NODECOUNT=3"

@@ -111,6 +111,7 @@ def test_a_radio_that_reads_back_other_values_exits_1_naming_them(
         ),
         (["--network", "3", "--node", "0", "--netid", "30", "--set", "BOGUS=1"], "unknown"),
         (["--remote-node", "1", "--show"], "--remote-node I needs --remote"),
+        (["--remote", "--remote-node", "-1"], "--remote-node -1: a node id is 0..32767"),
         (["--show", "--set", "NETID=3"], "--show only reads"),
         (
             ["--network", "2", "--node", "0", "--netid", "3", "--write-params", "/nonexistent/a.toml"],

@@ -78,6 +78,8 @@ from swarm.cli.util import UsageError, guarded, parser, print_json
 
 PROG = "swarm radio-config"
 REBOOT_SETTLE = 0.5  # seconds to let a rebooted radio start before talking to it again
+NODE_MAX = 0x7FFF  # the largest multipoint NODEID
+UNSAVED = "nothing was saved (values already in the radio's RAM last until it reboots)"
 
 
 @dataclass
@@ -209,6 +211,8 @@ def _request(args: argparse.Namespace) -> Request:
         raise UsageError("--show only reads: drop it to write")
     if args.remote_node is not None and not args.remote:
         raise UsageError("--remote-node I needs --remote")
+    if args.remote_node is not None and not 0 <= args.remote_node <= NODE_MAX:
+        raise UsageError(f"--remote-node {args.remote_node}: a node id is 0..{NODE_MAX}")
     sets = _parse_sets(args.sets, firmware)
     level = sets.get("ENCRYPTION_LEVEL")
     key = _read_key(args.aes_key, int(level) if level else 0, args.remote)
@@ -228,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         conf.enter_command_mode()
         try:
             values, problems, agent = _configure(conf, req)
-        except Exception:
+        except BaseException:  # Ctrl-C too: a radio left in command mode forwards nothing
             _leave_quietly(conf)
             raise
         indices = conf.indices
@@ -354,12 +358,12 @@ def _write(conf: SikConfigurator, settings: dict[str, int], key: bytes | None) -
         try:
             conf.set_param(name, value)
         except ATError as exc:
-            raise ATError(f"{exc}; nothing was saved") from None
+            raise ATError(f"{exc}; {UNSAVED}") from None
     if key is not None:
         try:
             conf.set_key(key)
         except ATError as exc:
-            raise ATError(f"{exc}; nothing was saved") from None
+            raise ATError(f"{exc}; {UNSAVED}") from None
 
 
 def _save(conf: SikConfigurator, settings: dict[str, int], remote: bool, key: bytes | None) -> dict[str, int]:

@@ -50,6 +50,7 @@ LOCAL_QUIET = 0.3  # seconds without a byte that end a local informational reply
 REMOTE_QUIET = 1.0  # the same for a remote (RT) reply, which comes in packets
 LOCAL_TIMEOUT = 1.0  # default wait for the first reply line of a local command
 REMOTE_TIMEOUT = 2.0  # default wait for the first reply line of a remote command
+ASK_MIN = 0.6  # the shortest wait for a one-line remote answer (RTSn?)
 HARD_EXTRA = 5.0  # a reply that keeps streaming is cut this long after its timeout
 
 # After +++ the radio prints OK and then nothing more (command mode drops air data),
@@ -154,6 +155,7 @@ class SikConfigurator:
         self.tries = DEFAULT_TRIES  # answers asked for per register over the air
         self.unreadable: list[str] = []  # registers the last remote read could not confirm
         self.garbled = 0  # lines of the last remote RTI5 that were not whole register lines
+        self._rtt: float | None = None  # the slowest RTSn? answer so far (seconds)
         self.port.timeout = READ_SLICE
         self._pending = bytearray()
 
@@ -353,8 +355,16 @@ class SikConfigurator:
         return {name: value for name, (_, value) in ordered}
 
     def _ask(self, line: str) -> list[str]:
-        """One remote command line as given (target included); one line for ``RTSn?``."""
-        return self.command(line, lines=1 if line.partition(",")[0].endswith("?") else None)
+        """One remote command line as given (target included); one line for ``RTSn?``,
+        awaited three times the slowest answer seen so far (0.6 s to 2 s): a lost
+        question costs less, and a late answer is outvoted (two answers must agree)."""
+        if not line.partition(",")[0].endswith("?"):
+            return self.command(line)
+        wait = REMOTE_TIMEOUT if self._rtt is None else min(REMOTE_TIMEOUT, max(ASK_MIN, 3 * self._rtt))
+        start = time.monotonic()
+        lines = self.command(line, wait, lines=1)
+        self._rtt = max(self._rtt or 0.0, time.monotonic() - start)
+        return lines
 
     def set_param(self, name: str, value: int | str) -> None:
         """``ATSn=value`` for parameter ``name`` (validated first, nothing sent if bad).

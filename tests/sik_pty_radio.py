@@ -31,9 +31,10 @@ def make_engine(
     node_id: int | None = None,
     board: str = "HM-TRP",
     boot_time: float | None = None,
+    cls: type[ATEngine] = ATEngine,
 ) -> ATEngine:
-    """An ATEngine with fixed ATI6/ATI7 text."""
-    return ATEngine(
+    """An ATEngine (or ``cls``, a subclass) with fixed ATI6/ATI7 text."""
+    return cls(
         SikParams(flavour, stored=stored),
         flavour=flavour,
         board=board,

@@ -442,9 +442,14 @@ def test_multipoint_prefixes_every_line() -> None:
     assert cmd(e, b"AT") == b"[3] OK\r\n"
     assert cmd(e, b"ATS15=9") == b"[3] ERROR\r\n"  # not below NODECOUNT
     lines = cmd(e, b"ATI5").decode().split("\r\n")
-    assert lines[15] == "[3] S15:NODEID=3"
+    assert lines[15] == "[3] S15: NODEID=3"  # multipoint's param_print: a space after the colon
     assert len(lines[:-1]) == 19
     assert e.run_remote("RTI1,3").output == b"[3] 2.2\n"  # the target suffix is ignored
+    # RTI5 goes back a line per packet, the whole table (tdm.c's packet_ati5_inject)
+    result = e.run_remote("RTI5,3")
+    assert result.per_line and len(result.output) > 252
+    assert result.output.decode().splitlines()[18] == "[3] S18: NODECOUNT=4"
+    assert not e.run_remote("RTI5X").per_line  # only RTI5 itself
 
 
 def test_node_id_override() -> None:

@@ -21,7 +21,8 @@ from sik_pty_radio import PtyRadio, SilentPty, make_engine
 
 from radios.errors import ATError, ATTimeoutError, ConfigError, LinkOpenError
 from radios.sik import config as config_module
-from radios.sik.config import SikConfigurator, open_port, parse_param_lines, strip_node
+from radios.sik.config import SikConfigurator, open_port, strip_node
+from radios.sik.readout import parse_local
 from swarm.cli.commands.radio_config import main
 
 pytestmark = pytest.mark.processes  # a radio on a pty with real +++ guard times
@@ -83,9 +84,13 @@ def test_open_port_in_use() -> None:
 # -- parsing ------------------------------------------------------------------------------
 
 
-def test_parse_param_lines_accepts_both_formats() -> None:
-    lines = ["S0:FORMAT=26", "S1: SERIAL_SPEED=57", "[2] S2:AIR_SPEED=64", "junk", "S3:NETID="]
-    assert parse_param_lines(lines) == {"FORMAT": (0, 26), "SERIAL_SPEED": (1, 57), "AIR_SPEED": (2, 64)}
+def test_parse_local_accepts_both_formats() -> None:
+    lines = ["S0:FORMAT=26", "S1: SERIAL_SPEED=57", "[2] S2:AIR_SPEED=64"]
+    assert parse_local(lines, "standard", "tty") == {
+        "FORMAT": (0, 26),
+        "SERIAL_SPEED": (1, 57),
+        "AIR_SPEED": (2, 64),
+    }
     assert strip_node("[12] OK") == "OK"
     assert strip_node("OK") == "OK"
 
@@ -195,7 +200,10 @@ def test_remote_mode() -> None:
             conf.reboot()
             conf.exit_command_mode()
             wait_until(lambda: radio.peer_reboots, "the peer's reboot (RTZ)", DEADLINE)
-            assert radio.remote_commands == ["RTI", "RTI5", "RTS3=7", "RT&W", "RTZ"]
+            assert radio.remote_commands[:2] == ["RTI", "RTI5"]
+            assert radio.remote_commands[-3:] == ["RTS3=7", "RT&W", "RTZ"]
+            # every register confirmed by a second answer: RTI5, then RTSn? each
+            assert radio.remote_commands[2:18] == [f"RTS{n}?" for n in range(16)]
             assert radio.peer_reboots == 1
             assert peer.params.active_value("NETID") == 7
             assert radio.engine.params.active_value("NETID") == 25  # the local radio is untouched
@@ -207,9 +215,11 @@ def test_remote_link_down(radio: PtyRadio, port: Any) -> None:
     conf = SikConfigurator(port, remote=True)  # radio.peer is None: nobody answers
     conf.enter_command_mode()
     start = time.monotonic()
-    with pytest.raises(ATTimeoutError, match=r"remote radio did not answer RTI5 \(link down\?\)"):
+    with pytest.raises(
+        ATTimeoutError, match=r"remote radio answered neither RTI5 nor RTS0\? \(link down\?\)"
+    ):
         conf.read_params()
-    assert time.monotonic() - start < 3.0
+    assert time.monotonic() - start < 6.0
 
 
 def test_never_answering_port() -> None:
@@ -311,9 +321,17 @@ def test_cli_no_answer_exits_1(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_cli_firmware_mismatch(capsys: pytest.CaptureFixture[str]) -> None:
     with PtyRadio(make_engine("multipoint"), start_in_command_mode=True) as radio:
-        assert main([radio.path, "--set", "NETID=5"]) == 2
+        assert main([radio.path, "--firmware", "standard", "--set", "NETID=5"]) == 2
         assert "--firmware multipoint" in capsys.readouterr().err
         assert radio.engine.params.ram[3] == 25
+    with PtyRadio(make_engine("multipoint"), start_in_command_mode=True) as radio:
+        # the README's old example: multipoint firmware has no MAX_WINDOW; refused before any write
+        assert main([radio.path, "--set", "NETID=30", "--set", "MAX_WINDOW=33"]) == 2
+        err = capsys.readouterr().err
+        assert "runs multipoint firmware" in err and "no MAX_WINDOW: nothing was written" in err
+        assert err.count("\n") == 1
+        assert b"ATS" not in bytes(radio.received)
+        assert radio.engine.params.ram[3] == 25 and radio.reboots == 0
     with PtyRadio(make_engine("multipoint"), start_in_command_mode=True) as radio:
         assert main([radio.path, "--firmware", "multipoint", "--set", "NODECOUNT=4", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["NODECOUNT"] == 4

@@ -463,9 +463,9 @@ class AirModel:
         reply = getattr(res, "output", res)
         if isinstance(reply, str):
             reply = reply.encode()
-        if reply:
-            if r.cfg.firmware == "multipoint":
-                reply = f"[{r.cfg.node_id}] ".encode() + reply
+        if reply and getattr(res, "per_line", False):  # multipoint RTI5: a packet per line
+            r.inject_packets.extend(line + b"\n" for line in reply.split(b"\n") if line)
+        elif reply:  # multipoint: run_remote already put the "[id] " prefix on every line
             r.injected += reply[:252]
         if getattr(res, "reboot", False) and self.on_reboot is not None:
             self.reconfigure(r.index, self.on_reboot(r.index), t)

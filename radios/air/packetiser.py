@@ -4,7 +4,8 @@ Theory of operation
 -------------------
 :func:`packet_get_next` takes at most ``mx`` bytes for the next packet from what a
 radio holds: first a remote AT reply waiting to be sent (``injected``, at most 32
-bytes a packet), then the input buffer. In raw mode (``mavlink == 0``) bytes go as
+bytes a packet; a multipoint ``RTI5`` answer line by line, ``inject_packets``), then
+the input buffer. In raw mode (``mavlink == 0``) bytes go as
 they come. With MAVLink framing it
 
 * waits for a whole frame, but no longer than the frame's own serial time
@@ -36,6 +37,8 @@ def packet_get_next(r: RadioState, mx: int, t: float) -> tuple[bytes, bool, int]
         chunk = bytes(r.injected[:n])
         del r.injected[:n]
         return chunk, True, 0
+    if r.inject_packets and mx >= len(r.inject_packets[0]):
+        return r.inject_packets.popleft(), True, 0
     buf = r.inbuf
     if not buf or mx <= 0:
         return b"", False, 0

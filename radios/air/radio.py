@@ -153,6 +153,7 @@ class RadioState:
         self.mav_start = 0.0
         self.mav_max_time = 0.0
         self.injected = bytearray()  # remote AT reply waiting to be sent
+        self.inject_packets: deque[bytes] = deque()  # multipoint RTI5: one line per packet
         self.remote_cmd: str | None = None
         self.rs_seq = 0
         self.rs_pending = False

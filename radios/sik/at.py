@@ -41,7 +41,10 @@ whole text, target included, is handed out and the emulator routes it
 (:func:`split_remote_target` parses it); ``run_remote`` ignores a target suffix.
 
 Multipoint firmware prefixes every line it prints, locally and remotely, with
-``[<node id>] `` (``[1] OK``); the standard firmware prints bare lines.
+``[<node id>] `` (``[1] OK``) and prints its registers as ``S3: NETID=25`` (a space
+after the colon); the standard firmware prints bare lines and ``S3:NETID=25``. A
+multipoint ``RTI5`` (exactly that) is not captured into one 252-byte reply: every
+register line goes back in a packet of its own (``RemoteResult.per_line``).
 
 A command line holds 16 characters on Si1000 boards and 69 on the Si103x boards
 (RFD900P, RFD900U, MRO900), as at.h's AT_CMD_MAXLEN; a received ``RT`` line longer
@@ -119,6 +122,9 @@ class RemoteResult:
     output: bytes = b""
     """The captured reply to send back (bare ``\\n`` line ends, <= 252 bytes); empty means
     send nothing."""
+    per_line: bool = False
+    """Multipoint ``RTI5``: each line of ``output`` goes in a packet of its own and the
+    whole table is sent, not cut at 252 bytes (tdm.c's packet_ati5_inject)."""
     reboot: bool = False
     """``RTZ``: the engine already ran ``params.boot()``; the caller re-inits this radio."""
 
@@ -286,8 +292,10 @@ class ATEngine:
         lines, reboot = self._run_at(line, t)
         if reboot:
             return RemoteResult(b"", reboot=True)
-        text = "".join(f"{self._prefix()}{entry}\n" for entry in lines)
-        return RemoteResult(text.encode("ascii", "replace")[:REMOTE_REPLY_MAX])
+        text = "".join(f"{self._prefix()}{entry}\n" for entry in lines).encode("ascii", "replace")
+        if self.flavour == "multipoint" and line == "ATI5":
+            return RemoteResult(text, per_line=True)
+        return RemoteResult(text[:REMOTE_REPLY_MAX])
 
     # -- time ---------------------------------------------------------------------------
 
@@ -405,8 +413,11 @@ class ATEngine:
             return [str(self.params.band.code)]
         if which == "4":
             return [str(BOOTLOADER_VERSION)]
-        if which == "5":
-            return [f"S{spec.index}:{spec.name}={self.params.ram[spec.index]}" for spec in self.params.specs]
+        if which == "5":  # multipoint's param_print puts a space after the colon
+            sep = ": " if self.flavour == "multipoint" else ":"
+            return [
+                f"S{spec.index}{sep}{spec.name}={self.params.ram[spec.index]}" for spec in self.params.specs
+            ]
         if which == "6":
             return self._text_lines(self._ati6)
         if which == "7":

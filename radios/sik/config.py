@@ -24,8 +24,9 @@ every read is a short poll (``READ_SLICE``) inside a loop bounded by
   small packets with bare ``\\n`` line ends, so the first-byte wait is longer (2 s)
   and so is the quiet gap (1 s). No answer means the link is down.
 
-Only complete lines count: a remote reply cut at 252 bytes loses its last partial
-line rather than returning a wrong value.
+Parameters are read strictly (:mod:`radios.sik.readout`): a local ``ATI5`` line that
+is not a register line of the firmware's table is an error; over the air every value
+is confirmed by two answers and what cannot be confirmed is named, never guessed.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import serial
 
 from radios.errors import ATError, ATTimeoutError, ConfigError, LinkClosedError, LinkOpenError
 from radios.sik.params import check_flavour, spec_for, validate_user_value
+from radios.sik.readout import DEFAULT_TRIES, parse_local, read_remote
 
 READ_SLICE = 0.05  # seconds: the longest a single port read blocks
 GUARD_SILENCE = 1.2  # seconds of silence before +++ (the radio needs 1 s)
@@ -48,6 +50,7 @@ LOCAL_QUIET = 0.3  # seconds without a byte that end a local informational reply
 REMOTE_QUIET = 1.0  # the same for a remote (RT) reply, which comes in packets
 LOCAL_TIMEOUT = 1.0  # default wait for the first reply line of a local command
 REMOTE_TIMEOUT = 2.0  # default wait for the first reply line of a remote command
+ASK_MIN = 0.6  # the shortest wait for a one-line remote answer (RTSn?)
 HARD_EXTRA = 5.0  # a reply that keeps streaming is cut this long after its timeout
 
 # After +++ the radio prints OK and then nothing more (command mode drops air data),
@@ -55,7 +58,6 @@ HARD_EXTRA = 5.0  # a reply that keeps streaming is cut this long after its time
 _OK_AFTER_PLUS = re.compile(rb"(?:^|\n)(?:\[\d+\] )?OK\r\n|(?:\[\d+\] )?OK\r\n\Z")
 _OK_AFTER_PROBE = re.compile(rb"AT\r\n(?:\[\d+\] )?OK\r\n")
 _NODE_PREFIX = re.compile(r"^\[\d+\]\s*")
-_PARAM_LINE = re.compile(r"^S(\d+):\s*([A-Z0-9_]+)=(\d+)$")
 
 # SERIAL_SPEED code -> baud rate.
 SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600, 115: 115200, 230: 230400}
@@ -124,20 +126,6 @@ def strip_node(line: str) -> str:
     return _NODE_PREFIX.sub("", line, count=1)
 
 
-def parse_param_lines(lines: list[str]) -> dict[str, tuple[int, int]]:
-    """Parse ``ATI5`` lines into name -> (S number, value).
-
-    Accepts ``S0:FORMAT=26``, the pre-2014 ``S0: FORMAT=22`` and a multipoint
-    ``[1] `` prefix; other lines are ignored.
-    """
-    found: dict[str, tuple[int, int]] = {}
-    for line in lines:
-        match = _PARAM_LINE.match(strip_node(line).strip())
-        if match:
-            found[match.group(2)] = (int(match.group(1)), int(match.group(3)))
-    return found
-
-
 class SikConfigurator:
     """Read and write one SiK radio's parameters with AT (or RT) commands.
 
@@ -164,6 +152,10 @@ class SikConfigurator:
         self.port_name = port_name or str(getattr(port, "port", None) or "the serial port")
         self.indices: dict[str, int] = {}
         self.in_command_mode = False  # as far as we know: set by enter, cleared by ATO/ATZ
+        self.tries = DEFAULT_TRIES  # answers asked for per register over the air
+        self.unreadable: list[str] = []  # registers the last remote read could not confirm
+        self.garbled = 0  # lines of the last remote RTI5 that were not whole register lines
+        self._rtt: float | None = None  # the slowest RTSn? answer so far (seconds)
         self.port.timeout = READ_SLICE
         self._pending = bytearray()
 
@@ -332,24 +324,47 @@ class SikConfigurator:
 
     def version(self) -> str:
         """The radio's banner (``ATI``), e.g. ``'SiK 2.2 on HM-TRP'`` (node prefix removed).
+        A local radio's banner also sets :attr:`flavour` (``MP SiK ...``: multipoint).
 
         Raises :class:`ATTimeoutError` without an answer.
         """
         lines = self.command(self._op("ATI"), lines=1)
-        return strip_node(lines[0])
+        banner = strip_node(lines[0])
+        if not self.remote:  # the local banner says which table the registers follow
+            self.flavour = "multipoint" if banner.startswith("MP ") else "standard"
+        return banner
 
     def read_params(self) -> dict[str, int]:
-        """All parameters (``ATI5``) as name -> value, in register order.
+        """All parameters as name -> value, in register order, read strictly
+        (:mod:`radios.sik.readout`): locally one ``ATI5`` whose every line must be a
+        register line of the flavour's table; remotely every register confirmed by two
+        answers (``RTI5``, then ``RTSn?``), the registers that could not be read left out
+        and named in :attr:`unreadable`.
 
-        Raises :class:`ATError` if the reply holds no parameter lines and
-        :class:`ATTimeoutError` without an answer.
+        Raises :class:`ATError` for a garbled local answer, :class:`ATTimeoutError`
+        without an answer.
         """
-        parsed = parse_param_lines(self.command(self._op("ATI5")))
-        if not parsed:
-            raise ATError(f"ATI5 on {self.port_name} returned no parameter lines")
+        if self.remote:
+            readout = read_remote(self._ask, self.flavour, self.remote_node, self.tries)
+            parsed, self.unreadable, self.garbled = readout.values, readout.unreadable, readout.garbled
+        else:
+            parsed = parse_local(self.command("ATI5"), self.flavour, self.port_name)
+            self.unreadable, self.garbled = [], 0
         ordered = sorted(parsed.items(), key=lambda item: item[1][0])
         self.indices = {name: index for name, (index, _) in ordered}
         return {name: value for name, (_, value) in ordered}
+
+    def _ask(self, line: str) -> list[str]:
+        """One remote command line as given (target included); one line for ``RTSn?``,
+        awaited three times the slowest answer seen so far (0.6 s to 2 s): a lost
+        question costs less, and a late answer is outvoted (two answers must agree)."""
+        if not line.partition(",")[0].endswith("?"):
+            return self.command(line)
+        wait = REMOTE_TIMEOUT if self._rtt is None else min(REMOTE_TIMEOUT, max(ASK_MIN, 3 * self._rtt))
+        start = time.monotonic()
+        lines = self.command(line, wait, lines=1)
+        self._rtt = max(self._rtt or 0.0, time.monotonic() - start)
+        return lines
 
     def set_param(self, name: str, value: int | str) -> None:
         """``ATSn=value`` for parameter ``name`` (validated first, nothing sent if bad).

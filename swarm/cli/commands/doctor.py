@@ -6,7 +6,7 @@ command line, before the agent starts. Each line is ``PASS``, ``INFO``, ``WARN``
 ``FAIL``, a name, what was seen and, unless it passed, the fix::
 
     PASS radio NETID 25 (expected 25)
-    FAIL key mode /etc/uav-swarm/swarm.key: mode 0644: readable by others; fix: chmod 600 /etc/uav-swarm/swarm.key
+    FAIL key mode /etc/uav-swarm/swarm.key: mode 0644: readable by others; fix: chmod 600 ...
 
 Checked: the radio's serial device (present, openable by this user, held by no
 other program), the radio in AT command mode (answers; ``--radio-params`` agree;

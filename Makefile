@@ -78,9 +78,10 @@ check: setup
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
 
-# Everything (what CI runs).
+# Everything (what CI runs). Two workers: the process tests one after another on
+# one (they run in real time), the rest on the other (tests/conftest.py).
 test: check
-	$(BIN)/pytest
+	$(BIN)/pytest -n 2 --dist loadgroup
 
 # The checks and the tests that need no processes, real-time radios, simulators or
 # browser (the `processes` marker): about a minute, for the edit-test loop.

@@ -78,10 +78,10 @@ check: setup
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
 
-# Everything (what CI runs). Two workers: the process tests one after another on
-# one (they run in real time), the rest on the other (tests/conftest.py).
+# Everything (what CI runs): two pytest sessions side by side, the real-time process
+# tests in one, everything else in the other (tests/run_all.sh says why).
 test: check
-	$(BIN)/pytest -n 2 --dist loadgroup
+	PYTEST=$(BIN)/pytest tests/run_all.sh
 
 # The checks and the tests that need no processes, real-time radios, simulators or
 # browser (the `processes` marker): about a minute, for the edit-test loop.

@@ -6,10 +6,12 @@ Markers (registered in pyproject.toml): ``processes`` marks the tests that start
 processes, radios emulated in real time, Zenoh sessions or a browser and take
 seconds each; ``make test-quick`` leaves them out, ``make test`` runs them all.
 
-``make test`` runs two pytest-xdist workers: every ``processes`` test is in one
-xdist group, so they run one after another on one worker (as they always did: they
-run in real time and share two cores), while the other worker takes the tests that
-start no process. The suite's wall time is then about that of the process tests.
+``make test`` runs two pytest sessions side by side (``tests/run_all.sh``). The
+process tests run in real time and some judge rates, formation errors or recovery on
+a shared machine, so they stay one after another in one session, as they always
+ran; the other session runs the tests that start no process, then the light process
+tests (:data:`LIGHT`, marked ``light`` here: AT commands over ptys, a wheel build,
+the pre-flight check: little CPU, no rates judged).
 """
 
 from __future__ import annotations
@@ -17,12 +19,26 @@ from __future__ import annotations
 import pytest
 from net_helpers import ManualClock
 
+#: process-test modules light enough to run beside the real-time ones (marked ``light``)
+LIGHT = frozenset(
+    {
+        "test_sik_guard.py",
+        "test_radio_config_readme.py",
+        "test_radio_config.py",
+        "test_sik_aes_config.py",
+        "test_sik_config.py",
+        "test_doctor_bench.py",
+        "test_packaging.py",
+    }
+)
 
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` selects by markers
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Every process test in one xdist group (one worker, one after another)."""
+    """The process tests of :data:`LIGHT`'s modules are ``light`` too."""
     for item in items:
-        if item.get_closest_marker("processes") is not None:
-            item.add_marker(pytest.mark.xdist_group("processes"))
+        if item.path.name in LIGHT and item.get_closest_marker("processes") is not None:
+            item.add_marker(pytest.mark.light)
 
 
 @pytest.fixture

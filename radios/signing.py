@@ -29,9 +29,11 @@ from pathlib import Path
 
 from radios.errors import ConfigError
 from radios.mavlink import IFLAG_SIGNED, SIGNATURE_LEN, SIGNING_EPOCH, STX_V2, Frame, SigningClock
+from radios.smallfile import read_small_file
 
 EPOCH_2015 = SIGNING_EPOCH
 MAX_SKEW_TICKS = 60 * 100_000  # a new stream may be one minute behind our clock
+KEY_FILE_MAX = 4096  # bytes: a key is 32, or 64 hex digits, or a passphrase
 
 
 def key_from_passphrase(passphrase: str) -> bytes:
@@ -39,15 +41,16 @@ def key_from_passphrase(passphrase: str) -> bytes:
 
 
 def load_key(path: str | Path) -> bytes:
-    """Read a signing key file.
+    """Read a signing key file (a regular file of at most 4 KiB: a FIFO, a device or a
+    folder is refused, never read for ever).
 
     Raises:
-        ConfigError: missing, unreadable or empty file.
+        ConfigError: missing, unreadable, not a regular file, too large or empty.
     """
     try:
-        raw = Path(path).read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"signing key {path}: {exc.strerror or exc}") from None
+        raw = read_small_file(path, KEY_FILE_MAX)
+    except ValueError as exc:
+        raise ConfigError(f"signing key {path}: {exc}") from None
     if len(raw) == 32:
         return raw
     text = raw.decode("utf-8", "replace").strip()

@@ -740,6 +740,9 @@ def test_swarm_gcs_with_a_token_file_does_not_print_it(tmp_path: Any) -> None:
         (["--token", "short"], "--token: 16 to 256 characters"),
         (["--token", "has spaces but is long enough"], "--token: 16 to 256 characters"),
         (["--token-file", "/nonexistent/gcs.token"], "--token-file /nonexistent/gcs.token: No such file"),
+        # an endless device or a folder is not a token file (it was read for ever)
+        (["--token-file", "/dev/zero"], "--token-file /dev/zero: not a regular file"),
+        (["--token-file", "/"], "--token-file /: not a regular file"),
         (["--allow-host", "bad name!"], "--allow-host: host 'bad name!'"),
         (["--allow-host", "evil.test/x"], "--allow-host: host 'evil.test/x'"),
     ],

@@ -11,13 +11,16 @@ minute and a half of uptime costs nothing.
 from __future__ import annotations
 
 import itertools
+import os
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
+from radios.errors import ConfigError
 from radios.mavlink import FrameBuilder, FrameParser, SigningClock
-from radios.signing import EPOCH_2015, MAX_SKEW_TICKS, Verifier, key_from_passphrase, now_ticks
+from radios.signing import EPOCH_2015, MAX_SKEW_TICKS, Verifier, key_from_passphrase, load_key, now_ticks
 
 KEY = key_from_passphrase("swarm key")
 T0 = 1_790_000_000.0  # 2026-09, a plausible field date
@@ -159,3 +162,27 @@ def test_default_link_id_differs_between_starts() -> None:
     assert len(ids) > 1
     fixed = FrameBuilder(3, 190, signing_key=KEY, link_id=7).heartbeat()
     assert fixed[-13] == 7
+
+
+# -- hostile key files -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("path", ["/dev/zero", "/dev/urandom", "/"])
+def test_a_key_path_that_is_no_regular_file_is_refused_at_once(path: str) -> None:
+    """An endless device was read for ever (a hang, then memory); a folder is refused."""
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_key(path)
+
+
+def test_a_fifo_as_key_file_does_not_block(tmp_path: Path) -> None:
+    fifo = tmp_path / "key"
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_key(fifo)  # nobody writes to it: a blocking open would wait for ever
+
+
+def test_a_huge_key_file_is_refused(tmp_path: Path) -> None:
+    big = tmp_path / "key"
+    big.write_bytes(b"x" * 100_000)
+    with pytest.raises(ConfigError, match="larger than"):
+        load_key(big)

@@ -106,6 +106,8 @@ def test_radio_config_sets_level_and_key_never_printed(
         (["--aes-key", "KEYFILE"], "needs --set ENCRYPTION_LEVEL"),
         (["--set", "ENCRYPTION_LEVEL=1", "--aes-key", "KEYFILE", "--remote"], "unencrypted"),
         (["--set", "ENCRYPTION_LEVEL=1", "--aes-key", "/nonexistent/key"], "cannot read"),
+        # an endless device is no key file (it was read for ever)
+        (["--set", "ENCRYPTION_LEVEL=1", "--aes-key", "/dev/zero"], "not a regular file"),
     ],
 )
 def test_radio_config_key_refusals_write_nothing(

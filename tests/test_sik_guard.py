@@ -221,3 +221,10 @@ def test_recheck_timer() -> None:
     assert timer.update(True, 27.0)
     with pytest.raises(ConfigError):
         RecheckTimer(0)
+
+
+@pytest.mark.parametrize("path", ["/dev/zero", "/"])
+def test_a_radio_params_path_that_is_no_regular_file_is_refused(path: str) -> None:
+    """An endless device was read for ever (a hang, then memory)."""
+    with pytest.raises(ConfigError, match="not a regular file"):
+        parse_expected(path)

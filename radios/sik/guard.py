@@ -42,6 +42,7 @@ from radios.errors import ATError, ConfigError, LinkOpenError, RadioError
 from radios.seriallink import DEFAULT_BAUD
 from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port
 from radios.sik.params import FLAVOURS, spec_for, validate_user_value
+from radios.smallfile import read_small_file
 from radios.url import Options, parse_link_url
 
 REBOOT_SETTLE = 0.5  # seconds for a rebooted radio to start before talking to it again
@@ -123,10 +124,10 @@ def parse_expected(spec: str) -> dict[str, int]:
         raw = pairs
     else:
         path = Path(text)
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise ConfigError(f"radio parameters file {text}: {exc.strerror or exc}") from None
+        try:  # a regular file of at most 64 KiB: never a FIFO or a device read for ever
+            data = read_small_file(path, 65536)
+        except ValueError as exc:
+            raise ConfigError(f"radio parameters file {text}: {exc}") from None
         try:
             loaded = tomllib.loads(data.decode()) if path.suffix == ".toml" else json.loads(data)
         except (UnicodeDecodeError, ValueError) as exc:

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from radios.errors import CaptureError
+from radios.smallfile import read_small_file
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.util import (
     StopFlag,
@@ -130,10 +131,10 @@ def _add_security_arguments(p: argparse.ArgumentParser) -> None:
 def _token(a: argparse.Namespace) -> str | None:
     """The operator's token (--token, --token-file) or None. Raises UsageError."""
     if a.token_file is not None:
-        try:
-            text = Path(a.token_file).read_text(encoding="utf-8").strip()
-        except (OSError, UnicodeDecodeError) as exc:
-            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not UTF-8 text"
+        try:  # a regular file of at most 4 KiB: never a FIFO or a device read for ever
+            text = read_small_file(a.token_file, 4096).decode("utf-8").strip()
+        except (ValueError, UnicodeDecodeError) as exc:
+            why = "not UTF-8 text" if isinstance(exc, UnicodeDecodeError) else str(exc)
             raise UsageError(f"--token-file {a.token_file}: {why}") from None
         try:
             return check_token(text)

@@ -74,6 +74,7 @@ from radios.sik.params import (
     validate_key_hex,
     validate_user_value,
 )
+from radios.smallfile import read_small_file
 from swarm.cli.util import UsageError, guarded, parser, print_json
 
 PROG = "swarm radio-config"
@@ -280,13 +281,11 @@ def _read_key(path: str | None, level: int, remote: bool) -> bytes | None:
         )
     if not level:
         raise UsageError("--aes-key needs --set ENCRYPTION_LEVEL=1, 2 or 3")
-    try:
-        with open(path, encoding="ascii") as f:
-            text = f.read()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UsageError(
-            f"--aes-key {path}: cannot read it: {getattr(exc, 'strerror', None) or exc.__class__.__name__}"
-        ) from None
+    try:  # a regular file of at most 4 KiB: never a FIFO or a device read for ever
+        text = read_small_file(path, 4096).decode("ascii")
+    except ValueError as exc:  # UnicodeDecodeError too
+        why = "not ASCII text" if isinstance(exc, UnicodeDecodeError) else str(exc)
+        raise UsageError(f"--aes-key {path}: cannot read it: {why}") from None
     return validate_key_hex(level, text)
 
 

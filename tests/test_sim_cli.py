@@ -79,3 +79,37 @@ def test_bad_input_exit_2_without_traceback() -> None:
             assert len(err.strip().splitlines()) == 1
     finally:
         held.close()
+
+
+def test_home_accepts_a_negative_latitude_as_written() -> None:
+    """``--home -35.36,149.16,584`` (southern hemisphere) parses as a value, not as an option."""
+    from swarm.cli.commands.sim import build_parser, join_negative_values
+
+    for argv in (
+        ["--vehicles", "1", "--home", "-35.363261,149.16523,584"],
+        ["--vehicles", "2", "--home", "-35.36,-149.1,-5"],
+    ):
+        args = build_parser().parse_args(join_negative_values(argv))
+        assert args.home == argv[argv.index("--home") + 1]
+    # a value that is not a number stays an option (argparse reports it as usual)
+    assert join_negative_values(["--home", "--vehicles", "1"]) == ["--home", "--vehicles", "1"]
+
+
+@pytest.mark.processes
+def test_home_negative_latitude_prints_the_southern_home() -> None:
+    p = run(
+        "--vehicles",
+        "1",
+        "--profile",
+        "ardupilot",
+        "--base-port",
+        str(free_port(socket.SOCK_STREAM)),
+        "--home",
+        "-35.363261,149.16523,584",
+    )
+    try:
+        assert p.stdout is not None
+        assert "home=-35.3632610,149.1652300,584.0" in p.stdout.readline()
+    finally:
+        p.send_signal(signal.SIGINT)
+        assert p.wait(timeout=10) == 0

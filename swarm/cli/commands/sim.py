@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
+import sys
+from collections.abc import Sequence
 
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.sim import SimConfig, VehicleSim
@@ -36,6 +39,31 @@ def parse_home(text: str) -> tuple[float, float, float]:
     if not -1000.0 <= alt <= 10000.0:
         raise UsageError(f"--home altitude must be -1000..10000 m, got {alt}")
     return lat, lon, alt
+
+
+#: a value that starts with a minus sign and a digit: a negative number, not an option
+_NEGATIVE = re.compile(r"^-[0-9.]")
+#: options whose value may start with a minus sign
+_SIGNED_VALUES = ("--home",)
+
+
+def join_negative_values(argv: Sequence[str]) -> list[str]:
+    """``--home -35.3,149.1,584`` -> ``--home=-35.3,149.1,584``: argparse would take the
+    southern latitude for an option; anything else is left as it is."""
+    out: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a in _SIGNED_VALUES:
+            nxt = next(it, None)
+            if nxt is not None and _NEGATIVE.match(nxt):
+                out.append(f"{a}={nxt}")
+                continue
+            out.append(a)
+            if nxt is not None:
+                out.append(nxt)
+            continue
+        out.append(a)
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -86,7 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    args = read_arguments(build_parser(), argv, config=False)
+    args = read_arguments(
+        build_parser(), join_negative_values(sys.argv[1:] if argv is None else argv), config=False
+    )
     home = parse_home(args.home)
     if not 1 <= args.vehicles <= 250:
         raise UsageError(f"--vehicles must be 1..250, got {args.vehicles}")

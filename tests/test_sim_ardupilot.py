@@ -164,7 +164,7 @@ def test_arm_rejected_without_gps_and_guided_needs_position(sim: VehicleSim, con
     sim.vehicle(0).fail_gps(True)
     texts: list[str] = []
     assert command(conn, 400, 1, texts=texts) == 4
-    assert any(t.startswith("PreArm:") for t in texts), texts
+    assert any(t == "Arm: Need Position Estimate" for t in texts), texts
     assert command(conn, 176, *GUIDED, texts=texts) == 4
     conn.mav.set_mode_send(1, 1, 4)  # SET_MODE is acked as command 11
     ack = wait_msg(conn, "COMMAND_ACK", lambda m: m.command == 11)

@@ -12,6 +12,17 @@ Setpoints are used only in GUIDED and only in the air; one it cannot follow (FOR
 NaN, a frame or field combination it does not take) holds the current position. With
 both yaw fields ignored it faces where it goes (auto yaw). "(I)" in comments marks
 inferred behaviour.
+
+As recorded from a real ArduCopter 4.7 SITL: it boots along a
+:class:`~firmware_bridge.sim.boot.BootTimeline` (BOOT status, zero positions, late home
+and origin, arming refused with the real reasons until the EKF uses GPS; a mode set
+during BOOT reverts to STABILIZE at "ArduPilot Ready"); it sends TIMESYNC every 10 s,
+PARAM_VALUE at boot and at disarm, GPS_GLOBAL_ORIGIN when the origin is set and at each
+arm, one more HEARTBEAT with each ACK that changes the mode; base_mode has GUIDED (8)
+whenever the position controller runs (GUIDED, AUTO, LAND, armed in any position mode,
+and during BOOT); NAV_TAKEOFF while disarmed fails without a text; AUTO without a
+mission is accepted while disarmed; the motors spool up for ``SPOOL_UP`` s before a
+take-off climbs.
 """
 
 from __future__ import annotations
@@ -19,10 +30,19 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, ClassVar
 
-from firmware_bridge.sim import modes
+from firmware_bridge.sim import modes, telemetry
+from firmware_bridge.sim.boot import (
+    BOOT_PARAMS,
+    ORIGIN_SET,
+    READY,
+    TIMESYNC_FIRST,
+    TIMESYNC_PERIOD,
+    BootTimeline,
+)
 from firmware_bridge.sim.dynamics import NAN, Limits, Target, wrap_pi
 from firmware_bridge.sim.flavour import (
     ACCEPTED,
+    DENIED,
     FAILED,
     PRE_TAKEOFF_DISARM,
     Flavour,
@@ -39,6 +59,9 @@ if TYPE_CHECKING:
 
 GUID_TIMEOUT = 3.0  # guided velocity/accel target timeout, s
 AP_FORCE_ARM = 2989  # arm param 2: skip the pre-arm checks
+SPOOL_UP = 2.4  # s from an accepted NAV_TAKEOFF to the climb (recorded lift-off 3.1 s)
+#: modes whose position controller runs while disarmed (HEARTBEAT base_mode bit 8)
+POSITION_CONTROL = frozenset({"GUIDED", "AUTO", "LAND"})
 #: REQUEST_DATA_STREAM groups -> message ids (I: which group holds what)
 GROUPS: dict[int, tuple[int, ...]] = {
     2: (1, 24, 85, 245),  # EXTENDED_STATUS
@@ -72,10 +95,16 @@ class ArduPilot(Flavour):
     text_preflight_disarm = "Disarming motors"
     text_landed_disarm = "Disarming motors"
     text_disarm_denied = "Disarm: vehicle is flying"
-    text_armed = None
-    text_disarmed = None
+    text_armed = "Arming motors"
+    text_disarmed = "Disarming motors"
+    refusal_severity = 2
+    heartbeat_on_mode_change = True
+    gps_fix_type = 6  # as SITL reports
 
-    def __init__(self) -> None:
+    def __init__(self, boot_time: float = 0.0) -> None:
+        self.boot = BootTimeline(boot_time)
+        self.home_wanted = False  # a REQUEST_MESSAGE HOME_POSITION waits for home
+        self.takeoff_time = 0.0
         self.sub = "idle"  # GUIDED sub-mode: idle | takeoff | pos | vel | hold
         self.target = Target()
         self.target_time = 0.0  # when the last velocity/acceleration target arrived
@@ -85,10 +114,60 @@ class ArduPilot(Flavour):
     def heartbeat(self, ap: Autopilot) -> Msg:
         custom = modes.AP_MODES[ap.mode]
         base = 1 | 16 | 64 | (128 if ap.armed else 0)
-        if ap.armed and ap.mode in modes.NEEDS_POSITION:
+        booting = self.boot.booting(ap.t)
+        if booting or ap.mode in POSITION_CONTROL or (ap.armed and ap.mode in modes.NEEDS_POSITION):
             base |= 8
         status = 5 if (ap.failsafe and ap.armed) else (3 if ap.body.on_ground else 4)
-        return ap.mav.heartbeat_encode(2, 3, base, custom, status)
+        return ap.mav.heartbeat_encode(2, 3, base, custom, 1 if booting else status)
+
+    # ------------------------------------------------------------------ boot
+    def position_valid(self, ap: Autopilot) -> bool:
+        return self.boot.position_valid(ap.t)
+
+    def local_valid(self, ap: Autopilot) -> bool:
+        return self.boot.using_gps(ap.t)
+
+    def home_set(self, ap: Autopilot) -> bool:
+        return self.boot.origin_set(ap.t)
+
+    def defer_request(self, ap: Autopilot, mid: int) -> bool:
+        if mid == 242 and not self.home_set(ap):
+            self.home_wanted = True
+            return True
+        return False
+
+    def unknown_stream(self, mid: int) -> Reply:
+        return DENIED, f"No ap_message for mavlink id ({mid})"
+
+    def on_arm(self, ap: Autopilot) -> None:
+        self._send(ap, 49)  # GPS_GLOBAL_ORIGIN at each arm
+
+    def _send(self, ap: Autopilot, mid: int) -> None:
+        m = telemetry.message(ap, mid)
+        if m is not None:
+            ap.out(m)
+
+    def _param(self, ap: Autopilot, name: str, value: float) -> None:
+        ap.out(ap.mav.param_value_encode(name.encode(), value, 9, 1000, 65535))
+
+    def _boot_events(self, ap: Autopilot) -> None:
+        """What the boot timeline, TIMESYNC and the parameters announce in the last step."""
+        t0, t1, bt = ap.t - ap.dt, ap.t, self.boot
+        for sev, text in bt.texts_between(t0, t1, ap.origin[2]):
+            ap.text(sev, text)
+        if bt.crossed(0.11, t0, t1):
+            for name in BOOT_PARAMS:
+                self._param(ap, name, 0.0)
+        if bt.total > 0.0 and bt.crossed(READY, t0, t1) and ap.mode != self.initial_mode:
+            ap.enter_mode(self.initial_mode)  # a mode set during BOOT does not survive it
+        if bt.total > 0.0 and bt.crossed(ORIGIN_SET, t0, t1):
+            self._send(ap, 49)
+            if self.home_wanted:
+                self.home_wanted = False
+                self._send(ap, 242)
+        k = (t1 - TIMESYNC_FIRST) / TIMESYNC_PERIOD
+        if k >= 0.0 and (t0 - TIMESYNC_FIRST) / TIMESYNC_PERIOD < float(int(k)) <= k:
+            ap.out(ap.mav.timesync_encode(0, round(t1 * 1e9)))
 
     def touchdown_disarm_delay(self, kind: str) -> float:
         return 1.0 if kind in ("land", "rtl") else PRE_TAKEOFF_DISARM
@@ -109,21 +188,24 @@ class ArduPilot(Flavour):
     def change_mode(self, ap: Autopilot, name: str) -> Reply:
         if name in modes.NEEDS_POSITION and not ap.gps_ok:
             return FAILED, f"Mode change to {name} failed: requires position"
-        if name == "AUTO":
+        if name == "AUTO" and ap.armed:
             return FAILED, "Mode change to AUTO failed: no mission"
         ap.enter_mode(name)
         return ACCEPTED, None
 
-    def arm_refusal(self, ap: Autopilot, p: tuple[float, ...]) -> str | None:
+    def arm_refusal(self, ap: Autopilot, p: tuple[float, ...]) -> tuple[str, ...]:
         if int(p[1]) == AP_FORCE_ARM:
-            return None
+            return ()
+        booting = self.boot.arm_refusal(ap.t)
+        if booting:
+            return booting
         if not ap.gps_ok:
-            return "PreArm: Need Position Estimate"
+            return ("Arm: Need Position Estimate",)
         if ap.mode in modes.AP_NOT_ARMABLE:
-            return "Arm: Mode not armable"
+            return (f"Arm: {ap.mode} mode not armable",)
         if ap.battery < 5.0:
-            return "PreArm: Battery low"
-        return None
+            return ("Arm: Battery low",)
+        return ()
 
     def on_request_data_stream(self, ap: Autopilot, msg: Msg) -> None:
         groups = list(GROUPS) if msg.req_stream_id == 0 else [msg.req_stream_id]
@@ -138,7 +220,7 @@ class ArduPilot(Flavour):
         if frame is not None and frame not in (3, 6):
             return FAILED, "Takeoff failed: frame must be GLOBAL_RELATIVE_ALT"
         if not ap.armed:
-            return FAILED, "Takeoff failed: not armed"
+            return FAILED, None  # as recorded: no text
         if ap.mode != "GUIDED":
             return FAILED, f"Takeoff failed: {ap.mode} does not support takeoff"
         if not b.on_ground:
@@ -147,6 +229,7 @@ class ArduPilot(Flavour):
         if not finite(alt) or alt <= 0.0:
             return FAILED, "Takeoff failed: altitude below current"
         self.sub = "takeoff"
+        self.takeoff_time = ap.t
         ap.hold_point = (b.pos[0], b.pos[1], b.pos[2])
         ap.hold_yaw = b.yaw
         ap.takeoff_z = ap.home[2] - alt
@@ -245,6 +328,8 @@ class ArduPilot(Flavour):
         if self.sub == "idle" or (b.on_ground and self.sub != "takeoff"):
             return ap.hold_target() if b.on_ground else Target(pos=(b.pos[0], b.pos[1], b.pos[2]))
         if self.sub == "takeoff":
+            if ap.t - self.takeoff_time < SPOOL_UP:
+                return ap.hold_target()  # motors spooling up
             return ap.climb_target(self.takeoff_speed)
         tg = self.target
         if not self.auto_yaw:
@@ -259,6 +344,7 @@ class ArduPilot(Flavour):
         return Target(pos=tg.pos, vel=tg.vel, acc=tg.acc, yaw=yaw)
 
     def after_step(self, ap: Autopilot, kind: str) -> None:
+        self._boot_events(ap)
         b = ap.body
         if kind == "guided" and self.sub == "takeoff" and b.pos[2] <= ap.takeoff_z + 0.1:
             self.sub = "pos"
@@ -281,6 +367,7 @@ class ArduPilot(Flavour):
     def on_disarm(self, ap: Autopilot, kind: str) -> None:
         if ap.mode == "GUIDED":
             self.sub = "idle"
+        self._param(ap, "MOT_THST_HOVER", 0.35)
 
 
 def _usable(msg: Msg, pos: list[float], vel: list[float], acc: list[float], terrain: bool) -> bool:

@@ -78,13 +78,16 @@ class VehicleState:
     failsafe: bool
 
 
-def make_flavour(profile: str, offboard_loss_action: str = "hold") -> Flavour:
-    """The flavour object of one vehicle. Raises ValueError for an unknown value."""
+def make_flavour(profile: str, offboard_loss_action: str = "hold", boot_time: float = 0.0) -> Flavour:
+    """The flavour object of one vehicle. Raises ValueError for an unknown value.
+
+    ``boot_time``: ArduPilot's recorded boot scaled to these seconds (0: booted; see
+    :mod:`firmware_bridge.sim.boot`); PX4 has no boot phase yet."""
     if profile not in FLAVOURS:
         raise ValueError(f"unknown profile {profile!r} (px4 or ardupilot)")
     if offboard_loss_action not in ("hold", "land", "rtl"):
         raise ValueError(f"unknown offboard_loss_action {offboard_loss_action!r} (hold, land, rtl)")
-    return Px4(offboard_loss_action) if profile == "px4" else ArduPilot()
+    return Px4(offboard_loss_action) if profile == "px4" else ArduPilot(boot_time)
 
 
 class Autopilot:
@@ -100,8 +103,9 @@ class Autopilot:
         offboard_loss_action: str = "hold",
         dt: float = 0.02,
         noise: float = 0.01,
+        boot_time: float = 0.0,
     ) -> None:
-        self.flavour = make_flavour(profile, offboard_loss_action)
+        self.flavour = make_flavour(profile, offboard_loss_action, boot_time)
         self.profile = profile
         self.sysid = sysid
         self.origin = origin
@@ -218,6 +222,10 @@ class Autopilot:
         lat, lon, alt = pymap3d.ned2geodetic(n, e, d, *self.origin)
         return float(lat), float(lon), float(alt)
 
+    def out(self, msg: Msg) -> None:
+        """Send ``msg`` with the next output (for the flavours' unrequested messages)."""
+        self._out.append(msg)
+
     def text(self, severity: int, text: str) -> None:
         self._out.append(self.mav.statustext_encode(severity, text.encode("ascii", "replace")[:50]))
 
@@ -276,7 +284,13 @@ class Autopilot:
                 self.rtl_phase = "land"
         if not self.armed:
             return
-        if b.on_ground and not self.took_off and self.t - self.arm_time >= PRE_TAKEOFF_DISARM:
+        spooling = self.flavour.taking_off(self, kind)  # a take-off spooling up is not idle
+        if (
+            b.on_ground
+            and not self.took_off
+            and not spooling
+            and self.t - self.arm_time >= PRE_TAKEOFF_DISARM
+        ):
             self._disarm(self.flavour.text_preflight_disarm)
         elif b.on_ground and self.took_off and self.touchdown_time is not None:
             if self.t - self.touchdown_time >= self.flavour.touchdown_disarm_delay(kind):
@@ -371,13 +385,20 @@ class Autopilot:
         else:
             params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
             frame = None
+        before = self.mode
         self._ack(cmd, src, self._command(cmd, params, frame))
+        self._mode_beat(before)
 
     def _ack(self, cmd: int, src: tuple[int, int], reply: Reply) -> None:
         result, text = reply
         if text:
             self.text(4 if result else 6, text)
         self._out.append(self.mav.command_ack_encode(cmd, result, 0, 0, src[0], src[1]))
+
+    def _mode_beat(self, before: str) -> None:
+        """The extra HEARTBEAT some autopilots send with the ACK of a mode change."""
+        if self.mode != before and self.flavour.heartbeat_on_mode_change:
+            self._out.append(self.flavour.heartbeat(self))
 
     def _reject(self, text: str) -> tuple[int, str]:
         return self.flavour.refusal, text
@@ -415,7 +436,7 @@ class Autopilot:
         if mid == 0:
             return ACCEPTED, None
         if mid not in telemetry.STREAMABLE:
-            return UNSUPPORTED, None
+            return self.flavour.unknown_stream(mid)
         if us == 0:
             self.set_stream(mid, self.flavour.default_streams.get(mid, 0.0))
         elif us < 0:
@@ -429,24 +450,29 @@ class Autopilot:
             return UNSUPPORTED, None
         m = telemetry.message(self, mid)
         if m is None:
-            return self.flavour.refusal, None
+            return (ACCEPTED, None) if self.flavour.defer_request(self, mid) else (self.flavour.refusal, None)
         self._out.append(m)
         return ACCEPTED, None
 
     def _on_set_mode_msg(self, msg: Msg, src: tuple[int, int]) -> None:
         if msg.target_system != self.sysid:
             return
+        before = self.mode
         self._ack(self.flavour.set_mode_ack, src, self.flavour.set_custom_mode(self, msg.custom_mode))
+        self._mode_beat(before)
 
     # ------------------------------------------------------- arming, reposition
     def _arm_cmd(self, p: tuple[float, ...]) -> Reply:
         if p[0] >= 0.5:
             if self.armed:
                 return ACCEPTED, None
-            refusal = self.flavour.arm_refusal(self, p)
-            if refusal is not None:
-                return self._reject(refusal)
+            refusals = self.flavour.arm_refusal(self, p)
+            if refusals:
+                for text in refusals:  # each reason its own STATUSTEXT, then the ACK
+                    self.text(self.flavour.refusal_severity, text)
+                return self.flavour.refusal, None
             self._arm()
+            self.flavour.on_arm(self)
             return ACCEPTED, self.flavour.text_armed
         if not self.armed:
             return ACCEPTED, None

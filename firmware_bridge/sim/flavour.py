@@ -105,6 +105,34 @@ class Flavour(ABC):
     text_disarm_denied: ClassVar[str]
     text_armed: ClassVar[str | None]  # after an accepted arm command
     text_disarmed: ClassVar[str | None]  # after an accepted disarm command
+    refusal_severity: ClassVar[int] = 4  # STATUSTEXT severity of a refused arm's reasons
+    heartbeat_on_mode_change: ClassVar[bool] = False  # one more HEARTBEAT with the ACK
+    gps_fix_type: ClassVar[int] = 3  # GPS_RAW_INT fix_type with a fix
+
+    # ------------------------------------------- boot (default: none, booted)
+    def position_valid(self, ap: Autopilot) -> bool:
+        """GLOBAL_POSITION_INT and GPS_RAW_INT carry a position (else zeros, no fix)."""
+        return True
+
+    def local_valid(self, ap: Autopilot) -> bool:
+        """LOCAL_POSITION_NED is sent."""
+        return True
+
+    def home_set(self, ap: Autopilot) -> bool:
+        """HOME_POSITION can be answered."""
+        return True
+
+    def defer_request(self, ap: Autopilot, mid: int) -> bool:
+        """True: REQUEST_MESSAGE ``mid`` that has no answer yet is accepted, answered later."""
+        return False
+
+    def unknown_stream(self, mid: int) -> Reply:
+        """The reply to SET_MESSAGE_INTERVAL for a message this autopilot cannot stream."""
+        return UNSUPPORTED, None
+
+    def on_arm(self, ap: Autopilot) -> None:
+        """After an accepted arm (before its STATUSTEXT)."""
+        return None
 
     # ---------------------------------------------------------------- status
     @abstractmethod
@@ -133,8 +161,8 @@ class Flavour(ABC):
         """Check and enter mode ``name`` (a name of this flavour's table)."""
 
     @abstractmethod
-    def arm_refusal(self, ap: Autopilot, p: tuple[float, ...]) -> str | None:
-        """Why an arm command with params ``p`` is refused, or None to arm."""
+    def arm_refusal(self, ap: Autopilot, p: tuple[float, ...]) -> tuple[str, ...]:
+        """Why an arm command with params ``p`` is refused (one STATUSTEXT each); () to arm."""
 
     # -------------------------------------------------------------- commands
     @abstractmethod

@@ -130,12 +130,12 @@ class Px4(Flavour):
         ap.enter_mode(name)
         return ACCEPTED, None
 
-    def arm_refusal(self, ap: Autopilot, p: tuple[float, ...]) -> str | None:
+    def arm_refusal(self, ap: Autopilot, p: tuple[float, ...]) -> tuple[str, ...]:
         if not ap.gps_ok:
-            return "Arming denied: Preflight Fail: no global position"
+            return ("Arming denied: Preflight Fail: no global position",)
         if ap.mode == "OFFBOARD" and not self.stream_fresh(ap):
-            return "Arming denied: no offboard signal"
-        return None
+            return ("Arming denied: no offboard signal",)
+        return ()
 
     # -------------------------------------------------------------- commands
     def takeoff(self, ap: Autopilot, p: tuple[float, ...], frame: int | None) -> Reply:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import heapq
+import math
 import os
 import random
 import selectors
@@ -41,8 +42,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_bridge.errors import BridgeError, ConnectError
 from firmware_bridge.sim.autopilot import FLAVOURS, Autopilot, Msg, VehicleState
+from firmware_bridge.sim.boot import RECORDED_TOTAL
 
 MAX_VEHICLES = 250
+REALISTIC_BOOT = RECORDED_TOTAL  # s: ArduCopter SITL's recorded boot, to "EKF3 IMU0 is using GPS"
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,9 @@ class SimConfig:
     serial: str | None = None  # vehicle 0 on a serial device, or "pty"
     host: str = "127.0.0.1"
     offboard_loss_action: str = "hold"  # PX4 COM_OBL_RC_ACT: hold (5), land (4) or rtl (3)
+    #: ardupilot: the recorded boot scaled to these simulated seconds (0: booted already;
+    #: REALISTIC_BOOT: as recorded); px4: no boot phase
+    boot_time: float = 0.0
 
     def validate(self) -> None:
         """Raise :class:`ConnectError` (a :class:`BridgeError`) for impossible values."""
@@ -77,6 +83,8 @@ class SimConfig:
             raise ConnectError(
                 f"offboard_loss_action must be hold, land or rtl, got {self.offboard_loss_action!r}"
             )
+        if not (math.isfinite(self.boot_time) and 0.0 <= self.boot_time <= 600.0):
+            raise ConnectError(f"boot_time must be 0..600 s, got {self.boot_time}")
         base = self.first_port()
         last = base + (self.vehicles - 1) * FLAVOURS[self.profile].sitl_port_step
         if not base >= 1 or last > 65535:
@@ -409,6 +417,7 @@ class VehicleSim:
                 start,
                 rng=random.Random(cfg.seed * 1009 + i),
                 offboard_loss_action=cfg.offboard_loss_action,
+                boot_time=cfg.boot_time,
             )
             v = Vehicle(self, i, core, tr, start)
             self._vehicles.append(v)

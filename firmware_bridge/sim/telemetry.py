@@ -6,7 +6,9 @@ stream that fell due or a REQUEST_MESSAGE; None when it has nothing to say (no
 position without GPS, no target echo where the flavour sends none). Pure: positions go
 through pymap3d around the vehicle's origin, the only randomness is the autopilot's
 seeded generator (position noise, drawn north, east, then down in the air), and the
-flavour gives the heartbeat, the version and the target-echo rule.
+flavour gives the heartbeat, the version, the target-echo rule and, while an ArduPilot
+boots, which positions exist yet (all-zero GLOBAL_POSITION_INT, no LOCAL_POSITION_NED,
+no HOME_POSITION).
 """
 
 from __future__ import annotations
@@ -67,6 +69,8 @@ def _extended_sys_state(ap: Autopilot) -> Msg:
 def _global_position_int(ap: Autopilot) -> Msg | None:
     if not ap.gps_ok:
         return None
+    if not ap.flavour.position_valid(ap):  # booting ArduPilot: all zeros ("Null Island")
+        return ap.mav.global_position_int_encode(_boot_ms(ap), 0, 0, 0, 0, 0, 0, 0, 0)
     b = ap.body
     n, e, d = _noisy_pos(ap)
     lat, lon, alt = ap.geo(n, e, d)
@@ -86,7 +90,7 @@ def _global_position_int(ap: Autopilot) -> Msg | None:
 
 
 def _local_position_ned(ap: Autopilot) -> Msg | None:
-    if not ap.gps_ok:
+    if not ap.gps_ok or not ap.flavour.local_valid(ap):
         return None
     b = ap.body
     n, e, d = _noisy_pos(ap)
@@ -115,8 +119,9 @@ def _sys_status(ap: Autopilot) -> Msg:
 
 def _gps_raw_int(ap: Autopilot) -> Msg:
     b = ap.body
-    fix = 3 if ap.gps_ok else 0
-    lat, lon, alt = ap.geo(b.pos[0], b.pos[1], b.pos[2]) if ap.gps_ok else (0.0, 0.0, 0.0)
+    ok = ap.gps_ok and ap.flavour.position_valid(ap)
+    fix = ap.flavour.gps_fix_type if ok else 0
+    lat, lon, alt = ap.geo(b.pos[0], b.pos[1], b.pos[2]) if ok else (0.0, 0.0, 0.0)
     return ap.mav.gps_raw_int_encode(
         int(ap.t * 1e6),
         fix,
@@ -137,7 +142,9 @@ def _battery_status(ap: Autopilot) -> Msg:
     return ap.mav.battery_status_encode(0, 1, 3, 32767, cells, int(cur * 100), -1, -1, int(ap.battery))
 
 
-def _home_position(ap: Autopilot) -> Msg:
+def _home_position(ap: Autopilot) -> Msg | None:
+    if not ap.flavour.home_set(ap):
+        return None
     lat, lon, alt = ap.geo(*ap.home)
     h = ap.home
     return ap.mav.home_position_encode(

@@ -1,0 +1,309 @@
+"""How closely the simulated ArduCopter answers like a recorded real one.
+
+Theory of operation. A trace is a ``.tlog`` recorded on the link between a companion
+computer (component 191) and a real ArduCopter SITL (component 1), both directions, read
+back with pymavlink. :func:`replay` sends the companion's messages, at their recorded
+times, into the simulator's own autopilot core
+(:class:`~firmware_bridge.sim.autopilot.Autopilot`, the one ``swarm sim --profile
+ardupilot`` runs) on a virtual clock stepped like the runner's, with the recorded boot
+length; every message it answers is packed and parsed back as MAVLink 2 bytes, and
+stamped with its simulated time. :func:`compare` then reads the trace's and the
+simulator's autopilot messages the same way:
+
+* milestones: the first BOOT heartbeat, first valid position, GPS origin, home, first
+  local position, accepted arm, armed heartbeat, take-off altitude reached, disarmed;
+  matched when present, in the recorded order and within ``max(1.5 s, 20 %)``;
+* the COMMAND_ACK result of each command (the n-th ACK of a command id with the n-th);
+* STATUSTEXT texts (digits folded: "584m" and "585m" are one text), the set of message
+  types and of HEARTBEAT (base_mode, custom_mode, system_status) triples;
+* timings as ratios simulator / trace: take-off (accepted NAV_TAKEOFF to 95 % of its
+  altitude), the 20 m move (first LOCAL_NED position setpoint to within 0.5 m) and the
+  landing (RTL or LAND to the disarmed heartbeat).
+
+Reading the files is the only I/O; everything else is a pure function of the records.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from firmware_bridge.errors import BridgeError
+from firmware_bridge.sim.autopilot import Autopilot
+from firmware_bridge.sim.boot import RECORDED_TOTAL
+
+COMPANION, AUTOPILOT = 191, 1
+MAX_TRACE_S = 3600.0  # a longer file is refused, not replayed for hours
+TOL_S, TOL_RATIO = 1.5, 0.2
+Msg = Any
+
+
+@dataclass(frozen=True)
+class Record:
+    t: float  # seconds since the first record
+    msg: Msg
+
+
+@dataclass(frozen=True)
+class Trace:
+    name: str
+    records: tuple[Record, ...]
+
+    def side(self, comp: int) -> list[Record]:
+        return [r for r in self.records if r.msg.get_srcComponent() == comp]
+
+    @property
+    def duration(self) -> float:
+        return self.records[-1].t if self.records else 0.0
+
+
+def read_trace(path: Path) -> Trace:
+    """All MAVLink messages of a ``.tlog``; BridgeError for a file that is not one."""
+    try:
+        conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    except OSError as exc:
+        raise BridgeError(f"cannot read trace {path}: {exc.strerror}") from None
+    recs: list[Record] = []
+    t0: float | None = None
+    try:
+        while (m := conn.recv_match()) is not None:
+            if m.get_type() == "BAD_DATA":
+                continue
+            t0 = m._timestamp if t0 is None else t0
+            t = m._timestamp - t0
+            if not (math.isfinite(t) and 0.0 <= t <= MAX_TRACE_S):
+                raise BridgeError(f"trace {path}: timestamps out of order or beyond {MAX_TRACE_S:.0f} s")
+            recs.append(Record(t, m))
+    finally:
+        conn.close()
+    if not any(r.msg.get_srcComponent() == COMPANION for r in recs):
+        raise BridgeError(f"trace {path}: no message from a companion (component {COMPANION})")
+    return Trace(path.stem, tuple(recs))
+
+
+def _origin(trace: Trace) -> tuple[float, float, float]:
+    for r in trace.records:
+        if r.msg.get_type() == "GPS_GLOBAL_ORIGIN":
+            return r.msg.latitude / 1e7, r.msg.longitude / 1e7, r.msg.altitude / 1000.0
+    raise BridgeError(f"trace {trace.name}: no GPS_GLOBAL_ORIGIN")
+
+
+def replay(trace: Trace, boot_time: float = RECORDED_TOTAL, dt: float = 0.02) -> list[Record]:
+    """The simulated ArduCopter's answers to the trace's companion messages."""
+    ap = Autopilot("ardupilot", 1, _origin(trace), boot_time=boot_time, dt=dt, noise=0.0)
+    enc, rx = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 0, 0)
+    out: list[Record] = []
+
+    def keep(msgs: list[Msg], t: float) -> None:
+        for m in msgs:
+            out.extend(Record(t, p) for p in rx.parse_buffer(m.pack(enc)) or [])
+
+    inputs = trace.side(COMPANION)
+    i, step, end = 0, 0, trace.duration
+    while step * dt <= end + 1e-9:
+        now = step * dt
+        while i < len(inputs) and inputs[i].t <= now:
+            keep(ap.handle(inputs[i].msg, inputs[i].t), inputs[i].t)
+            i += 1
+        keep(ap.tick(now), now)
+        step += 1
+    return out
+
+
+# ------------------------------------------------------------------ milestones
+def _first(recs: Iterable[Record], kind: str, ok: Callable[[Msg], bool], after: float = -1.0) -> float | None:
+    return next((r.t for r in recs if r.t > after and r.msg.get_type() == kind and ok(r.msg)), None)
+
+
+def _takeoff_alt(companion: list[Record]) -> float | None:
+    cmd = next((r.msg for r in companion if _command(r.msg) == 22), None)
+    return float(cmd.param7 if cmd.get_type() == "COMMAND_LONG" else cmd.z) if cmd is not None else None
+
+
+def _command(m: Msg) -> int | None:
+    return int(m.command) if m.get_type() in ("COMMAND_LONG", "COMMAND_INT") else None
+
+
+def milestones(recs: list[Record], companion: list[Record]) -> dict[str, float | None]:
+    """When each milestone first happened in ``recs`` (autopilot messages), or None."""
+    armed = _first(recs, "HEARTBEAT", lambda m: m.base_mode & 128)
+    alt = _takeoff_alt(companion)
+    took = _first(recs, "COMMAND_ACK", lambda m: m.command == 22 and m.result == 0)
+    reached = None
+    if alt is not None and took is not None:
+        reached = _first(recs, "GLOBAL_POSITION_INT", lambda m: m.relative_alt >= 950 * alt, took)
+    return {
+        "boot_heartbeat": _first(recs, "HEARTBEAT", lambda m: m.system_status == 1),
+        "position_valid": _first(recs, "GLOBAL_POSITION_INT", lambda m: m.lat != 0),
+        "gps_origin": _first(recs, "GPS_GLOBAL_ORIGIN", lambda m: True),
+        "home": _first(recs, "HOME_POSITION", lambda m: True),
+        "local_position": _first(recs, "LOCAL_POSITION_NED", lambda m: True),
+        "arm_accepted": _first(recs, "COMMAND_ACK", lambda m: m.command == 400 and m.result == 0),
+        "armed": armed,
+        "takeoff_reached": reached,
+        "disarmed": None
+        if armed is None
+        else _first(recs, "HEARTBEAT", lambda m: not m.base_mode & 128, armed),
+    }
+
+
+def _match_milestones(real: dict[str, float | None], sim: dict[str, float | None]) -> dict[str, Any]:
+    present = [k for k, v in real.items() if v is not None]
+    order_real = sorted(present, key=lambda k: (real[k], present.index(k)))
+    in_sim = [k for k in present if sim.get(k) is not None]
+    order_sim = sorted(in_sim, key=lambda k: (sim[k], order_real.index(k)))
+    rank = {k: i for i, k in enumerate(k for k in order_real if k in in_sim)}
+    matched, detail = 0, {}
+    for k in present:
+        t_real, t_sim = real[k], sim.get(k)
+        assert t_real is not None
+        ok = (
+            t_sim is not None
+            and order_sim.index(k) == rank[k]
+            and abs(t_sim - t_real) <= max(TOL_S, TOL_RATIO * t_real)
+        )
+        matched += ok
+        detail[k] = {
+            "trace_s": round(t_real, 2),
+            "sim_s": None if t_sim is None else round(t_sim, 2),
+            "ok": ok,
+        }
+    return {"matched": matched, "total": len(present), "detail": detail}
+
+
+# ----------------------------------------------------------------- acks, texts
+def ack_results(companion: list[Record], autopilot: list[Record]) -> list[tuple[int, int | None]]:
+    """(command, result of its ACK or None) for each command the companion sent, in order."""
+    acks: dict[int, list[int]] = {}
+    for r in autopilot:
+        if r.msg.get_type() == "COMMAND_ACK":
+            acks.setdefault(int(r.msg.command), []).append(int(r.msg.result))
+    seen: Counter[int] = Counter()
+    out = []
+    for r in companion:
+        cmd = _command(r.msg)
+        if cmd is None:
+            continue
+        got = acks.get(cmd, [])
+        out.append((cmd, got[seen[cmd]] if seen[cmd] < len(got) else None))
+        seen[cmd] += 1
+    return out
+
+
+def _fold(text: str) -> str:
+    return re.sub(r"[0-9]+(\.[0-9]+)?", "#", text)
+
+
+def texts(recs: list[Record]) -> set[str]:
+    return {_fold(str(r.msg.text)) for r in recs if r.msg.get_type() == "STATUSTEXT"}
+
+
+def heartbeats(recs: list[Record]) -> set[tuple[int, int, int]]:
+    return {
+        (r.msg.base_mode, r.msg.custom_mode, r.msg.system_status)
+        for r in recs
+        if r.msg.get_type() == "HEARTBEAT"
+    }
+
+
+def _set_score(real: set[Any], sim: set[Any]) -> dict[str, Any]:
+    return {
+        "matched": len(real & sim),
+        "total": len(real),
+        "missing": sorted(str(x) for x in real - sim),
+        "extra": sorted(str(x) for x in sim - real),
+    }
+
+
+# --------------------------------------------------------------------- timings
+def _step_start(companion: list[Record]) -> tuple[float, float, float] | None:
+    """(time, north, east) of the first LOCAL_NED position setpoint."""
+    for r in companion:
+        m = r.msg
+        if (
+            m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"
+            and m.coordinate_frame == 1
+            and not m.type_mask & 7
+        ):
+            return r.t, float(m.x), float(m.y)
+    return None
+
+
+def _landing_start(companion: list[Record], armed: float | None) -> float | None:
+    """The first RTL or LAND (command or mode) after arming."""
+    for r in companion:
+        cmd = _command(r.msg)
+        land_mode = cmd == 176 and int(r.msg.param2) in (6, 9)
+        if armed is not None and r.t > armed and (cmd in (20, 21) or land_mode):
+            return r.t
+    return None
+
+
+def timings(recs: list[Record], companion: list[Record]) -> dict[str, float | None]:
+    """Seconds of the take-off, the 20 m move and the landing in ``recs`` (None: not seen)."""
+    ms = milestones(recs, companion)
+    took = _first(recs, "COMMAND_ACK", lambda m: m.command == 22 and m.result == 0)
+    takeoff = None if ms["takeoff_reached"] is None or took is None else ms["takeoff_reached"] - took
+    move = None
+    step = _step_start(companion)
+    if step is not None:
+        t0, n, e = step
+        hit = _first(recs, "LOCAL_POSITION_NED", lambda m: math.hypot(m.x - n, m.y - e) < 0.5, t0)
+        move = None if hit is None else hit - t0
+    land = None
+    start = _landing_start(companion, ms["armed"])
+    if start is not None:
+        down = _first(recs, "HEARTBEAT", lambda m: not m.base_mode & 128, start)
+        land = None if down is None else down - start
+    return {"takeoff_s": takeoff, "move_20m_s": move, "land_s": land}
+
+
+def _ratios(real: dict[str, float | None], sim: dict[str, float | None]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in real.items():
+        s = sim.get(k)
+        name = k.removesuffix("_s")
+        out[name] = {
+            "trace_s": None if v is None else round(v, 2),
+            "sim_s": None if s is None else round(s, 2),
+            "ratio": None if v is None or s is None or v <= 0 else round(s / v, 3),
+        }
+    return out
+
+
+# --------------------------------------------------------------------- compare
+def compare(trace: Trace, sim: list[Record]) -> dict[str, Any]:
+    """The simulator's answers ``sim`` against the trace (see the module docstring)."""
+    companion, real = trace.side(COMPANION), trace.side(AUTOPILOT)
+    acks_real, acks_sim = ack_results(companion, real), ack_results(companion, sim)
+    ack_detail = [
+        {"command": c, "trace": a, "sim": b}
+        for (c, a), (_, b) in zip(acks_real, acks_sim, strict=True)
+        if a != b
+    ]
+    return {
+        "milestones": _match_milestones(milestones(real, companion), milestones(sim, companion)),
+        "acks": {
+            "matched": len(acks_real) - len(ack_detail),
+            "total": len(acks_real),
+            "mismatches": ack_detail,
+        },
+        "texts": _set_score(texts(real), texts(sim)),
+        "message_types": _set_score({r.msg.get_type() for r in real}, {r.msg.get_type() for r in sim}),
+        "heartbeats": _set_score(heartbeats(real), heartbeats(sim)),
+        "timings": _ratios(timings(real, companion), timings(sim, companion)),
+    }
+
+
+def conformance(path: Path, boot_time: float = RECORDED_TOTAL) -> dict[str, Any]:
+    """Read, replay and compare one trace."""
+    trace = read_trace(path)
+    return compare(trace, replay(trace, boot_time))

@@ -59,7 +59,7 @@ if TYPE_CHECKING:
 
 GUID_TIMEOUT = 3.0  # guided velocity/accel target timeout, s
 AP_FORCE_ARM = 2989  # arm param 2: skip the pre-arm checks
-SPOOL_UP = 2.4  # s from an accepted NAV_TAKEOFF to the climb (recorded lift-off 3.1 s)
+SPOOL_UP = 3.1  # s from an accepted NAV_TAKEOFF to the climb (recorded lift-off 3.1 s)
 #: modes whose position controller runs while disarmed (HEARTBEAT base_mode bit 8)
 POSITION_CONTROL = frozenset({"GUIDED", "AUTO", "LAND"})
 #: REQUEST_DATA_STREAM groups -> message ids (I: which group holds what)
@@ -82,11 +82,13 @@ class ArduPilot(Flavour):
     initial_mode = "STABILIZE"
     land_mode = "LAND"
     rtl_mode = "RTL"
-    limits: ClassVar[Limits] = Limits(v_xy=10.0, v_up=2.5, v_down=1.5, a_xy=2.5)
+    # WPNAV speeds; kp_z, a_z and v_xy fitted to the recorded take-off and 20 m step
+    limits: ClassVar[Limits] = Limits(v_xy=6.0, v_up=2.5, v_down=1.5, a_xy=2.5, kp_z=0.8, a_z=1.0)
     default_streams: ClassVar[dict[int, float]] = {}  # SRn_* rates default to 0
     refusal = FAILED
     takeoff_speed = 2.5
     land_speed_low = 0.5  # LAND_SPEED
+    rtl_loiter = 5.0  # RTL_LOIT_TIME: s over home before the descent
     version = 4 << 24 | 6 << 16
     set_mode_ack = 11
     reposition_by_long = False  # ArduCopter: COMMAND_INT only
@@ -117,7 +119,8 @@ class ArduPilot(Flavour):
         booting = self.boot.booting(ap.t)
         if booting or ap.mode in POSITION_CONTROL or (ap.armed and ap.mode in modes.NEEDS_POSITION):
             base |= 8
-        status = 5 if (ap.failsafe and ap.armed) else (3 if ap.body.on_ground else 4)
+        # ACTIVE from lift-off until disarmed, touchdown included (as recorded)
+        status = 5 if (ap.failsafe and ap.armed) else (4 if ap.armed and ap.took_off else 3)
         return ap.mav.heartbeat_encode(2, 3, base, custom, 1 if booting else status)
 
     # ------------------------------------------------------------------ boot
@@ -170,7 +173,7 @@ class ArduPilot(Flavour):
             ap.out(ap.mav.timesync_encode(0, round(t1 * 1e9)))
 
     def touchdown_disarm_delay(self, kind: str) -> float:
-        return 1.0 if kind in ("land", "rtl") else PRE_TAKEOFF_DISARM
+        return 2.0 if kind in ("land", "rtl") else PRE_TAKEOFF_DISARM  # recorded 2.07 s
 
     def echo_mask(self, ap: Autopilot) -> int | None:
         return 1024 | 2048 if ap.mode == "GUIDED" else None  # echoed in GUIDED only, yaw ignored

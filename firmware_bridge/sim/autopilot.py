@@ -130,7 +130,8 @@ class Autopilot:
         self.hold_yaw = 0.0
         self.target: Target | None = None  # what the controller tracks now
         self.takeoff_z = -MIS_TAKEOFF_ALT  # take-off altitude (NED z) of a climb
-        self.rtl_phase = "climb"  # climb | return | land
+        self.rtl_phase = "climb"  # climb | return | loiter (over home) | land
+        self.rtl_home_time = 0.0  # when the return reached home
         self.streams: dict[int, list[float]] = {}  # msg id -> [interval, next due]
         for mid, iv in self.flavour.default_streams.items():
             self.set_stream(mid, iv)
@@ -281,6 +282,8 @@ class Autopilot:
             if self.rtl_phase == "climb" and b.pos[2] <= self._rtl_z() + 0.3:
                 self.rtl_phase = "return"
             elif self.rtl_phase == "return" and math.hypot(b.pos[0] - hx, b.pos[1] - hy) < 0.5:
+                self.rtl_phase, self.rtl_home_time = "loiter", self.t
+            elif self.rtl_phase == "loiter" and self.t - self.rtl_home_time >= self.flavour.rtl_loiter:
                 self.rtl_phase = "land"
         if not self.armed:
             return
@@ -349,6 +352,8 @@ class Autopilot:
             return self.hold_target() if not self.took_off else None
         if self.rtl_phase == "climb":
             return Target(pos=(self.hold_point[0], self.hold_point[1], self._rtl_z()), yaw=b.yaw)
+        if self.rtl_phase == "loiter":
+            return Target(pos=(hx, hy, self._rtl_z()), yaw=b.yaw)
         if self.rtl_phase == "return":
             far = math.hypot(hx - b.pos[0], hy - b.pos[1]) > 2.0
             return Target(

@@ -123,8 +123,9 @@ def _first(recs: Iterable[Record], kind: str, ok: Callable[[Msg], bool], after: 
     return next((r.t for r in recs if r.t > after and r.msg.get_type() == kind and ok(r.msg)), None)
 
 
-def _takeoff_alt(companion: list[Record]) -> float | None:
-    cmd = next((r.msg for r in companion if _command(r.msg) == 22), None)
+def _takeoff_alt(companion: list[Record], accepted: float) -> float | None:
+    """The altitude of the NAV_TAKEOFF that was accepted at ``accepted``."""
+    cmd = next((r.msg for r in reversed(companion) if _command(r.msg) == 22 and r.t <= accepted), None)
     return float(cmd.param7 if cmd.get_type() == "COMMAND_LONG" else cmd.z) if cmd is not None else None
 
 
@@ -135,11 +136,11 @@ def _command(m: Msg) -> int | None:
 def milestones(recs: list[Record], companion: list[Record]) -> dict[str, float | None]:
     """When each milestone first happened in ``recs`` (autopilot messages), or None."""
     armed = _first(recs, "HEARTBEAT", lambda m: m.base_mode & 128)
-    alt = _takeoff_alt(companion)
     took = _first(recs, "COMMAND_ACK", lambda m: m.command == 22 and m.result == 0)
+    alt = None if took is None else _takeoff_alt(companion, took)
     reached = None
     if alt is not None and took is not None:
-        reached = _first(recs, "GLOBAL_POSITION_INT", lambda m: m.relative_alt >= 950 * alt, took)
+        reached = _first(recs, "GLOBAL_POSITION_INT", lambda m: m.relative_alt >= 950 * alt - 10, took)
     return {
         "boot_heartbeat": _first(recs, "HEARTBEAT", lambda m: m.system_status == 1),
         "position_valid": _first(recs, "GLOBAL_POSITION_INT", lambda m: m.lat != 0),

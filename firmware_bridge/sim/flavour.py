@@ -108,6 +108,7 @@ class Flavour(ABC):
     refusal_severity: ClassVar[int] = 4  # STATUSTEXT severity of a refused arm's reasons
     heartbeat_on_mode_change: ClassVar[bool] = False  # one more HEARTBEAT with the ACK
     gps_fix_type: ClassVar[int] = 3  # GPS_RAW_INT fix_type with a fix
+    rtl_loiter: ClassVar[float] = 0.0  # s a return hovers over home before it lands
 
     # ------------------------------------------- boot (default: none, booted)
     def position_valid(self, ap: Autopilot) -> bool:

@@ -4,7 +4,9 @@ Vehicle i has system id i+1. px4: it sends to 127.0.0.1:14540+i and answers whoe
 talks to it (client ``udpin:127.0.0.1:14540+i``); ardupilot: it listens on TCP
 5760+10*i (client ``tcp:127.0.0.1:5760+10i``). ``--serial pty`` puts vehicle 0 on a
 pseudo terminal and prints the client's side. All timers run on simulated time,
-``--speedup`` times faster than the wall clock.
+``--speedup`` times faster than the wall clock. ``--boot-time S`` makes an ArduPilot
+vehicle boot as a real ArduCopter SITL was recorded to, scaled to S simulated seconds
+(``--realistic-boot``: the recorded 41.5 s; default 0, booted when the link comes up).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import sys
 from collections.abc import Sequence
 
 from firmware_bridge.errors import BridgeError
-from firmware_bridge.sim import SimConfig, VehicleSim
+from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
 from swarm.cli.configfile import read_arguments
 from swarm.cli.util import StopFlag, UsageError, guarded, parser
 
@@ -109,6 +111,20 @@ def build_parser() -> argparse.ArgumentParser:
         default="hold",
         help="PX4 action when the offboard stream is lost (default hold)",
     )
+    boot = p.add_mutually_exclusive_group()
+    boot.add_argument(
+        "--boot-time",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="ardupilot: boot as recorded on ArduCopter SITL, scaled to S simulated s "
+        "(BOOT status, zero positions, late home, arming refused; default 0: booted)",
+    )
+    boot.add_argument(
+        "--realistic-boot",
+        action="store_true",
+        help=f"ardupilot: the recorded boot, {REALISTIC_BOOT:.1f} s to an armable vehicle",
+    )
     return p
 
 
@@ -120,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     home = parse_home(args.home)
     if not 1 <= args.vehicles <= 250:
         raise UsageError(f"--vehicles must be 1..250, got {args.vehicles}")
+    boot_time = REALISTIC_BOOT if args.realistic_boot else args.boot_time
+    if not (math.isfinite(boot_time) and 0.0 <= boot_time <= 600.0):
+        raise UsageError(f"--boot-time must be 0..600 s, got {args.boot_time}")
     if args.base_port is not None and not 1 <= args.base_port <= 65535:
         raise UsageError(f"--base-port must be 1..65535, got {args.base_port}")
     cfg = SimConfig(
@@ -132,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         base_port=args.base_port,
         serial=args.serial,
         offboard_loss_action=args.offboard_loss,
+        boot_time=boot_time,
     )
     stop = StopFlag().install()
     try:
@@ -148,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"home={lat:.7f},{lon:.7f},{alt:.1f}",
                 flush=True,
             )
-        print(f"ready: {len(endpoints)} vehicle(s), speedup {args.speedup:g}", flush=True)
+        booting = f", boot {boot_time:g} s" if boot_time > 0 and args.profile == "ardupilot" else ""
+        print(f"ready: {len(endpoints)} vehicle(s), speedup {args.speedup:g}{booting}", flush=True)
         while not stop.wait(0.5):
             if sim.error is not None:
                 print(f"{PROG}: error: {sim.error}", flush=True)

@@ -1,0 +1,183 @@
+"""The simulated ArduCopter against recorded real ArduCopter SITL traces (tests/data/traces).
+
+The companion's side of each trace is replayed at its recorded times into the simulator's
+autopilot core with the recorded boot (virtual time: the whole trace in about a second),
+and what comes back is compared with what the real autopilot sent. Then the boot itself
+on real sockets through the runner, the hostile trace files, and the CLI flags.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from mav_helpers import command, wait_msg
+from net_helpers import free_port_range
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from firmware_bridge.errors import BridgeError, ConnectError
+from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
+from firmware_bridge.sim.boot import BootTimeline
+from firmware_bridge.sim.conformance import conformance, read_trace
+from swarm.cli.bench import conformance as bench
+from swarm.errors import SwarmError
+
+TRACES = Path(__file__).parent / "data" / "traces"
+FLIGHT, EDGES = TRACES / "ardupilot-sitl-flight.tlog", TRACES / "ardupilot-sitl-edges.tlog"
+
+
+@pytest.mark.parametrize("trace", [FLIGHT, EDGES], ids=["flight", "edges"])
+def test_replayed_trace_conforms(trace: Path) -> None:
+    r = conformance(trace)
+    ms = r["milestones"]
+    assert ms["matched"] == ms["total"] >= 8, ms["detail"]
+    assert r["acks"]["matched"] == r["acks"]["total"] >= 40, r["acks"]["mismatches"]
+    assert r["message_types"]["matched"] == r["message_types"]["total"], r["message_types"]
+    assert not r["message_types"]["extra"]
+    assert r["texts"]["matched"] >= r["texts"]["total"] - 4, r["texts"]["missing"]
+    assert not r["texts"]["extra"] or r["texts"]["extra"] == ["Arm: AHRS: waiting for home"]
+    assert r["heartbeats"]["matched"] >= r["heartbeats"]["total"] - 1, r["heartbeats"]
+    ratios = {k: v["ratio"] for k, v in r["timings"].items() if v["trace_s"] is not None}
+    assert ratios and all(x is not None and 0.8 <= x <= 1.2 for x in ratios.values()), r["timings"]
+
+
+def test_flight_trace_times_take_off_move_and_landing() -> None:
+    timings = conformance(FLIGHT)["timings"]
+    assert set(timings) == {"takeoff", "move_20m", "land"}
+    assert all(v["ratio"] is not None for v in timings.values()), timings
+
+
+def test_boot_timeline_as_recorded_and_scaled() -> None:
+    real = BootTimeline(REALISTIC_BOOT)
+    assert real.booting(1.0) and not real.booting(3.0)
+    assert real.arm_refusal(1.98) == ("Arm: System not initialised",)
+    assert real.arm_refusal(14.0) == ("Arm: Gyros inconsistent", "Arm: AHRS: waiting for home")
+    assert real.arm_refusal(30.0) == ("Arm: Need Position Estimate",)
+    assert real.arm_refusal(REALISTIC_BOOT) == ()
+    assert not real.position_valid(9.0) and real.position_valid(10.0)
+    assert not real.origin_set(19.0) and real.origin_set(20.0) and not real.using_gps(41.0)
+    short = BootTimeline(4.0)  # the same phases, in 4 s
+    assert short.arm_refusal(0.1) == ("Arm: System not initialised",) and short.arm_refusal(4.0) == ()
+    booted = BootTimeline(0.0)
+    assert not booted.booting(0.0) and booted.arm_refusal(0.0) == () and booted.position_valid(0.0)
+    for bad in (-1.0, 601.0, math.nan):
+        with pytest.raises(ValueError):
+            BootTimeline(bad)
+
+
+# ----------------------------------------------------------------- attack tests
+def test_hostile_trace_files_give_one_clear_error(tmp_path: Path) -> None:
+    garbage = tmp_path / "garbage.tlog"
+    garbage.write_bytes(bytes(range(256)) * 40)
+    empty = tmp_path / "empty.tlog"
+    empty.write_bytes(b"")
+    autopilot_only = tmp_path / "one-side.tlog"  # the autopilot's frames only: nothing to replay
+    with open(FLIGHT, "rb") as f:
+        autopilot_only.write_bytes(f.read(4000))
+    backwards = tmp_path / "backwards.tlog"  # a companion frame stamped an hour before the first
+    ap, companion = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 1, 191)
+    t0 = 1_700_000_000_000_000
+    backwards.write_bytes(
+        (t0).to_bytes(8, "big")
+        + ap.heartbeat_encode(2, 3, 81, 0, 3).pack(ap)
+        + (t0 - 3_600_000_000).to_bytes(8, "big")
+        + companion.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(companion)
+    )
+    for path in (garbage, empty, autopilot_only, tmp_path / "missing.tlog", tmp_path):
+        with pytest.raises(BridgeError) as info:
+            conformance(path)
+        assert "\n" not in str(info.value)
+    with pytest.raises(BridgeError, match="out of order"):
+        read_trace(backwards)
+
+
+def test_bench_without_traces_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(SwarmError, match="no recorded traces"):
+        bench.run(traces=tmp_path)
+    (tmp_path / "bad.tlog").write_bytes(b"\xfd" * 300)
+    with pytest.raises(SwarmError, match=r"bad\.tlog"):
+        bench.run(traces=tmp_path)
+
+
+@pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf, 601.0])
+def test_sim_config_refuses_impossible_boot_times(bad: float) -> None:
+    with pytest.raises(ConnectError, match="boot_time"):
+        SimConfig(profile="ardupilot", boot_time=bad).validate()
+
+
+# ----------------------------------------------------------- real sockets, CLI
+@pytest.fixture
+def booting() -> Iterator[mavutil.mavfile]:
+    sim = VehicleSim(
+        SimConfig(
+            profile="ardupilot",
+            speedup=2.0,
+            home=(-35.363261, 149.165230, 584.0),
+            base_port=free_port_range(1, "tcp", step=10),
+            boot_time=4.0,
+        )
+    )
+    sim.start()
+    c = mavutil.mavlink_connection(sim.endpoints[0], source_system=255)
+    try:
+        yield c
+    finally:
+        c.close()
+        sim.stop()
+
+
+@pytest.mark.processes
+def test_a_booting_vehicle_on_its_socket(booting: mavutil.mavfile) -> None:
+    """4 s of boot at speedup 2: BOOT, Null Island, refused arms with reasons, then armable."""
+    c = booting
+    hb = wait_msg(c, "HEARTBEAT", timeout=20)
+    assert hb.system_status == 1 and hb.base_mode == 89  # type: ignore[attr-defined]
+    c.target_system = 1
+    assert command(c, 511, 33, 100000) == 0
+    pos = wait_msg(c, "GLOBAL_POSITION_INT", timeout=20)
+    assert (pos.lat, pos.lon, pos.alt) == (0, 0, 0)  # type: ignore[attr-defined]
+    texts: list[str] = []
+    assert command(c, 400, 1, texts=texts) == 4
+    assert texts and all(t.startswith("Arm: ") for t in texts), texts
+    wait_msg(c, "STATUSTEXT", lambda m: m.text == "EKF3 IMU0 is using GPS", timeout=20)  # type: ignore[attr-defined]
+    assert command(c, 176, 1, 4) == 0  # GUIDED
+    assert command(c, 400, 1) == 0
+    assert wait_msg(c, "GLOBAL_POSITION_INT", lambda m: m.lat != 0, timeout=20)  # type: ignore[attr-defined]
+
+
+def _swarm(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "swarm.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+@pytest.mark.processes
+def test_bench_conformance_json_meets_the_target() -> None:
+    p = _swarm("bench", "conformance", "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert out["target_met"] is True
+    for name in ("ardupilot-sitl-flight", "ardupilot-sitl-edges"):
+        done, total = out[name]["milestones"].split("/")
+        assert done == total
+        assert set(out[name]["timing_ratios"]) >= {"takeoff", "land"}
+
+
+@pytest.mark.processes
+@pytest.mark.parametrize("flags", [["--boot-time", "nan"], ["--boot-time", "-3"], ["--boot-time", "1e9"]])
+def test_sim_boot_time_bad_values_exit_2(flags: list[str]) -> None:
+    p = _swarm("sim", "--vehicles", "1", "--profile", "ardupilot", *flags, timeout=30)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert p.stderr.startswith("swarm sim: error:") and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+@pytest.mark.processes
+def test_sim_boot_flags_are_exclusive() -> None:
+    p = _swarm("sim", "--vehicles", "1", "--realistic-boot", "--boot-time", "3", timeout=30)
+    assert p.returncode == 2 and "Traceback" not in p.stderr

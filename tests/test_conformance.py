@@ -24,7 +24,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_bridge.errors import BridgeError, ConnectError
 from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
 from firmware_bridge.sim.boot import BootTimeline
-from firmware_bridge.sim.conformance import conformance, read_trace
+from firmware_bridge.sim.conformance import Trace, compare, conformance, read_trace, replay_live
 from swarm.cli.bench import conformance as bench
 from swarm.errors import SwarmError
 
@@ -159,7 +159,7 @@ def _swarm(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[st
 
 @pytest.mark.processes
 def test_bench_conformance_json_meets_the_target() -> None:
-    p = _swarm("bench", "conformance", "--json")
+    p = _swarm("bench", "conformance", "--json", "--quick")
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["target_met"] is True
@@ -167,6 +167,32 @@ def test_bench_conformance_json_meets_the_target() -> None:
         done, total = out[name]["milestones"].split("/")
         assert done == total
         assert set(out[name]["timing_ratios"]) >= {"takeoff", "land"}
+
+
+@pytest.mark.slow
+@pytest.mark.processes
+@pytest.mark.parametrize("trace", [FLIGHT, EDGES], ids=["flight", "edges"])
+def test_live_replay_through_the_runner_conforms(trace: Path) -> None:
+    """The whole trace through VehicleSim on a real TCP socket at speedup 5 (about 25 s)."""
+    tr = read_trace(trace)
+    r = compare(tr, replay_live(tr, speedup=5.0))
+    assert r["milestones"]["matched"] == r["milestones"]["total"], r["milestones"]["detail"]
+    assert r["acks"]["matched"] == r["acks"]["total"], r["acks"]["mismatches"]
+    ratios = [v["ratio"] for v in r["timings"].values() if v["trace_s"] is not None]
+    assert ratios and all(x is not None and 0.8 <= x <= 1.2 for x in ratios), r["timings"]
+
+
+@pytest.mark.processes
+def test_live_replay_of_the_boot_through_the_runner() -> None:
+    """The flight trace's first 25 s (boot and refused arms) live at speedup 10: about 3 s."""
+    full = read_trace(FLIGHT)
+    tr = Trace(full.name, tuple(r for r in full.records if r.t <= 25.0))
+    r = compare(tr, replay_live(tr, speedup=10.0))
+    assert r["acks"]["matched"] >= r["acks"]["total"] - 1, r["acks"][
+        "mismatches"
+    ]  # a loaded machine may drop one
+    done = {k for k, v in r["milestones"]["detail"].items() if v["ok"]}
+    assert {"boot_heartbeat", "position_valid", "gps_origin", "home"} <= done, r["milestones"]["detail"]
 
 
 @pytest.mark.processes

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -24,7 +25,14 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_bridge.errors import BridgeError, ConnectError
 from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
 from firmware_bridge.sim.boot import BootTimeline
-from firmware_bridge.sim.conformance import Trace, compare, conformance, read_trace, replay_live
+from firmware_bridge.sim.conformance import (
+    MAX_TRACE_BYTES,
+    Trace,
+    compare,
+    conformance,
+    read_trace,
+    replay_live,
+)
 from swarm.cli.bench import conformance as bench
 from swarm.errors import SwarmError
 
@@ -207,3 +215,16 @@ def test_sim_boot_time_bad_values_exit_2(flags: list[str]) -> None:
 def test_sim_boot_flags_are_exclusive() -> None:
     p = _swarm("sim", "--vehicles", "1", "--realistic-boot", "--boot-time", "3", timeout=30)
     assert p.returncode == 2 and "Traceback" not in p.stderr
+
+
+def test_a_fifo_or_an_oversized_trace_is_refused_not_read(tmp_path: Path) -> None:
+    """A FIFO named as a trace would block the reader for ever; a huge file would fill memory."""
+    fifo = tmp_path / "fifo.tlog"
+    os.mkfifo(fifo)
+    with pytest.raises(BridgeError, match="not a regular file"):
+        read_trace(fifo)
+    big = tmp_path / "big.tlog"
+    with open(big, "wb") as f:
+        f.truncate(MAX_TRACE_BYTES + 1)
+    with pytest.raises(BridgeError, match="larger than"):
+        read_trace(big)

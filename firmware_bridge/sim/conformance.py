@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import re
 import socket
+import stat
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
@@ -47,6 +48,7 @@ from firmware_bridge.sim.boot import RECORDED_TOTAL
 
 COMPANION, AUTOPILOT = 191, 1
 MAX_TRACE_S = 3600.0  # a longer file is refused, not replayed for hours
+MAX_TRACE_BYTES = 64 * 1024 * 1024  # a larger file is refused, not read into memory
 TOL_S, TOL_RATIO = 1.5, 0.2
 Msg = Any
 
@@ -73,9 +75,17 @@ class Trace:
 def read_trace(path: Path) -> Trace:
     """All MAVLink messages of a ``.tlog``; BridgeError for a file that is not one."""
     try:
+        st = path.stat()  # before opening: a FIFO or a device is never opened
+    except OSError as exc:
+        raise BridgeError(f"cannot read trace {path}: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise BridgeError(f"trace {path} is not a regular file")
+    if st.st_size > MAX_TRACE_BYTES:
+        raise BridgeError(f"trace {path} is larger than {MAX_TRACE_BYTES // 2**20} MiB")
+    try:
         conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
     except OSError as exc:
-        raise BridgeError(f"cannot read trace {path}: {exc.strerror}") from None
+        raise BridgeError(f"cannot read trace {path}: {exc.strerror or exc}") from None
     recs: list[Record] = []
     t0: float | None = None
     try:

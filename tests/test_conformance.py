@@ -23,7 +23,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_bridge.errors import BridgeError, ConnectError
-from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
+from firmware_bridge.sim import REALISTIC_BOOT, Autopilot, SimConfig, VehicleSim
 from firmware_bridge.sim.boot import BootTimeline
 from firmware_bridge.sim.conformance import (
     MAX_TRACE_BYTES,
@@ -228,3 +228,25 @@ def test_a_fifo_or_an_oversized_trace_is_refused_not_read(tmp_path: Path) -> Non
         f.truncate(MAX_TRACE_BYTES + 1)
     with pytest.raises(BridgeError, match="larger than"):
         read_trace(big)
+
+
+def test_sys_status_reports_the_prearm_check_and_gps_health_while_booting() -> None:
+    """ArduPilot's pre-arm bit (0x10000000) and the GPS bit stay unhealthy until the boot allows them."""
+    ap = Autopilot("ardupilot", 1, (-35.363261, 149.16523, 584.0), boot_time=4.0)
+    gcs = mavlink.MAVLink(None, 255, 190)
+
+    def sys_status(t: float) -> tuple[int, int]:
+        req = mavlink.MAVLink(None, 0, 0).parse_buffer(
+            gcs.command_long_encode(1, 1, 512, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs)
+        )
+        assert req
+        [m] = [m for m in ap.handle(req[0], t) if m.get_type() == "SYS_STATUS"]
+        return m.onboard_control_sensors_present, m.onboard_control_sensors_health
+
+    present, health = sys_status(0.5)
+    assert present & 0x10000000 and not health & 0x10000000 and not health & 32
+    present, health = sys_status(2.0)  # GPS found (9.94 of 41.52 s), arming still refused
+    assert health & 32 and not health & 0x10000000
+    present, health = sys_status(4.1)
+    assert health & 0x10000000 and health & 32
+    assert Autopilot("px4", 1, (47.4, 8.5, 488.0)).flavour.prearm_ok(ap) is None  # PX4: not reported

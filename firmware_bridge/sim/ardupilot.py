@@ -18,7 +18,9 @@ As recorded from a real ArduCopter 4.7 SITL: it boots along a
 and origin, arming refused with the real reasons until the EKF uses GPS; a mode set
 during BOOT reverts to STABILIZE at "ArduPilot Ready"); it sends TIMESYNC every 10 s,
 PARAM_VALUE at boot and at disarm, GPS_GLOBAL_ORIGIN when the origin is set and at each
-arm, one more HEARTBEAT with each ACK that changes the mode; base_mode has GUIDED (8)
+arm, one more HEARTBEAT with each ACK that changes the mode; SYS_STATUS carries the
+pre-arm check bit (healthy once the boot allows arming) and GPS health from the
+detected GPS; base_mode has GUIDED (8)
 whenever the position controller runs (GUIDED, AUTO, LAND, armed in any position mode,
 and during BOOT); NAV_TAKEOFF while disarmed fails without a text; AUTO without a
 mission is accepted while disarmed; the motors spool up for ``SPOOL_UP`` s before a
@@ -132,6 +134,9 @@ class ArduPilot(Flavour):
 
     def home_set(self, ap: Autopilot) -> bool:
         return self.boot.origin_set(ap.t)
+
+    def prearm_ok(self, ap: Autopilot) -> bool | None:
+        return ap.gps_ok and not self.boot.arm_refusal(ap.t)
 
     def defer_request(self, ap: Autopilot, mid: int) -> bool:
         if mid == 242 and not self.home_set(ap):

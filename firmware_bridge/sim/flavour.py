@@ -123,6 +123,10 @@ class Flavour(ABC):
         """HOME_POSITION can be answered."""
         return True
 
+    def prearm_ok(self, ap: Autopilot) -> bool | None:
+        """SYS_STATUS's pre-arm check bit (None: this autopilot does not report it)."""
+        return None
+
     def defer_request(self, ap: Autopilot, mid: int) -> bool:
         """True: REQUEST_MESSAGE ``mid`` that has no answer yet is accepted, answered later."""
         return False

@@ -107,9 +107,16 @@ def _attitude(ap: Autopilot) -> Msg:
     )
 
 
+PREARM = 0x10000000  # MAV_SYS_STATUS_PREARM_CHECK
+
+
 def _sys_status(ap: Autopilot) -> Msg:
     sensors = 32 | 1 | 2 | 4 | 8  # GPS, gyro, accel, mag, baro
-    health = sensors if ap.gps_ok else sensors & ~32
+    health = sensors if ap.gps_ok and ap.flavour.position_valid(ap) else sensors & ~32
+    prearm = ap.flavour.prearm_ok(ap)
+    if prearm is not None:  # the autopilot reports its pre-arm checks
+        sensors |= PREARM
+        health |= PREARM if prearm else 0
     volt, cur = _battery_vi(ap)
     load, pct = 250, int(ap.battery)
     return ap.mav.sys_status_encode(

@@ -305,3 +305,40 @@ def test_an_agent_sends_no_pose_before_the_fix_and_says_so(player: Any) -> None:
         assert a.stats["poses_withheld"] > 10  # every round before the fix
         assert poses[0][0] > 19.5  # no pose before home, and so none before the fix
         assert all(-36.0 < r.pose.lat < -35.0 and 149.0 < r.pose.lon < 150.0 for _, r in poses)
+
+
+# --- take-off asked for before the vehicle is armable --------------------------------------
+@pytest.mark.processes
+@pytest.mark.parametrize("profile", ["px4", "ardupilot"])
+def test_takeoff_waits_until_armable_instead_of_failing(profile: str) -> None:
+    """The simulator with its GPS failed refuses to arm; takeoff() asked for then waits
+    (before: CommandRejected at once) and climbs once the GPS is back."""
+    from firmware_bridge import sim as sim_mod
+
+    port = free_port("udp" if profile == "px4" else "tcp")
+    sim = sim_mod.VehicleSim(
+        sim_mod.SimConfig(vehicles=1, profile=profile, speedup=4.0, seed=0, base_port=port)
+    )
+    try:
+        (endpoint,) = sim.start()
+        sim.vehicle(0).fail_gps(True)
+        with drv.connect(endpoint, timeout=15.0, setpoint_rate_hz=25.0) as v:
+            outcome: list[BaseException | None] = []
+
+            def fly() -> None:
+                try:
+                    v.takeoff(5.0, timeout=60.0, ready_timeout=60.0)
+                    outcome.append(None)
+                except BaseException as e:  # handed to the test thread
+                    outcome.append(e)
+
+            flyer = threading.Thread(target=fly, daemon=True)
+            flyer.start()
+            wait_until(lambda: v.state.gps_known and not v.state.gps_ok, "the driver told 'no fix'", 30.0)
+            assert not outcome and not v.state.armed  # waiting, not refused
+            sim.vehicle(0).fail_gps(False)
+            flyer.join(90.0)
+            assert outcome == [None]
+            assert v.state.armed and v.state.rel_alt is not None and v.state.rel_alt > 4.5
+    finally:
+        sim.stop()

@@ -11,7 +11,10 @@ back, stream re-requests), :mod:`firmware_bridge.commands` (COMMAND_LONG, ACK,
 retries) and :mod:`firmware_bridge.setpoints` (validation, SET_POSITION_TARGET_*).
 
 :class:`Vehicle` adds the flight API: modes by name, arming, takeoff, landing,
-return, hold, and position targets. Mode changes, arming and OFFBOARD are verified
+return, hold, and position targets. A real autopilot refuses to arm for about 40 s
+after boot: :meth:`Vehicle.takeoff` first waits until the vehicle is armable
+(:meth:`~firmware_bridge.session.Session.wait_ready`, up to ``ready_timeout``) and
+tries a refused arm again within that time. Mode changes, arming and OFFBOARD are verified
 on the next heartbeats, not only by the ACK (PX4 accepts OFFBOARD while disarmed
 without a stream); a refusal raises :class:`CommandRejected` with the autopilot's
 STATUSTEXT. Facts from the autopilots' sources: PX4's commander (UserModeIntention,
@@ -39,7 +42,7 @@ from firmware_bridge.commands import (
 from firmware_bridge.connection import COMPANION_COMPONENT, Endpoint, open_link, parse_url, signing_timestamp
 from firmware_bridge.errors import BridgeError, CommandRejected, ConnectError, SetpointError
 from firmware_bridge.modes import canonical_mode, encode_mode
-from firmware_bridge.session import NotReady, Options, Session, WaitTimeout
+from firmware_bridge.session import NotReady, Options, Session, WaitTimeout, check_timeout
 from firmware_bridge.setpoints import (
     GlobalTarget,
     LocalTarget,
@@ -170,12 +173,13 @@ class Vehicle(Session):
 
         Raises:
             SetpointError: altitude not finite or out of 0.5..MAX_ALT_M.
+            BridgeError: ``ready_timeout`` not a finite number of seconds >= 0.
             NotReady: not armable within ``ready_timeout``.
             CommandRejected, CommandTimeout: from the mode change, arming or takeoff.
             WaitTimeout: the altitude is not reached in ``timeout``.
         """
         alt = validate_takeoff_altitude(rel_alt_m)
-        ready_by = time.monotonic() + ready_timeout
+        ready_by = time.monotonic() + check_timeout(ready_timeout, "ready_timeout")
         if not self.state.armed:
             self.wait_ready(ready_timeout)
         if self.autopilot == "ardupilot":

@@ -29,7 +29,9 @@ Commands go out one at a time: :meth:`Session.command` makes a
 sleeps on the condition until its next deadline or an answer; the exchange's
 outcome becomes the return value or a :class:`CommandRejected` /
 :class:`CommandTimeout`. :meth:`Session.wait_for` waits for a condition on the
-telemetry snapshot.
+telemetry snapshot; :meth:`Session.wait_ready` for "armable" as the autopilot reports
+it (:func:`~firmware_bridge.telemetry.arming_problems`), or :class:`NotReady` with
+what was missing and the autopilot's latest "PreArm:"/"Arm:" texts.
 """
 
 from __future__ import annotations
@@ -84,6 +86,13 @@ __all__ = ["NotReady", "Session", "WaitTimeout"]
 
 #: STATUSTEXT openings that give an autopilot's reasons for refusing to arm
 ARMING_TEXTS = ("PreArm:", "Arm:", "Preflight Fail", "Arming denied")
+
+
+def check_timeout(value: float, what: str) -> float:
+    """``value`` if it is a finite number of seconds >= 0, else BridgeError."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value < math.inf:
+        raise BridgeError(f"{what} {value!r} must be a finite number of seconds >= 0")
+    return float(value)
 
 
 class WaitTimeout(BridgeError, TimeoutError):
@@ -273,8 +282,10 @@ class Session:
         Raises:
             NotReady: not armable within ``timeout`` s (what was missing, and the
                 autopilot's latest "PreArm:"/"Arm:" texts).
-            BridgeError: the vehicle was closed meanwhile.
+            BridgeError: the vehicle was closed meanwhile, or ``timeout`` is not a
+                finite number of seconds >= 0.
         """
+        check_timeout(timeout, "wait_ready timeout")
         started = time.monotonic()
         try:
             return self.wait_for(lambda s: not arming_problems(s, position=position), timeout, "armable")

@@ -10,6 +10,7 @@ flies the vehicle simulator when asked to take off before the GPS has a fix.
 
 from __future__ import annotations
 
+import math
 import socket
 import threading
 import time
@@ -22,6 +23,7 @@ from net_helpers import free_port, wait_until
 from pymavlink.dialects.v20 import ardupilotmega
 
 from firmware_bridge import driver as drv
+from firmware_bridge.errors import BridgeError
 from firmware_bridge.telemetry import (
     NO_POSITION_YET,
     TelemetryFolder,
@@ -257,6 +259,11 @@ def player() -> Iterator[Any]:
 def test_wait_ready_gives_the_recorded_refusals_then_returns_when_armable(player: Any) -> None:
     p = player(FLIGHT, speed=8.0, hold_at=1.0, until=45.0)
     with drv.connect(f"tcp:127.0.0.1:{p.port}", timeout=15.0) as v:
+        for bad in (math.nan, math.inf, -1.0, "5", True):  # a caller's mistake, refused at once
+            with pytest.raises(BridgeError, match="finite number of seconds"):
+                v.wait_ready(bad)
+            with pytest.raises(BridgeError, match="finite number of seconds"):
+                v.takeoff(5.0, ready_timeout=bad)
         with pytest.raises(drv.NotReady) as err:
             v.wait_ready(0.1)
         assert "autopilot still booting" in err.value.problems
@@ -275,6 +282,7 @@ def test_wait_ready_gives_the_recorded_refusals_then_returns_when_armable(player
 @pytest.mark.processes
 def test_an_agent_sends_no_pose_before_the_fix_and_says_so(player: Any) -> None:
     from swarm.core.messages import PoseReport
+    from swarm.core.pilot import Call
     from swarm.runtime.agent import Agent, AgentConfig, NodeOptions
     from swarm.runtime.transport import Transport
 
@@ -297,6 +305,9 @@ def test_an_agent_sends_no_pose_before_the_fix_and_says_so(player: Any) -> None:
         obs.on_pose("booting", lambda _n, r: poses.append((p.played_to, r)))
         obs.on_state("booting", lambda _n, st: states.append(st))
         wait_until(lambda: states, "the agent's state at the observer", 30.0)
+        # a take-off order while the autopilot boots is refused within seconds, with why
+        with pytest.raises(drv.NotReady, match="autopilot still booting"):
+            a._do_call(Call("takeoff", 10.0))
         p.go()  # the recorded boot from here: 0, 0, 0 positions, the fix, home at 19.9 s
         wait_until(lambda: POSITION_VALID in events, "'position valid'", 60.0)
         wait_until(lambda: poses, "a pose after the fix", 30.0)

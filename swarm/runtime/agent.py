@@ -46,7 +46,8 @@ the paper has it (section 2.2: one thread per protocol or link, queues between t
   the queue to the node (an event, a leader that cannot fly hands over, Telemetry
   without FLAG_FC_OK and with the mode unknown).
 * **Vehicle thread**: runs the pilot's blocking calls (arm, take-off, land...) and
-  queues each result back.
+  queues each result back. A take-off waits at most :data:`TAKEOFF_READY_S` for the
+  vehicle to become armable, then fails with the autopilot's reasons.
 * **Flight log** (optional, a :class:`radios.rotating.FlightLog` handed in): the radio
   link is wrapped for capture (:class:`radios.capture.CaptureLink`: every frame the
   bridge writes and reads, raw, so signatures and RADIO_STATUS are in it) and the
@@ -123,6 +124,9 @@ from swarm.runtime.vehicle import pose_from_state, state_dict, vehicle_info, veh
 log = logging.getLogger(__name__)
 
 DEFAULT_AIR_KBPS = 64
+#: how long a take-off order waits for the vehicle to become armable before it is refused
+#: (with the autopilot's reasons): an order must not start the motors long after it was given
+TAKEOFF_READY_S = 5.0
 
 #: the flight controller's messages a flight log keeps (by message id): HEARTBEAT,
 #: SYS_STATUS, GPS_RAW_INT, GLOBAL_POSITION_INT, COMMAND_ACK, BATTERY_STATUS,
@@ -475,8 +479,8 @@ class Agent(StartOnce):
             v.arm()
         elif c.kind == "disarm":
             v.disarm()
-        elif c.kind == "takeoff":
-            v.takeoff(c.alt, wait=True, timeout=60.0)
+        elif c.kind == "takeoff":  # not armable within seconds: refused with the reasons, never late
+            v.takeoff(c.alt, wait=True, timeout=60.0, ready_timeout=TAKEOFF_READY_S)
             v.start_offboard()  # hold here under setpoint control
         elif c.kind == "land":
             v.land()

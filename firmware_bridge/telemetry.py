@@ -288,11 +288,13 @@ def position_problem(s: VehicleState) -> str:
     """Why ``s``'s position is not (yet) a position, or "" when the autopilot vouches
     for it: a GPS report with a 3D fix, not 0, 0 (what ArduPilot sends while it has
     none), a non-zero home, and, when EKF_STATUS_REPORT is heard, the EKF's absolute
-    horizontal position."""
+    horizontal position (and latitudes and longitudes that exist)."""
     if s.lat is None or s.lon is None or s.alt_amsl is None:
         return NO_POSITION_YET
     if not all(map(math.isfinite, (s.lat, s.lon, s.alt_amsl))) or (s.lat == 0.0 and s.lon == 0.0):
         return "the autopilot reports no position (0, 0)"
+    if not _on_earth(s.lat, s.lon):
+        return "position out of range"
     if not s.gps_known:
         return "no GPS report yet"
     if not s.gps_ok:
@@ -303,7 +305,13 @@ def position_problem(s: VehicleState) -> str:
         return "no home position yet"
     if s.home[0] == 0.0 and s.home[1] == 0.0:
         return "home is 0, 0"
+    if not _on_earth(s.home[0], s.home[1]):
+        return "home out of range"
     return ""
+
+
+def _on_earth(lat: float, lon: float) -> bool:
+    return -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0
 
 
 def arming_problems(s: VehicleState, *, position: bool = True) -> list[str]:

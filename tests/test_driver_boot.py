@@ -353,3 +353,19 @@ def test_takeoff_waits_until_armable_instead_of_failing(profile: str) -> None:
             assert v.state.armed and v.state.rel_alt is not None and v.state.rel_alt > 4.5
     finally:
         sim.stop()
+
+
+def test_an_impossible_position_is_no_position_and_never_an_error() -> None:
+    """An autopilot (or a corrupted stream) reporting 95 N, 200 E or 9 km up: the driver
+    does not vouch for an impossible latitude or longitude, and the agent's pose is None,
+    never an exception in its pose thread."""
+    w = Wire()
+    fix_home = (w.gps(3), w.home(-35.36, 149.16))
+    for lat, lon in ((95.0, 149.16), (-35.36, 200.0), (-35.36, -181.0)):
+        s = fed(*fix_home, w.gpi(lat, lon))
+        assert not s.position_valid and s.position_reason == "position out of range"
+        assert pose_from_state(s, 1.0) is None and len(vehicle_messages(s)) == 1
+    s = fed(w.gps(3), w.home(95.0, 0.0), w.gpi(-35.36, 149.16))
+    assert s.position_reason == "home out of range"
+    high = fed(*fix_home, w.gpi(-35.36, 149.16, alt=9000.0))
+    assert high.position_valid and pose_from_state(high, 1.0) is None  # beyond what a Pose carries

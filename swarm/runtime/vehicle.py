@@ -3,7 +3,8 @@ conversions of a driver :class:`~firmware_bridge.driver.VehicleState` snapshot.
 
 :func:`vehicle_info` is what Telemetry reports, :func:`pose_from_state` the
 protocol's Pose (None until the driver finds the position valid, ``position_valid``:
-a real autopilot sends 0, 0 before its fix; None with a non-finite field too), and
+a real autopilot sends 0, 0 before its fix; None with a non-finite field or one a
+Pose cannot carry too), and
 :func:`vehicle_messages` the HEARTBEAT and GLOBAL_POSITION_INT (only with a valid
 position) a standard ground station expects on the radio, rebuilt from the snapshot (the driver keeps no raw
 messages; the vehicle type, not in the snapshot, is sent as a quadrotor).
@@ -16,7 +17,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from swarm.core.messages import AgentState, Pose
+from swarm.core.messages import AgentState, MessageError, Pose
 from swarm.core.node import VehicleInfo
 
 
@@ -43,7 +44,10 @@ def pose_from_state(s: Any, t: float) -> Pose | None:
     vals = [s.lat, s.lon, s.alt_amsl if s.alt_amsl is not None else 0.0, math.degrees(s.yaw) % 360.0, vn, ve]
     if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in vals):
         return None
-    return Pose(vals[0], vals[1], vals[2], vals[3], vals[4], vals[5], t)
+    try:
+        return Pose(vals[0], vals[1], vals[2], vals[3], vals[4], vals[5], t)
+    except MessageError:  # beyond what a Pose carries (altitude, range): no pose, no error
+        return None
 
 
 _AUTOPILOT_IDS = {"px4": 12, "ardupilot": 3}

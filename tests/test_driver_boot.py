@@ -23,7 +23,7 @@ from net_helpers import free_port, wait_until
 from pymavlink.dialects.v20 import ardupilotmega
 
 from firmware_bridge import driver as drv
-from firmware_bridge.errors import BridgeError
+from firmware_bridge.errors import BridgeError, CommandRejected
 from firmware_bridge.telemetry import (
     NO_POSITION_YET,
     TelemetryFolder,
@@ -369,3 +369,73 @@ def test_an_impossible_position_is_no_position_and_never_an_error() -> None:
     assert s.position_reason == "home out of range"
     high = fed(*fix_home, w.gpi(-35.36, 149.16, alt=9000.0))
     assert high.position_valid and pose_from_state(high, 1.0) is None  # beyond what a Pose carries
+
+
+class ScriptedArduPilot:
+    """A booted ArduCopter in a few lines: GUIDED, a 3D fix, home, local position and a
+    passing pre-arm bit, refusing the first ``refusals`` arms with "Arm: Gyros
+    inconsistent" (its pre-arm checks lag its reports) and accepting the next."""
+
+    def __init__(self, port: int, refusals: int) -> None:
+        from pymavlink import mavutil
+
+        self.conn = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
+        )
+        self.refusals, self.armed, self.arms = refusals, False, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _telemetry(self) -> None:
+        mav, lat, lon = self.conn.mav, -353632610, 1491652300
+        mav.heartbeat_send(2, 3, 217 if self.armed else 89, 4, 3)
+        mav.sys_status_send(0x10000020, 0x10000020, 0x10000020, 0, 12_600, -1, 80, 0, 0, 0, 0, 0, 0)
+        mav.gps_raw_int_send(0, 6, lat, lon, 584_000, 80, 120, 0, 0, 12)
+        mav.global_position_int_send(0, lat, lon, 584_000, 0, 0, 0, 0, 0)
+        mav.home_position_send(lat, lon, 584_000, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0)
+        mav.local_position_ned_send(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def _answer(self, m: Any) -> None:
+        result = 0
+        if m.command == 400 and m.param1 == 1:
+            self.arms += 1
+            if self.arms <= self.refusals:
+                self.conn.mav.statustext_send(2, b"Arm: Gyros inconsistent")
+                result = 4
+            else:
+                self.armed = True
+        self.conn.mav.command_ack_send(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
+
+    def _run(self) -> None:
+        next_beat = 0.0
+        while not self._stop.is_set():
+            if time.monotonic() >= next_beat:
+                self._telemetry()
+                next_beat = time.monotonic() + 0.1
+            self.conn.select(0.02)
+            while (m := self.conn.recv_msg()) is not None:
+                if m.get_type() == "COMMAND_LONG":
+                    self._answer(m)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.conn.close()
+
+
+@pytest.mark.processes
+def test_takeoff_tries_a_refused_arm_again_within_its_ready_timeout() -> None:
+    port = free_port("udp")
+    ap = ScriptedArduPilot(port, refusals=2)
+    try:
+        with drv.connect(f"udpin:127.0.0.1:{port}", timeout=10.0) as v:
+            v.takeoff(10.0, wait=False, ready_timeout=30.0)
+            assert ap.arms == 3 and v.state.armed  # refused twice, then armed and took off
+        ap.arms, ap.armed = 0, False
+        with drv.connect(f"udpin:127.0.0.1:{port}", timeout=10.0) as v:
+            with pytest.raises(CommandRejected, match="Gyros inconsistent"):
+                v.takeoff(10.0, wait=False, ready_timeout=1.0)  # no time left to try again
+            assert ap.arms == 1
+    finally:
+        ap.close()

@@ -11,7 +11,10 @@ back, stream re-requests), :mod:`firmware_bridge.commands` (COMMAND_LONG, ACK,
 retries) and :mod:`firmware_bridge.setpoints` (validation, SET_POSITION_TARGET_*).
 
 :class:`Vehicle` adds the flight API: modes by name, arming, takeoff, landing,
-return, hold, and position targets. Mode changes, arming and OFFBOARD are verified
+return, hold, and position targets. A real autopilot refuses to arm for about 40 s
+after boot: :meth:`Vehicle.takeoff` first waits until the vehicle is armable
+(:meth:`~firmware_bridge.session.Session.wait_ready`, up to ``ready_timeout``) and
+tries a refused arm again within that time. Mode changes, arming and OFFBOARD are verified
 on the next heartbeats, not only by the ACK (PX4 accepts OFFBOARD while disarmed
 without a stream); a refusal raises :class:`CommandRejected` with the autopilot's
 STATUSTEXT. Facts from the autopilots' sources: PX4's commander (UserModeIntention,
@@ -20,6 +23,7 @@ offboard checks) and mavlink_receiver, ArduCopter's GCS_MAVLink_Copter and mode_
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -38,7 +42,7 @@ from firmware_bridge.commands import (
 from firmware_bridge.connection import COMPANION_COMPONENT, Endpoint, open_link, parse_url, signing_timestamp
 from firmware_bridge.errors import BridgeError, CommandRejected, ConnectError, SetpointError
 from firmware_bridge.modes import canonical_mode, encode_mode
-from firmware_bridge.session import Options, Session, WaitTimeout
+from firmware_bridge.session import NotReady, Options, Session, WaitTimeout, check_timeout
 from firmware_bridge.setpoints import (
     GlobalTarget,
     LocalTarget,
@@ -59,6 +63,7 @@ __all__ = [  # the public names stay importable from here (swarm and the README 
     "Endpoint",
     "GlobalTarget",
     "LocalTarget",
+    "NotReady",
     "SetpointError",
     "StatusText",
     "Vehicle",
@@ -71,6 +76,9 @@ __all__ = [  # the public names stay importable from here (swarm and the README 
     "validate_global",
     "validate_local",
 ]
+
+
+ARM_RETRY_S = 2.0  # the least time between two tries of a refused arm (takeoff)
 
 
 # --- the vehicle -----------------------------------------------------------------------
@@ -134,13 +142,16 @@ class Vehicle(Session):
             ) from None
 
     def home_amsl(self, timeout: float = 3.0) -> float:
-        """Home altitude AMSL: HOME_POSITION, else GLOBAL_POSITION_INT alt - relative_alt.
+        """Home altitude AMSL: HOME_POSITION, else GLOBAL_POSITION_INT alt - relative_alt
+        once that position is valid (before its fix ArduPilot reports 0 for both).
 
         Raises:
             WaitTimeout: neither known within ``timeout``.
         """
         s = self.wait_for(
-            lambda s: s.home is not None or (s.alt_amsl is not None and s.rel_alt is not None),
+            lambda s: (
+                s.home is not None or (s.position_valid and s.alt_amsl is not None and s.rel_alt is not None)
+            ),
             timeout,
             "home position",
         )
@@ -149,27 +160,37 @@ class Vehicle(Session):
         assert s.alt_amsl is not None and s.rel_alt is not None
         return s.alt_amsl - s.rel_alt
 
-    def takeoff(self, rel_alt_m: float, *, wait: bool = True, timeout: float = 60.0) -> None:
+    def takeoff(
+        self, rel_alt_m: float, *, wait: bool = True, timeout: float = 60.0, ready_timeout: float = 90.0
+    ) -> None:
         """Take off to ``rel_alt_m`` above home, arming first if needed.
 
+        Unless armed already, waits first (up to ``ready_timeout`` s) until the vehicle
+        is armable (:meth:`wait_ready`: a real autopilot refuses for about 40 s after
+        boot) and tries arming again while the autopilot refuses it within that time.
         PX4: MAV_CMD_NAV_TAKEOFF with param7 AMSL (home + rel). ArduPilot: GUIDED,
         arm, NAV_TAKEOFF with param7 relative. ``wait`` waits for the altitude.
 
         Raises:
             SetpointError: altitude not finite or out of 0.5..MAX_ALT_M.
+            BridgeError: ``ready_timeout`` not a finite number of seconds >= 0.
+            NotReady: not armable within ``ready_timeout``.
             CommandRejected, CommandTimeout: from the mode change, arming or takeoff.
             WaitTimeout: the altitude is not reached in ``timeout``.
         """
         alt = validate_takeoff_altitude(rel_alt_m)
+        ready_by = time.monotonic() + check_timeout(ready_timeout, "ready_timeout")
+        if not self.state.armed:
+            self.wait_ready(ready_timeout)
         if self.autopilot == "ardupilot":
             self.set_mode("GUIDED")
             if not self.state.armed:
-                self.arm()
+                self._arm_by(ready_by)
             self.command(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, alt))
         else:
             amsl = self.home_amsl() + alt
             if not self.state.armed:
-                self.arm()
+                self._arm_by(ready_by)
             nan = math.nan
             self.command(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, nan, nan, nan, amsl))
         if wait:
@@ -179,6 +200,22 @@ class Vehicle(Session):
                 timeout,
                 f"takeoff altitude {alt:g} m",
             )
+
+    def _arm_by(self, deadline: float) -> None:
+        """Arm; while the autopilot refuses (its pre-arm checks lag its reports by up to
+        a second or two) and ``deadline`` is more than a retry away, wait until it looks
+        armable again and try once more (every ``ARM_RETRY_S`` at most)."""
+        while True:
+            tried = time.monotonic()
+            try:
+                self.arm()
+                return
+            except CommandRejected as e:
+                if e.result == MAV_RESULT_ACCEPTED or deadline - time.monotonic() < ARM_RETRY_S:
+                    raise
+            with contextlib.suppress(WaitTimeout):  # a pause between tries, woken early by closing
+                self.wait_for(lambda s: self._closed, max(0.0, tried + ARM_RETRY_S - time.monotonic()))
+            self.wait_ready(max(0.0, deadline - time.monotonic()))
 
     def land(self, *, wait: bool = False, timeout: float = 120.0) -> None:
         """Stop the setpoints and land where the vehicle is (PX4 AUTO.LAND, AP LAND)."""
@@ -271,8 +308,8 @@ class Vehicle(Session):
         """
         if not self.state.in_air:
             self.takeoff(takeoff_alt, wait=True, timeout=timeout)
-        if self.target is None:
-            s = self.wait_for(lambda s: s.ned is not None, 5.0, "local position")
+        if self.target is None:  # ArduPilot sends it only once its EKF uses the GPS
+            s = self.wait_for(lambda s: s.ned is not None, timeout, "local position")
             assert s.ned is not None
             self.set_target_ned(*s.ned, yaw=s.yaw)
         if self.autopilot == "px4":

@@ -29,7 +29,9 @@ Commands go out one at a time: :meth:`Session.command` makes a
 sleeps on the condition until its next deadline or an answer; the exchange's
 outcome becomes the return value or a :class:`CommandRejected` /
 :class:`CommandTimeout`. :meth:`Session.wait_for` waits for a condition on the
-telemetry snapshot.
+telemetry snapshot; :meth:`Session.wait_ready` for "armable" as the autopilot reports
+it (:func:`~firmware_bridge.telemetry.arming_problems`), or :class:`NotReady` with
+what was missing and the autopilot's latest "PreArm:"/"Arm:" texts.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ from firmware_bridge.setpoints import GlobalTarget, LocalTarget, setpoint_messag
 from firmware_bridge.streamer import SetpointStreamer
 from firmware_bridge.telemetry import (
     MSG_ATTITUDE,
+    MSG_EKF_STATUS_REPORT,
     MSG_EXTENDED_SYS_STATE,
     MSG_GLOBAL_POSITION_INT,
     MSG_GPS_RAW_INT,
@@ -74,15 +77,36 @@ from firmware_bridge.telemetry import (
     StreamRequests,
     TelemetryFolder,
     VehicleState,
+    arming_problems,
 )
 
 log = logging.getLogger("firmware_bridge.driver")  # one logger for the driver, as before the split
 
-__all__ = ["Session", "WaitTimeout"]
+__all__ = ["NotReady", "Session", "WaitTimeout"]
+
+#: STATUSTEXT openings that give an autopilot's reasons for refusing to arm
+ARMING_TEXTS = ("PreArm:", "Arm:", "Preflight Fail", "Arming denied")
+
+
+def check_timeout(value: float, what: str) -> float:
+    """``value`` if it is a finite number of seconds >= 0, else BridgeError."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value < math.inf:
+        raise BridgeError(f"{what} {value!r} must be a finite number of seconds >= 0")
+    return float(value)
 
 
 class WaitTimeout(BridgeError, TimeoutError):
     """A :meth:`Session.wait_for` condition did not come true in time."""
+
+
+class NotReady(WaitTimeout):
+    """:meth:`Session.wait_ready`: the vehicle did not become armable in time; the
+    message names what was missing and the autopilot's latest pre-arm texts."""
+
+    def __init__(self, message: str, problems: Sequence[str] = (), texts: Sequence[str] = ()) -> None:
+        super().__init__(message)
+        self.problems = list(problems)
+        self.texts = list(texts)
 
 
 @dataclass
@@ -249,6 +273,45 @@ class Session:
                     )
                 self._cond.wait(min(left, 0.5))
 
+    def wait_ready(self, timeout: float = 60.0, *, position: bool = True) -> VehicleState:
+        """Wait until the vehicle is armable as its autopilot reports it
+        (:func:`~firmware_bridge.telemetry.arming_problems`: booted, with ``position``
+        a valid position and a local position, and the pre-arm check bit of SYS_STATUS
+        set when the autopilot sends it). A real ArduPilot takes about 40 s after boot.
+
+        Raises:
+            NotReady: not armable within ``timeout`` s (what was missing, and the
+                autopilot's latest "PreArm:"/"Arm:" texts).
+            BridgeError: the vehicle was closed meanwhile, or ``timeout`` is not a
+                finite number of seconds >= 0.
+        """
+        check_timeout(timeout, "wait_ready timeout")
+        started = time.monotonic()
+        try:
+            return self.wait_for(lambda s: not arming_problems(s, position=position), timeout, "armable")
+        except WaitTimeout:
+            problems = arming_problems(self.state, position=position)
+            texts = self.arming_texts(since=started - 30.0)
+            raise NotReady(
+                f"not armable after {timeout:g} s: {', '.join(problems) or 'refused'}"
+                + (f" (autopilot: {'; '.join(texts)})" if texts else ""),
+                problems,
+                texts,
+            ) from None
+
+    def arming_texts(self, since: float, most: int = 4) -> list[str]:
+        """The autopilot's latest distinct pre-arm/arm refusal texts heard at ``since``
+        or later (newest last, at most ``most``)."""
+        with self._lock:
+            texts = [t for t in self._telemetry.texts_since(since) if t.startswith(ARMING_TEXTS)]
+        out: list[str] = []
+        for t in reversed(texts):
+            if t not in out:
+                out.append(t)
+            if len(out) == most:
+                break
+        return out[::-1]
+
     def wait_altitude(self, rel_alt: float, *, tolerance: float = 0.5, timeout: float = 60.0) -> VehicleState:
         """Wait until the altitude above home is within ``tolerance`` of ``rel_alt``."""
         return self.wait_for(
@@ -392,6 +455,8 @@ class Session:
             (MSG_HOME_POSITION, 1.0),
         ):
             self.request_message_interval(msg_id, rate)
+        if self.autopilot == "ardupilot":  # its EKF's flags say when its position is absolute
+            self.request_message_interval(MSG_EKF_STATUS_REPORT, 1.0)
         self.send_command_nowait(MAV_CMD_REQUEST_MESSAGE, (MSG_HOME_POSITION,))
 
     def _rerequest(self, now: float) -> None:

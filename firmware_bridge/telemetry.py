@@ -13,6 +13,17 @@ the link is lost (silent for longer than the timeout) or back, once per change.
 which to ask again (not heard for 3 periods, at least 3 s; not asked in the last
 3 s), and when to ask again for HOME_POSITION. No I/O, no thread, no clock: the
 caller passes ``now`` (time.monotonic() in the driver, anything in tests).
+
+Boot. A real autopilot sends positions before it has one: ArduPilot's
+GLOBAL_POSITION_INT reads 0, 0, 0 for seconds after boot, its home and EKF origin
+come later still, and arming is refused until its EKF uses the GPS. So a position
+counts only when :func:`position_problem` finds nothing against it (a GPS report
+with a 3D fix, not 0, 0, a non-zero home, and the EKF's absolute horizontal
+position when the autopilot sends EKF_STATUS_REPORT); every fold writes the verdict
+into :attr:`VehicleState.position_valid` and ``position_reason``.
+:func:`arming_problems` says what stands between the vehicle and "armable": still
+booting, no valid position or no local position (for position control), and the
+pre-arm check bit of SYS_STATUS when the autopilot reports it.
 """
 
 from __future__ import annotations
@@ -38,7 +49,9 @@ __all__ = [
     "StreamRequests",
     "TelemetryFolder",
     "VehicleState",
+    "arming_problems",
     "is_autopilot_heartbeat",
+    "position_problem",
 ]
 
 LANDED_UNDEFINED, LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = 0, 1, 2, 3, 4
@@ -48,8 +61,13 @@ NON_VEHICLE_TYPES = frozenset({6, 18, 26, 27, 30, 31, 32, 33, 34, 36, 37, 38, 39
 
 MSG_SYS_STATUS, MSG_GPS_RAW_INT, MSG_ATTITUDE = 1, 24, 30
 MSG_LOCAL_POSITION_NED, MSG_GLOBAL_POSITION_INT = 32, 33
-MSG_RADIO_STATUS, MSG_HOME_POSITION, MSG_EXTENDED_SYS_STATE = 109, 242, 245
+MSG_RADIO_STATUS, MSG_EKF_STATUS_REPORT, MSG_HOME_POSITION, MSG_EXTENDED_SYS_STATE = 109, 193, 242, 245
 MAV_SYS_STATUS_SENSOR_GPS = 32
+MAV_SYS_STATUS_PREARM_CHECK = 0x10000000  # SYS_STATUS: pre-arm checks (health bit set: passed)
+EKF_POS_HORIZ_ABS = 16  # EKF_STATUS_REPORT.flags: the EKF has an absolute horizontal position
+MAV_STATE_UNINIT, MAV_STATE_BOOT = 0, 1
+GPS_FIX_3D = 3
+NO_POSITION_YET = "no position yet"
 
 HOME_REQUEST = -1  # StreamRequests' key for the one-shot REQUEST_MESSAGE(HOME_POSITION)
 REQUEST_AGAIN_S = 3.0  # at most one request per message per 3 s
@@ -116,6 +134,11 @@ class VehicleState:
     voltage: float | None = None
     home: tuple[float, float, float] | None = None
     gps_ok: bool = False
+    gps_known: bool = False  # a GPS_RAW_INT or SYS_STATUS with a GPS has been heard
+    prearm_ok: bool | None = None  # SYS_STATUS pre-arm bit; None: the autopilot does not report it
+    ekf_flags: int | None = None  # EKF_STATUS_REPORT.flags; None: not heard
+    position_valid: bool = False  # the autopilot vouches for lat/lon/alt (position_problem)
+    position_reason: str = NO_POSITION_YET  # why not ("" when valid)
     time_boot_ms: int = 0
     last_message_time: float = 0.0
     position_time: float = 0.0  # when the last GLOBAL_POSITION_INT arrived (monotonic)
@@ -188,7 +211,11 @@ class TelemetryFolder:
             fold = _FOLDS.get(mtype)
             if fold is not None:
                 upd.update(fold(self, msg, now))
-        self.state = replace(self.state, **upd)
+        state = replace(self.state, **upd)
+        reason = position_problem(state)
+        if reason != state.position_reason:
+            state = replace(state, position_valid=not reason, position_reason=reason)
+        self.state = state
         return Heard(ack=ack, text=text)
 
     # one function per telemetry message: the fields it sets in the next state
@@ -237,16 +264,71 @@ class TelemetryFolder:
             "battery_remaining": msg.battery_remaining,
             "voltage": None if msg.voltage_battery == 65535 else msg.voltage_battery * 1e-3,
         }
-        if self._gps_fix is None and msg.onboard_control_sensors_present & MAV_SYS_STATUS_SENSOR_GPS:
-            upd["gps_ok"] = bool(msg.onboard_control_sensors_health & MAV_SYS_STATUS_SENSOR_GPS)
+        present, health = msg.onboard_control_sensors_present, msg.onboard_control_sensors_health
+        if self._gps_fix is None and present & MAV_SYS_STATUS_SENSOR_GPS:
+            upd["gps_ok"] = bool(health & MAV_SYS_STATUS_SENSOR_GPS)
+            upd["gps_known"] = True
+        upd["prearm_ok"] = (
+            bool(health & MAV_SYS_STATUS_PREARM_CHECK) if present & MAV_SYS_STATUS_PREARM_CHECK else None
+        )
         return upd
 
     def _gps_raw(self, msg: Any, now: float) -> _Updates:
         self._gps_fix = msg.fix_type  # from now on GPS_RAW_INT, not SYS_STATUS, says whether GPS is ok
-        return {"gps_ok": msg.fix_type >= 3}
+        return {"gps_ok": msg.fix_type >= GPS_FIX_3D, "gps_known": True}
+
+    def _ekf_status(self, msg: Any, now: float) -> _Updates:
+        return {"ekf_flags": msg.flags}
 
     def _home_position(self, msg: Any, now: float) -> _Updates:
         return {"home": (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)}
+
+
+def position_problem(s: VehicleState) -> str:
+    """Why ``s``'s position is not (yet) a position, or "" when the autopilot vouches
+    for it: a GPS report with a 3D fix, not 0, 0 (what ArduPilot sends while it has
+    none), a non-zero home, and, when EKF_STATUS_REPORT is heard, the EKF's absolute
+    horizontal position (and latitudes and longitudes that exist)."""
+    if s.lat is None or s.lon is None or s.alt_amsl is None:
+        return NO_POSITION_YET
+    if not all(map(math.isfinite, (s.lat, s.lon, s.alt_amsl))) or (s.lat == 0.0 and s.lon == 0.0):
+        return "the autopilot reports no position (0, 0)"
+    if not _on_earth(s.lat, s.lon):
+        return "position out of range"
+    if not s.gps_known:
+        return "no GPS report yet"
+    if not s.gps_ok:
+        return "no GPS fix"
+    if s.ekf_flags is not None and not s.ekf_flags & EKF_POS_HORIZ_ABS:
+        return "EKF has no absolute position"
+    if s.home is None:
+        return "no home position yet"
+    if s.home[0] == 0.0 and s.home[1] == 0.0:
+        return "home is 0, 0"
+    if not _on_earth(s.home[0], s.home[1]):
+        return "home out of range"
+    return ""
+
+
+def _on_earth(lat: float, lon: float) -> bool:
+    return -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0
+
+
+def arming_problems(s: VehicleState, *, position: bool = True) -> list[str]:
+    """What keeps ``s``'s vehicle from being armable ([] = nothing known against it):
+    still booting, and with ``position`` (position control: GUIDED, OFFBOARD) no valid
+    position or no local position, then the pre-arm check bit of SYS_STATUS when the
+    autopilot reports it (ArduPilot and PX4 set it when their checks pass)."""
+    out = []
+    if s.system_status in (MAV_STATE_UNINIT, MAV_STATE_BOOT):
+        out.append("autopilot still booting")
+    if position and not s.position_valid:
+        out.append(s.position_reason)
+    if position and s.ned is None:
+        out.append("no local position yet")
+    if s.prearm_ok is False:
+        out.append("pre-arm checks failing")
+    return out
 
 
 _FOLDS: dict[str, Callable[[TelemetryFolder, Any, float], _Updates]] = {
@@ -257,6 +339,7 @@ _FOLDS: dict[str, Callable[[TelemetryFolder, Any, float], _Updates]] = {
     "EXTENDED_SYS_STATE": TelemetryFolder._extended_sys_state,
     "SYS_STATUS": TelemetryFolder._sys_status,
     "GPS_RAW_INT": TelemetryFolder._gps_raw,
+    "EKF_STATUS_REPORT": TelemetryFolder._ekf_status,
     "HOME_POSITION": TelemetryFolder._home_position,
 }
 

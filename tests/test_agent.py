@@ -185,13 +185,16 @@ def test_round_and_helpers() -> None:
         yaw = -1.5707963
         base_mode, custom_mode, system_status, time_boot_ms = 0x81, 0x04040000, 4, 1234
         battery_remaining = 80
+        position_valid = True
 
     p = pose_from_state(S(), 3.0)
     assert p is not None and p.heading == pytest.approx(270.0) and (p.vn, p.ve) == (1.0, -2.0)
     hb, gpi = vehicle_messages(S())
     assert hb.get_msgId() == 0 and hb.autopilot == 12
     assert gpi.get_msgId() == 33 and gpi.lat == 474_000_000 and gpi.hdg == 27000 and gpi.vy == -200
-    S.lat = None  # type: ignore[assignment]
+    S.position_valid = False  # the driver does not vouch for it (0, 0 before a fix): no pose, no GPI
+    assert pose_from_state(S(), 3.0) is None and len(vehicle_messages(S())) == 1
+    S.position_valid, S.lat = True, None  # type: ignore[assignment]
     assert pose_from_state(S(), 3.0) is None and len(vehicle_messages(S())) == 1
     d = state_dict("a1", AgentState(1, Phase.LEADER, 1, 1, 5, 9, True, frozenset({1, 2}), frozenset({2})))
     assert d == {

@@ -16,7 +16,8 @@ virtual-time flight simulator (:mod:`swarm.sim.flightsim`) drive the same code:
   mode, arming, battery, link: what Telemetry reports); :class:`RadioInfo` (the
   local radio's RSSI); :class:`SetTask` (the task a leader carries on its
   Heartbeats); :class:`VehicleLink` (the flight controller fell silent or came back);
-  :class:`CallDone` (a vehicle call finished).
+  :class:`PositionFix` (the flight controller's position became valid or stopped
+  being one); :class:`CallDone` (a vehicle call finished).
 * **Outputs**: :class:`Send` (a message to an agent or station id, with the name the
   node learnt for it, or to everyone: ``to`` 0 for Advertize and GSAdvertize);
   :class:`PublishState` (when the election state changed, and as a keep-alive:
@@ -33,7 +34,10 @@ turn rate); a Command is answered once per station and sequence number
 never run twice; answers are sent again 0.5 and 1.5 s later), and an accepted swarm
 FOLLOW or STOP on the leader becomes the task on its Heartbeats; the leader's pilot
 steers the task's heading during a FOLLOW; the vehicle link going down is told to the
-core (a leader that cannot fly hands over).
+core (a leader that cannot fly hands over). Without a valid position the node says
+"waiting for position" once (with the reason) and "position valid" when it comes;
+a fix that is lost takes the node's own pose back to none, so neither Telemetry nor
+a HeartbeatAck carries the last position as if it were current.
 
 Counters are kept in ``stats`` (a dict the runtime may share with its own counters).
 """
@@ -78,6 +82,8 @@ STATE_KEEPALIVE_S = 5.0  # state publication period once leading or following
 #: the node's events when its flight controller falls silent and comes back
 VEHICLE_LINK_LOST = "vehicle link lost"
 VEHICLE_LINK_BACK = "vehicle link back"
+WAITING_FOR_POSITION = "waiting for position"
+POSITION_VALID = "position valid"
 #: pilot modes in which the vehicle flies itself (no setpoints)
 _NO_SETPOINTS = (Mode.IDLE, Mode.TAKEOFF, Mode.LAND, Mode.RETURN)
 
@@ -124,6 +130,14 @@ class SetTask:
 @dataclass(frozen=True)
 class VehicleLink:
     up: bool
+
+
+@dataclass(frozen=True)
+class PositionFix:
+    """Whether the flight controller's position is valid now, and if not why."""
+
+    valid: bool
+    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -210,6 +224,7 @@ class AgentNode:
         self.names: dict[int, str] = {}  # agent id -> name, from Advertize
         self.ids: dict[str, int] = {}  # name -> agent id
         self.vehicle: VehicleInfo | None = None
+        self.position_ok: bool | None = None  # None: not told yet
         self.radio = RadioInfo(0, 0)
         self.reported_conflicts: set[tuple[int, str]] = set()
         self._next_publish = 0.0
@@ -269,7 +284,20 @@ class AgentNode:
             self.stats["vehicle_link_back" if ev.up else "vehicle_link_lost"] += 1
             core.set_vehicle_link(ev.up, now)  # a leader that cannot fly hands over
             return [EventOut(VEHICLE_LINK_BACK if ev.up else VEHICLE_LINK_LOST)]
+        elif isinstance(ev, PositionFix):
+            return self._position_fix(ev)
         return []
+
+    def _position_fix(self, ev: PositionFix) -> list[NodeOut]:
+        """Say "waiting for position" once and "position valid" when it comes."""
+        was, self.position_ok = self.position_ok, ev.valid
+        if ev.valid == was:
+            return []
+        if ev.valid:
+            return [EventOut(POSITION_VALID)]
+        if was:
+            self.core.set_pose(NO_POSE)  # the last fix is not where we are now
+        return [EventOut(f"{WAITING_FOR_POSITION} ({ev.reason})" if ev.reason else WAITING_FOR_POSITION)]
 
     # -- messages ----------------------------------------------------------------------
     def _message(self, msg: Message, now: float) -> list[NodeOut]:
@@ -384,9 +412,11 @@ class AgentNode:
 
 __all__ = [
     "NODE_STATS",
+    "POSITION_VALID",
     "SETPOINT_PERIOD",
     "VEHICLE_LINK_BACK",
     "VEHICLE_LINK_LOST",
+    "WAITING_FOR_POSITION",
     "AgentNode",
     "CallDone",
     "CallOut",
@@ -394,6 +424,7 @@ __all__ = [
     "NodeOut",
     "OwnPose",
     "PoseHeard",
+    "PositionFix",
     "PublishState",
     "RadioInfo",
     "Send",

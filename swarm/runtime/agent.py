@@ -36,12 +36,18 @@ the paper has it (section 2.2: one thread per protocol or link, queues between t
   ground stations, rebuilt from the snapshot by :mod:`swarm.runtime.vehicle` (the
   driver keeps no raw messages); the bridge rate-limits them to 1 Hz. While the
   driver reports the vehicle link lost the thread publishes nothing (a stale
-  position would look alive to the swarm).
+  position would look alive to the swarm). Until the driver finds the position
+  valid (``position_valid``: a real autopilot sends 0, 0 for seconds after boot)
+  no pose and no GLOBAL_POSITION_INT leaves the agent (each withheld round is
+  counted in ``stats['poses_withheld']``) and the node is told once
+  (:class:`~swarm.core.node.PositionFix`): it says "waiting for position" and then
+  "position valid".
 * **Vehicle link**: the driver's link-lost / link-restored callbacks come through
   the queue to the node (an event, a leader that cannot fly hands over, Telemetry
   without FLAG_FC_OK and with the mode unknown).
 * **Vehicle thread**: runs the pilot's blocking calls (arm, take-off, land...) and
-  queues each result back.
+  queues each result back. A take-off waits at most :data:`TAKEOFF_READY_S` for the
+  vehicle to become armable, then fails with the autopilot's reasons.
 * **Flight log** (optional, a :class:`radios.rotating.FlightLog` handed in): the radio
   link is wrapped for capture (:class:`radios.capture.CaptureLink`: every frame the
   bridge writes and reads, raw, so signatures and RADIO_STATUS are in it) and the
@@ -100,6 +106,7 @@ from swarm.core.node import (
     NodeOut,
     OwnPose,
     PoseHeard,
+    PositionFix,
     PublishState,
     RadioInfo,
     Send,
@@ -117,6 +124,9 @@ from swarm.runtime.vehicle import pose_from_state, state_dict, vehicle_info, veh
 log = logging.getLogger(__name__)
 
 DEFAULT_AIR_KBPS = 64
+#: how long a take-off order waits for the vehicle to become armable before it is refused
+#: (with the autopilot's reasons): an order must not start the motors long after it was given
+TAKEOFF_READY_S = 5.0
 
 #: the flight controller's messages a flight log keeps (by message id): HEARTBEAT,
 #: SYS_STATUS, GPS_RAW_INT, GLOBAL_POSITION_INT, COMMAND_ACK, BATTERY_STATUS,
@@ -145,6 +155,7 @@ STATS = (
     "id_conflicts",
     "errors",
     "poses",
+    "poses_withheld",
     "vehicle_forwarded",
     "gs_sent",
     "commands",
@@ -228,6 +239,7 @@ class Agent(StartOnce):
         self._stopped = False
         self._radio_seen = (0, 0)
         self._pose_beat = time.monotonic()  # the pose thread's last round
+        self._fix_told: bool | None = None  # the pose thread's last PositionFix
 
     # -- the node's parts (None before start) ---------------------------------------
     @property
@@ -436,7 +448,7 @@ class Agent(StartOnce):
         s = v.state
         if s.home is not None:
             home_amsl = s.home[2]
-        elif s.alt_amsl is not None and s.rel_alt is not None:
+        elif s.position_valid and s.alt_amsl is not None and s.rel_alt is not None:
             home_amsl = s.alt_amsl - s.rel_alt
         else:
             return
@@ -467,8 +479,8 @@ class Agent(StartOnce):
             v.arm()
         elif c.kind == "disarm":
             v.disarm()
-        elif c.kind == "takeoff":
-            v.takeoff(c.alt, wait=True, timeout=60.0)
+        elif c.kind == "takeoff":  # not armable within seconds: refused with the reasons, never late
+            v.takeoff(c.alt, wait=True, timeout=60.0, ready_timeout=TAKEOFF_READY_S)
             v.start_offboard()  # hold here under setpoint control
         elif c.kind == "land":
             v.land()
@@ -521,7 +533,11 @@ class Agent(StartOnce):
         # the pose's sample time is when the position arrived, not when we read it
         t = s.position_time if s.position_time and self.clock is time.monotonic else self.clock()
         pose = pose_from_state(s, t)
+        if (pose is not None) != self._fix_told:
+            self._fix_told = pose is not None
+            self.loop.put(PositionFix(pose is not None, s.position_reason or "position not finite"))
         if pose is None:
+            self.stats["poses_withheld"] += 1
             return
         self.loop.put(OwnPose(pose, bool(s.in_air)))
         self.transport.publish_pose(PoseReport(pose))

@@ -2,9 +2,11 @@
 conversions of a driver :class:`~firmware_bridge.driver.VehicleState` snapshot.
 
 :func:`vehicle_info` is what Telemetry reports, :func:`pose_from_state` the
-protocol's Pose (None before a position fix or with a non-finite field), and
-:func:`vehicle_messages` the HEARTBEAT and GLOBAL_POSITION_INT a standard ground
-station expects on the radio, rebuilt from the snapshot (the driver keeps no raw
+protocol's Pose (None until the driver finds the position valid, ``position_valid``:
+a real autopilot sends 0, 0 before its fix; None with a non-finite field or one a
+Pose cannot carry too), and
+:func:`vehicle_messages` the HEARTBEAT and GLOBAL_POSITION_INT (only with a valid
+position) a standard ground station expects on the radio, rebuilt from the snapshot (the driver keeps no raw
 messages; the vehicle type, not in the snapshot, is sent as a quadrotor).
 :func:`state_dict` is an AgentState as ``swarm agent --json`` prints it. The
 snapshot is duck-typed (any object with the driver's field names): no I/O here.
@@ -15,7 +17,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from swarm.core.messages import AgentState, Pose
+from swarm.core.messages import AgentState, MessageError, Pose
 from swarm.core.node import VehicleInfo
 
 
@@ -35,14 +37,17 @@ def vehicle_info(s: Any, link_ok: bool) -> VehicleInfo:
 
 
 def pose_from_state(s: Any, t: float) -> Pose | None:
-    """The protocol's Pose from a driver VehicleState (None before a position fix)."""
-    if s.lat is None or s.lon is None:
+    """The protocol's Pose from a driver VehicleState (None without a valid position)."""
+    if not s.position_valid or s.lat is None or s.lon is None:
         return None
     vn, ve = (s.velocity[0], s.velocity[1]) if s.velocity is not None else (0.0, 0.0)
     vals = [s.lat, s.lon, s.alt_amsl if s.alt_amsl is not None else 0.0, math.degrees(s.yaw) % 360.0, vn, ve]
     if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in vals):
         return None
-    return Pose(vals[0], vals[1], vals[2], vals[3], vals[4], vals[5], t)
+    try:
+        return Pose(vals[0], vals[1], vals[2], vals[3], vals[4], vals[5], t)
+    except MessageError:  # beyond what a Pose carries (altitude, range): no pose, no error
+        return None
 
 
 _AUTOPILOT_IDS = {"px4": 12, "ardupilot": 3}
@@ -68,7 +73,7 @@ def vehicle_messages(s: Any) -> list[Any]:
             3,
         )
     ]
-    if s.lat is not None and s.lon is not None and math.isfinite(s.lat) and math.isfinite(s.lon):
+    if s.position_valid and s.lat is not None and s.lon is not None and math.isfinite(s.lat + s.lon):
         vel = s.velocity if s.velocity is not None and all(map(math.isfinite, s.velocity)) else (0, 0, 0)
         alt = s.alt_amsl if s.alt_amsl is not None and math.isfinite(s.alt_amsl) else 0.0
         rel = s.rel_alt if s.rel_alt is not None and math.isfinite(s.rel_alt) else 0.0

@@ -30,10 +30,18 @@ from swarm.core.messages import (
     decode,
     encode,
 )
-from swarm.core.node import AgentNode, CallDone, CallOut, Send
+from swarm.core.node import AgentNode, CallDone, CallOut, NodeOut, Send, VehicleInfo
 from swarm.core.pilot import Call
 from swarm.core.protocol import profile_by_name
-from swarm.core.station import CARRIED_OUT, NO_ANSWER, CommandSpec, Request, StationConfig, StationCore
+from swarm.core.station import (
+    CARRIED_OUT,
+    NO_ANSWER,
+    CommandSpec,
+    Request,
+    StationConfig,
+    StationCore,
+    StOut,
+)
 from swarm.runtime.agent import call_result
 
 AGENT = 3
@@ -78,7 +86,7 @@ class Bench:
         self.run(5.0)
         assert self.station.agents[AGENT].connected
 
-    def _from_node(self, outs: list[object]) -> None:
+    def _from_node(self, outs: list[NodeOut]) -> None:
         for o in outs:
             if isinstance(o, Send) and o.to in (0, STATION):
                 if isinstance(o.msg, CommandAck):
@@ -91,9 +99,9 @@ class Bench:
                 error = "" if ok else f"{o.call.kind} failed ({reason})"
                 self._vehicle.append((self.now + after, CallDone(o.call, ok, error, result, reason)))
 
-    def _from_station(self, outs: list[object]) -> None:
+    def _from_station(self, outs: list[StOut]) -> None:
         for o in outs:
-            self._air.append((self.now + LATENCY, "agent", o.msg))  # type: ignore[attr-defined]
+            self._air.append((self.now + LATENCY, "agent", o.msg))
 
     def run(self, until: float) -> None:
         while self.now < until - 1e-9:
@@ -222,8 +230,6 @@ def test_evidence_still_counts_for_a_command_in_progress() -> None:
     b = Bench(done(1000.0), config=StationConfig(command_in_progress_limit=30.0))
     req, _ = b.submit(CommandKind.TAKEOFF, alt=10.0)
     b.run(b.now + 2.0)
-    from swarm.core.node import VehicleInfo
-
     b._from_node(b.node.handle(VehicleInfo("GUIDED", True, True, 90), b.now))
     b.run(b.now + 40.0)
     assert req.pending[0].result == CARRIED_OUT

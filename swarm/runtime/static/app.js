@@ -129,7 +129,9 @@
     const m = kind === "command" && S.awaiting ? /^([A-Z_]+) -> [^:]*: ([A-Z_]+)/.exec(text) : null;
     if (m && m[1] === S.awaiting.kind && m[2] !== "IN_PROGRESS") {
       const result = text.slice(text.indexOf(": ") + 2).replace(/ \[seq \d+\]$/, "");
-      status(S.awaiting.what + ": " + result, /^(ACCEPTED|CARRIED_OUT)$/.test(m[2]));
+      if (m[2] === "ACCEPTED") status(S.awaiting.what + ": accepted", true);
+      else if (m[2] === "CARRIED_OUT") status(S.awaiting.what + ": carried out: " + result, true);
+      else status(S.awaiting.what + ": refused: " + result, false);
       S.awaiting = null;
     }
   }

@@ -283,6 +283,9 @@ def test_short_reason() -> None:
     assert short_reason("  Arm:\tMode   not armable\r\n") == "Arm: Mode not armable"
     assert short_reason("x" * 200) == "x" * (REASON_MAX - 3) + "..."
     assert short_reason("") == ""
+    # the driver's texts since just before the command: the last refusal's is often among them
+    assert short_reason("Arm: Mode not armable; Arm: Mode not armable") == "Arm: Mode not armable"
+    assert short_reason("PreArm: A; PreArm: B; PreArm: A") == "PreArm: A; PreArm: B"
 
 
 # -- the runtime's reading of the driver's errors ------------------------------------------

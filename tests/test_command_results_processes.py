@@ -103,6 +103,8 @@ def test_an_arm_refused_by_the_autopilot_is_refused_with_its_reason_on_the_api_a
     assert status == 200 and body["ok"] is False, body
     (res,) = body["results"]
     assert res["result"] == "REJECTED" and "not armable" in res["reason"], res
+    # again at once: the same words, not the last refusal's text repeated before them
+    assert post(url, {"target": AGENT, "kind": "arm"})[1]["results"] == [res]
     assert station.agent(AGENT)["armed"] is False  # type: ignore[index]
     assert any("ARM -> flyer" in e["text"] and "REJECTED" in e["text"] for e in station.snapshot()["events"])
 

@@ -337,8 +337,11 @@ def short_reason(text: str) -> str:
     """``text`` as a CommandAck's reason: one line (control characters and runs of
     blanks become one space), cut to what the frame holds (``REASON_MAX`` bytes of
     UTF-8, whole characters) with "..." where it was cut. An autopilot's STATUSTEXTs
-    are joined with "; " by the driver; a long list keeps its first texts."""
+    are joined with "; " by the driver: a text repeated is kept once (the driver also
+    counts a text heard just before the command, often the last refusal's), and a
+    long list keeps its first texts."""
     line = " ".join("".join(c if c.isprintable() else " " for c in text).split())
+    line = "; ".join(dict.fromkeys(line.split("; ")))
     raw = line.encode("utf-8")
     if len(raw) <= REASON_MAX:
         return line

@@ -315,3 +315,22 @@ def test_call_result_names_the_autopilots_refusal() -> None:
     assert call_result(timeout) == (AckResult.FAILED, str(timeout))
     assert call_result(WaitTimeout("takeoff altitude 10 m not reached"))[0] == AckResult.FAILED
     assert call_result(RuntimeError()) == (AckResult.FAILED, "RuntimeError")
+
+
+def test_a_hostile_agents_reason_reaches_the_station_log_as_one_printable_line() -> None:
+    """An agent (or anyone on the air with its id) can put anything in a reason: a
+    terminal escape or a line break must not reach the station's log or the page."""
+    b = Bench(done(0.1))
+    req, seq = b.submit(CommandKind.ARM)
+    evil = "Arm: ok\n2026-11-24 agent9 ACCEPTED everything\x1b[31m"
+    b.station.handle(CommandAck(AGENT, seq, AckResult.REJECTED, evil), b.now)
+    b.events += [e.text for e in b.station.take_events()]
+    assert req.pending[0].reason == "Arm: ok 2026-11-24 agent9 ACCEPTED everything [31m"
+    assert all(c.isprintable() for e in b.events for c in e), b.events
+
+
+def test_a_replayed_capture_cannot_put_a_line_break_in_the_station_log() -> None:
+    core = StationCore(passive=True)
+    core.handle(CommandAck(AGENT, 4, AckResult.REJECTED, "no\nagent9 ACCEPTED\x07"), 1.0)
+    (e,) = [e for e in core.take_events() if e.kind == "command"]
+    assert e.text.endswith("answered seq 4: REJECTED (no agent9 ACCEPTED)"), e.text

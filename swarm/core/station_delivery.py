@@ -38,7 +38,9 @@ from __future__ import annotations
 import itertools
 from collections import deque
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 
+from swarm.core.gslink import short_reason
 from swarm.core.messages import AckResult, Command, CommandAck, CommandKind
 from swarm.core.station_commands import (
     CARRIED_OUT,
@@ -125,6 +127,7 @@ class CommandDelivery:
 
     def ack(self, msg: CommandAck, now: float, leader: int) -> None:
         """A CommandAck heard (the station is not passive)."""
+        msg = replace(msg, reason=short_reason(msg.reason))  # whoever sent it: one printable line
         p = self._pending.get(msg.seq)
         if p is None or msg.sender not in p.sent_to:
             if (msg.sender, msg.seq) in self._answered:

@@ -269,9 +269,17 @@ def test_a_repeat_is_answered_the_same_and_starts_nothing() -> None:
     log, runs = CommandLog(), []  # type: ignore[var-annotated]
     cmd = Command(255, 7, 3, CommandKind.TAKEOFF, alt=10.0)
     ack, calls, repeat = answer_command(log, cmd, 3, True, decide_counting(runs))
-    assert (ack, calls, repeat) == (CommandAck(3, 7, AckResult.ACCEPTED), ["takeoff"], False)
+    progress = CommandAck(3, 7, AckResult.IN_PROGRESS, "on the flight controller")
+    assert (ack, calls, repeat) == (progress, ["takeoff"], False)
     # the take-off is still climbing when the station's retry arrives: answered from the log
     assert answer_command(log, cmd, 3, True, decide_counting(runs)) == (ack, [], True)
+    # climbed: the vehicle's result answers it, and every retry from now on
+    assert log.finish(cmd, CommandAck(3, 7, AckResult.ACCEPTED), 9.0)
+    assert answer_command(log, cmd, 3, True, decide_counting(runs)) == (
+        CommandAck(3, 7, AckResult.ACCEPTED),
+        [],
+        True,
+    )
     assert len(runs) == 1
 
 

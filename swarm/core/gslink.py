@@ -26,6 +26,11 @@ Commands (Command / CommandAck) travel on the same inboxes; the agent runtime
 answers them (:class:`CommandLog` keeps the answers so that a retried command,
 same station, sequence number and content, gets the same answer and is not run
 twice; a swarm command's "not the leader" is not kept, see :func:`remembered`).
+A command carried out on the vehicle (arm, take off, land...) is answered only
+with what the vehicle did (:func:`answer_command`, :meth:`CommandLog.finish`):
+ACCEPTED once the flight controller's call returned, or a refusal with the
+autopilot's reason (:func:`short_reason`); until then the log holds IN_PROGRESS,
+which is what a retry of that command is answered with (it starts nothing).
 
 Telemetry is also how a station learns of the agent's vehicle link: FLAG_FC_OK is
 set while the flight controller is heard, and while it is not the mode is sent as
@@ -47,6 +52,7 @@ from dataclasses import dataclass, field
 from typing import TypeVar
 
 from swarm.core.messages import (
+    REASON_MAX,
     AckResult,
     Command,
     CommandAck,
@@ -56,7 +62,6 @@ from swarm.core.messages import (
     GSHeartbeat,
     Message,
     Telemetry,
-    fit_reason,
 )
 
 T = TypeVar("T")
@@ -260,14 +265,16 @@ class CommandLog:
     new (a restarted station counting again) and replaces the old answer. Keeps the
     last ``size`` answers.
 
-    The agent answers a command as soon as it decides (the vehicle calls it starts
-    run afterwards on their own thread), so a retry that arrives while a take-off is
-    still climbing finds the answer here and starts nothing.
+    A command the vehicle carries out is *open* (:meth:`begin`) until its vehicle
+    calls return: a retry that arrives while a take-off is still climbing finds its
+    IN_PROGRESS answer here and starts nothing; :meth:`finish` puts the vehicle's
+    result in its place.
 
-    A new answer is sent again ``repeats`` seconds later (0.5 and 1.5 s): an answer
-    lost on the way is what makes a station report a command it cannot prove
+    A final answer is sent again ``repeats`` seconds later (0.5 and 1.5 s): an
+    answer lost on the way is what makes a station report a command it cannot prove
     carried out, and at 20% loss the station's own retries alone left about one
-    command in 500 carried out but unanswered. :meth:`due` gives the repeats.
+    command in 500 carried out but unanswered. :meth:`due` gives the repeats. An
+    IN_PROGRESS answer is not repeated: it goes only to a retry.
     """
 
     def __init__(self, size: int = 256, repeats: tuple[float, ...] = ACK_REPEATS) -> None:
@@ -290,12 +297,29 @@ class CommandLog:
             return False
         self._again += [(now + d, cmd.sender, ack) for d in self.repeats]
         self._again.sort(key=lambda x: x[0])
+        self._keep(cmd, ack)
+        return True
+
+    def begin(self, cmd: Command, ack: CommandAck) -> None:
+        """``cmd`` is being carried out: ``ack`` (IN_PROGRESS) answers its retries."""
+        self._keep(cmd, ack)
+
+    def finish(self, cmd: Command, ack: CommandAck, now: float) -> bool:
+        """The vehicle's result for an open command: kept in place of the IN_PROGRESS
+        answer and repeated like any new answer. Returns whether to send it: not when
+        the station has since reused the seq for another command (an answer with that
+        seq would be taken for the new command's)."""
+        entry = self._acks.get((cmd.sender, cmd.seq))
+        if entry is not None and entry[0] != cmd:
+            return False
+        return self.record(cmd, ack, now)
+
+    def _keep(self, cmd: Command, ack: CommandAck) -> None:
         key = (cmd.sender, cmd.seq)
         self._acks[key] = (cmd, ack)
         self._acks.move_to_end(key)
         while len(self._acks) > self.size:
             self._acks.popitem(last=False)
-        return True
 
     def due(self, now: float) -> list[tuple[int, CommandAck]]:
         """The answers to send again now: (station, answer)."""
@@ -309,6 +333,21 @@ class CommandLog:
         return self._again[0][0] if self._again else None
 
 
+def short_reason(text: str) -> str:
+    """``text`` as a CommandAck's reason: one line (control characters and runs of
+    blanks become one space), cut to what the frame holds (``REASON_MAX`` bytes of
+    UTF-8, whole characters) with "..." where it was cut. An autopilot's STATUSTEXTs
+    are joined with "; " by the driver: a text repeated is kept once (the driver also
+    counts a text heard just before the command, often the last refusal's), and a
+    long list keeps its first texts."""
+    line = " ".join("".join(c if c.isprintable() else " " for c in text).split())
+    line = "; ".join(dict.fromkeys(line.split("; ")))
+    raw = line.encode("utf-8")
+    if len(raw) <= REASON_MAX:
+        return line
+    return raw[: REASON_MAX - 3].decode("utf-8", errors="ignore").rstrip() + "..."
+
+
 def answer_command(
     log: CommandLog,
     cmd: Command,
@@ -320,7 +359,12 @@ def answer_command(
     """The agent's answer to ``cmd``: (the CommandAck, what to start, whether it is a
     repeat answered from ``log``). ``decide`` (the pilot) is asked only for a command
     not answered before and addressed to this agent (``target`` ``me``, or 0 for the
-    swarm); a repeat starts nothing. Every answer goes through ``log``."""
+    swarm); a repeat starts nothing. Every answer goes through ``log``.
+
+    A command ``decide`` accepts *with* vehicle calls is not answered yet: the answer
+    is IN_PROGRESS (with ``decide``'s reason, what is being done), kept open in
+    ``log`` for retries, and the caller sends the vehicle's result when the calls
+    return (:meth:`CommandLog.finish`)."""
     ack = log.seen(cmd)
     if ack is not None:
         return ack, [], True
@@ -331,7 +375,11 @@ def answer_command(
         result, why = AckResult.FAILED, "no flight controller on this agent"
     else:
         result, why, calls = decide(cmd)
-    ack = CommandAck(me, cmd.seq, result, fit_reason(why))
+    if result == AckResult.ACCEPTED and calls:
+        ack = CommandAck(me, cmd.seq, AckResult.IN_PROGRESS, short_reason(why or "on the flight controller"))
+        log.begin(cmd, ack)
+        return ack, calls, False
+    ack = CommandAck(me, cmd.seq, result, short_reason(why))
     log.record(cmd, ack, now)
     return ack, calls, False
 
@@ -354,4 +402,5 @@ __all__ = [
     "mode_code",
     "mode_name",
     "remembered",
+    "short_reason",
 ]

@@ -31,7 +31,9 @@ another name is an id conflict (counted, reported once); names and ids are learn
 from Advertize; a member hands every Heartbeat's task to the pilot (its heading and
 turn rate); a Command is answered once per station and sequence number
 (:func:`swarm.core.gslink.answer_command`: a repeat is answered from the log,
-never run twice; answers are sent again 0.5 and 1.5 s later), and an accepted swarm
+never run twice; answers are sent again 0.5 and 1.5 s later; a command carried out
+on the vehicle is answered when its :class:`CallDone` comes back, with the vehicle's
+result and the autopilot's reason, and IN_PROGRESS to a retry meanwhile), and an accepted swarm
 FOLLOW or STOP on the leader becomes the task on its Heartbeats; the leader's pilot
 steers the task's heading during a FOLLOW; the vehicle link going down is told to the
 core (a leader that cannot fly hands over). Without a valid position the node says
@@ -58,12 +60,14 @@ from swarm.core.gslink import (
     GsOut,
     answer_command,
     mode_code,
+    short_reason,
 )
 from swarm.core.messages import (
     AckResult,
     Advertize,
     AgentState,
     Command,
+    CommandAck,
     GSAdvertize,
     GSConnect,
     GSHeartbeat,
@@ -142,9 +146,16 @@ class PositionFix:
 
 @dataclass(frozen=True)
 class CallDone:
+    """A vehicle call returned: ``ok``, else ``error`` (for the log), ``result`` the
+    refusal it means for the station (REJECTED: the autopilot refused; FAILED: it
+    did not happen, e.g. no answer) and ``reason`` the autopilot's own words
+    ("Arm: Mode not armable"; ``error`` when empty)."""
+
     call: Call
     ok: bool
     error: str = ""
+    result: AckResult = AckResult.FAILED
+    reason: str = ""
 
 
 # -- outputs -----------------------------------------------------------------------
@@ -218,6 +229,8 @@ class AgentNode:
         self.pilot = Pilot(agent_id, pilot or PilotConfig())
         self.gs = GsLink(agent_id, name)
         self.commands = CommandLog()
+        self._awaiting: dict[int, Command] = {}  # a vehicle call's ticket -> the command it answers
+        self._tickets = 0
         self.stats = stats if stats is not None else {}
         for k in NODE_STATS:
             self.stats.setdefault(k, 0)
@@ -280,6 +293,7 @@ class AgentNode:
             core.set_task(ev.task)
         elif isinstance(ev, CallDone):
             self.pilot.call_done(ev.call, ev.ok, ev.error)
+            return self._call_done(ev, now)
         elif isinstance(ev, VehicleLink):
             self.stats["vehicle_link_back" if ev.up else "vehicle_link_lost"] += 1
             core.set_vehicle_link(ev.up, now)  # a leader that cannot fly hands over
@@ -354,7 +368,35 @@ class AgentNode:
         text = f"command {cmd.kind.name} seq {cmd.seq} from {cmd.sender}: {ack.result.name}" + (
             f" ({ack.reason})" if ack.reason else ""
         )
+        if ack.result == AckResult.IN_PROGRESS:  # answered when the vehicle has done it
+            return [EventOut(text), *(CallOut(self._ticket(c, cmd)) for c in calls)]
         return [self._send(cmd.sender, ack), EventOut(text), *(CallOut(c) for c in calls)]
+
+    def _ticket(self, call: Call, cmd: Command) -> Call:
+        self._tickets += 1
+        self._awaiting[self._tickets] = cmd
+        return replace(call, ticket=self._tickets)
+
+    def _call_done(self, ev: CallDone, now: float) -> list[NodeOut]:
+        """The vehicle's result answers the command that asked for the call: ACCEPTED,
+        or the refusal with the autopilot's reason (never IN_PROGRESS or ACCEPTED for a
+        call that failed)."""
+        cmd = self._awaiting.pop(ev.call.ticket, None)
+        if cmd is None:
+            return []
+        if ev.ok:
+            result, why = AckResult.ACCEPTED, ""
+        else:
+            refusals = (AckResult.ACCEPTED, AckResult.IN_PROGRESS)
+            result = AckResult.FAILED if ev.result in refusals else ev.result
+            why = ev.reason or ev.error or f"{ev.call.kind} failed"
+        ack = CommandAck(self.id, cmd.seq, result, short_reason(why))
+        text = f"command {cmd.kind.name} seq {cmd.seq} from {cmd.sender}: {result.name}" + (
+            f" ({ack.reason})" if ack.reason else ""
+        )
+        if not self.commands.finish(cmd, ack, now):
+            return [EventOut(text + ": not sent, the station reused its seq")]
+        return [self._send(cmd.sender, ack), EventOut(text)]
 
     def _pilot_step(self, now: float) -> list[NodeOut]:
         core = self.core

@@ -9,7 +9,10 @@ flight simulator (``swarm.sim.flightsim``) feeds it
 
 * ``set_own(pose, airborne)``: the vehicle's own state;
 * ``on_pose(sender, pose, now)``: every agent's pose stream;
-* ``command(cmd, role, now)``: a Command, answered at once with (result, reason);
+* ``command(cmd, role, now)``: a Command, decided at once: (result, reason, calls).
+  A command with vehicle calls is only *accepted by the pilot*; its reason says what
+  is being done ("arming") and the answer to the station waits for the calls'
+  results (:func:`swarm.core.gslink.answer_command`);
 * ``step(now, role)`` at the setpoint rate (10 Hz), which returns a
   :class:`~swarm.core.formation.Setpoint` to stream (or None: leave the vehicle alone)
   and the one-shot :class:`Call` s the runtime makes on the vehicle (arm, take off,
@@ -92,10 +95,12 @@ class Mode(StrEnum):
 @dataclass(frozen=True)
 class Call:
     """A one-shot action on the vehicle: arm, disarm, takeoff (alt: metres above
-    home), land, return."""
+    home), land, return. ``ticket``: the node's number for it, carried back in its
+    CallDone, so that the result answers the command that asked for it."""
 
     kind: str
     alt: float = 0.0
+    ticket: int = 0
 
 
 @dataclass(frozen=True)
@@ -229,11 +234,11 @@ class Pilot:
             self._heading = (cmd.heading, now, 0.0)
             return AckResult.ACCEPTED, "", []
         if k == CommandKind.ARM:
-            return AckResult.ACCEPTED, "", [Call("arm")]
+            return AckResult.ACCEPTED, "arming", [Call("arm")]
         if k == CommandKind.DISARM:
             if self.airborne:
                 return AckResult.REJECTED, "in the air: land first", []
-            return AckResult.ACCEPTED, "", [Call("disarm")]
+            return AckResult.ACCEPTED, "disarming", [Call("disarm")]
         if k == CommandKind.TAKEOFF:
             if not (math.isfinite(cmd.alt) and 1.0 <= cmd.alt <= MAX_TAKEOFF_M):
                 why = f"take-off altitude {cmd.alt:g} m outside 1..{MAX_TAKEOFF_M:g}"
@@ -242,15 +247,15 @@ class Pilot:
                 return AckResult.ACCEPTED, "already flying", []
             self._leave_formation()
             self.mode = Mode.TAKEOFF
-            return AckResult.ACCEPTED, "", [Call("takeoff", cmd.alt)]
+            return AckResult.ACCEPTED, f"taking off to {cmd.alt:g} m", [Call("takeoff", cmd.alt)]
         if k == CommandKind.LAND:
             self._leave_formation()
             self.mode = Mode.LAND
-            return AckResult.ACCEPTED, "", [Call("land")]
+            return AckResult.ACCEPTED, "switching to land", [Call("land")]
         if k == CommandKind.RETURN:
             self._leave_formation()
             self.mode = Mode.RETURN
-            return AckResult.ACCEPTED, "", [Call("return")]
+            return AckResult.ACCEPTED, "switching to return", [Call("return")]
         if k == CommandKind.STOP:
             self._leave_formation()
             self._waive(now)

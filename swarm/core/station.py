@@ -56,7 +56,15 @@ import math
 from collections import Counter, deque
 from typing import Any
 
-from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, FLAG_HOLDING, is_station, mode_name
+from swarm.core.gslink import (
+    FLAG_AIRBORNE,
+    FLAG_ARMED,
+    FLAG_FC_OK,
+    FLAG_HOLDING,
+    is_station,
+    mode_name,
+    short_reason,
+)
 from swarm.core.messages import (
     GCS_ID,
     AgentState,
@@ -226,12 +234,13 @@ class StationCore:
         a = self.agents.get(msg.sender)
         if a is not None:
             self._heard(a, now)
-        if self.passive:
+        if self.passive:  # a capture replayed: whatever it holds, one printable line
+            why = short_reason(msg.reason)
             self._event(
                 now,
                 "command",
-                f"{self._label(msg.sender)} answered seq {msg.seq}: "
-                f"{msg.result.name}" + (f" ({msg.reason})" if msg.reason else ""),
+                f"{self._label(msg.sender)} answered seq {msg.seq}: {msg.result.name}"
+                + (f" ({why})" if why else ""),
             )
             return
         self.commands.ack(msg, now, self.leader)

@@ -13,7 +13,11 @@ its :class:`~swarm.core.messages.Command` (one seq each), the tries made, the ag
 it went to, and what the station saw of each agent's vehicle at its first send
 (:class:`Seen`). Results (:data:`RESULTS`): the agent's answer (``ACCEPTED``, or a
 refusal: ``REJECTED``, ``FAILED``, ``BAD_ARGUMENT``, ``NO_LEADER``,
-``UNKNOWN_AGENT``..., with its reason); at give-up without an answer,
+``UNKNOWN_AGENT``..., with its reason: for a command carried out on the vehicle,
+ARM, DISARM, TAKEOFF, LAND, RETURN, the agent answers with what the vehicle did and
+the autopilot's own words); ``IN_PROGRESS`` when the vehicle was still at it when
+the station's retry window ended (not done: the station keeps asking and logs the
+result when it comes, see :mod:`swarm.core.station_delivery`); at give-up without an answer,
 ``CARRIED_OUT`` when the agent's Telemetry since the first send shows the command's
 effect (:func:`evidence`: ARM armed, DISARM disarmed, TAKEOFF airborne or a take-off
 mode, LAND and RETURN their modes; each a change from what it was when the command
@@ -223,7 +227,9 @@ class Pending:
     before: dict[int, Seen] = field(default_factory=dict)  # by agent, at its first send
     shown: str | None = None  # evidence seen in Telemetry (agent: what)
     refusal: tuple[int, str, str] | None = None  # a swarm "not here" answer: agent, result, reason
-    result: str | None = None
+    progress: str | None = None  # the agent's latest IN_PROGRESS reason (its vehicle is at it)
+    progress_at: float = 0.0  # when it was heard
+    result: str | None = None  # IN_PROGRESS while followed past the retry window, then the final one
     reason: str = ""
 
     def as_dict(self) -> dict[str, Any]:
@@ -240,6 +246,7 @@ class Request:
     id: int
     spec: CommandSpec
     pending: list[Pending] = field(default_factory=list)
+    reported: bool = False  # its outcome was handed out (the API answered)
 
     @property
     def done(self) -> bool:

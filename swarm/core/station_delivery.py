@@ -19,6 +19,16 @@ every connected agent; swarm ARM/DISARM/TAKEOFF/LAND/RETURN go to every connecte
 agent. At give-up, evidence seen in Telemetry (:meth:`CommandDelivery.look_for_evidence`)
 makes the result ``CARRIED_OUT``, a swarm refusal is final, else ``NO_ANSWER``.
 
+An IN_PROGRESS answer (the agent's vehicle is still carrying the command out: a
+take-off climbs for ten seconds and more) is not a result: it is logged once, and the
+command is tried on (each retry is a question the agent answers from its log, never
+running the command again). If the retry window ends while the agent still says in
+progress, the request is handed out as ``IN_PROGRESS`` (not done, with the agent's
+words) and the station keeps asking until the agent's result comes, which is logged
+as an event, or until the agent has said nothing for ``command_give_up`` or
+``command_in_progress_limit`` has passed since the first send: then it ends like a
+give-up (``CARRIED_OUT`` on evidence, else ``NO_ANSWER`` naming the last progress).
+
 Owned by :class:`swarm.core.station.StationCore`, which shares its agents, counters
 and event log with it and passes the leader it sees. Pure: no I/O, no clock.
 """
@@ -28,7 +38,9 @@ from __future__ import annotations
 import itertools
 from collections import deque
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 
+from swarm.core.gslink import short_reason
 from swarm.core.messages import AckResult, Command, CommandAck, CommandKind
 from swarm.core.station_commands import (
     CARRIED_OUT,
@@ -115,6 +127,7 @@ class CommandDelivery:
 
     def ack(self, msg: CommandAck, now: float, leader: int) -> None:
         """A CommandAck heard (the station is not passive)."""
+        msg = replace(msg, reason=short_reason(msg.reason))  # whoever sent it: one printable line
         p = self._pending.get(msg.seq)
         if p is None or msg.sender not in p.sent_to:
             if (msg.sender, msg.seq) in self._answered:
@@ -131,21 +144,41 @@ class CommandDelivery:
                     p.next_try = min(p.next_try, now)  # it already sees another leader: go now
                 return
         p.agent = msg.sender
+        if msg.result == AckResult.IN_PROGRESS:
+            if p.progress is None:
+                self._event(now, "command", self._line(p, "IN_PROGRESS", msg.reason))
+            p.progress, p.progress_at = msg.reason, now
+            return
         self._complete(p, msg.result.name, msg.reason, now)
 
     def tick(self, now: float, leader: int) -> list[StOut]:
         """Retries due and give-ups."""
         out: list[StOut] = []
         for p in list(self._pending.values()):
-            if now + 1e-9 >= p.first_sent + self.cfg.command_give_up:
+            if now + 1e-9 >= self._give_up_at(p):
                 self._give_up(p, now)
-            elif now + 1e-9 >= p.next_try:
+                continue
+            if p.result is None and now + 1e-9 >= p.first_sent + self.cfg.command_give_up:
+                self._still_in_progress(p, now)  # the window ended, the agent is still at it
+            if now + 1e-9 >= p.next_try:
                 out += self._send(p, now, leader)
         return out
 
     def deadlines(self) -> Iterator[float]:
         for p in self._pending.values():
-            yield min(p.next_try, p.first_sent + self.cfg.command_give_up)
+            yield min(p.next_try, self._give_up_at(p))
+            if p.result is None:
+                yield p.first_sent + self.cfg.command_give_up
+
+    def _give_up_at(self, p: Pending) -> float:
+        """When the station stops asking: at the end of the retry window, or for a
+        command the agent says is in progress ``command_give_up`` after it last said
+        so, and never later than ``command_in_progress_limit`` after the first send."""
+        cfg = self.cfg
+        if p.progress is None:
+            return p.first_sent + cfg.command_give_up
+        later = max(p.first_sent + cfg.command_give_up, p.progress_at + cfg.command_give_up)
+        return min(p.first_sent + max(cfg.command_in_progress_limit, cfg.command_give_up), later)
 
     def leader_changed(self, leader: int, now: float) -> None:
         for p in self._pending.values():
@@ -194,23 +227,38 @@ class CommandDelivery:
     def _seen(a: AgentView) -> Seen:
         return Seen(a.mode, a.armed, a.airborne, a.holding)
 
+    def _line(self, p: Pending, result: str, reason: str) -> str:
+        what = p.msg.kind.name + (" (swarm)" if p.swarm else "")
+        return (
+            f"{what} -> {self._label(p.agent)}: {result}"
+            + (f" ({reason})" if reason else "")
+            + f" [seq {p.msg.seq}]"
+        )  # the agent's own log names the same seq
+
+    def _hand_out(self, req: Request) -> None:
+        if req.done and not req.reported:
+            req.reported = True
+            self._finished.append(req)
+
+    def _still_in_progress(self, p: Pending, now: float) -> None:
+        """The retry window is over and the agent's vehicle is still at it: the request
+        is handed out as IN_PROGRESS (not done); the result will be logged."""
+        p.result, p.reason = AckResult.IN_PROGRESS.name, p.progress or ""
+        secs = f"{now - p.first_sent:.0f} s"
+        self._event(now, "command", self._line(p, "IN_PROGRESS", f"{p.reason}: still at it after {secs}"))
+        self._hand_out(p.request)
+
     def _complete(self, p: Pending, result: str, reason: str, now: float) -> None:
         p.result, p.reason = result, reason
         del self._pending[p.msg.seq]
         for agent in p.sent_to:
             self._answered.append((agent, p.msg.seq))
-        what = p.msg.kind.name + (" (swarm)" if p.swarm else "")
-        text = (
-            f"{what} -> {self._label(p.agent)}: {result}"
-            + (f" ({reason})" if reason else "")
-            + f" [seq {p.msg.seq}]"
-        )  # the agent's own log names the same seq
-        self._event(now, "command", text)
-        if p.request.done:
-            self._finished.append(p.request)
+        self._event(now, "command", self._line(p, result, reason))
+        self._hand_out(p.request)
 
     def _give_up(self, p: Pending, now: float) -> None:
         tries = f"{p.tries} {'try' if p.tries == 1 else 'tries'} in {now - p.first_sent:.0f} s"
+        last = f" (last: in progress, {p.progress})" if p.progress is not None else ""
         if p.shown is not None:
             agent, _, what = p.shown.partition(":")
             p.agent = int(agent)
@@ -219,4 +267,4 @@ class CommandDelivery:
             p.agent, result, reason = p.refusal
             self._complete(p, result, reason, now)
         else:
-            self._complete(p, NO_ANSWER, f"no answer after {tries}", now)
+            self._complete(p, NO_ANSWER, f"no {'result' if last else 'answer'} after {tries}{last}", now)

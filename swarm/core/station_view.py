@@ -36,6 +36,9 @@ class StationConfig:
     #: gaps between a command's tries (the last one repeats), and how long it is tried
     command_backoff: tuple[float, ...] = (0.5, 1.0, 2.0, 3.0, 4.0)
     command_give_up: float = 12.0
+    #: a command the agent answers IN_PROGRESS (its vehicle still at it) is followed
+    #: this long at most after its first send, for its result
+    command_in_progress_limit: float = 150.0
     trail_s: float = 60.0
     trail_points: int = 120
     events: int = 200
@@ -50,6 +53,7 @@ class StationConfig:
             "min_timeout",
             "timeout_heartbeats",
             "command_give_up",
+            "command_in_progress_limit",
             "trail_s",
             "passive_timeout",
         ):

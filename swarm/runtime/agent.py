@@ -46,8 +46,11 @@ the paper has it (section 2.2: one thread per protocol or link, queues between t
   the queue to the node (an event, a leader that cannot fly hands over, Telemetry
   without FLAG_FC_OK and with the mode unknown).
 * **Vehicle thread**: runs the pilot's blocking calls (arm, take-off, land...) and
-  queues each result back. A take-off waits at most :data:`TAKEOFF_READY_S` for the
-  vehicle to become armable, then fails with the autopilot's reasons.
+  queues each result back (:func:`call_result`: the driver's error as the refusal the
+  station is told, REJECTED with the autopilot's own text for a refusal, FAILED
+  otherwise); the node answers the command with it; a take-off waits at most
+  :data:`TAKEOFF_READY_S` for the vehicle to become armable, then fails with the
+  autopilot's reasons.
 * **Flight log** (optional, a :class:`radios.rotating.FlightLog` handed in): the radio
   link is wrapped for capture (:class:`radios.capture.CaptureLink`: every frame the
   bridge writes and reads, raw, so signatures and RADIO_STATUS are in it) and the
@@ -87,6 +90,7 @@ from collections.abc import Callable
 from typing import Any
 
 from swarm.core.messages import (
+    AckResult,
     Advertize,
     AgentState,
     GSAdvertize,
@@ -132,6 +136,25 @@ TAKEOFF_READY_S = 5.0
 #: SYS_STATUS, GPS_RAW_INT, GLOBAL_POSITION_INT, COMMAND_ACK, BATTERY_STATUS,
 #: HOME_POSITION, EXTENDED_SYS_STATE, STATUSTEXT
 FC_LOG_MESSAGES = frozenset({0, 1, 24, 33, 77, 147, 242, 245, 253})
+
+
+def call_result(exc: BaseException) -> tuple[AckResult, str]:
+    """What a vehicle call's error means for the station: (result, reason).
+
+    The autopilot refused (:class:`~firmware_bridge.errors.CommandRejected` with a
+    refusal code): REJECTED, with its STATUSTEXT ("Arm: Mode not armable") or, when it
+    gave none, the driver's line naming the command and code. Accepted but the vehicle
+    never showed the state (armed, the mode), no answer at all, or the altitude not
+    reached: FAILED, with the driver's line. Anything else: FAILED, its text."""
+    from firmware_bridge.commands import MAV_RESULT_ACCEPTED
+    from firmware_bridge.errors import CommandRejected
+
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, CommandRejected) and exc.result != MAV_RESULT_ACCEPTED:
+        return AckResult.REJECTED, exc.text or text
+    if isinstance(exc, CommandRejected) and exc.text:
+        return AckResult.FAILED, f"{text.split(' (')[0]}: {exc.text}"
+    return AckResult.FAILED, text
 
 
 def default_round_s(slots: int = 2, air_kbps: int = DEFAULT_AIR_KBPS) -> float:
@@ -471,7 +494,8 @@ class Agent(StartOnce):
                 self._do_call(item)
                 self.loop.put(CallDone(item, True, ""))
             except Exception as exc:
-                self.loop.put(CallDone(item, False, str(exc)))
+                result, reason = call_result(exc)
+                self.loop.put(CallDone(item, False, str(exc) or type(exc).__name__, result, reason))
 
     def _do_call(self, c: Call) -> None:
         v = self.vehicle
@@ -555,6 +579,7 @@ __all__ = [
     "Agent",
     "AgentConfig",
     "NodeOptions",
+    "call_result",
     "default_round_s",
     "pose_from_state",
     "state_dict",

@@ -52,6 +52,7 @@
     pollTimer: null,
     seq: 0,
     pending: new Map(),   // command id -> {cmd, resolve, timer}
+    awaiting: null,       // {kind, what}: a command shown in progress, its result still to come
     seenEvents: new Set(),
     target: null,         // the go-to target marker
     altTyped: false,      // the operator typed a go-to altitude
@@ -122,14 +123,23 @@
     if (S.seenEvents.size > 2000) S.seenEvents = new Set(Array.from(S.seenEvents).slice(-1000));
     const kind = String(e.kind || "event");
     const text = String(e.text || "");
-    const bad = /refus|reject|fail|denied|timeout|error|lost|disconnect/i.test(kind + " " + text);
+    const bad = /refus|reject|fail|denied|timeout|error|lost|disconnect|no_answer/i.test(kind + " " + text);
     log(kind, text, bad ? "refused" : "", e.t);
+    // the result of a command the page showed as in progress (its vehicle was still at it)
+    const m = kind === "command" && S.awaiting ? /^([A-Z_]+) -> [^:]*: ([A-Z_]+)/.exec(text) : null;
+    if (m && m[1] === S.awaiting.kind && m[2] !== "IN_PROGRESS") {
+      const result = text.slice(text.indexOf(": ") + 2).replace(/ \[seq \d+\]$/, "");
+      if (m[2] === "ACCEPTED") status(S.awaiting.what + ": accepted", true);
+      else if (m[2] === "CARRIED_OUT") status(S.awaiting.what + ": carried out: " + result, true);
+      else status(S.awaiting.what + ": refused: " + result, false);
+      S.awaiting = null;
+    }
   }
-  function status(text, ok) {
+  function status(text, ok, cls) {
     const el = $("#cmd-status");
     el.hidden = false;
     el.textContent = text;
-    el.className = "status " + (ok ? "ok" : "refused");
+    el.className = "status " + (cls || (ok ? "ok" : "refused"));
   }
 
   // ---------------------------------------------------------------- map
@@ -552,10 +562,16 @@
     }
     const results = Array.isArray(r.results) ? r.results : [];
     const bad = [];
+    const busy = [];
     for (const x of results) {
       const res = String(x.result || "");
       // CARRIED_OUT: no answer, but the agent's telemetry shows it done (the reason says how)
-      const good = /^(ok|accepted|done|sent|in_progress|success|carried_out)$/i.test(res);
+      const good = /^(ok|accepted|done|sent|success|carried_out)$/i.test(res);
+      // IN_PROGRESS: the vehicle is still at it (a take-off climbing): not done, not refused
+      if (/^in_progress$/i.test(res)) {
+        busy.push(agentName(x.agent) + (x.reason ? ": " + x.reason : ""));
+        continue;
+      }
       // the station logs every answer as an event; the page adds the refusals in red
       if (!good) {
         log("refused", what + ": " + agentName(x.agent) + " " + res + (x.reason ? ": " + x.reason : ""), "refused");
@@ -564,7 +580,10 @@
     }
     if (!results.length && r.ok === false) log("refused", what + ": not done", "refused");
     if (bad.length) status(what + ": refused: " + bad.join("; "), false);
-    else if (r.ok === false) status(what + ": not done", false);
+    else if (busy.length) {
+      S.awaiting = { kind: String(cmd.kind).toUpperCase(), what };
+      status(what + ": in progress: " + busy.join("; ") + " (the result follows in the log)", false, "pending");
+    } else if (r.ok === false) status(what + ": not done", false);
     else if (results.some((x) => x.result === "CARRIED_OUT")) status(what + ": carried out (no answer; the telemetry shows it)", true);
     else status(what + ": accepted", true);
   }

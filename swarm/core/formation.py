@@ -30,8 +30,19 @@ chain. Here:
   ignored).
 * **Route** (:class:`Route`): the leader's path through waypoints at a set
   speed, corners rounded with ``turn_radius_m`` (a 90 degree corner becomes a
-  quarter circle), sampled by distance: position, direction (the swarm
-  heading) and velocity.
+  quarter circle), sampled by distance: position, direction and velocity.
+* **Swarm heading** (:meth:`Route.mean_heading`, :func:`turn_window_m`,
+  :func:`steer_heading`): the heading a leader announces is the route's heading
+  averaged over a window of route centred on the leader (straight on beyond the
+  route's ends). Through a rounded corner the route's turn rate steps (0, v/r, 0);
+  the average's rate ramps instead, at most ``heading_accel`` when the window is
+  :func:`turn_window_m` long, starting half a window before the corner and ending
+  half a window after it, with the same total turn: so the heading ends exactly
+  on the route's, without the overshoot a lagging filter has. :func:`steer_heading`
+  follows that target with a bounded angular acceleration (a square-root
+  controller: it stops on the target without overshoot), which matters only when
+  the target jumps (a route that starts off the task's heading, a waypoint added
+  late, the leader arriving before the window has passed the corner).
 * **Metrics** (:func:`slot_error`): a member's distance from its slot.
 
 Coordinates: poses are geodetic (WGS-84 latitude, longitude, metres AMSL);
@@ -323,6 +334,8 @@ class _Seg:
     b: tuple[float, float]
     r: float = 0.0
     sign: float = 0.0
+    h0: float = 0.0  # heading at the start, unwrapped along the route (degrees)
+    k: float = 0.0  # heading change per metre (degrees, +: turning right)
 
 
 class Route:
@@ -362,6 +375,58 @@ class Route:
             self.segments.append(_Seg(r * abs(turn), "arc", c, (ang0, turn), r, sign))
             start = (p[0] + d2[0] * t, p[1] + d2[1] * t)
         self.length = sum(s.length for s in self.segments)
+        self._unwrap()
+
+    def _unwrap(self) -> None:
+        """Each segment's start heading, unwrapped from the one before (no 360 jumps), and
+        its heading change per metre."""
+        out: list[_Seg] = []
+        end: float | None = None
+        for seg in self.segments:
+            if seg.kind == "line":
+                raw, k = heading_of(*seg.b), 0.0
+            else:
+                ang0, turn = seg.b
+                sgn = math.copysign(1.0, turn)
+                raw, k = (
+                    heading_of(-math.sin(ang0) * sgn, math.cos(ang0) * sgn),
+                    sgn * math.degrees(1 / seg.r),
+                )
+            h0 = raw if end is None else end + (raw - end + 180.0) % 360.0 - 180.0
+            out.append(replace(seg, h0=h0, k=k))
+            end = h0 + k * seg.length
+        self.segments = out
+
+    def _heading(self, s: float) -> float:
+        """The unwrapped heading ``s`` metres along (straight on beyond both ends)."""
+        for seg in self.segments:
+            if s <= seg.length or seg is self.segments[-1]:
+                return seg.h0 + seg.k * max(0.0, min(s, seg.length))
+            s -= seg.length
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _heading_integral(self, s: float) -> float:
+        """The integral of the unwrapped heading from 0 to ``s`` (degree-metres)."""
+        if s <= 0.0:
+            return self.segments[0].h0 * s
+        total = 0.0
+        for seg in self.segments:
+            x = min(s, seg.length)
+            total += seg.h0 * x + 0.5 * seg.k * x * x
+            s -= seg.length
+            if s <= 0.0:
+                return total
+        last = self.segments[-1]
+        return total + (last.h0 + last.k * last.length) * s
+
+    def mean_heading(self, s: float, half_m: float) -> tuple[float, float]:
+        """The route's heading averaged over ``s - half_m .. s + half_m`` (0..360) and how
+        fast that average changes, in degrees per metre of ``s`` (see the module docstring)."""
+        if half_m <= 0.0:
+            return self._heading(s) % 360.0, 0.0
+        lo, hi = s - half_m, s + half_m
+        mean = (self._heading_integral(hi) - self._heading_integral(lo)) / (2.0 * half_m)
+        return mean % 360.0, (self._heading(hi) - self._heading(lo)) / (2.0 * half_m)
 
     def _line(self, a: tuple[float, float], b: tuple[float, float]) -> None:
         length = math.dist(a, b)
@@ -386,6 +451,33 @@ class Route:
                 return RoutePoint(n, e, heading_of(tn, te), math.copysign(math.degrees(1.0 / seg.r), turn))
             s -= seg.length
         raise AssertionError("unreachable")  # pragma: no cover
+
+
+def turn_window_m(speed_mps: float, turn_radius_m: float, accel_dps2: float) -> float:
+    """Half the window :meth:`Route.mean_heading` averages over, so that at ``speed_mps``
+    the heading's rate ramps into a corner of ``turn_radius_m`` at ``accel_dps2``:
+    the rate steps by v/r (degrees/s) and the average spreads the step over the window,
+    ``2 half / v`` seconds. Sharp corners (radius under 1 m) count as 1 m; at most 100 m."""
+    step_dps = math.degrees(speed_mps / max(turn_radius_m, 1.0))
+    return min(100.0, speed_mps * step_dps / (2.0 * accel_dps2))
+
+
+def steer_heading(
+    heading: float, rate: float, target: float, target_rate: float, accel_dps2: float, dt: float
+) -> tuple[float, float]:
+    """One step of ``dt`` of a heading (and its rate, degrees/s) toward ``target`` moving at
+    ``target_rate``: the rate wanted is the target's plus a square-root controller on the
+    error (proportional with a gain of 1/s near it, so that braking at ``accel_dps2``
+    stops on it), reached at most at ``accel_dps2``. Returns (heading 0..360, rate)."""
+    err = (target - heading + 180.0) % 360.0 - 180.0
+    linear = accel_dps2  # the error below which the controller is proportional (gain 1/s)
+    if abs(err) <= linear:
+        fix = err
+    else:
+        fix = math.copysign(math.sqrt(2.0 * accel_dps2 * (abs(err) - linear / 2.0)), err)
+    step = accel_dps2 * dt
+    rate = max(rate - step, min(rate + step, target_rate + fix))
+    return (heading + rate * dt) % 360.0, rate
 
 
 def _unit(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
@@ -413,4 +505,6 @@ __all__ = [
     "reconcile",
     "slot_error",
     "slot_offset",
+    "steer_heading",
+    "turn_window_m",
 ]

@@ -301,3 +301,14 @@ def test_the_swarm_heading_converges_to_the_routes_after_the_turn() -> None:
     for a in task.assignments:  # each member in its slot for the route's own heading
         err = slot_error(poses[a.member], poses[a.follows], 90.0, a.side, task.back_m, task.side_m)
         assert err < 1.5, (a, err)
+
+
+def test_take_off_after_a_ground_pose_before_the_fix_holds_where_it_is() -> None:
+    # real ArduPilot reports lat = lon = alt = 0 for seconds after boot: a ground altitude of
+    # 0 m would make the hold after take-off dive for the sea; it is not trusted
+    p = Pilot(1)
+    p.set_own(Pose(0.0, 0.0, 0.0), False)
+    _, _, calls = p.command(Command(255, 1, 1, CommandKind.TAKEOFF, alt=10.0), Role(Phase.IDLE), 0.0)
+    p.set_own(at(0, 0, alt=517.5), True)
+    p.call_done(calls[0], True)
+    assert p.hold_at is not None and p.hold_at.alt == pytest.approx(517.5)

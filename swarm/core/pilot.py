@@ -211,8 +211,14 @@ class Pilot:
         if call.kind == "takeoff" and self.mode == Mode.TAKEOFF:
             self.airborne = True
             self._hold("took off")
-            if self.hold_at is not None and self._ground_alt is not None:  # the height asked for
-                self.hold_at = replace(self.hold_at, alt=self._ground_alt + call.alt)
+            want = None if self._ground_alt is None else self._ground_alt + call.alt
+            # the height asked for, unless the ground we saw is far off it (a pose before the fix)
+            if (
+                self.hold_at is not None
+                and want is not None
+                and abs(want - self.hold_at.alt) <= max(2.0, 0.2 * call.alt)
+            ):
+                self.hold_at = replace(self.hold_at, alt=want)
             self.events.append("took off: holding")
 
     # -- commands -------------------------------------------------------------------

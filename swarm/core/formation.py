@@ -75,6 +75,9 @@ class FormationConfig:
     #: how much later the setpoint takes effect: the pilot's step (10 Hz) and the
     #: driver's stream (10 Hz) hold it 0.1 s on average before the autopilot has it
     lead_s: float = 0.1
+    #: the followed acceleration is fed forward this much further ahead: the autopilot's
+    #: velocity loop lags its velocity setpoint by about this (PX4's and the simulator's 0.4 s)
+    accel_lead_s: float = 0.4
 
     def __post_init__(self) -> None:
         checks = {
@@ -86,6 +89,7 @@ class FormationConfig:
             "stale_s": 0 < self.stale_s <= 60,
             "max_predict_s": 0 <= self.max_predict_s <= 10,
             "lead_s": 0 <= self.lead_s <= 2,
+            "accel_lead_s": 0 <= self.accel_lead_s <= 2,
         }
         for k, ok in checks.items():
             v = getattr(self, k)
@@ -270,11 +274,23 @@ def follow_target(
     back_m: float | None = None,
     side_m: float | None = None,
     turn_rate_dps: float = 0.0,
+    accel: tuple[float, float] = (0.0, 0.0),
 ) -> Setpoint:
     """The member's setpoint: the followed agent predicted to now, plus the slot offset;
     velocity feed-forward: the followed velocity plus the slot's rotation about the
-    followed agent when the swarm heading turns (``turn_rate_dps``)."""
+    followed agent when the swarm heading turns (``turn_rate_dps``). ``accel``: the
+    followed agent's estimated acceleration (:func:`estimate_accel`), carried into the
+    prediction and the feed-forward."""
     lat, lon = predict(followed, age_s + cfg.lead_s, cfg.max_predict_s)
+    dt = max(0.0, min(age_s + cfg.lead_s, cfg.max_predict_s))
+    an, ae = accel
+    if an or ae:
+        lat, lon = offset(lat, lon, 0.5 * an * dt * dt, 0.5 * ae * dt * dt)
+        followed = replace(
+            followed,
+            vn=followed.vn + an * (dt + cfg.accel_lead_s),
+            ve=followed.ve + ae * (dt + cfg.accel_lead_s),
+        )
     heading_deg = (heading_deg + turn_rate_dps * cfg.lead_s) % 360.0
     dn, de = slot_offset(
         heading_deg, side, cfg.back_m if back_m is None else back_m, cfg.side_m if side_m is None else side_m
@@ -292,6 +308,33 @@ def slot_error(
     dn, de = slot_offset(heading_deg, side, back_m, side_m)
     fn, fe = ne_between(followed.lat, followed.lon, member.lat, member.lon)
     return math.hypot(fn - dn, fe - de)
+
+
+#: the shortest span of pose velocities an acceleration is estimated over (a pose's velocity
+#: is quantised to 0.25 m/s: over 1 s that is 0.25 m/s^2), the largest believed, and the
+#: smallest acted on
+ACCEL_SPAN_S = 1.0
+ACCEL_MAX = 4.0
+ACCEL_DEADBAND = 0.15
+
+
+def estimate_accel(history: Sequence[tuple[float, float, float]]) -> tuple[float, float]:
+    """A followed agent's acceleration (north, east m/s^2) from its recent pose velocities,
+    ``(sample time, vn, ve)`` oldest first: the newest against the newest at least
+    ``ACCEL_SPAN_S`` older; (0, 0) without such a pair, below ``ACCEL_DEADBAND`` or beyond
+    ``ACCEL_MAX`` (a velocity that jumped: not believed)."""
+    if len(history) < 2:
+        return 0.0, 0.0
+    t1, vn1, ve1 = history[-1]
+    old = [h for h in history[:-1] if t1 - h[0] >= ACCEL_SPAN_S]
+    if not old:
+        return 0.0, 0.0
+    t0, vn0, ve0 = old[-1]
+    an, ae = (vn1 - vn0) / (t1 - t0), (ve1 - ve0) / (t1 - t0)
+    mag = math.hypot(an, ae)
+    if mag < ACCEL_DEADBAND or mag > ACCEL_MAX:
+        return 0.0, 0.0
+    return an, ae
 
 
 @dataclass
@@ -497,6 +540,7 @@ __all__ = [
     "chain_position",
     "chains_to_assignments",
     "distance",
+    "estimate_accel",
     "follow_target",
     "heading_of",
     "ne_between",

@@ -72,6 +72,7 @@ from swarm.core.formation import (
     assign,
     assignment_of,
     distance,
+    estimate_accel,
     follow_target,
     ne_between,
     offset,
@@ -143,6 +144,7 @@ class _Heard:
     pose: Pose
     rx: float
     age: float  # estimated age at reception
+    acc: tuple[float, float] = (0.0, 0.0)  # estimated acceleration (north, east m/s^2)
 
     def age_at(self, now: float) -> float:
         return self.age + max(0.0, now - self.rx)
@@ -165,6 +167,7 @@ class Pilot:
     stale_hold: Setpoint | None = None  # holding in FOLLOW: the followed pose is stale
     sep_hold: Setpoint | None = None  # holding: another agent too close
     _heard: dict[int, _Heard] = field(default_factory=dict)
+    _vel_hist: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
     _ages: AgeEstimator = field(default_factory=AgeEstimator)
     _route: Route | None = None
     _route_pts: list[tuple[float, float]] = field(default_factory=list)
@@ -193,7 +196,12 @@ class Pilot:
     def on_pose(self, sender: int, pose: Pose, now: float) -> None:
         if sender == self.me:
             return
-        self._heard[sender] = _Heard(pose, now, self._ages.age(sender, pose.t, now))
+        age = self._ages.age(sender, pose.t, now)
+        hist = [h for h in self._vel_hist.get(sender, []) if now - age - h[0] <= 2.0] + [
+            (now - age, pose.vn, pose.ve)
+        ]
+        self._vel_hist[sender] = hist
+        self._heard[sender] = _Heard(pose, now, age, estimate_accel(hist))
 
     def on_task(self, task: Task, now: float) -> None:
         """The swarm task as a member heard it, on every Heartbeat: the heading and its
@@ -501,6 +509,7 @@ class Pilot:
             self.task.back_m,
             self.task.side_m,
             rate,
+            heard.acc,
         )
 
     def _separation(self, now: float, sp: Setpoint) -> Setpoint | None:

@@ -22,7 +22,11 @@ chain. Here:
   with its velocity over its age (the radio delays it by up to a TDM round), the
   slot offset is added, and the followed velocity is the setpoint's velocity
   feed-forward, so that the autopilot's position loop does not lag the slot by
-  v / Kp (5 m at 5 m/s with PX4's MPC_XY_P). The member's yaw is the swarm heading.
+  v / Kp (5 m at 5 m/s with PX4's MPC_XY_P). The followed agent's acceleration,
+  estimated from its pose velocities over at least a second (:func:`estimate_accel`),
+  is carried into the prediction and the feed-forward: with velocity alone members
+  lagged 1.5 m while the leader sped up and led 1.5 m while it slowed down. The
+  member's yaw is the swarm heading.
 * **Pose age** (:class:`AgeEstimator`): a Pose carries its sample time modulo
   2.56 s in the sender's clock. Clocks differ between drones, so the age is
   estimated per sender as the delay beyond the smallest delay seen recently

@@ -342,6 +342,20 @@ def estimate_accel(history: Sequence[tuple[float, float, float]]) -> tuple[float
 
 
 @dataclass
+class AccelEstimator:
+    """Each sender's acceleration from its last ``keep_s`` of pose velocities (:func:`estimate_accel`)."""
+
+    keep_s: float = 2.0
+    _hist: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
+
+    def add(self, sender: int, t: float, vn: float, ve: float) -> tuple[float, float]:
+        """Note a pose velocity sampled at ``t``; the acceleration estimated now."""
+        hist = [h for h in self._hist.get(sender, []) if t - h[0] <= self.keep_s] + [(t, vn, ve)]
+        self._hist[sender] = hist
+        return estimate_accel(hist)
+
+
+@dataclass
 class AgeEstimator:
     """Age of a sender's pose from its wrapped sample time (see the module docstring)."""
 
@@ -533,6 +547,7 @@ def _unit(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]
 
 
 __all__ = [
+    "AccelEstimator",
     "AgeEstimator",
     "FormationConfig",
     "Route",

@@ -65,6 +65,7 @@ from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 from swarm.core.formation import (
+    AccelEstimator,
     AgeEstimator,
     FormationConfig,
     Route,
@@ -72,7 +73,6 @@ from swarm.core.formation import (
     assign,
     assignment_of,
     distance,
-    estimate_accel,
     follow_target,
     ne_between,
     offset,
@@ -167,7 +167,7 @@ class Pilot:
     stale_hold: Setpoint | None = None  # holding in FOLLOW: the followed pose is stale
     sep_hold: Setpoint | None = None  # holding: another agent too close
     _heard: dict[int, _Heard] = field(default_factory=dict)
-    _vel_hist: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
+    _accels: AccelEstimator = field(default_factory=AccelEstimator)
     _ages: AgeEstimator = field(default_factory=AgeEstimator)
     _route: Route | None = None
     _route_pts: list[tuple[float, float]] = field(default_factory=list)
@@ -175,7 +175,6 @@ class Pilot:
     _route_alt: float = 0.0
     _route_s: float = 0.0
     _route_v: float = 0.0
-    _route_rate: float = 0.0  # the route's heading rate now, deg/s
     _swarm_h: float | None = None  # the leader's announced swarm heading (smoothed)
     _swarm_rate: float = 0.0
     _ground_alt: float | None = None  # AMSL altitude last seen on the ground (take-off height base)
@@ -197,11 +196,7 @@ class Pilot:
         if sender == self.me:
             return
         age = self._ages.age(sender, pose.t, now)
-        hist = [h for h in self._vel_hist.get(sender, []) if now - age - h[0] <= 2.0] + [
-            (now - age, pose.vn, pose.ve)
-        ]
-        self._vel_hist[sender] = hist
-        self._heard[sender] = _Heard(pose, now, age, estimate_accel(hist))
+        self._heard[sender] = _Heard(pose, now, age, self._accels.add(sender, now - age, pose.vn, pose.ve))
 
     def on_task(self, task: Task, now: float) -> None:
         """The swarm task as a member heard it, on every Heartbeat: the heading and its
@@ -432,7 +427,6 @@ class Pilot:
         self._route_s = min(r.length, self._route_s + self._route_v * dt)
         p = r.at(self._route_s)
         v = self._route_v
-        self._route_rate = p.curvature * v
         lat, lon = offset(o[0], o[1], p.n, p.e)
         h = math.radians(p.heading_deg)
         if self._route_s >= r.length:
@@ -457,14 +451,8 @@ class Pilot:
         target, per_m = r.mean_heading(self._route_s if going else r.length + half, half)
         if self._swarm_h is None:
             self._swarm_h, self._swarm_rate = target, 0.0
-        h, rate = steer_heading(
-            self._swarm_h,
-            self._swarm_rate,
-            target,
-            per_m * self._route_v if going else 0.0,
-            cfg.heading_accel_dps2,
-            dt,
-        )
+        ff = per_m * self._route_v if going else 0.0
+        h, rate = steer_heading(self._swarm_h, self._swarm_rate, target, ff, cfg.heading_accel_dps2, dt)
         if not going and abs((target - h + 180.0) % 360.0 - 180.0) < 0.05 and abs(rate) < 0.1:
             h, rate = target, 0.0  # arrived and turned: exactly the route's heading
         self._swarm_h, self._swarm_rate = h, rate

@@ -22,7 +22,11 @@ chain. Here:
   with its velocity over its age (the radio delays it by up to a TDM round), the
   slot offset is added, and the followed velocity is the setpoint's velocity
   feed-forward, so that the autopilot's position loop does not lag the slot by
-  v / Kp (5 m at 5 m/s with PX4's MPC_XY_P). The member's yaw is the swarm heading.
+  v / Kp (5 m at 5 m/s with PX4's MPC_XY_P). The followed agent's acceleration,
+  estimated from its pose velocities over at least a second (:func:`estimate_accel`),
+  is carried into the prediction and the feed-forward: with velocity alone members
+  lagged 1.5 m while the leader sped up and led 1.5 m while it slowed down. The
+  member's yaw is the swarm heading.
 * **Pose age** (:class:`AgeEstimator`): a Pose carries its sample time modulo
   2.56 s in the sender's clock. Clocks differ between drones, so the age is
   estimated per sender as the delay beyond the smallest delay seen recently
@@ -30,8 +34,19 @@ chain. Here:
   ignored).
 * **Route** (:class:`Route`): the leader's path through waypoints at a set
   speed, corners rounded with ``turn_radius_m`` (a 90 degree corner becomes a
-  quarter circle), sampled by distance: position, direction (the swarm
-  heading) and velocity.
+  quarter circle), sampled by distance: position, direction and velocity.
+* **Swarm heading** (:meth:`Route.mean_heading`, :func:`turn_window_m`,
+  :func:`steer_heading`): the heading a leader announces is the route's heading
+  averaged over a window of route centred on the leader (straight on beyond the
+  route's ends). Through a rounded corner the route's turn rate steps (0, v/r, 0);
+  the average's rate ramps instead, at most ``heading_accel`` when the window is
+  :func:`turn_window_m` long, starting half a window before the corner and ending
+  half a window after it, with the same total turn: so the heading ends exactly
+  on the route's, without the overshoot a lagging filter has. :func:`steer_heading`
+  follows that target with a bounded angular acceleration (a square-root
+  controller: it stops on the target without overshoot), which matters only when
+  the target jumps (a route that starts off the task's heading, a waypoint added
+  late, the leader arriving before the window has passed the corner).
 * **Metrics** (:func:`slot_error`): a member's distance from its slot.
 
 Coordinates: poses are geodetic (WGS-84 latitude, longitude, metres AMSL);
@@ -64,6 +79,9 @@ class FormationConfig:
     #: how much later the setpoint takes effect: the pilot's step (10 Hz) and the
     #: driver's stream (10 Hz) hold it 0.1 s on average before the autopilot has it
     lead_s: float = 0.1
+    #: the followed acceleration is fed forward this much further ahead: the autopilot's
+    #: velocity loop lags its velocity setpoint by about this (PX4's and the simulator's 0.4 s)
+    accel_lead_s: float = 0.4
 
     def __post_init__(self) -> None:
         checks = {
@@ -75,6 +93,7 @@ class FormationConfig:
             "stale_s": 0 < self.stale_s <= 60,
             "max_predict_s": 0 <= self.max_predict_s <= 10,
             "lead_s": 0 <= self.lead_s <= 2,
+            "accel_lead_s": 0 <= self.accel_lead_s <= 2,
         }
         for k, ok in checks.items():
             v = getattr(self, k)
@@ -259,11 +278,23 @@ def follow_target(
     back_m: float | None = None,
     side_m: float | None = None,
     turn_rate_dps: float = 0.0,
+    accel: tuple[float, float] = (0.0, 0.0),
 ) -> Setpoint:
     """The member's setpoint: the followed agent predicted to now, plus the slot offset;
     velocity feed-forward: the followed velocity plus the slot's rotation about the
-    followed agent when the swarm heading turns (``turn_rate_dps``)."""
+    followed agent when the swarm heading turns (``turn_rate_dps``). ``accel``: the
+    followed agent's estimated acceleration (:func:`estimate_accel`), carried into the
+    prediction and the feed-forward."""
     lat, lon = predict(followed, age_s + cfg.lead_s, cfg.max_predict_s)
+    dt = max(0.0, min(age_s + cfg.lead_s, cfg.max_predict_s))
+    an, ae = accel
+    if an or ae:
+        lat, lon = offset(lat, lon, 0.5 * an * dt * dt, 0.5 * ae * dt * dt)
+        followed = replace(
+            followed,
+            vn=followed.vn + an * (dt + cfg.accel_lead_s),
+            ve=followed.ve + ae * (dt + cfg.accel_lead_s),
+        )
     heading_deg = (heading_deg + turn_rate_dps * cfg.lead_s) % 360.0
     dn, de = slot_offset(
         heading_deg, side, cfg.back_m if back_m is None else back_m, cfg.side_m if side_m is None else side_m
@@ -281,6 +312,47 @@ def slot_error(
     dn, de = slot_offset(heading_deg, side, back_m, side_m)
     fn, fe = ne_between(followed.lat, followed.lon, member.lat, member.lon)
     return math.hypot(fn - dn, fe - de)
+
+
+#: the shortest span of pose velocities an acceleration is estimated over (a pose's velocity
+#: is quantised to 0.25 m/s: over 1 s that is 0.25 m/s^2), the largest believed, and the
+#: smallest acted on
+ACCEL_SPAN_S = 1.0
+ACCEL_MAX = 4.0
+ACCEL_DEADBAND = 0.15
+
+
+def estimate_accel(history: Sequence[tuple[float, float, float]]) -> tuple[float, float]:
+    """A followed agent's acceleration (north, east m/s^2) from its recent pose velocities,
+    ``(sample time, vn, ve)`` oldest first: the newest against the newest at least
+    ``ACCEL_SPAN_S`` older; (0, 0) without such a pair, below ``ACCEL_DEADBAND`` or beyond
+    ``ACCEL_MAX`` (a velocity that jumped: not believed)."""
+    if len(history) < 2:
+        return 0.0, 0.0
+    t1, vn1, ve1 = history[-1]
+    old = [h for h in history[:-1] if t1 - h[0] >= ACCEL_SPAN_S]
+    if not old:
+        return 0.0, 0.0
+    t0, vn0, ve0 = old[-1]
+    an, ae = (vn1 - vn0) / (t1 - t0), (ve1 - ve0) / (t1 - t0)
+    mag = math.hypot(an, ae)
+    if mag < ACCEL_DEADBAND or mag > ACCEL_MAX:
+        return 0.0, 0.0
+    return an, ae
+
+
+@dataclass
+class AccelEstimator:
+    """Each sender's acceleration from its last ``keep_s`` of pose velocities (:func:`estimate_accel`)."""
+
+    keep_s: float = 2.0
+    _hist: dict[int, list[tuple[float, float, float]]] = field(default_factory=dict)
+
+    def add(self, sender: int, t: float, vn: float, ve: float) -> tuple[float, float]:
+        """Note a pose velocity sampled at ``t``; the acceleration estimated now."""
+        hist = [h for h in self._hist.get(sender, []) if t - h[0] <= self.keep_s] + [(t, vn, ve)]
+        self._hist[sender] = hist
+        return estimate_accel(hist)
 
 
 @dataclass
@@ -323,6 +395,8 @@ class _Seg:
     b: tuple[float, float]
     r: float = 0.0
     sign: float = 0.0
+    h0: float = 0.0  # heading at the start, unwrapped along the route (degrees)
+    k: float = 0.0  # heading change per metre (degrees, +: turning right)
 
 
 class Route:
@@ -362,6 +436,58 @@ class Route:
             self.segments.append(_Seg(r * abs(turn), "arc", c, (ang0, turn), r, sign))
             start = (p[0] + d2[0] * t, p[1] + d2[1] * t)
         self.length = sum(s.length for s in self.segments)
+        self._unwrap()
+
+    def _unwrap(self) -> None:
+        """Each segment's start heading, unwrapped from the one before (no 360 jumps), and
+        its heading change per metre."""
+        out: list[_Seg] = []
+        end: float | None = None
+        for seg in self.segments:
+            if seg.kind == "line":
+                raw, k = heading_of(*seg.b), 0.0
+            else:
+                ang0, turn = seg.b
+                sgn = math.copysign(1.0, turn)
+                raw, k = (
+                    heading_of(-math.sin(ang0) * sgn, math.cos(ang0) * sgn),
+                    sgn * math.degrees(1 / seg.r),
+                )
+            h0 = raw if end is None else end + (raw - end + 180.0) % 360.0 - 180.0
+            out.append(replace(seg, h0=h0, k=k))
+            end = h0 + k * seg.length
+        self.segments = out
+
+    def _heading(self, s: float) -> float:
+        """The unwrapped heading ``s`` metres along (straight on beyond both ends)."""
+        for seg in self.segments:
+            if s <= seg.length or seg is self.segments[-1]:
+                return seg.h0 + seg.k * max(0.0, min(s, seg.length))
+            s -= seg.length
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _heading_integral(self, s: float) -> float:
+        """The integral of the unwrapped heading from 0 to ``s`` (degree-metres)."""
+        if s <= 0.0:
+            return self.segments[0].h0 * s
+        total = 0.0
+        for seg in self.segments:
+            x = min(s, seg.length)
+            total += seg.h0 * x + 0.5 * seg.k * x * x
+            s -= seg.length
+            if s <= 0.0:
+                return total
+        last = self.segments[-1]
+        return total + (last.h0 + last.k * last.length) * s
+
+    def mean_heading(self, s: float, half_m: float) -> tuple[float, float]:
+        """The route's heading averaged over ``s - half_m .. s + half_m`` (0..360) and how
+        fast that average changes, in degrees per metre of ``s`` (see the module docstring)."""
+        if half_m <= 0.0:
+            return self._heading(s) % 360.0, 0.0
+        lo, hi = s - half_m, s + half_m
+        mean = (self._heading_integral(hi) - self._heading_integral(lo)) / (2.0 * half_m)
+        return mean % 360.0, (self._heading(hi) - self._heading(lo)) / (2.0 * half_m)
 
     def _line(self, a: tuple[float, float], b: tuple[float, float]) -> None:
         length = math.dist(a, b)
@@ -388,12 +514,40 @@ class Route:
         raise AssertionError("unreachable")  # pragma: no cover
 
 
+def turn_window_m(speed_mps: float, turn_radius_m: float, accel_dps2: float) -> float:
+    """Half the window :meth:`Route.mean_heading` averages over, so that at ``speed_mps``
+    the heading's rate ramps into a corner of ``turn_radius_m`` at ``accel_dps2``:
+    the rate steps by v/r (degrees/s) and the average spreads the step over the window,
+    ``2 half / v`` seconds. Sharp corners (radius under 1 m) count as 1 m; at most 100 m."""
+    step_dps = math.degrees(speed_mps / max(turn_radius_m, 1.0))
+    return min(100.0, speed_mps * step_dps / (2.0 * accel_dps2))
+
+
+def steer_heading(
+    heading: float, rate: float, target: float, target_rate: float, accel_dps2: float, dt: float
+) -> tuple[float, float]:
+    """One step of ``dt`` of a heading (and its rate, degrees/s) toward ``target`` moving at
+    ``target_rate``: the rate wanted is the target's plus a square-root controller on the
+    error (proportional with a gain of 1/s near it, so that braking at ``accel_dps2``
+    stops on it), reached at most at ``accel_dps2``. Returns (heading 0..360, rate)."""
+    err = (target - heading + 180.0) % 360.0 - 180.0
+    linear = accel_dps2  # the error below which the controller is proportional (gain 1/s)
+    if abs(err) <= linear:
+        fix = err
+    else:
+        fix = math.copysign(math.sqrt(2.0 * accel_dps2 * (abs(err) - linear / 2.0)), err)
+    step = accel_dps2 * dt
+    rate = max(rate - step, min(rate + step, target_rate + fix))
+    return (heading + rate * dt) % 360.0, rate
+
+
 def _unit(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
     d = math.dist(a, b)
     return (b[0] - a[0]) / d, (b[1] - a[1]) / d
 
 
 __all__ = [
+    "AccelEstimator",
     "AgeEstimator",
     "FormationConfig",
     "Route",
@@ -405,6 +559,7 @@ __all__ = [
     "chain_position",
     "chains_to_assignments",
     "distance",
+    "estimate_accel",
     "follow_target",
     "heading_of",
     "ne_between",
@@ -413,4 +568,6 @@ __all__ = [
     "reconcile",
     "slot_error",
     "slot_offset",
+    "steer_heading",
+    "turn_window_m",
 ]

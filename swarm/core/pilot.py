@@ -23,7 +23,8 @@ Modes and what they stream:
 ==========  ======================================================================
 IDLE        nothing (on the ground, or flying before any command)
 TAKEOFF     nothing: the runtime takes off (and puts the vehicle under setpoint
-            control); then HOLD where it is
+            control); then HOLD where it is, at the height asked for above the
+            ground it last stood on (the take-off returns at 95 % of it)
 HOLD        the latched hold position (stop command, swarm stop, arrival)
 GOTO        a carrot moving along a :class:`~swarm.core.formation.Route` at ``speed_mps``
             (never more than ``max_lead_m`` ahead of the vehicle), velocity feed-forward
@@ -52,9 +53,12 @@ Rules (each stated once, here):
   again until it has been clear once or 10 s passed.
 * **Stop**: an individual STOP holds this agent; the swarm STOP makes the leader
   hold and send a HOLD task, and every member holds.
-* The swarm heading a member uses is the task's, extrapolated with the task's turn
-  rate (the leader's route through a rounded corner: speed / radius) from the
-  Heartbeat it came on, so that the slots rotate smoothly between Heartbeats.
+* The swarm heading a leader announces on a route is the route's heading averaged
+  around the leader (``formation.Route.mean_heading``), so its rate ramps through
+  a corner and it ends on the route's heading; after arriving, the leader goes on
+  turning the V until it faces the route's last heading. A member uses the task's
+  heading extrapolated with the task's turn rate from the Heartbeat it came on, so
+  that the slots rotate smoothly between Heartbeats.
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 from swarm.core.formation import (
+    AccelEstimator,
     AgeEstimator,
     FormationConfig,
     Route,
@@ -74,6 +79,8 @@ from swarm.core.formation import (
     follow_target,
     ne_between,
     offset,
+    steer_heading,
+    turn_window_m,
 )
 from swarm.core.messages import AckResult, Command, CommandKind, Phase, Pose, Task, TaskKind
 
@@ -142,6 +149,7 @@ class _Heard:
     pose: Pose
     rx: float
     age: float  # estimated age at reception
+    acc: tuple[float, float] = (0.0, 0.0)  # estimated acceleration (north, east m/s^2)
 
     def age_at(self, now: float) -> float:
         return self.age + max(0.0, now - self.rx)
@@ -164,6 +172,7 @@ class Pilot:
     stale_hold: Setpoint | None = None  # holding in FOLLOW: the followed pose is stale
     sep_hold: Setpoint | None = None  # holding: another agent too close
     _heard: dict[int, _Heard] = field(default_factory=dict)
+    _accels: AccelEstimator = field(default_factory=AccelEstimator)
     _ages: AgeEstimator = field(default_factory=AgeEstimator)
     _route: Route | None = None
     _route_pts: list[tuple[float, float]] = field(default_factory=list)
@@ -171,9 +180,9 @@ class Pilot:
     _route_alt: float = 0.0
     _route_s: float = 0.0
     _route_v: float = 0.0
-    _route_rate: float = 0.0  # the route's heading rate now, deg/s
     _swarm_h: float | None = None  # the leader's announced swarm heading (smoothed)
     _swarm_rate: float = 0.0
+    _ground_alt: float | None = None  # AMSL altitude last seen on the ground (take-off height base)
     _last_step: float | None = None
     _left_gen: int | None = None  # the FOLLOW gen we left for an individual command
     _applied_task: tuple[TaskKind, int] = (TaskKind.NONE, -1)
@@ -185,11 +194,14 @@ class Pilot:
     def set_own(self, pose: Pose | None, airborne: bool) -> None:
         self.own = pose
         self.airborne = airborne
+        if pose is not None and not airborne:
+            self._ground_alt = pose.alt
 
     def on_pose(self, sender: int, pose: Pose, now: float) -> None:
         if sender == self.me:
             return
-        self._heard[sender] = _Heard(pose, now, self._ages.age(sender, pose.t, now))
+        age = self._ages.age(sender, pose.t, now)
+        self._heard[sender] = _Heard(pose, now, age, self._accels.add(sender, now - age, pose.vn, pose.ve))
 
     def on_task(self, task: Task, now: float) -> None:
         """The swarm task as a member heard it, on every Heartbeat: the heading and its
@@ -207,6 +219,14 @@ class Pilot:
         if call.kind == "takeoff" and self.mode == Mode.TAKEOFF:
             self.airborne = True
             self._hold("took off")
+            want = None if self._ground_alt is None else self._ground_alt + call.alt
+            # the height asked for, unless the ground we saw is far off it (a pose before the fix)
+            if (
+                self.hold_at is not None
+                and want is not None
+                and abs(want - self.hold_at.alt) <= max(2.0, 0.2 * call.alt)
+            ):
+                self.hold_at = replace(self.hold_at, alt=want)
             self.events.append("took off: holding")
 
     # -- commands -------------------------------------------------------------------
@@ -334,33 +354,28 @@ class Pilot:
     # -- the 10 Hz step -------------------------------------------------------------------
     def step(self, now: float, role: Role) -> tuple[Setpoint | None, tuple[float, float] | None]:
         """The setpoint to stream now (None: none), and for a leader flying a route in
-        FOLLOW a new (heading, turn rate) for its task when the heading moved by 0.5
-        degree or the rate changed (else None)."""
+        FOLLOW (or arrived, still turning the V) a new (heading, turn rate) for its task
+        when it changed (:meth:`_steer_swarm`; else None)."""
         dt = 0.0 if self._last_step is None else max(0.0, min(now - self._last_step, 1.0))
         self._last_step = now
         self._apply_task(role)
         new_heading: tuple[float, float] | None = None
         sp: Setpoint | None = None
+        leading = role.phase == Phase.LEADER and self.task.kind == TaskKind.FOLLOW
+        # a leader steers the V's heading on its route, and once arrived until it faces the route's end
+        steering = leading and (
+            self.mode == Mode.GOTO or (self.mode == Mode.HOLD and self.hold_reason == "arrived")
+        )
         if self.mode == Mode.HOLD:
             sp = self.hold_at
         elif self.mode == Mode.GOTO:
             sp = self._carrot(dt)
-            if role.phase == Phase.LEADER and self.task.kind == TaskKind.FOLLOW and sp is not None:
-                h, rate = self._smooth_heading(sp.yaw_deg, dt)
-                d = (h - self.task.heading + 180.0) % 360.0 - 180.0
-                rate = max(-63.5, min(63.5, round(rate * 2) / 2))
-                if abs(d) >= 0.5 or rate != self.task.turn_rate:
-                    new_heading = (round(h % 360.0, 2) % 360.0, rate)
-                    self.task = replace(self.task, heading=new_heading[0], turn_rate=rate)
         elif self.mode == Mode.FOLLOW:
             sp = self._follow(now, role)
-        if (
-            self.mode != Mode.GOTO
-            and role.phase == Phase.LEADER
-            and self.task.kind == TaskKind.FOLLOW
-            and self.task.turn_rate != 0.0
-        ):
-            # stopped turning (arrived, or held): the V stops turning too
+        if steering and sp is not None:
+            new_heading = self._steer_swarm(dt)
+        elif leading and self.task.turn_rate != 0.0:
+            # stopped turning (held, or off the route): the V stops turning too
             new_heading = (self.task.heading, 0.0)
             self.task = replace(self.task, turn_rate=0.0)
             self._swarm_rate = 0.0
@@ -417,7 +432,6 @@ class Pilot:
         self._route_s = min(r.length, self._route_s + self._route_v * dt)
         p = r.at(self._route_s)
         v = self._route_v
-        self._route_rate = p.curvature * v
         lat, lon = offset(o[0], o[1], p.n, p.e)
         h = math.radians(p.heading_deg)
         if self._route_s >= r.length:
@@ -429,19 +443,30 @@ class Pilot:
             return end
         return Setpoint(lat, lon, self._route_alt, p.heading_deg, v * math.cos(h), v * math.sin(h))
 
-    def _smooth_heading(self, route_deg: float, dt: float) -> tuple[float, float]:
-        """The swarm heading a leader announces: the route's heading, followed with a
-        bounded angular acceleration (``heading_accel_dps2``), so the V's rotation rate
-        ramps in and out of a corner instead of stepping (a step in the rate is a step
-        in every member's feed-forward, worst at the back of the arms)."""
+    def _steer_swarm(self, dt: float) -> tuple[float, float] | None:
+        """A leader's swarm heading one step on (module docstring): toward the route's
+        heading averaged around where the carrot is, or, arrived, the route's last
+        heading. Returns (heading, rate) for the task when the heading moved by 0.5
+        degree, the rate changed or, turning no more, it is not exactly the target."""
+        r, cfg = self._route, self.cfg
+        if r is None:
+            return None
+        half = turn_window_m(cfg.speed_mps, cfg.turn_radius_m, cfg.heading_accel_dps2)
+        going = self.mode == Mode.GOTO
+        target, per_m = r.mean_heading(self._route_s if going else r.length + half, half)
         if self._swarm_h is None:
-            self._swarm_h, self._swarm_rate = route_deg, 0.0
-        err = (route_deg - self._swarm_h + 180.0) % 360.0 - 180.0
-        want = self._route_rate + 1.0 * err
-        a = self.cfg.heading_accel_dps2 * dt
-        self._swarm_rate = max(self._swarm_rate - a, min(self._swarm_rate + a, want))
-        self._swarm_h = (self._swarm_h + self._swarm_rate * dt) % 360.0
-        return self._swarm_h, self._swarm_rate
+            self._swarm_h, self._swarm_rate = target, 0.0
+        ff = per_m * self._route_v if going else 0.0
+        h, rate = steer_heading(self._swarm_h, self._swarm_rate, target, ff, cfg.heading_accel_dps2, dt)
+        if not going and abs((target - h + 180.0) % 360.0 - 180.0) < 0.05 and abs(rate) < 0.1:
+            h, rate = target, 0.0  # arrived and turned: exactly the route's heading
+        self._swarm_h, self._swarm_rate = h, rate
+        d = (h - self.task.heading + 180.0) % 360.0 - 180.0
+        wire = max(-63.5, min(63.5, round(rate * 2) / 2))
+        if abs(d) >= 0.5 or wire != self.task.turn_rate or (wire == 0.0 and abs(d) >= 0.01):
+            self.task = replace(self.task, heading=round(h % 360.0, 2) % 360.0, turn_rate=wire)
+            return self.task.heading, wire
+        return None
 
     def _swarm_heading(self, now: float) -> tuple[float, float]:
         if self._heading is None:
@@ -477,6 +502,7 @@ class Pilot:
             self.task.back_m,
             self.task.side_m,
             rate,
+            heard.acc,
         )
 
     def _separation(self, now: float, sp: Setpoint) -> Setpoint | None:

@@ -8,7 +8,9 @@ air model, frames encoded exactly as the radio bridge does) with, for each agent
 a :class:`swarm.core.pilot.Pilot` and a point-mass multicopter
 (:class:`firmware_bridge.sim.dynamics.Body`, the vehicle simulator's own dynamics
 with PX4's position-loop gains and limits, taking the setpoints' velocity
-feed-forward as PX4 offboard does). On the air besides the protocol: every
+feed-forward as PX4 offboard does), in the scenario's :class:`swarm.sim.weather.Weather`
+(steady wind and gusts pushing the bodies, GPS noise in what each vehicle believes
+and reports; calm by default). On the air besides the protocol: every
 agent's pose stream at ``pose_hz`` (PoseReport, broadcast) and its vehicle's
 HEARTBEAT and GLOBAL_POSITION_INT at 1 Hz (the forwarded telemetry).
 
@@ -19,8 +21,10 @@ east ``leg_m``: a 90 degree right turn, rounded with the pilot's turn radius).
 The run ends ``tail_s`` after the leader arrives (or at ``duration``).
 
 Metrics, sampled every 0.1 s from the true positions (not from what the radio
-delivered): each member's distance from its slot (the followed agent's true
-position plus the offset for the leader's current task heading). A sample is in
+delivered, nor from the GPS): each member's distance from its slot (the followed
+agent's true position plus the offset for the leader's current task heading); at
+the end, how far the leader's task heading is from the route's last heading
+(``heading_error_after_turn_deg``). A sample is in
 a *turn* while the task heading differs from its value ``turn_margin_s`` earlier
 or later; *straight* samples are the others once the route has started (the V had
 ``settle_s`` to form). Air utilisation is the share of air time used between the
@@ -56,6 +60,7 @@ from swarm.core.pilot import PilotConfig, Setpoint
 from swarm.core.protocol import ADVERTIZE, Out
 from swarm.core.tunnel import Kind
 from swarm.sim.simulate import Scenario, Sim, pct
+from swarm.sim.weather import Environment, Weather
 
 HOME = (47.397742, 8.545594, 488.0)
 DT = 0.02  # dynamics step, s
@@ -82,6 +87,7 @@ class FlightScenario:
     #: the follow command)
     crash: tuple[str, float] | None = None
     pilot: PilotConfig = field(default_factory=PilotConfig)
+    weather: Weather = field(default_factory=Weather)
 
 
 @dataclass
@@ -97,6 +103,7 @@ class FlightResult:
     air_utilisation: float
     end_s: float
     why: str = ""
+    heading_error_after_turn_deg: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -107,6 +114,7 @@ class FlightResult:
             "rms_straight_m": self.rms_straight_m,
             "max_straight_m": self.max_straight_m,
             "max_turn_m": self.max_turn_m,
+            "heading_error_after_turn_deg": self.heading_error_after_turn_deg,
             "air_utilisation": round(self.air_utilisation, 3),
             "end_s": round(self.end_s, 1),
             "per_member": self.per_member,
@@ -125,6 +133,8 @@ class FlightSim(Sim):
         self.bodies = [Body(pos=[0.0, i * fs.spacing_m, -fs.alt_m]) for i in range(n)]
         self.targets: list[Target | None] = [None] * n
         self.pending: list[list[tuple[float, Target]]] = [[] for _ in range(n)]
+        self.env = Environment(fs.weather, n, seed ^ 0xA1B)
+        self.route_end_heading: float | None = None
         cfg = replace(fs.pilot, speed_mps=fs.speed_mps)
         # each agent is the node the real agent runs, around the core (and its seed) Sim made
         self.nodes = [
@@ -150,9 +160,11 @@ class FlightSim(Sim):
         self.crashed = 0
 
     # -- poses --------------------------------------------------------------------
-    def pose_of(self, i: int, t: float) -> Pose:
+    def pose_of(self, i: int, t: float, *, true: bool = False) -> Pose:
+        """Vehicle ``i``'s pose as it believes it (its GPS error added), or ``true``."""
         b = self.bodies[i]
-        lat, lon, alt = pymap3d.ned2geodetic(b.pos[0], b.pos[1], b.pos[2], *HOME)
+        en, ee = (0.0, 0.0) if true else self.env.gps_error(i)
+        lat, lon, alt = pymap3d.ned2geodetic(b.pos[0] + en, b.pos[1] + ee, b.pos[2], *HOME)
         return Pose(
             float(lat), float(lon), float(alt), math.degrees(b.yaw) % 360.0, b.vel[0], b.vel[1], t % 2.56
         )
@@ -256,12 +268,26 @@ class FlightSim(Sim):
         return conv_since, end
 
     def _move_bodies(self, t: float) -> None:
-        """Setpoints whose delay has passed reach their vehicles; every body moves one step."""
+        """Setpoints whose delay has passed reach their vehicles; every body moves one step:
+        its autopilot flies its position estimate (true + GPS error) to the target, and the
+        wind pushes it by what the autopilot has not cancelled yet."""
+        env, calm = self.env, self.fs.weather.calm
         for i in range(self.fs.agents):
             q = self.pending[i]
             while q and q[0][0] <= t + 1e-9:
                 self.targets[i] = q.pop(0)[1]
-            self.bodies[i].step(self.targets[i], self.lim, DT, True)
+            b, tg = self.bodies[i], self.targets[i]
+            if calm or tg is None:
+                b.step(tg, self.lim, DT, True)
+                continue
+            en, ee = env.gps_error(i)
+            b.step(replace(tg, pos=(tg.pos[0] - en, tg.pos[1] - ee, tg.pos[2])), self.lim, DT, True)
+            if not b.on_ground:
+                dn, de = env.push(i, b.vel, DT)
+                b.vel[0] += dn
+                b.vel[1] += de
+        if not calm:
+            env.step(DT)
 
     def _maybe_crash(self, t: float) -> None:
         c = self.fs.crash
@@ -306,6 +332,7 @@ class FlightSim(Sim):
         leg = self.fs.leg_m
         a = pymap3d.ned2geodetic(leg, 0.0, 0.0, o.lat, o.lon, o.alt)
         b = pymap3d.ned2geodetic(leg, leg, 0.0, o.lat, o.lon, o.alt)
+        self.route_end_heading = 90.0  # the second leg: east
         for k, (kind, p) in enumerate(((CommandKind.GOTO, a), (CommandKind.WAYPOINT, b))):
             res, why = self._command(i, Command(255, 2 + k, i + 1, kind, float(p[0]), float(p[1]), o.alt), t)
             if res != AckResult.ACCEPTED:
@@ -336,7 +363,7 @@ class FlightSim(Sim):
             return
         task = lead.task
         self.heading_log.append((t, task.heading))
-        poses = {i + 1: self.pose_of(i, t) for i in range(self.fs.agents) if self.alive[i]}
+        poses = {i + 1: self.pose_of(i, t, true=True) for i in range(self.fs.agents) if self.alive[i]}
         for a in task.assignments:
             if a.member in poses and a.follows in poses:
                 err = slot_error(
@@ -397,7 +424,15 @@ class FlightSim(Sim):
             air_utilisation=util,
             end_s=t,
             why=why,
+            heading_error_after_turn_deg=self._heading_error(),
         )
+
+    def _heading_error(self) -> float | None:
+        """How far the leader's task heading ended from the route's last heading."""
+        if self.route_end_heading is None or not self.heading_log:
+            return None
+        d = (self.heading_log[-1][1] - self.route_end_heading + 180.0) % 360.0 - 180.0
+        return round(abs(d), 2)
 
 
 def _target(sp: Setpoint) -> Target:

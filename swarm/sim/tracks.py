@@ -17,7 +17,11 @@ swarm task (heading, assignments). :func:`analyse` rebuilds from it:
   the slot (the followed agent's position, interpolated at the same instant,
   plus the slot offset for the task heading then). A sample is in a *turn* when
   the task heading changed within ``turn_margin_s`` of it; the others, from
-  ``settle_s`` after the first follow task, are *straight*.
+  ``settle_s`` after the first follow task, are *straight*;
+* the **heading error after the turn** (when the task heading turned): the last
+  follow task's heading against the leader's course over ground on its last
+  straight stretch (its last ``course_s`` seconds faster than 1 m/s), which is the
+  route's last heading whatever the route was.
 
 :func:`plot` draws the tracks (local metres from the first leader pose), the
 leader's thick with a star where it ended, and the slots every ``slot_every_s``
@@ -55,6 +59,7 @@ class Analysis:
     records: int = 0
     damaged: str = ""
     follow_at: float | None = None
+    heading_error_after_turn_deg: float | None = None
 
     @property
     def leader(self) -> int:
@@ -76,6 +81,7 @@ class Analysis:
             "formation_rms_m": _rms(straight),
             "formation_max_m": round(max(straight), 2) if straight else None,
             "turn_max_m": round(max(turns), 2) if turns else None,
+            "heading_error_after_turn_deg": self.heading_error_after_turn_deg,
             "samples": len(self.errors),
             "per_member": per,
             **({"damaged": self.damaged} if self.damaged else {}),
@@ -189,7 +195,25 @@ def analyse(
             turn = j < len(changes) and changes[j] <= t + turn_margin_s
             an.errors.append((t, member, err, turn))
     an.errors.sort()
+    if changes:
+        an.heading_error_after_turn_deg = heading_error(an)
     return an
+
+
+def heading_error(an: Analysis, course_s: float = 5.0) -> float | None:
+    """The last follow task's heading minus the leader's last course (module docstring),
+    in degrees (absolute); None without a follow task or a straight stretch of 2 m."""
+    follows = [task for _t, _l, task in an.tasks if task.kind == TaskKind.FOLLOW]
+    moving = [(t, p) for t, p in an.tracks.get(an.leader, []) if math.hypot(p.vn, p.ve) > 1.0]
+    if not follows or not moving:
+        return None
+    t_end, last = moving[-1]
+    first = next(p for t, p in moving if t >= t_end - course_s)
+    dn, de = ne_between(first.lat, first.lon, last.lat, last.lon)
+    if math.hypot(dn, de) < 2.0:
+        return None
+    course = math.degrees(math.atan2(de, dn))
+    return round(abs((follows[-1].heading - course + 180.0) % 360.0 - 180.0), 2)
 
 
 def _plot_slots(
@@ -267,4 +291,4 @@ def plot(an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "")
     return out
 
 
-__all__ = ["Analysis", "analyse", "plot", "position_at", "read_capture"]
+__all__ = ["Analysis", "analyse", "heading_error", "plot", "position_at", "read_capture"]

@@ -1,6 +1,7 @@
 """Figures of the V formation: the demo's flight in virtual time (swarm.sim.flightsim) for
-pose rates 1, 2, 4 and 10 Hz and loss 0, 10 and 20%, and the air use of a steady
-formation of 10 agents."""
+pose rates 1, 2, 4 and 10 Hz and loss 0, 10 and 20%, the target case in wind (steady
+and gusts) and GPS noise (swarm.sim.weather), and the air use of a steady formation of
+10 agents."""
 
 from __future__ import annotations
 
@@ -9,6 +10,16 @@ from typing import Any
 
 from swarm.sim.flightsim import FlightScenario
 from swarm.sim.flightsim import run as fly
+from swarm.sim.weather import Weather
+
+#: the weather cases: a 5 m/s west wind (across the first leg, behind the second),
+#: with gusts of 1.5 m/s (standard deviation), and GPS errors of 0.5 m RMS per vehicle
+WEATHER = {
+    "wind5": Weather(wind_mps=5.0),
+    "wind5_gusts1.5": Weather(wind_mps=5.0, gust_mps=1.5),
+    "gps0.5": Weather(gps_noise_m=0.5),
+    "wind5_gusts1.5_gps0.5": Weather(wind_mps=5.0, gust_mps=1.5, gps_noise_m=0.5),
+}
 
 
 def _case(fs: FlightScenario, seeds: list[int]) -> dict[str, Any]:
@@ -25,6 +36,7 @@ def _case(fs: FlightScenario, seeds: list[int]) -> dict[str, Any]:
         "rms_straight_m": worst("rms_straight_m"),
         "max_straight_m": worst("max_straight_m"),
         "max_turn_m": worst("max_turn_m"),
+        "heading_error_after_turn_deg": worst("heading_error_after_turn_deg"),
         "air_utilisation": worst("air_utilisation"),
     }
 
@@ -56,7 +68,15 @@ def run(quick: bool = False) -> dict[str, Any]:
         out["target_n5_pose4_loss10"]["ok"] == out["target_n5_pose4_loss10"]["runs"]
         and (out["target_n5_pose4_loss10"]["rms_straight_m"] or 99) <= 1.0
         and (out["target_n5_pose4_loss10"]["max_turn_m"] or 99) <= 5.0
+        and (out["target_n5_pose4_loss10"]["heading_error_after_turn_deg"] or 99) <= 2.0
     )
+    weather: dict[str, Any] = {}
+    for name, w in WEATHER.items():
+        if quick and name != "wind5_gusts1.5_gps0.5":
+            continue
+        fs = FlightScenario(agents=5, loss=0.1, pose_hz=4.0, leg_m=150.0, weather=w)
+        weather[name] = {**w.describe(), **_case(fs, [3] if quick else [3, 4])}
+    out["weather_n5_pose4_loss10"] = weather
     steady = FlightScenario(agents=10, loss=0.1, pose_hz=4.0, leg_m=100.0 if quick else 150.0)
     s10 = _case(steady, [1])
     out["steady_n10_pose4_air_utilisation"] = s10["air_utilisation"]

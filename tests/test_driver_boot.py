@@ -227,7 +227,10 @@ class TracePlayer:
                     start = time.monotonic() - self.hold_at / self.speed
                 if self._stop.wait(max(0.0, start + t / self.speed - time.monotonic())):
                     return  # recorded gaps, sped up: the pacing of a replay
-                conn.sendall(raw)
+                try:
+                    conn.sendall(raw)
+                except (ConnectionResetError, BrokenPipeError):
+                    return  # the driver closed its side: the replay is over
                 self.played_to = t
                 try:
                     conn.recv(65536)  # the driver's requests: drop them

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -28,6 +29,22 @@ class Swarm:
         received = sum(len(a.commands) for a in self.agents.values())
         logged = sum(1 for e in self.station.snapshot()["events"] if e["kind"] == "command")
         return received + logged
+
+    def settled_commands(self, quiet_s: float = 1.0, timeout: float = 30.0) -> int:
+        """:meth:`commands` once the swarm is quiet: nothing in flight at the station
+        and the count unchanged for ``quiet_s`` (a command an earlier test sent may still
+        be retried or answered; what a test then sends is measured from here)."""
+        last = [-1, 0.0]
+
+        def quiet() -> tuple[int] | None:  # a tuple: a count of 0 is an answer too
+            n = self.commands()
+            now = time.monotonic()
+            if self.station.core.commands.in_flight or n != last[0]:
+                last[0], last[1] = n, now
+                return None
+            return (n,) if now - last[1] >= quiet_s else None
+
+        return int(wait_until(quiet, "the swarm to be quiet", timeout, 0.1)[0])
 
 
 @contextmanager

@@ -88,7 +88,7 @@ def test_a_foreign_origin_commands_nothing(
 ) -> None:
     port = open_server.port
     origin = origin.format(port=port, other=port + 1)
-    before = swarm.commands()
+    before = swarm.settled_commands()
     for path in ("/api/command", "/api/replay"):
         a = request(port, "POST", path, TAKEOFF, {"Content-Type": ctype, "Origin": origin})
         assert a.status == 403, (path, a.status, a.body[:200])
@@ -140,7 +140,7 @@ def test_the_same_origin_and_plain_clients_command(swarm: Swarm, open_server: Gc
     ],
 )
 def test_a_body_that_is_not_json_is_415(swarm: Swarm, open_server: GcsServer, ctype: str | None) -> None:
-    before = swarm.commands()
+    before = swarm.settled_commands()
     headers = {} if ctype is None else {"Content-Type": ctype}
     a = request(open_server.port, "POST", "/api/command", TAKEOFF, headers)
     assert a.status == 415 and "application/json" in a.error(), (a.status, a.body[:200])
@@ -162,7 +162,7 @@ def test_a_body_that_is_not_json_is_415(swarm: Swarm, open_server: GcsServer, ct
 def test_a_foreign_host_is_refused(swarm: Swarm, open_server: GcsServer, host: str) -> None:
     port = open_server.port
     host = host.format(port=port)
-    before = swarm.commands()
+    before = swarm.settled_commands()
     for method, path, body, headers in [
         ("GET", "/", None, {}),
         ("GET", "/api/state", None, {}),
@@ -192,7 +192,7 @@ def test_local_names_are_served(open_server: GcsServer, host: str) -> None:
 
 
 def test_websocket_from_a_foreign_origin_is_refused(swarm: Swarm, open_server: GcsServer) -> None:
-    before = swarm.commands()
+    before = swarm.settled_commands()
 
     async def attempt(origin: str | None, host: str | None = None) -> Any:
         headers = {k: v for k, v in (("Origin", origin), ("Host", host)) if v is not None}
@@ -228,7 +228,7 @@ def test_websocket_from_a_foreign_origin_is_refused(swarm: Swarm, open_server: G
 
 def test_beyond_loopback_every_api_needs_the_token(swarm: Swarm, field_server: GcsServer) -> None:
     port = field_server.port
-    before = swarm.commands()
+    before = swarm.settled_commands()
     for headers in (
         {},
         {"Authorization": "Bearer wrong"},
@@ -506,7 +506,7 @@ def test_the_websocket_stays_open_after_extreme_messages(swarm: Swarm, open_serv
             assert not ws.closed
         return answers
 
-    before = swarm.commands()
+    before = swarm.settled_commands()
     answers = asyncio.run(session())
     for (text, mid, status), got in zip(WS_BAD, answers, strict=True):
         assert got["type"] in ("error", "command_result"), got

@@ -6,8 +6,10 @@ Theory of operation. :func:`parse_url` parses the driver's connection strings
 one grammar for radios and flight controllers); it is pure and opens nothing.
 :func:`open_link` opens the pymavlink connection for an :class:`Endpoint` (its
 blocking TCP connect and reconnect loop replaced by :class:`TcpLink`, which has a
-connect timeout and reports EOF instead of retrying), sets up MAVLink 2 signing, and
-waits for the autopilot's HEARTBEAT with our own deadline while sending the
+connect timeout and reports EOF instead of retrying; a refused TCP connect is tried
+again every 0.25 s within the caller's timeout, so a script started together with
+its simulator or SITL finds it), sets up MAVLink 2 signing, and waits for the
+autopilot's HEARTBEAT within what is left of the same deadline while sending the
 companion's heartbeat once a second (udpout and serial peers may wait to hear from
 us first). On any failure the connection is closed again before the error leaves.
 :func:`close_link` closes it, never raising. Errors are one-line
@@ -52,6 +54,7 @@ __all__ = [
 COMPANION_COMPONENT = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_STATE_ACTIVE = 4
+TCP_RETRY_S = 0.25  # between tries of a refused TCP connect, within connect()'s timeout
 
 
 def parse_url(url: str) -> Endpoint:
@@ -130,8 +133,9 @@ class TcpLink(mavutil.mavtcp):
         return True
 
 
-def _open(ep: Endpoint, timeout: float, source_system: int) -> Any:
-    """Open the pymavlink link for ``ep``.
+def _open(ep: Endpoint, deadline: float, source_system: int) -> Any:
+    """Open the pymavlink link for ``ep``; a refused TCP connect is tried again until
+    ``deadline`` (monotonic): the autopilot's port may open a moment after we start.
 
     Raises:
         ConnectError: missing device, unresolvable host, port in use, refused.
@@ -146,8 +150,14 @@ def _open(ep: Endpoint, timeout: float, source_system: int) -> Any:
             ip = _resolve(ep, socket.SOCK_DGRAM)
             return mavutil.mavlink_connection(f"{ep.scheme}:{ip}:{ep.port}", **kw)
         ip = _resolve(ep, socket.SOCK_STREAM)
-        TcpLink.connect_timeout = max(0.1, min(timeout, 5.0))
-        return TcpLink(f"{ip}:{ep.port}", retries=0, **kw)
+        while True:
+            TcpLink.connect_timeout = max(0.1, min(deadline - time.monotonic(), 5.0))
+            try:
+                return TcpLink(f"{ip}:{ep.port}", retries=0, **kw)
+            except ConnectionRefusedError:
+                if time.monotonic() + TCP_RETRY_S >= deadline:
+                    raise
+                time.sleep(TCP_RETRY_S)
     except ConnectError:
         raise
     except (OSError, ValueError) as e:
@@ -170,7 +180,8 @@ def open_link(
         ConnectError: missing device, unresolvable host, refused, link error.
         HeartbeatTimeout: no autopilot heartbeat within ``timeout`` s.
     """
-    conn = _open(ep, timeout, source_system)
+    deadline = time.monotonic() + timeout
+    conn = _open(ep, deadline, source_system)
     conn.mav.srcComponent = source_component
     try:
         if signing_key is not None:
@@ -179,7 +190,7 @@ def open_link(
                 sign_outgoing=True,
                 allow_unsigned_callback=lambda _mav, msg_id: msg_id == MSG_RADIO_STATUS,
             )
-        return conn, _wait_heartbeat(conn, ep, timeout, source_component)
+        return conn, _wait_heartbeat(conn, ep, deadline, timeout, source_component)
     except BaseException:
         close_link(conn)
         raise
@@ -214,8 +225,7 @@ def _autopilot_heartbeat_in(conn: Any, component: int) -> Any | None:
             return msg
 
 
-def _wait_heartbeat(conn: Any, ep: Endpoint, timeout: float, component: int) -> Any:
-    deadline = time.monotonic() + timeout
+def _wait_heartbeat(conn: Any, ep: Endpoint, deadline: float, timeout: float, component: int) -> Any:
     next_hb = 0.0
     hb = companion_heartbeat()
     while True:

@@ -29,6 +29,7 @@ LIGHT = frozenset(
         "test_sik_config.py",
         "test_doctor_bench.py",
         "test_packaging.py",
+        "test_readme_driver.py",  # one simulated vehicle, mostly waiting out its boot
     }
 )
 

@@ -213,6 +213,37 @@ def test_silent_tcp_server_times_out() -> None:
         srv.close()
 
 
+def test_tcp_autopilot_that_opens_its_port_late_is_found_within_the_timeout() -> None:
+    """A script started together with its SITL or ``swarm sim``: the port is refused
+    for a moment, then listens and talks; connect() finds it within its timeout."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    done = threading.Event()
+    conns: list[socket.socket] = []
+
+    def autopilot() -> None:
+        time.sleep(1.2)  # refused until then
+        srv = socket.create_server(("127.0.0.1", port))
+        c = srv.accept()[0]
+        conns.append(c)
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+        hb = mav.heartbeat_encode(2, 3, 81, 0, 3).pack(mav)  # quad, ArduPilot, standby
+        while not done.wait(0.2):
+            c.sendall(hb)
+        c.close()
+        srv.close()
+
+    th = threading.Thread(target=autopilot, daemon=True)
+    th.start()
+    try:
+        with drv.connect(f"tcp:127.0.0.1:{port}", timeout=8, request_telemetry=False) as v:
+            assert v.autopilot == "ardupilot"
+    finally:
+        done.set()
+        th.join(5)
+
+
 def test_silent_udpout_peer_times_out() -> None:
     t0 = time.monotonic()
     with pytest.raises(HeartbeatTimeout):

@@ -6,7 +6,8 @@ talks to it (client ``udpin:127.0.0.1:14540+i``); ardupilot: it listens on TCP
 pseudo terminal and prints the client's side. All timers run on simulated time,
 ``--speedup`` times faster than the wall clock. ``--boot-time S`` makes an ArduPilot
 vehicle boot as a real ArduCopter SITL was recorded to, scaled to S simulated seconds
-(``--realistic-boot``: the recorded 41.5 s; default 0, booted when the link comes up).
+(``--realistic-boot``: the recorded 41.5 s; default 3 s on the bench; 0: booted when the
+link comes up).
 """
 
 from __future__ import annotations
@@ -19,6 +20,11 @@ from collections.abc import Sequence
 
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
+
+#: the default ArduPilot boot on the bench: short, but every phase of a real one is
+#: there (null positions, late home, arming refused), so nothing connects and flies
+#: as if the autopilot had booted before it
+BENCH_BOOT = 3.0
 from swarm.cli.configfile import read_arguments
 from swarm.cli.util import StopFlag, UsageError, guarded, parser
 
@@ -115,10 +121,11 @@ def build_parser() -> argparse.ArgumentParser:
     boot.add_argument(
         "--boot-time",
         type=float,
-        default=0.0,
+        default=BENCH_BOOT,
         metavar="S",
         help="ardupilot: boot as recorded on ArduCopter SITL, scaled to S simulated s "
-        "(BOOT status, zero positions, late home, arming refused; default 0: booted)",
+        f"(BOOT status, zero positions, late home, arming refused; default {BENCH_BOOT:g}; "
+        "0: already booted)",
     )
     boot.add_argument(
         "--realistic-boot",

@@ -9,6 +9,11 @@ results, texts, message types and HEARTBEAT triples matched / total, and the tak
 and ACK matched, every timing ratio within 0.8..1.2. Without ``--quick`` each trace is
 also replayed live, through ``VehicleSim`` on a real TCP socket at ``LIVE_SPEEDUP``
 (about 25 s of wall time per trace): the same figures under ``live``.
+
+``cold_start`` (:mod:`swarm.cli.bench.cold_start`): a real agent and ``swarm sim``
+with the recorded boot powered on together: poses sent before the fix and at Null
+Island (target 0), the take-off refusals met while the autopilot booted, and when a
+take-off was accepted (``--quick``: the boot scaled to 10 s).
 """
 
 from __future__ import annotations
@@ -65,4 +70,12 @@ def run(quick: bool = False, traces: Path = TRACES) -> dict[str, Any]:
     if live:
         out["live"] = {"speedup": LIVE_SPEEDUP, **live, "target_met": live_met}
     out["cpu_s"] = round(time.process_time() - t0, 1)
+    from swarm.cli.bench import cold_start
+
+    cs = cold_start.run(quick)
+    out["cold_start"] = cs
+    out["null_poses_sent"] = cs["null_poses_sent"]
+    out["cold_start_target_met"] = bool(
+        cs["null_poses_sent"] == 0 and cs["poses_before_fix"] == 0 and cs["airborne"]
+    )
     return out

@@ -20,15 +20,14 @@ from collections.abc import Sequence
 
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
-
-#: the default ArduPilot boot on the bench: short, but every phase of a real one is
-#: there (null positions, late home, arming refused), so nothing connects and flies
-#: as if the autopilot had booted before it
-BENCH_BOOT = 3.0
 from swarm.cli.configfile import read_arguments
 from swarm.cli.util import StopFlag, UsageError, guarded, parser
 
 PROG = "swarm sim"
+#: the default ArduPilot boot on the bench: short, but every phase of a real one is
+#: there (null positions, late home, arming refused), so nothing connects and flies
+#: as if the autopilot had booted before it
+BENCH_BOOT = 3.0
 
 
 def parse_home(text: str) -> tuple[float, float, float]:

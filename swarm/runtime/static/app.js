@@ -22,8 +22,8 @@
  * same on the marker, the trail and the row; the leader keeps its colour and is
  * marked with a gold outline and "L"), sortable by a header click, a row click
  * selects. Honest state: a timer ages the newest snapshot ("updated 0.4 s ago");
- * once the socket has closed with no fresher data, or nothing came for
- * max(1.5 s, 2.5 push periods), the page greys the map and the table and says
+ * once the socket has closed with no fresher data, or nothing came for 2.5 push
+ * periods (or polls; at least 1 s), the page greys the map and the table and says
  * "station lost" in a banner; an agent the station reports disconnected, or not
  * heard for AGENT_STALE_S, shows its last values greyed with their age.
  * Commands: the target is the selected agent unless the operator picks "whole
@@ -44,7 +44,7 @@
   const POLL_MS = 1000;
   const LOG_MAX = 300;
   const TRAIL_POINTS = 40;  // a short trail: the newest points the station sends
-  const STALE_MIN_MS = 1500;  // no state for this long (or 2.5 push periods): the station is lost
+  const STALE_MIN_MS = 1000;  // no state for 2.5 push periods, and at least this long: the station is lost
   const AGENT_STALE_S = 3;  // an agent not heard for this long: its values are stale
   // one colour per agent by id: no red (alerts), yellow (the leader's mark) or grey (stale)
   const PALETTE = ["#4e9bff", "#3fd0c9", "#c17dff", "#ff7fc4", "#6fd35a", "#ff9a3c",
@@ -479,10 +479,13 @@
 
   // ---------------------------------------------------------------- honest state
   // how old the page's data is; the station lost when the socket went away with no
-  // fresher data since, or nothing came for max(STALE_MIN_MS, 2.5 push periods)
+  // fresher data since, or nothing came for 2.5 periods of what brings it (the
+  // socket's pushes, else the polls), and at least STALE_MIN_MS: at 2 pushes a
+  // second, said within 0.5 + 1.25 + one 0.2 s tick = 1.95 s of the last push
   function staleAfterMs() {
     const hz = S.config && Number(S.config.ws_hz) > 0 ? Number(S.config.ws_hz) : 2;
-    return Math.max(STALE_MIN_MS, 2500 / hz);
+    const period = S.wsStatus === "live" ? 1000 / hz : POLL_MS;
+    return Math.max(STALE_MIN_MS, 2.5 * period);
   }
   function freshness() {
     const now = performance.now();
@@ -990,7 +993,7 @@
     if (cfg.replay) initReplay();
     select(null, false);
     connect();
-    setInterval(freshness, 250);
+    setInterval(freshness, 200);
   }
   start();
 })();

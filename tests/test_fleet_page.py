@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
-from gcs_browser import browser, poll, screenshot, start_station
+from gcs_browser import browser, new_page, poll, screenshot, start_station
 from net_helpers import free_port, wait_until
 from test_gcs_api import HOME, ScriptedAgent
 
@@ -124,11 +124,8 @@ def ctx() -> Iterator[Any]:
 
 @pytest.fixture
 def page(ctx: Any) -> Iterator[Any]:
-    p = ctx.new_page()
-    p.errors = []
-    p.on("pageerror", lambda exc: p.errors.append(str(exc)))
-    yield p
-    p.close()
+    with new_page(ctx) as p:
+        yield p
 
 
 def open_page(page: Any, url: str, rows: int) -> None:

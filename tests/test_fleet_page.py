@@ -253,6 +253,9 @@ def test_commands_ask_first_cancel_sends_nothing_confirm_sends(live: Live, page:
 def test_hold_all_holds_every_agent_in_one_click(live: Live, page: Any) -> None:
     open_page(page, live.url, len(FLEET))
     before = {k: len(a.kinds()) for k, a in live.agents.items()}
+    page.set_viewport_size({"width": 1024, "height": 600})  # a small laptop: still in view
+    box = page.locator("#hold-all").bounding_box()
+    assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= 1024 and box["y"] >= 0
     assert page.locator("#hold-all").is_visible() and page.locator("#hold-all").is_enabled()
     page.click("#hold-all")
     assert page.locator("#confirm").is_hidden()  # no question in the way
@@ -291,6 +294,12 @@ def test_a_silent_agent_goes_stale_and_a_frozen_or_killed_station_greys_the_page
         )
         poll(lambda: cell(page, 2, "seen").endswith("(lost)"), "agent2 lost", UI_DEADLINE)
         assert cell(page, 2, "battery") == "35 %"  # the last value, kept and greyed
+        page.click('#agents [data-agent-id="2"]')
+        poll(
+            lambda: "stale" in (page.get_attribute("#telemetry", "class") or ""),
+            "its telemetry greyed",
+            UI_DEADLINE,
+        )
         assert page.locator('#agents [data-agent-id="1"].stale').count() == 0
 
         # the station freezes (its sockets stay open): the page says so from the data's age

@@ -475,6 +475,8 @@
         if (rec.el) rec.el.classList.toggle("stale", stale);
       }
     }
+    const sel = S.selected !== null ? S.agents.get(S.selected) : null;
+    $("#telemetry").classList.toggle("stale", Boolean(sel && sel.view.stale));
   }
 
   // ---------------------------------------------------------------- honest state

@@ -159,6 +159,8 @@ def test_fleet_table_lists_every_agent_in_its_colour_sorts_and_selects(live: Liv
         assert cell(page, k, "battery") == ("unknown" if f.battery > 100 else f"{f.battery} %")
         assert cell(page, k, "link") == f"{f.rssi} / {f.remrssi}"
         assert cell(page, k, "seen").endswith(" s")
+    # the station says how often each agent beats: the page's measure of "silent"
+    assert {a["id"]: a["hb_s"] for a in live.station.snapshot()["agents"]} == dict.fromkeys(FLEET, 0.2)
     # one colour per agent, the same on the row, the marker and the trail
     colours = {}
     for k in FLEET:

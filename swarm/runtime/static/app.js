@@ -25,7 +25,8 @@
  * once the socket has closed with no fresher data, or nothing came for 2.5 push
  * periods (or polls; at least 1 s), the page greys the map and the table and says
  * "station lost" in a banner; an agent the station reports disconnected, or not
- * heard for AGENT_STALE_S, shows its last values greyed with their age.
+ * heard for AGENT_STALE_S (or 3 of its heartbeats, hb_s), shows its last values
+ * greyed with their age.
  * Commands: the target is the selected agent unless the operator picks "whole
  * swarm" (reset after each swarm command); every swarm command and every land,
  * return, disarm and take-off asks first in a dialog naming the command and its
@@ -45,7 +46,7 @@
   const LOG_MAX = 300;
   const TRAIL_POINTS = 40;  // a short trail: the newest points the station sends
   const STALE_MIN_MS = 1000;  // no state for 2.5 push periods, and at least this long: the station is lost
-  const AGENT_STALE_S = 3;  // an agent not heard for this long: its values are stale
+  const AGENT_STALE_S = 3;  // an agent not heard for this long (or 3 of its heartbeats): its values are stale
   // one colour per agent by id: no red (alerts), yellow (the leader's mark) or grey (stale)
   const PALETTE = ["#4e9bff", "#3fd0c9", "#c17dff", "#ff7fc4", "#6fd35a", "#ff9a3c",
     "#8fa8ff", "#2fe3a0", "#e37bff", "#54c6ff", "#b6e05a", "#d9a6ff"];
@@ -466,7 +467,8 @@
   function ageFleet() {
     for (const rec of S.agents.values()) {
       const age = agentAge(rec.data);
-      const stale = !rec.data.connected || age === null || age > AGENT_STALE_S;
+      const hb = Number(rec.data.hb_s) > 0 ? Number(rec.data.hb_s) : 1;
+      const stale = !rec.data.connected || age === null || age > Math.max(AGENT_STALE_S, 3 * hb);
       setText(rec.cells.seen, age === null ? "never" : fmt(age, 1, "s") + (rec.data.connected ? "" : " (lost)"));
       if (stale !== rec.view.stale) {
         rec.view.stale = stale;

@@ -92,6 +92,18 @@ def browser() -> Iterator[Any]:
         yield ctx
 
 
+@contextmanager
+def new_page(ctx: Any) -> Iterator[Any]:
+    """A page of the browser context ``ctx`` that keeps its script errors in ``page.errors``."""
+    p = ctx.new_page()
+    p.errors = []
+    p.on("pageerror", lambda exc: p.errors.append(str(exc)))
+    try:
+        yield p
+    finally:
+        p.close()
+
+
 def start_station(argv: Sequence[str], timeout: float = 30.0) -> tuple[Child, str]:
     """Start ``swarm gcs ... --json`` and return it with its page URL, once ready."""
     child = Child(["gcs", *argv, "--json"], name="station")
@@ -112,7 +124,7 @@ def start_station(argv: Sequence[str], timeout: float = 30.0) -> tuple[Child, st
         raise
 
 
-__all__ = ["browser", "distance_m", "poll", "screenshot", "start_station", "write_tiles"]
+__all__ = ["browser", "distance_m", "new_page", "poll", "screenshot", "start_station", "write_tiles"]
 
 
 def poll(pred: Callable[[], Any], what: str, timeout: float, children: Sequence[Child] = ()) -> Any:

@@ -79,6 +79,7 @@ def test_a_return_done_but_unanswered_is_carried_out_on_the_api_and_the_page(
         page.click('#agents [data-agent-id="1"]')
         page.select_option("#cmd-target", "selected")
         page.click('#commands button[data-kind="return"]')
+        page.click("#confirm-ok")  # a return is asked about first
         page.wait_for_function(
             "() => /carried out/.test(document.querySelector('#cmd-status').textContent)", timeout=20000
         )

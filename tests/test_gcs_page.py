@@ -208,6 +208,7 @@ def test_goto_from_the_page_moves_the_agent_on_the_map(bench: Bench, page: Any) 
     poll(lambda: accepted("arm"), "arm accepted", MOVE_DEADLINE, bench.children)
     page.fill("#takeoff-alt", "10")
     page.click('#commands [data-kind="takeoff"]')
+    page.click("#confirm-ok")  # a take-off is asked about first
     poll(lambda: accepted("takeoff"), "takeoff accepted", MOVE_DEADLINE, bench.children)
     # take-off done: the agent holds its position under setpoint control (PX4 OFFBOARD)
     poll(
@@ -299,6 +300,7 @@ def test_replay_of_the_bench_capture_with_pause_and_speed(bench: Bench, page: An
         # nothing to command in a replay
         assert page.locator('#commands [data-kind="land"]').is_disabled()
         assert page.locator("#goto-go").is_disabled()
+        assert page.locator("#hold-all").is_disabled()
         screenshot(page, "gcs_page_replay.png")
         assert page.errors == []
     finally:
@@ -361,6 +363,7 @@ def test_station_without_tiles_or_agents_still_works_and_reconnects(tmp_path: Pa
         # follow in V with no leader: refused, and the reason is on the page
         page.select_option("#cmd-target", "swarm")
         page.click('#commands [data-kind="follow"]')
+        page.click("#confirm-ok")  # every swarm command is asked about first
         poll(
             lambda: "no leader" in page.inner_text("#cmd-status"),
             "the follow refusal on the page",

@@ -130,7 +130,7 @@ def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> No
             page = ctx.new_page()
             page.goto(url)
             page.wait_for_function("() => window.gcs && window.gcs.ready", timeout=15000)
-            badge = '#agents [data-agent-id="1"] .badge'
+            badge = '#agents [data-agent-id="1"] [data-field="mode"]'
             page.wait_for_function(
                 f"() => (document.querySelector('{badge}') || {{}}).textContent === 'vehicle link lost'",
                 timeout=15000,

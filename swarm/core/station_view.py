@@ -145,6 +145,7 @@ class AgentView:
             "name": self.name,
             "connected": self.connected,
             "last_seen_s": round(now - self.last_heard, 1) if math.isfinite(self.last_heard) else None,
+            "hb_s": round(self.hb_interval, 3),  # its Telemetry interval: the page's measure of "silent"
             "lat": round(p.lat, 7) if p else None,
             "lon": round(p.lon, 7) if p else None,
             "alt": round(p.alt, 1) if p else None,

@@ -18,8 +18,25 @@
  * bar at once (history.replaceState), so it is not in the history, a bookmark or a
  * copied link. A 401 (a restarted station with a new token) lands in the log.
  *
- * Stable hooks for tests: #agents [data-agent-id], .agent-marker[data-agent-id],
- * #telemetry [data-field], #election [data-field], #log, #cmd-status, window.gcs.
+ * Fleet table (#agents): one row per agent, its colour (a fixed palette by id: the
+ * same on the marker, the trail and the row; the leader keeps its colour and is
+ * marked with a gold outline and "L"), sortable by a header click, a row click
+ * selects. Honest state: a timer ages the newest snapshot ("updated 0.4 s ago");
+ * once the socket has closed with no fresher data, or nothing came for 2.5 push
+ * periods (or polls; at least 1 s), the page greys the map and the table and says
+ * "station lost" in a banner; an agent the station reports disconnected, or not
+ * heard for AGENT_STALE_S (or 3 of its heartbeats, hb_s), shows its last values
+ * greyed with their age.
+ * Commands: the target is the selected agent unless the operator picks "whole
+ * swarm" (reset after each swarm command); every swarm command and every land,
+ * return, disarm and take-off asks first in a dialog naming the command and its
+ * addressees; "Hold all" (the swarm STOP: every connected agent holds where it is)
+ * is one click.
+ *
+ * Stable hooks for tests: #agents [data-agent-id] (rows, .lead, .stale,
+ * [data-field]), .agent-marker[data-agent-id][data-colour], #telemetry [data-field],
+ * #election [data-field], #log, #cmd-status, #stale-banner, #confirm, #hold-all,
+ * window.gcs.
  */
 (function () {
   "use strict";
@@ -28,6 +45,16 @@
   const POLL_MS = 1000;
   const LOG_MAX = 300;
   const TRAIL_POINTS = 40;  // a short trail: the newest points the station sends
+  const STALE_MIN_MS = 1000;  // no state for 2.5 push periods, and at least this long: the station is lost
+  const AGENT_STALE_S = 3;  // an agent not heard for this long (or 3 of its heartbeats): its values are stale
+  // one colour per agent by id: no red (alerts), yellow (the leader's mark) or grey (stale)
+  const PALETTE = ["#4e9bff", "#3fd0c9", "#c17dff", "#ff7fc4", "#6fd35a", "#ff9a3c",
+    "#8fa8ff", "#2fe3a0", "#e37bff", "#54c6ff", "#b6e05a", "#d9a6ff"];
+  const OFF_COLOUR = "#7d858c";
+  // commands asked about first (and every command to the whole swarm)
+  const CONFIRM_KINDS = new Set(["land", "return", "disarm", "takeoff"]);
+  const VERBS = { arm: "Arm", disarm: "Disarm", takeoff: "Take off", land: "Land", return: "Return",
+    follow: "Follow in V", stop: "Hold", goto: "Go", waypoint: "Add a waypoint" };
   const ARROW = '<svg class="arrow" viewBox="-16 -16 32 32" aria-hidden="true">' +
     '<path d="M0,-13 L9,11 L0,6 L-9,11 Z"/></svg><span class="tag"></span>';
 
@@ -59,6 +86,11 @@
     replay: null,
     replayAt: -Infinity,  // when the socket last pushed the replay status
     tokenWarned: false,
+    lostAt: -Infinity,    // performance.now() when the socket last went away
+    stale: false,         // the page's data is too old to trust
+    sort: { key: "id", dir: 1 },
+    order: "",            // the fleet table's row order last drawn
+    confirming: false,    // the confirmation dialog is open
   };
 
   // the station has set the URL's token as a cookie: keep it out of the address bar
@@ -183,24 +215,37 @@
     }
   }
 
+  function agentColour(id) {
+    return PALETTE[(Math.abs(Math.trunc(Number(id) || 0)) + PALETTE.length - 1) % PALETTE.length];
+  }
+  const FLEET_FIELDS = ["name", "role", "mode", "armed", "alt", "groundspeed", "battery", "link", "seen"];
   function makeAgent(a) {
     const rec = { data: a, marker: null, el: null, arrow: null, tag: null, trail: null, row: null, view: {} };
-    const li = document.createElement("li");
-    li.dataset.agentId = String(a.id);
-    li.innerHTML = '<span class="dot"></span><span class="name"></span><span class="lead" hidden>L</span>' +
-      '<span class="badge"></span>';
-    li.tabIndex = 0;
-    li.addEventListener("click", () => select(a.id, true));
-    li.addEventListener("keydown", (ev) => {
+    rec.colour = agentColour(a.id);
+    const tr = document.createElement("tr");
+    tr.dataset.agentId = String(a.id);
+    tr.dataset.colour = rec.colour;
+    const sw = document.createElement("td");
+    sw.innerHTML = '<span class="swatch"></span><span class="lead" hidden>L</span>';
+    sw.firstChild.style.background = rec.colour;
+    tr.append(sw);
+    rec.cells = {};
+    for (const f of FLEET_FIELDS) {
+      const td = document.createElement("td");
+      td.dataset.field = f;
+      tr.append(td);
+      rec.cells[f] = td;
+    }
+    tr.tabIndex = 0;
+    tr.addEventListener("click", () => select(a.id, true));
+    tr.addEventListener("keydown", (ev) => {
       if (ev.key === "Enter" || ev.key === " ") {
         ev.preventDefault();
         select(a.id, true);
       }
     });
-    rec.row = li;
-    rec.rowName = li.querySelector(".name");
-    rec.rowLead = li.querySelector(".lead");
-    rec.rowBadge = li.querySelector(".badge");
+    rec.row = tr;
+    rec.rowLead = sw.querySelector(".lead");
     S.agents.set(a.id, rec);
     return rec;
   }
@@ -208,7 +253,7 @@
     if (rec.marker || !S.map) return;
     const a = rec.data;
     rec.trail = L.polyline([], {
-      renderer: S.trailRenderer, color: "#2b8cff", weight: 2, opacity: 0.7, interactive: false,
+      renderer: S.trailRenderer, color: rec.colour, weight: 2, opacity: 0.8, interactive: false,
     }).addTo(S.map);
     rec.marker = L.marker([a.lat, a.lon], {
       icon: L.divIcon({ className: "agent-marker", html: ARROW, iconSize: [32, 32], iconAnchor: [16, 16] }),
@@ -217,6 +262,8 @@
     rec.marker.on("click", () => select(a.id, false));
     rec.el = rec.marker.getElement();
     rec.el.dataset.agentId = String(a.id);
+    rec.el.dataset.colour = rec.colour;
+    rec.el.style.setProperty("--agent", rec.colour);
     rec.arrow = rec.el.querySelector(".arrow");
     rec.tag = rec.el.querySelector(".tag");
     rec.view = {};  // draw everything on the new marker
@@ -259,7 +306,7 @@
     const agents = Array.isArray(st.agents) ? st.agents : [];
     const leader = st.leader || 0;
     const seen = new Set();
-    const list = $("#agents");
+    const list = $("#agents tbody");
     const empty = list.querySelector(".empty");
     if (agents.length && empty) empty.remove();
     for (const a of agents) {
@@ -275,8 +322,10 @@
     }
     for (const id of Array.from(S.agents.keys())) if (!seen.has(id)) dropAgent(id);
     if (!agents.length && !list.children.length) {
-      list.innerHTML = '<li class="empty">no agent yet</li>';
+      list.innerHTML = '<tr class="empty"><td colspan="10">no agent yet</td></tr>';
     }
+    sortFleet();
+    ageFleet();
     if (!S.fitted) fitToAgents();
     drawHeader(st, agents, leader);
     drawElection(agents, leader);
@@ -311,7 +360,7 @@
         rec.el.dataset.leader = isLeader ? "1" : "0";
         rec.el.dataset.connected = off ? "0" : "1";
         rec.marker.setZIndexOffset(isLeader ? 500 : 0);
-        rec.trail.setStyle({ color: off ? "#7d858c" : (isLeader ? "#ffb400" : "#2b8cff") });
+        rec.trail.setStyle({ color: off ? OFF_COLOUR : rec.colour, weight: isLeader ? 3 : 2 });
       }
       const trail = Array.isArray(a.trail) ? a.trail.slice(-TRAIL_POINTS) : [];
       const last = trail.length ? trail[trail.length - 1] : null;
@@ -327,18 +376,142 @@
       row.classList.toggle("leader", isLeader);
       row.classList.toggle("selected", selected);
       row.dataset.connected = off ? "0" : "1";
-      setText(rec.rowName, a.name + " (" + a.id + ")");
       rec.rowLead.hidden = !isLeader;
     }
-    // a flight controller gone silent is said in the agent's entry, not just in the log
-    setText(rec.rowBadge, off ? "disconnected" : a.vehicle_link === false ? "vehicle link lost"
-      : String(a.phase || "").toLowerCase());
+    drawFleetRow(rec, isLeader);
     v.leader = isLeader;
     v.off = off;
     v.selected = selected;
     v.name = a.name;
   }
 
+
+  // ---------------------------------------------------------------- fleet table
+  function roleText(a, isLeader) {
+    if (isLeader) return "leader";
+    return String(a.phase || "—").toLowerCase();
+  }
+  // above home when the telemetry carries it (alt_rel), else the AMSL altitude, marked so
+  function altText(a) {
+    if (typeof a.alt_rel === "number") return fmt(a.alt_rel, 1);
+    return typeof a.alt === "number" ? fmt(a.alt, 1) + " AMSL" : "—";
+  }
+  // the link column: RSSI / remote RSSI as the radio gives them (a hook for loss and margin)
+  function linkText(a) {
+    if (a.rssi === null || a.rssi === undefined) return "—";
+    return a.rssi + " / " + (a.remrssi ?? "—");
+  }
+  // seconds since the station heard the agent, aged by the page's own data age
+  function agentAge(a) {
+    if (typeof a.last_seen_s !== "number") return null;
+    return a.last_seen_s + (S.lastStateAt ? (performance.now() - S.lastStateAt) / 1000 : 0);
+  }
+  function drawFleetRow(rec, isLeader) {
+    const a = rec.data;
+    const c = rec.cells;
+    setText(c.name, a.name + " (" + a.id + ")");
+    setText(c.role, roleText(a, isLeader));
+    setText(c.mode, a.vehicle_link === false ? "vehicle link lost" : a.mode || "—");
+    setText(c.armed, a.armed === true ? "armed" : a.armed === false ? "disarmed" : "—");
+    setText(c.alt, altText(a) + (a.airborne ? " ✈" : ""));
+    setText(c.groundspeed, fmt(a.groundspeed, 1));
+    setText(c.battery, typeof a.battery === "number" ? fmt(a.battery, 0, "%") : "unknown");
+    setText(c.link, linkText(a));
+  }
+  // the value a header sorts on (null: last either way)
+  function sortValue(rec, key) {
+    const a = rec.data;
+    if (key === "id") return a.id;
+    if (key === "name") return String(a.name || "");
+    if (key === "role") return a.id === (S.drawn && S.drawn.leader) ? "" : String(a.phase || "~");
+    if (key === "armed") return a.armed === true ? 1 : a.armed === false ? 0 : null;
+    if (key === "alt") return typeof a.alt_rel === "number" ? a.alt_rel : a.alt;
+    if (key === "link") return a.rssi;
+    if (key === "seen") return a.last_seen_s;
+    const v = a[key];
+    return v === undefined ? null : v;
+  }
+  function compareBy(key, dir) {
+    return (x, y) => {
+      const a = sortValue(x, key);
+      const b = sortValue(y, key);
+      if (a === null || b === null) return (a === null) - (b === null) || x.data.id - y.data.id;
+      const d = typeof a === "number" && typeof b === "number" ? a - b : String(a).localeCompare(String(b));
+      return d ? d * dir : x.data.id - y.data.id;
+    };
+  }
+  function sortFleet() {
+    const recs = Array.from(S.agents.values()).sort(compareBy(S.sort.key, S.sort.dir));
+    const order = recs.map((r) => r.data.id).join(",");
+    if (order === S.order) return;
+    S.order = order;
+    const body = $("#agents tbody");
+    for (const r of recs) body.append(r.row);  // moves each row: the table's order
+  }
+  function initSort() {
+    for (const th of document.querySelectorAll("#agents th[data-sort]")) {
+      th.tabIndex = 0;
+      const go = () => {
+        const key = th.dataset.sort;
+        S.sort = { key, dir: S.sort.key === key ? -S.sort.dir : 1 };
+        for (const h of document.querySelectorAll("#agents th")) h.removeAttribute("aria-sort");
+        th.setAttribute("aria-sort", S.sort.dir > 0 ? "ascending" : "descending");
+        S.order = "";
+        sortFleet();
+      };
+      th.addEventListener("click", go);
+      th.addEventListener("keydown", (ev) => { if (ev.key === "Enter") go(); });
+    }
+  }
+  // the ages in the table, and an agent not heard for AGENT_STALE_S (or disconnected) stale
+  function ageFleet() {
+    for (const rec of S.agents.values()) {
+      const age = agentAge(rec.data);
+      const hb = Number(rec.data.hb_s) > 0 ? Number(rec.data.hb_s) : 1;
+      const stale = !rec.data.connected || age === null || age > Math.max(AGENT_STALE_S, 3 * hb);
+      setText(rec.cells.seen, age === null ? "never" : fmt(age, 1, "s") + (rec.data.connected ? "" : " (lost)"));
+      if (stale !== rec.view.stale) {
+        rec.view.stale = stale;
+        rec.row.classList.toggle("stale", stale);
+        rec.row.title = stale ? "stale: these are the last values heard" : "";
+        if (rec.el) rec.el.classList.toggle("stale", stale);
+      }
+    }
+    const sel = S.selected !== null ? S.agents.get(S.selected) : null;
+    $("#telemetry").classList.toggle("stale", Boolean(sel && sel.view.stale));
+  }
+
+  // ---------------------------------------------------------------- honest state
+  // how old the page's data is; the station lost when the socket went away with no
+  // fresher data since, or nothing came for 2.5 periods of what brings it (the
+  // socket's pushes, else the polls), and at least STALE_MIN_MS: at 2 pushes a
+  // second, said within 0.5 + 1.25 + one 0.2 s tick = 1.95 s of the last push
+  function staleAfterMs() {
+    const hz = S.config && Number(S.config.ws_hz) > 0 ? Number(S.config.ws_hz) : 2;
+    const period = S.wsStatus === "live" ? 1000 / hz : POLL_MS;
+    return Math.max(STALE_MIN_MS, 2.5 * period);
+  }
+  function freshness() {
+    const now = performance.now();
+    const age = S.lastStateAt ? (now - S.lastStateAt) / 1000 : null;
+    const gone = S.lostAt > S.lastStateAt;
+    const stale = age === null ? gone : gone || now - S.lastStateAt > staleAfterMs();
+    setText($("#data-age"), age === null ? "no data yet" : "updated " + fmt(age, 1, "s") + " ago");
+    $("#data-age").classList.toggle("old", stale);
+    if (stale !== S.stale) {
+      S.stale = stale;
+      document.body.classList.toggle("stale", stale);
+      $("#stale-banner").hidden = !stale;
+      if (S.drawn) drawHeader(S.drawn, S.drawn.agents || [], S.drawn.leader || 0);
+    }
+    drawTelemetry();  // its "last seen" ages too
+    if (stale) {
+      const what = gone ? "station lost" : "station silent";
+      setText($("#stale-banner"), what + ": data " + (age === null ? "never received" : fmt(age, 0, "s") + " old") +
+        " (" + (gone ? "reconnecting" : "no state received") + "); the map and the table show the last values known");
+    }
+    ageFleet();
+  }
 
   function fitToAgents() {
     const pts = [];
@@ -356,7 +529,8 @@
     }
     setText($("#leader-summary"), "leader: " + (leader ? agentName(leader) : "none"));
     const up = agents.filter((a) => a.connected).length;
-    setText($("#agent-count"), up + "/" + agents.length + " agents connected");
+    // a lost station's count is history, and says so
+    setText($("#agent-count"), (S.stale ? "last known: " : "") + up + "/" + agents.length + " agents connected");
   }
 
   function drawElection(agents, leader) {
@@ -392,7 +566,7 @@
     f("heading", fmt(a.heading, 0, "°"));
     f("battery", a.battery === null || a.battery === undefined ? "unknown" : fmt(a.battery, 0, "%"));
     f("rssi", (a.rssi ?? "—") + " / " + (a.remrssi ?? "—"));
-    f("last_seen", fmt(a.last_seen_s, 1, "s ago"));
+    f("last_seen", fmt(agentAge(a), 1, "s ago"));
     f("position", hasPosition(a) ? a.lat.toFixed(6) + ", " + a.lon.toFixed(6) : "—");
     f("state", String(a.phase || "—") + (a.leader ? ", leader " + a.leader : "") + (a.holding ? ", holding" : ""));
   }
@@ -411,6 +585,7 @@
       $("#goto-alt").value = String(Math.round(rec.data.alt + (rec.data.airborne ? 0 : 10)));
     }
     drawTelemetry();
+    drawTarget();
     if (S.drawn) drawElection(S.drawn.agents || [], S.drawn.leader || 0);
   }
 
@@ -460,6 +635,7 @@
     ws.onerror = () => {};
   }
   function scheduleReconnect() {
+    S.lostAt = performance.now();  // the data is stale until a fresher state arrives
     setLink("reconnecting");
     startPolling();
     setTimeout(connect, S.backoff);
@@ -628,7 +804,7 @@
       btn.addEventListener("click", () => {
         const kind = btn.dataset.kind;
         let target = "swarm";
-        if ($("#cmd-target").value === "selected") {
+        if ($("#cmd-target").value !== "swarm") {
           if (S.selected === null) return localRefusal(kind + ": select an agent first");
           target = S.selected;
         }
@@ -641,9 +817,71 @@
           cmd.heading = parseFloat($("#follow-heading").value);
           if (!Number.isFinite(cmd.heading)) return localRefusal("follow: heading must be a number");
         }
-        command(cmd);
+        confirmed(cmd);
       });
     }
+    initCommandSafety();
+  }
+
+  // ---------------------------------------------------------------- safe commands
+  // the addressees, as the dialog names them: "5 agents", "agent2 (2)"
+  function addressees(cmd) {
+    if (cmd.target !== "swarm") return agentName(cmd.target);
+    const n = S.drawn && Array.isArray(S.drawn.agents) ? S.drawn.agents.filter((a) => a.connected).length : 0;
+    if (cmd.kind === "follow") return "the swarm (through its leader)";
+    return n === 1 ? "1 agent" : n + " agents";
+  }
+  function confirmText(cmd) {
+    let text = (VERBS[cmd.kind] || cmd.kind) + " " + addressees(cmd);
+    if (cmd.kind === "takeoff") text += " to " + cmd.alt + " m above home";
+    if (cmd.kind === "follow") text += ", heading " + cmd.heading + "°";
+    return text + "?";
+  }
+  // every command to the whole swarm and land, return, disarm, take-off to anyone: ask first
+  function confirmed(cmd) {
+    const swarm = cmd.target === "swarm";
+    if (!swarm && !CONFIRM_KINDS.has(cmd.kind)) return command(cmd);
+    if (S.confirming) return null;
+    const dlg = $("#confirm");
+    setText($("#confirm-text"), confirmText(cmd));
+    setText($("#confirm-ok"), VERBS[cmd.kind] || cmd.kind);
+    dlg.dataset.kind = cmd.kind;
+    dlg.dataset.target = String(cmd.target);
+    S.confirming = true;
+    dlg.returnValue = "";
+    return new Promise((resolve) => {
+      dlg.addEventListener("close", () => {
+        S.confirming = false;
+        if (swarm) $("#cmd-target").value = "selected";  // the whole swarm is never left chosen
+        drawTarget();
+        if (dlg.returnValue === "ok") resolve(command(cmd));
+        else {
+          log("cancelled", describe(cmd) + ": not sent");
+          resolve(null);
+        }
+      }, { once: true });
+      dlg.showModal();
+      $("#confirm-cancel").focus();  // Enter on an unread dialog cancels
+    });
+  }
+  // the command buttons say whom they address, and wait for a selected agent
+  function drawTarget() {
+    const swarm = $("#cmd-target").value === "swarm";
+    const none = !swarm && S.selected === null;
+    const rec = S.selected !== null ? S.agents.get(S.selected) : null;
+    setText($("#cmd-to"), swarm ? "every agent" : none ? "select an agent" : rec ? "→ " + agentName(S.selected) : "");
+    $("#cmd-to").classList.toggle("missing", none);
+    if (S.config && S.config.replay) return;
+    for (const b of document.querySelectorAll("#commands button[data-kind]")) {
+      b.disabled = none;
+      b.title = none ? "select an agent (in the table or on the map)" : "";
+    }
+  }
+  function initCommandSafety() {
+    $("#cmd-target").addEventListener("change", drawTarget);
+    // one click: holding where they are is the safe answer to a surprise
+    $("#hold-all").addEventListener("click", () => command({ target: "swarm", kind: "stop" }));
+    drawTarget();
   }
 
   // ---------------------------------------------------------------- replay
@@ -684,7 +922,7 @@
     $("#replay").hidden = false;
     document.body.classList.add("replay");
     // a capture plays: nothing to command
-    for (const el of document.querySelectorAll("#commands button, #goto button")) {
+    for (const el of document.querySelectorAll("#commands button, #goto button, #hold-all")) {
       el.disabled = true;
       el.title = "replay: commands are disabled while a capture plays";
     }
@@ -722,6 +960,11 @@
     get stateCount() { return S.stateCount; },
     get lastStateTime() { return S.lastStateTime; },
     get wsStatus() { return S.wsStatus; },
+    get stale() { return S.stale; },
+    trailColour(id) {
+      const r = S.agents.get(id);
+      return r && r.trail ? r.trail.options.color : null;
+    },
     markerLatLng(id) {
       const r = S.agents.get(id);
       if (!r || !r.marker) return null;
@@ -749,10 +992,12 @@
     S.config = cfg;
     if (cfg.station) setText($("#station"), (cfg.station.name || "station") + " #" + (cfg.station.id ?? "?"));
     initMap(cfg);
+    initSort();
     initControls();
     if (cfg.replay) initReplay();
     select(null, false);
     connect();
+    setInterval(freshness, 200);
   }
   start();
 })();

@@ -25,7 +25,7 @@ from net_helpers import free_port
 from swarm.cli.commands.gcs import main as gcs_main
 from swarm.runtime.server import GcsServer, ServerConfig
 from swarm.runtime.station import Station
-from swarm.runtime.tiles import MAX_TILE_BYTES, MbTilesError, open_mbtiles
+from swarm.runtime.tiles import MAX_TILE_BYTES, open_mbtiles
 
 HOME = (47.397742, 8.545594)
 ZOOM = 17

@@ -22,7 +22,9 @@ FIFO, a device, a crafted database), so :func:`open_mbtiles` checks before trust
 * every query runs under a progress handler that stops it after
   :data:`MAX_STEPS` SQLite steps (a ``tiles`` view that recurses for ever, a table
   without an index scanned for each tile), and a tile larger than
-  :data:`MAX_TILE_BYTES`, or not a blob, is no tile. Metadata values are read
+  :data:`MAX_TILE_BYTES`, or not a blob, is no tile (a query error is logged once
+  per reason; a well-formed file, indexed as the specification asks, looks a tile
+  up in a few hundred steps). Metadata values are read
   shortened and the attribution is HTML-escaped (the page shows it as HTML).
 
 Any failure to open is one :class:`MbTilesError` with a one-line reason ("FILE:
@@ -114,6 +116,7 @@ class MbTiles:
         self.meta = meta
         self._conn = conn
         self._lock = threading.Lock()
+        self._logged: set[str] = set()
 
     def tile(self, z: int, x: int, y: int) -> bytes | None:
         """The image of slippy-map tile ``z/x/y``, or None (no such tile, a bad one)."""
@@ -130,7 +133,12 @@ class MbTiles:
                 )
                 found = cur.fetchone()
         except sqlite3.Error as exc:  # damaged, interrupted (too slow), locked...
-            log.warning("mbtiles %s: tile %d/%d/%d: %s", self.path, z, x, y, exc)
+            why = str(exc)[:200]
+            if why not in self._logged:  # once per reason: a page asks for hundreds of tiles
+                self._logged.add(why)
+                log.warning(
+                    "mbtiles %s: tile %d/%d/%d: %s (tiles failing so are not found)", self.path, z, x, y, why
+                )
             return None
         if found is None or not isinstance(found[0], bytes) or not found[0]:
             return None

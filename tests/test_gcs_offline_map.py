@@ -24,19 +24,14 @@ HOME = (47.397742, 8.545594)
 UI_DEADLINE = 30.0
 
 
-@pytest.fixture(scope="module")
-def ctx() -> Iterator[Any]:
-    with browser() as c:
-        yield c
-
-
 @pytest.fixture
-def page(ctx: Any) -> Iterator[Any]:
-    p = ctx.new_page()
-    p.errors = []
-    p.on("pageerror", lambda exc: p.errors.append(str(exc)))
-    yield p
-    p.close()
+def page() -> Iterator[Any]:
+    """A page of its own headless browser, with the script errors it met in ``errors``."""
+    with browser() as ctx:
+        p = ctx.new_page()
+        p.errors = []
+        p.on("pageerror", lambda exc: p.errors.append(str(exc)))
+        yield p
 
 
 def open_page(page: Any, url: str) -> None:

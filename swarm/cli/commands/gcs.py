@@ -15,9 +15,9 @@ station event (connections, leader changes, command results; ``--json``:
 ``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 0).
 Bad input (a missing serial device, a port in use, a tile folder or an MBTiles
 file that is not one, a damaged capture) prints one line and exits 2. A radio lost
-while running (a USB radio unplugged) is waited for and reopened at the same path, the station
-keeping its view of the swarm (events ``radio lost: ...`` and ``radio back after S
-s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
+while running (a USB radio unplugged) is waited for and reopened at the same path,
+the station keeping its view of the swarm (events ``radio lost: ...`` and ``radio
+back after S s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
 """
 
 from __future__ import annotations

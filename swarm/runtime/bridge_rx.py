@@ -20,6 +20,11 @@ bridge's receive thread):
   conflicts; P2P goes to our own inbox; a pose or state goes under the sender's
   name, if known.
 
+Any frame but RADIO_STATUS carrying our own system id was sent by someone else (a
+radio does not echo): MAVProxy or QGroundControl on the same air with the station's
+id (both default to 255), or a second node given our id. It is logged once and told
+once to the bridge's listeners as ``("id_collision", text)``.
+
 A name conflict is counted, logged once and reported with NameConflict to the
 agents involved (:func:`swarm.core.names.conflict_note`) and to our own agent.
 Everything published carries the :data:`ATTACHMENT` marker, so the sending side
@@ -69,9 +74,14 @@ class AirToLocal:
     def _enqueue(self, item: AirItem) -> None:
         raise NotImplementedError  # the bridge's sending side
 
+    def _tell(self, what: str, text: str) -> None:
+        raise NotImplementedError  # the bridge's listeners
+
     def handle_frame(self, frame: Frame) -> None:
         """Process one frame from the radio (public for tests)."""
         self.stats.frames_in += 1
+        if frame.sysid == self.id and frame.msgid != MSG_RADIO_STATUS:
+            self._own_id_heard(frame)
         if self._verifier is not None and not self._verifier.check(frame):
             vs = self._verifier.stats
             self.stats.unsigned, self.stats.bad_signature, self.stats.replayed = (
@@ -84,6 +94,18 @@ class AirToLocal:
             self._radio_status(frame)
         elif frame.msgid == MSG_TUNNEL:
             self._tunnel(frame)
+
+    def _own_id_heard(self, frame: Frame) -> None:
+        key = ("own_id", self.id)
+        if key in self._conflicts_logged:
+            return
+        self._conflicts_logged.add(key)
+        text = (
+            f"system id {self.id} collision: another sender on the air uses this node's id "
+            f"({frame.name} from component {frame.compid})"
+        )
+        log.warning("bridge %s: %s", self.name, text)
+        self._tell("id_collision", text)
 
     def _radio_status(self, frame: Frame) -> None:
         f = radio_status_fields(frame)

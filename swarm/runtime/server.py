@@ -13,8 +13,10 @@ Routes (README, "Ground station", documents the bodies):
 
 * ``GET /``, ``/static/<path>`` (``swarm/runtime/static``), ``/vendor/leaflet/<path>``
   (``swarm/runtime/vendor/leaflet``: the pinned Leaflet, vendored with its licence),
-  ``/tiles/{z}/{x}/{y}.png`` (``--tiles-dir``). The page and Leaflet are package data:
-  found beside this module, in a checkout as in an installed wheel;
+  ``/tiles/{z}/{x}/{y}.png`` (``--tiles-dir``; from an MBTiles file, ``--tiles-mbtiles``,
+  ``.png``, ``.jpg`` or ``.webp`` as its metadata says: :mod:`swarm.runtime.tiles`, read
+  on a worker thread; a tile that is missing or bad is a 404). The page and Leaflet are
+  package data: found beside this module, in a checkout as in an installed wheel;
 * ``GET /api/config``, ``/api/state``, ``/api/agents/<id>``; ``POST /api/command``;
   ``GET|POST /api/replay`` (replay mode);
 * ``GET /ws``: the state pushed at ``ws_hz``, events as they happen, commands and
@@ -78,6 +80,7 @@ from swarm.runtime.security import (
     split_host,
     ws_id,
 )
+from swarm.runtime.tiles import MbTiles
 from swarm.runtime.websocket import WsHub
 
 log = logging.getLogger(__name__)
@@ -137,7 +140,8 @@ class ServerConfig:
     port: int = 8080
     tiles: str | None = OSM_TILES  # a URL template, or None for a plain background
     tiles_dir: Path | None = None  # serves /tiles/{z}/{x}/{y}.png (and wins over tiles)
-    attribution: str = OSM_ATTRIBUTION
+    tiles_mbtiles: MbTiles | None = None  # serves /tiles/{z}/{x}/{y}.<format> (wins over both)
+    attribution: str = OSM_ATTRIBUTION  # HTML; the default means an MBTiles file's own
     center: tuple[float, float] | None = None
     ws_hz: float = 2.0
     command_timeout: float = 20.0
@@ -162,10 +166,19 @@ class ServerConfig:
             self.token = secrets.token_urlsafe(32)
             self.token_generated = True
         self.allow_hosts = tuple(check_host_name(h) for h in self.allow_hosts)
+        if self.tiles_mbtiles is not None and self.attribution == OSM_ATTRIBUTION:
+            self.attribution = self.tiles_mbtiles.meta.attribution  # the file's own credit, as text
 
     @property
     def tile_template(self) -> str | None:
+        if self.tiles_mbtiles is not None:
+            return LOCAL_TILES[: -len("png")] + self.tiles_mbtiles.meta.format
         return LOCAL_TILES if self.tiles_dir is not None else self.tiles
+
+    @property
+    def tiles_max_zoom(self) -> int:
+        """The deepest zoom the tile source has (the page enlarges it beyond)."""
+        return self.tiles_mbtiles.meta.max_zoom if self.tiles_mbtiles is not None else 19
 
 
 class GcsServer:
@@ -268,7 +281,7 @@ class GcsServer:
         r.add_get("/", self._index)
         r.add_get("/static/{path:.+}", self._static)
         r.add_get("/vendor/leaflet/{path:.+}", self._leaflet)
-        r.add_get(r"/tiles/{z:\d{1,2}}/{x:\d{1,9}}/{y:\d{1,9}}.png", self._tile)
+        r.add_get(r"/tiles/{z:\d{1,2}}/{x:\d{1,9}}/{y:\d{1,9}}.{ext:png|jpg|webp}", self._tile)
         r.add_get("/api/config", self._config)
         r.add_get("/api/state", self._state)
         r.add_get(r"/api/agents/{id:\d{1,9}}", self._agent)
@@ -358,10 +371,27 @@ class GcsServer:
         return await self._file(self.cfg.leaflet_dir, request.match_info["path"], "Leaflet file")
 
     async def _tile(self, request: web.Request) -> web.StreamResponse:
-        if self.cfg.tiles_dir is None:
-            return error_response(404, "no tile folder: start the station with --tiles-dir DIR")
         m = request.match_info
-        return await self._file(self.cfg.tiles_dir, f"{int(m['z'])}/{int(m['x'])}/{int(m['y'])}.png", "tile")
+        z, x, y = int(m["z"]), int(m["x"]), int(m["y"])
+        mb = self.cfg.tiles_mbtiles
+        if mb is not None:
+            data = None
+            if m["ext"] == mb.meta.format:
+                data = await asyncio.get_running_loop().run_in_executor(None, mb.tile, z, x, y)
+            if data is None:
+                return error_response(404, f"tile not found: {z}/{x}/{y}.{m['ext']}")
+            return web.Response(
+                body=data,
+                content_type=mb.meta.content_type,
+                headers={"Cache-Control": "max-age=3600", "X-Content-Type-Options": "nosniff"},
+            )
+        if self.cfg.tiles_dir is None:
+            return error_response(
+                404, "no tile source: start the station with --tiles-dir or --tiles-mbtiles"
+            )
+        if m["ext"] != "png":
+            return error_response(404, f"tile not found: {z}/{x}/{y}.{m['ext']}")
+        return await self._file(self.cfg.tiles_dir, f"{z}/{x}/{y}.png", "tile")
 
     # -- API -----------------------------------------------------------------------
     async def _config(self, request: web.Request) -> web.Response:
@@ -370,6 +400,7 @@ class GcsServer:
             {
                 "tiles": self.cfg.tile_template,
                 "attribution": self.cfg.attribution if self.cfg.tile_template else "",
+                "tiles_max_zoom": self.cfg.tiles_max_zoom,
                 "station": {"name": self.station.name, "id": self.station.id},
                 "replay": self.station.replay is not None,
                 "center": center,

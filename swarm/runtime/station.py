@@ -2,7 +2,9 @@
 
 :class:`Station` runs the core on a thread over a Zenoh session, optionally bridged
 to a radio (exactly as :class:`swarm.runtime.agent.Agent` does), and gives the
-server thread-safe snapshots, command futures and an event feed.
+server thread-safe snapshots, command futures and an event feed. On a radio, the
+bridge's ``id_collision`` (a frame with the station's system id that it did not send:
+MAVProxy or QGroundControl left at their default 255) becomes one ``radio`` event.
 :class:`StationView` is what the server reads from a station, live or replayed.
 """
 
@@ -129,7 +131,18 @@ class Station(StartOnce, StationView):
         tr.on_gs_advertize(lambda m: self.loop.put((m, "")))
         tr.on_pose("*", lambda n, m: self.loop.put((m, n)))
         tr.on_state("*", lambda n, m: self.loop.put((m, n)))
+        if io.bridge is not None:
+            io.bridge.add_listener(self._on_radio)
         self.loop.start()
+
+    def _on_radio(self, what: str, text: str) -> None:
+        """The bridge heard our system id from another sender: say so (once, as the bridge does)."""
+        if what == "id_collision":
+            hint = "; give one of them another id (swarm gcs --id 254, or MAVProxy --source-system)"
+            ev = Event(self.core.wall_offset + self.clock(), "radio", text + hint)
+            with self._lock:
+                self.core.events.append(ev)  # in the history a page opened later reads
+            self._notify([ev])
 
     def stop(self) -> None:
         """Stop the thread, then close bridge, link and session. Safe twice."""

@@ -13,11 +13,11 @@ It prints one ready line once the HTTP server listens (``--json``:
 ``{"event": "ready", "url", "name", "id", "link", "replay", "token", ...}``), then one line per
 station event (connections, leader changes, command results; ``--json``:
 ``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 0).
-Bad input (a missing serial device, a port in use, a tile folder that is not
-one, a damaged capture) prints one line and exits 2. A radio lost while running
-(a USB radio unplugged) is waited for and reopened at the same path, the station
-keeping its view of the swarm (events ``radio lost: ...`` and ``radio back after S
-s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
+Bad input (a missing serial device, a port in use, a tile folder or an MBTiles
+file that is not one, a damaged capture) prints one line and exits 2. A radio lost
+while running (a USB radio unplugged) is waited for and reopened at the same path,
+the station keeping its view of the swarm (events ``radio lost: ...`` and ``radio
+back after S s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ from swarm.runtime.server import (
     check_host_name,
     check_token,
 )
+from swarm.runtime.tiles import MbTilesError, open_mbtiles
 
 PROG = "swarm gcs"
 
@@ -85,7 +86,12 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"map tile URL with {{z}}, {{x}}, {{y}} (default {OSM_TILES}); 'none': a plain background",
     )
     tiles.add_argument("--tiles-dir", metavar="DIR", help="offline tiles DIR/{z}/{x}/{y}.png")
-    p.add_argument("--attribution", help="map attribution text (default: OpenStreetMap's)")
+    tiles.add_argument(
+        "--tiles-mbtiles", metavar="FILE", help="offline tiles from an MBTiles file (png, jpg or webp)"
+    )
+    p.add_argument(
+        "--attribution", help="map attribution text (default: OpenStreetMap's; an MBTiles file's own)"
+    )
     p.add_argument("--center", metavar="LAT,LON", help="initial map centre (default: the first agent)")
     p.add_argument(
         "--ws-hz",
@@ -205,12 +211,21 @@ def _server_config(a: argparse.Namespace) -> ServerConfig:
             raise UsageError(f"--tiles-dir {a.tiles_dir}: not readable")
     if not (math.isfinite(a.ws_hz) and 0 < a.ws_hz <= MAX_WS_HZ):
         raise UsageError(f"--ws-hz {a.ws_hz}: more than 0, at most {MAX_WS_HZ:g}")
+    attribution = OSM_ATTRIBUTION
+    mbtiles = None
+    if a.tiles_mbtiles is not None:
+        try:
+            mbtiles = open_mbtiles(a.tiles_mbtiles)
+        except MbTilesError as exc:
+            raise UsageError(f"--tiles-mbtiles {exc}") from None
+        attribution = mbtiles.meta.attribution
     return ServerConfig(
         host=host,
         port=port,
         tiles=tiles,
         tiles_dir=tiles_dir,
-        attribution=a.attribution if a.attribution is not None else OSM_ATTRIBUTION,
+        tiles_mbtiles=mbtiles,
+        attribution=a.attribution if a.attribution is not None else attribution,
         center=parse_center(a.center) if a.center else None,
         ws_hz=a.ws_hz,
         token=_token(a),
@@ -336,6 +351,8 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
                 pass
 
     def on_radio(what: str, text: str) -> None:
+        if what == "id_collision":  # the station's own event says it (on_event)
+            return
         sep = ": " if what == "lost" else " "
         on_event({"t": round(time.time(), 3), "kind": "radio", "text": f"radio {what}{sep}{text}"})
 

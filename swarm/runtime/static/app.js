@@ -179,15 +179,17 @@
     const map = L.map("map", { zoomControl: true, attributionControl: true, worldCopyJump: true });
     S.map = map;
     S.trailRenderer = L.canvas({ padding: 0.3 });
+    let tiles = null; // its credit only once a tile has loaded; a grid under it (grid.js)
     if (cfg.tiles) {
-      L.tileLayer(cfg.tiles, {
-        maxZoom: 21, maxNativeZoom: 19, attribution: cfg.attribution || "",
+      tiles = L.tileLayer(cfg.tiles, {
+        maxZoom: 21, maxNativeZoom: cfg.tiles_max_zoom || 19, zIndex: 1,
         errorTileUrl: "data:image/gif;base64,R0lGODlhAQABAAAAACH5BAEKAAEALAAAAAABAAEAAAICTAEAOw==",
       }).addTo(map);
     } else {
       $("#map").classList.add("no-tiles");
-      map.attributionControl.addAttribution("no map tiles");
     }
+    const grid = () => window.gcsGrid.add(map, tiles, cfg.attribution || "");
+    if (window.gcsGrid) grid(); else window.addEventListener("load", grid);
     L.control.scale({ imperial: false }).addTo(map);
     if (Array.isArray(cfg.center) && cfg.center.length === 2) {
       map.setView(cfg.center, 17);

@@ -50,7 +50,9 @@ ROOT = Path(__file__).resolve().parents[1]
 RUNTIME = ROOT / "swarm" / "runtime"
 LEAFLET = RUNTIME / "vendor" / "leaflet"
 #: what the page needs, under swarm/runtime; served as /, /static/..., /vendor/leaflet/...
-PAGE_FILES = ("static/index.html", "static/app.js", "static/app.css", "static/icon.svg")
+#: every file of the page's folder ships (a new script must not be left out of the wheel)
+PAGE_FILES = tuple(sorted(f"static/{p.name}" for p in (RUNTIME / "static").iterdir() if p.is_file()))
+assert {"static/index.html", "static/app.js", "static/app.css"} <= set(PAGE_FILES)
 LEAFLET_FILES = (
     "vendor/leaflet/leaflet.js",
     "vendor/leaflet/leaflet.css",

@@ -387,7 +387,11 @@
     setText($("#telemetry-title"), a.name + " (" + a.id + ")" + (a.connected ? "" : " — disconnected"));
     f("mode", a.vehicle_link === false ? "unknown (vehicle link lost)" : a.mode || "—");
     f("armed", a.armed ? "armed" : "disarmed");
-    f("alt", fmt(a.alt, 1, "m") + (a.airborne ? " (airborne)" : ""));
+    // altitudes are metres above home (as QGroundControl), AMSL beside; home: where the station saw it on the ground
+    const rel = typeof a.alt === "number" && typeof a.home_alt === "number" ? a.alt - a.home_alt : null;
+    f("alt", (rel === null ? "home unknown" : fmt(rel, 1, "m above home")) + " (" + fmt(a.alt, 1, "m AMSL") + ")" + (a.airborne ? " (airborne)" : ""));
+    const typed = parseFloat($("#goto-alt").value);
+    setText($("#goto-amsl"), typeof a.home_alt === "number" && Number.isFinite(typed) ? "= " + (a.home_alt + typed).toFixed(1) + " m AMSL" : "home unknown: AMSL not shown");
     f("groundspeed", fmt(a.groundspeed, 1, "m/s"));
     f("heading", fmt(a.heading, 0, "°"));
     f("battery", a.battery === null || a.battery === undefined ? "unknown" : fmt(a.battery, 0, "%"));
@@ -405,10 +409,12 @@
     }
     const rec = id !== null ? S.agents.get(id) : null;
     if (rec && pan && rec.marker && S.map) S.map.panTo(rec.marker.getLatLng());
-    // the go-to altitude (AMSL) follows the selected agent until the operator types one:
-    // its own altitude when flying, 10 m above it on the ground
-    if (rec && !S.altTyped && typeof rec.data.alt === "number") {
-      $("#goto-alt").value = String(Math.round(rec.data.alt + (rec.data.airborne ? 0 : 10)));
+    // the go-to altitude (above home) follows the selected agent until the operator types one:
+    // its own height above home when flying, 10 m on the ground
+    if (rec && !S.altTyped) {
+      const d = rec.data;
+      const flying = d.airborne && typeof d.alt === "number" && typeof d.home_alt === "number";
+      $("#goto-alt").value = String(flying ? Math.round(d.alt - d.home_alt) : 10);
     }
     drawTelemetry();
     if (S.drawn) drawElection(S.drawn.agents || [], S.drawn.leader || 0);
@@ -546,8 +552,8 @@
   function describe(cmd) {
     const who = cmd.target === "swarm" ? "swarm" : agentName(cmd.target);
     let what = cmd.kind;
-    if (cmd.kind === "goto" || cmd.kind === "waypoint") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m";
-    if (cmd.kind === "takeoff") what += " to " + cmd.alt + " m";
+    if (cmd.kind === "goto" || cmd.kind === "waypoint") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m above home";
+    if (cmd.kind === "takeoff") what += " to " + cmd.alt + " m above home";
     if (cmd.kind === "follow") what += " heading " + cmd.heading + "°";
     return what + " → " + who;
   }
@@ -616,7 +622,7 @@
       command({ target: S.selected, kind, lat, lon, alt });
     });
     $("#fit-swarm").addEventListener("click", fitToAgents);
-    $("#goto-alt").addEventListener("input", () => { S.altTyped = true; });
+    $("#goto-alt").addEventListener("input", () => { S.altTyped = true; drawTelemetry(); });
     for (const input of [$("#goto-lat"), $("#goto-lon")]) {
       input.addEventListener("change", () => {
         const lat = parseFloat($("#goto-lat").value);

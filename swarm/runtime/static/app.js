@@ -391,7 +391,7 @@
     const rel = typeof a.alt === "number" && typeof a.home_alt === "number" ? a.alt - a.home_alt : null;
     f("alt", (rel === null ? "home unknown" : fmt(rel, 1, "m above home")) + " (" + fmt(a.alt, 1, "m AMSL") + ")" + (a.airborne ? " (airborne)" : ""));
     const typed = parseFloat($("#goto-alt").value);
-    setText($("#goto-amsl"), typeof a.home_alt === "number" && Number.isFinite(typed) ? "= " + (a.home_alt + typed).toFixed(1) + " m AMSL" : "home unknown: AMSL not shown");
+    setText($("#goto-amsl"), !Number.isFinite(typed) ? "" : "alt " + typed + " m above home" + (typeof a.home_alt === "number" ? " = " + (a.home_alt + typed).toFixed(1) + " m AMSL" : " (home unknown here: AMSL not shown)"));
     f("groundspeed", fmt(a.groundspeed, 1, "m/s"));
     f("heading", fmt(a.heading, 0, "°"));
     f("battery", a.battery === null || a.battery === undefined ? "unknown" : fmt(a.battery, 0, "%"));

@@ -169,18 +169,25 @@ def parse_command(body: Any) -> CommandSpec:
     if kind == CommandKind.TAKEOFF:  # metres above home; the geofence is submit's (and the pilot's)
         return CommandSpec(target, kind, alt=_number(body, "alt", 0.0, ALT_RANGE[1], what))
     if kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
-        lat = _number(body, "lat", -90.0, 90.0, what)
-        lon = _number(body, "lon", -180.0, 180.0, what)
-        if "alt_amsl" in body:
-            if "alt" in body:
-                raise CommandRefused(400, f"{what}: give 'alt' (metres above home) or 'alt_amsl', not both")
-            return CommandSpec(target, kind, lat, lon, alt_amsl=_number(body, "alt_amsl", *ALT_AMSL, what))
-        if "alt" not in body:
-            raise CommandRefused(400, f"{what} needs 'alt' (metres above home)")
-        return CommandSpec(target, kind, lat, lon, _number(body, "alt", *ALT_RANGE, what))
+        return _position(body, target, kind)
     if kind == CommandKind.FOLLOW:
         return CommandSpec(target, kind, heading=_number(body, "heading", 0.0, 360.0, what) % 360.0)
     return CommandSpec(target, kind)
+
+
+def _position(body: dict[str, Any], target: int | None, kind: CommandKind) -> CommandSpec:
+    """A GOTO's or WAYPOINT's ``lat``, ``lon`` and ``alt`` (metres above home) or
+    ``alt_amsl``. Raises CommandRefused (400)."""
+    what = kind.name.lower()
+    lat = _number(body, "lat", -90.0, 90.0, what)
+    lon = _number(body, "lon", -180.0, 180.0, what)
+    if "alt_amsl" in body:
+        if "alt" in body:
+            raise CommandRefused(400, f"{what}: give 'alt' (metres above home) or 'alt_amsl', not both")
+        return CommandSpec(target, kind, lat, lon, alt_amsl=_number(body, "alt_amsl", *ALT_AMSL, what))
+    if "alt" not in body:
+        raise CommandRefused(400, f"{what} needs 'alt' (metres above home)")
+    return CommandSpec(target, kind, lat, lon, _number(body, "alt", *ALT_RANGE, what))
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ and the poses heard on the air into what the flight controller should do. It doe
 no I/O and reads no clock: the runtime (``swarm.runtime.agent``) or the virtual-time
 flight simulator (``swarm.sim.flightsim``) feeds it
 
-* ``set_own(pose, airborne)``: the vehicle's own state;
+* ``set_own(pose, airborne, home)``: the vehicle's own state and its home;
 * ``on_pose(sender, pose, now)``: every agent's pose stream;
 * ``command(cmd, role, now)``: a Command, decided at once: (result, reason, calls).
   A command with vehicle calls is only *accepted by the pilot*; its reason says what

@@ -92,7 +92,7 @@ def run(
 
 def test_retries_back_off_over_twelve_seconds_then_no_answer() -> None:
     core = station(3)
-    req, out = core.submit(CommandSpec(3, CommandKind.GOTO, lat=47.4, lon=8.55, alt=520.0), 1.0)
+    req, out = core.submit(CommandSpec(3, CommandKind.GOTO, lat=47.4, lon=8.55, alt=20.0), 1.0)
     seq = out[0].msg.seq
     sent = run(core, 1.0, 20.0, telemetry={3: tm(3)})
     # 0.5, 1, 2, 3, 4 s apart: six tries in all, every one with the same seq

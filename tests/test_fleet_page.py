@@ -44,7 +44,7 @@ UI_DEADLINE = 15.0
 class Fields:
     mode: str
     armed: bool
-    alt: float  # AMSL: the telemetry carries no altitude above home
+    alt: float  # AMSL, as the telemetry carries it
     speed: float
     battery: int  # 255: unknown
     rssi: int
@@ -154,7 +154,8 @@ def test_fleet_table_lists_every_agent_in_its_colour_sorts_and_selects(live: Liv
         assert cell(page, k, "role") == ("leader" if k == 1 else "member")
         assert cell(page, k, "mode") == f.mode
         assert cell(page, k, "armed") == ("armed" if f.armed else "disarmed")
-        assert cell(page, k, "alt").startswith(f"{f.alt:.1f} AMSL")
+        # above home once the station saw the agent on the ground (its home), else AMSL, marked so
+        assert cell(page, k, "alt") == ("0.0" if not f.armed else f"{f.alt:.1f} AMSL ✈")  # ✈: airborne
         assert cell(page, k, "groundspeed") == f"{f.speed:.1f}"
         assert cell(page, k, "battery") == ("unknown" if f.battery > 100 else f"{f.battery} %")
         assert cell(page, k, "link") == f"{f.rssi} / {f.remrssi}"

@@ -164,7 +164,7 @@ def test_follow_is_refused_without_a_leader_by_a_member_and_with_a_bad_heading()
     assert {a.member for a in lead.task.assignments} == {2, 3}
     on_ground = Pilot(3)
     assert (
-        on_ground.command(Command(255, 3, 3, CommandKind.GOTO, 47.4, 8.5, 520.0), Role(Phase.MEMBER, 1), 0.0)[
+        on_ground.command(Command(255, 3, 3, CommandKind.GOTO, 47.4, 8.5, 20.0), Role(Phase.MEMBER, 1), 0.0)[
             0
         ]
         == AckResult.REJECTED

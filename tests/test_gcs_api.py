@@ -230,7 +230,7 @@ def test_commands_acked_rejected_and_unanswered(live: dict[str, Any]) -> None:
     cmd = agents[3].commands[-1]
     assert (cmd.sender, cmd.target, cmd.kind, cmd.alt) == (255, 3, CommandKind.TAKEOFF, 12.5)
     st, body, _ = http(
-        base, "POST", "/api/command", {"target": 2, "kind": "goto", "lat": 47.4, "lon": 8.55, "alt": 510}
+        base, "POST", "/api/command", {"target": 2, "kind": "goto", "lat": 47.4, "lon": 8.55, "alt": 10}
     )
     assert st == 200 and body["ok"] is False and body["results"][0]["result"] == "REJECTED"
     st, body, _ = http(base, "POST", "/api/command", {"target": "swarm", "kind": "follow", "heading": 270})

@@ -272,7 +272,7 @@ def test_command_retries_with_the_same_seq_then_no_answer() -> None:
 
 def test_a_retried_command_answered_on_the_second_try_and_rejections() -> None:
     core = station_with(3, 4)
-    req, out = core.submit(CommandSpec(3, CommandKind.GOTO, lat=47.4, lon=8.55, alt=520.0), 0.0)
+    req, out = core.submit(CommandSpec(3, CommandKind.GOTO, lat=47.4, lon=8.55, alt=20.0), 0.0)
     seq = out[0].msg.seq
     core.handle(CommandAck(4, seq, AckResult.ACCEPTED), 0.5)  # wrong agent: not its answer
     assert not req.done and core.counters.late_acks == 1
@@ -436,9 +436,9 @@ def test_passive_core_sends_nothing_and_counts_anything_heard() -> None:
         ({"target": 0, "kind": "arm"}, "target 0 is not an agent id"),
         ({"target": 251, "kind": "arm"}, "target 251 is not an agent id"),
         ({"target": 3, "kind": "takeoff"}, "takeoff needs 'alt'"),
-        ({"target": 3, "kind": "takeoff", "alt": 0}, "'alt' 0 outside 1..120"),
+        ({"target": 3, "kind": "takeoff", "alt": -1}, "'alt' -1 outside 0..5553"),
         ({"target": 3, "kind": "takeoff", "alt": "10"}, "'alt' must be a number"),
-        ({"target": 3, "kind": "takeoff", "alt": 121}, "'alt' 121 outside"),
+        ({"target": 3, "kind": "takeoff", "alt": 6000}, "'alt' 6000 outside"),
         ({"target": "swarm", "kind": "waypoint", "lat": 47, "lon": 8, "alt": 5}, "waypoint is for one agent"),
         ({"target": 3, "kind": "goto", "lat": 47.0, "lon": 8.0}, "goto needs 'alt'"),
         ({"target": 3, "kind": "goto", "lat": 91, "lon": 8.0, "alt": 500}, "'lat' 91 outside"),

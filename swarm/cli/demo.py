@@ -411,7 +411,9 @@ class _Demo:
         a = pymap3d.ned2geodetic(cfg.leg_m, 0.0, 0.0, lat, lon, alt)
         b = pymap3d.ned2geodetic(cfg.leg_m, cfg.leg_m, 0.0, lat, lon, alt)
         for kind, p in ((CommandKind.GOTO, a), (CommandKind.WAYPOINT, b)):
-            self.command(leader, kind, f"the leader's {kind.name}", lat=float(p[0]), lon=float(p[1]), alt=alt)
+            self.command(
+                leader, kind, f"the leader's {kind.name}", lat=float(p[0]), lon=float(p[1]), alt=cfg.alt_m
+            )
         route_wall = time.time()
         self.progress_until(lambda: self.watch.has_event(leader, "arrived"))
         end_wait = self.elapsed() + cfg.tail_s

@@ -137,15 +137,19 @@ class Phase(IntEnum):
 
 
 class CommandKind(IntEnum):
+    """What a Command asks. Every ``alt`` a Command carries is metres above the
+    vehicle's home (as MAVLink's GLOBAL_RELATIVE_ALT frame), never AMSL: the agent adds
+    its own home, so the station need not know it (:mod:`swarm.core.geofence`)."""
+
     ARM = 1
     DISARM = 2
     TAKEOFF = 3  # alt: metres above home
     LAND = 4
     RETURN = 5
-    GOTO = 6  # lat, lon, alt (AMSL)
+    GOTO = 6  # lat, lon, alt (metres above home)
     FOLLOW = 7  # heading degrees
     STOP = 8
-    WAYPOINT = 9  # lat, lon, alt (AMSL): append to the route being flown (GOTO replaces it)
+    WAYPOINT = 9  # lat, lon, alt (above home): append to the route being flown (GOTO replaces it)
 
 
 class AckResult(IntEnum):

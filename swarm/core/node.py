@@ -106,6 +106,7 @@ class PoseHeard:
 class OwnPose:
     pose: Pose
     airborne: bool
+    home: tuple[float, float, float] | None = None  # the autopilot's: lat, lon, metres AMSL
 
 
 @dataclass(frozen=True)
@@ -284,7 +285,7 @@ class AgentNode:
                 self.stats["poses_heard"] += 1
         elif isinstance(ev, OwnPose):
             core.set_pose(ev.pose)
-            self.pilot.set_own(ev.pose, ev.airborne)
+            self.pilot.set_own(ev.pose, ev.airborne, ev.home)
         elif isinstance(ev, VehicleInfo):
             self.vehicle = ev
         elif isinstance(ev, RadioInfo):

@@ -7,7 +7,7 @@ and the poses heard on the air into what the flight controller should do. It doe
 no I/O and reads no clock: the runtime (``swarm.runtime.agent``) or the virtual-time
 flight simulator (``swarm.sim.flightsim``) feeds it
 
-* ``set_own(pose, airborne)``: the vehicle's own state;
+* ``set_own(pose, airborne, home)``: the vehicle's own state and its home;
 * ``on_pose(sender, pose, now)``: every agent's pose stream;
 * ``command(cmd, role, now)``: a Command, decided at once: (result, reason, calls).
   A command with vehicle calls is only *accepted by the pilot*; its reason says what
@@ -51,6 +51,10 @@ Rules (each stated once, here):
   each other for ever while re-forming). An individual GOTO or STOP from the
   operator clears it (the operator is resolving it) and that agent is not checked
   again until it has been clear once or 10 s passed.
+* **Geofence** (:mod:`swarm.core.geofence`): a command's altitude is metres above
+  home (the vehicle's, else where it last stood); a take-off or a go-to below the
+  fence's floor, above its ceiling or beyond its radius from home is refused
+  (BAD_ARGUMENT, the limit it breaks); a go-to with no home known is REJECTED.
 * **Stop**: an individual STOP holds this agent; the swarm STOP makes the leader
   hold and send a HOLD task, and every member holds.
 * The swarm heading a leader announces on a route is the route's heading averaged
@@ -82,10 +86,11 @@ from swarm.core.formation import (
     steer_heading,
     turn_window_m,
 )
+from swarm.core.geofence import Geofence
 from swarm.core.messages import AckResult, Command, CommandKind, Phase, Pose, Task, TaskKind
 
 MAX_GOTO_M = 5000.0
-MAX_TAKEOFF_M = 120.0
+MIN_TAKEOFF_M = 1.0
 SEPARATION_WAIVER_S = 10.0
 
 
@@ -129,6 +134,7 @@ class PilotConfig:
     max_lead_m: float = 8.0
     arrive_m: float = 1.0
     formation: FormationConfig = field(default_factory=FormationConfig)
+    fence: Geofence = field(default_factory=Geofence)
 
     def __post_init__(self) -> None:
         for k, lo, hi in (
@@ -183,6 +189,7 @@ class Pilot:
     _swarm_h: float | None = None  # the leader's announced swarm heading (smoothed)
     _swarm_rate: float = 0.0
     _ground_alt: float | None = None  # AMSL altitude last seen on the ground (take-off height base)
+    home: tuple[float, float, float] | None = None  # lat, lon, metres AMSL: what altitudes are above
     _last_step: float | None = None
     _left_gen: int | None = None  # the FOLLOW gen we left for an individual command
     _applied_task: tuple[TaskKind, int] = (TaskKind.NONE, -1)
@@ -191,11 +198,19 @@ class Pilot:
     _gen: int = 0
 
     # -- inputs -------------------------------------------------------------------
-    def set_own(self, pose: Pose | None, airborne: bool) -> None:
+    def set_own(
+        self, pose: Pose | None, airborne: bool, home: tuple[float, float, float] | None = None
+    ) -> None:
+        """The vehicle's pose, whether it flies, and its home (lat, lon, metres AMSL) when
+        the autopilot told it; without one, home is where the vehicle last stood."""
         self.own = pose
         self.airborne = airborne
         if pose is not None and not airborne:
             self._ground_alt = pose.alt
+        if home is not None:
+            self.home = home
+        elif pose is not None and not airborne:
+            self.home = (pose.lat, pose.lon, pose.alt)
 
     def on_pose(self, sender: int, pose: Pose, now: float) -> None:
         if sender == self.me:
@@ -260,9 +275,11 @@ class Pilot:
                 return AckResult.REJECTED, "in the air: land first", []
             return AckResult.ACCEPTED, "disarming", [Call("disarm")]
         if k == CommandKind.TAKEOFF:
-            if not (math.isfinite(cmd.alt) and 1.0 <= cmd.alt <= MAX_TAKEOFF_M):
-                why = f"take-off altitude {cmd.alt:g} m outside 1..{MAX_TAKEOFF_M:g}"
-                return AckResult.BAD_ARGUMENT, why, []
+            why = self.cfg.fence.alt_refusal(cmd.alt)
+            if why is None and not cmd.alt >= MIN_TAKEOFF_M:
+                why = f"altitude {cmd.alt:g} m: a take-off climbs {MIN_TAKEOFF_M:g} m at least"
+            if why is not None:
+                return AckResult.BAD_ARGUMENT, "take-off " + why, []
             if self.airborne and self.mode not in (Mode.IDLE, Mode.LAND, Mode.RETURN):
                 return AckResult.ACCEPTED, "already flying", []
             self._leave_formation()
@@ -286,16 +303,15 @@ class Pilot:
         return AckResult.BAD_ARGUMENT, f"unknown command {k!r}", []
 
     def _goto(self, cmd: Command, now: float, *, append: bool) -> tuple[AckResult, str, list[Call]]:
-        if not (
-            math.isfinite(cmd.lat)
-            and math.isfinite(cmd.lon)
-            and -90 <= cmd.lat <= 90
-            and -180 <= cmd.lon <= 180
-            and math.isfinite(cmd.alt)
-        ):
-            return AckResult.BAD_ARGUMENT, "position out of range", []
+        home = self.home
+        why = self.cfg.fence.refusal(cmd.lat, cmd.lon, cmd.alt, None if home is None else home[:2])
+        if why is not None:
+            return AckResult.BAD_ARGUMENT, why, []
         if self.own is None or not self.airborne or self.mode in (Mode.TAKEOFF, Mode.LAND, Mode.RETURN):
             return AckResult.REJECTED, "not flying under setpoint control: take off first", []
+        if home is None:
+            return AckResult.REJECTED, "home unknown: the geofence cannot be checked", []
+        alt = home[2] + cmd.alt  # the setpoints are AMSL
         if append and self.mode == Mode.GOTO and self._route is not None:
             o = self._route_origin
             n, e = ne_between(o[0], o[1], cmd.lat, cmd.lon)
@@ -314,11 +330,11 @@ class Pilot:
         start = self.last_setpoint if self.mode in (Mode.HOLD, Mode.GOTO) and self.last_setpoint else None
         o = (start.lat, start.lon) if start is not None else (self.own.lat, self.own.lon)
         self._route_origin = o
-        self._route_alt = cmd.alt
+        self._route_alt = alt
         tn, te = ne_between(o[0], o[1], cmd.lat, cmd.lon)
         if math.hypot(tn, te) < 0.5:
             self.mode, self.hold_reason = Mode.HOLD, "at the target"
-            self.hold_at = Setpoint(cmd.lat, cmd.lon, cmd.alt, self._yaw())
+            self.hold_at = Setpoint(cmd.lat, cmd.lon, alt, self._yaw())
             return AckResult.ACCEPTED, "", []
         self._route_pts = [(0.0, 0.0), (tn, te)]
         self._route = Route(self._route_pts, self.cfg.turn_radius_m)

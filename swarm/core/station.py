@@ -388,10 +388,12 @@ class StationCore:
         out: list[StOut] = []
         if not a.connected and a.connect_seq is None and not self.passive:
             out += self._start_connect(a, now)
+        fc = bool(msg.flags & FLAG_FC_OK)  # without a flight controller these are unknown
         if has_position(msg.pose):
             a.pose = msg.pose
             a.add_trail(msg.pose, now, self.cfg.trail_s, self.cfg.trail_points)
-        fc = bool(msg.flags & FLAG_FC_OK)  # without a flight controller these are unknown
+            if fc and not msg.flags & FLAG_AIRBORNE:
+                a.home = (msg.pose.lat, msg.pose.lon, msg.pose.alt)  # the geofence's home
         self._vehicle_link(a, fc, now)
         a.mode = mode_name(msg.mode) if fc or a.vehicle_link is None else ""
         a.armed = bool(msg.flags & FLAG_ARMED) if fc else None

@@ -6,7 +6,9 @@ The API's command object (``{"target": id | "swarm", "kind": ..., args}``) becom
 :class:`CommandSpec` in :func:`parse_command`, or is refused with a
 :class:`CommandRefused` holding a short reason and an HTTP-like status; nothing about
 the swarm is known here (that check is
-:meth:`swarm.core.station_delivery.CommandDelivery.submit`'s).
+:meth:`swarm.core.station_delivery.CommandDelivery.submit`'s, and so is the
+geofence). Altitudes are metres above the vehicle's home (``alt``); a go-to may give
+``alt_amsl`` instead, which submit converts with the home the station knows.
 
 A submitted command is a :class:`Request` holding one :class:`Pending` per addressee:
 its :class:`~swarm.core.messages.Command` (one seq each), the tries made, the agents
@@ -35,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from swarm.core.messages import AckResult, Command, CommandKind
-from swarm.core.pilot import MAX_TAKEOFF_M
 from swarm.errors import SwarmError
 
 NO_ANSWER = "NO_ANSWER"
@@ -66,7 +67,8 @@ AGENT_KINDS = {
     CommandKind.WAYPOINT,
     CommandKind.STOP,
 }
-ALT_AMSL = (-1000.0, 5553.0)  # what a Command can carry (decimetres, offset 1000 m)
+ALT_RANGE = (-1000.0, 5553.0)  # what a Command can carry (decimetres, offset 1000 m)
+ALT_AMSL = (-1000.0, 10000.0)  # an ``alt_amsl`` the API takes (converted with the agent's home)
 
 
 class CommandRefused(SwarmError):
@@ -87,8 +89,11 @@ class CommandSpec:
     kind: CommandKind
     lat: float = 0.0
     lon: float = 0.0
-    alt: float = 0.0
+    alt: float = 0.0  # metres above the vehicle's home
     heading: float = 0.0
+    #: GOTO/WAYPOINT given as ``alt_amsl`` (metres above sea level): submit converts it
+    #: to ``alt`` with the home the station knows for the agent, or refuses it
+    alt_amsl: float | None = None
 
 
 def _number(body: dict[str, Any], key: str, lo: float, hi: float, what: str) -> float:
@@ -161,19 +166,28 @@ def parse_command(body: Any) -> CommandSpec:
         )
         raise CommandRefused(400, f'target {shown}: an agent id (1..250) or "swarm"')
     what = kind.name.lower()
-    if kind == CommandKind.TAKEOFF:  # the pilot's range (swarm.core.pilot): refused here, not in the air
-        return CommandSpec(target, kind, alt=_number(body, "alt", 1.0, MAX_TAKEOFF_M, what))
+    if kind == CommandKind.TAKEOFF:  # metres above home; the geofence is submit's (and the pilot's)
+        return CommandSpec(target, kind, alt=_number(body, "alt", 0.0, ALT_RANGE[1], what))
     if kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
-        return CommandSpec(
-            target,
-            kind,
-            lat=_number(body, "lat", -90.0, 90.0, what),
-            lon=_number(body, "lon", -180.0, 180.0, what),
-            alt=_number(body, "alt", *ALT_AMSL, what),
-        )
+        return _position(body, target, kind)
     if kind == CommandKind.FOLLOW:
         return CommandSpec(target, kind, heading=_number(body, "heading", 0.0, 360.0, what) % 360.0)
     return CommandSpec(target, kind)
+
+
+def _position(body: dict[str, Any], target: int | None, kind: CommandKind) -> CommandSpec:
+    """A GOTO's or WAYPOINT's ``lat``, ``lon`` and ``alt`` (metres above home) or
+    ``alt_amsl``. Raises CommandRefused (400)."""
+    what = kind.name.lower()
+    lat = _number(body, "lat", -90.0, 90.0, what)
+    lon = _number(body, "lon", -180.0, 180.0, what)
+    if "alt_amsl" in body:
+        if "alt" in body:
+            raise CommandRefused(400, f"{what}: give 'alt' (metres above home) or 'alt_amsl', not both")
+        return CommandSpec(target, kind, lat, lon, alt_amsl=_number(body, "alt_amsl", *ALT_AMSL, what))
+    if "alt" not in body:
+        raise CommandRefused(400, f"{what} needs 'alt' (metres above home)")
+    return CommandSpec(target, kind, lat, lon, _number(body, "alt", *ALT_RANGE, what))
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,11 @@ Theory of operation
 -------------------
 :meth:`CommandDelivery.submit` checks a :class:`~swarm.core.station_commands.CommandSpec`
 against what the station knows (unknown agent, not connected, no leader: refused
-with a reason and an HTTP-like status, nothing sent) and returns a
+with a reason and an HTTP-like status, nothing sent) and against the station's
+geofence (:mod:`swarm.core.geofence`: a take-off's or a go-to's altitude above home
+outside the floor and ceiling, a go-to beyond the radius from the home the station
+saw the agent at, 400; with no home seen the radius is left to the agent's own
+fence, and an ``alt_amsl`` cannot be converted, 409), and returns a
 :class:`~swarm.core.station_commands.Request` holding one command per addressee.
 Each is re-sent with the same seq after ``command_backoff`` gaps (0.5, 1, 2, 3, 4 s,
 then 4 s) until its CommandAck arrives or ``command_give_up`` (12 s) has passed since
@@ -95,7 +99,6 @@ class CommandDelivery:
                 (FOLLOW), nothing connected (a swarm fan-out).
         """
         kind = spec.kind
-        args = {"lat": spec.lat, "lon": spec.lon, "alt": spec.alt, "heading": spec.heading}
         plan: list[tuple[int, int]] = []  # (agent, Command.target)
         if spec.target is not None:
             a = self.agents.get(spec.target)
@@ -103,6 +106,7 @@ class CommandDelivery:
                 raise CommandRefused(404, f"unknown agent {spec.target}")
             if not a.connected:
                 raise CommandRefused(409, f"{self._label(a.id)} is not connected")
+            spec = self._fenced(spec, a)
             plan.append((a.id, a.id))
         else:
             connected = sorted(i for i, a in self.agents.items() if a.connected)
@@ -115,6 +119,8 @@ class CommandDelivery:
                 plan += [(i, i) for i in connected]
             if not plan:
                 raise CommandRefused(409, "no connected agents")
+            spec = self._fenced(spec, None)
+        args = {"lat": spec.lat, "lon": spec.lon, "alt": spec.alt, "heading": spec.heading}
         req = Request(next(self._request_ids), spec)
         out: list[StOut] = []
         for agent, target in plan:
@@ -124,6 +130,33 @@ class CommandDelivery:
             self._pending[seq] = p
             out += self._send(p, now, leader)
         return req, out
+
+    def _fenced(self, spec: CommandSpec, a: AgentView | None) -> CommandSpec:
+        """``spec`` inside the station's geofence, its ``alt_amsl`` made metres above the
+        home seen for agent ``a``.
+
+        Raises:
+            CommandRefused: 400 outside the fence (the limit in the reason); 409 an
+                ``alt_amsl`` for an agent whose home the station has not seen.
+        """
+        fence, what = self.cfg.fence, spec.kind.name.lower()
+        if spec.kind == CommandKind.TAKEOFF:
+            why = fence.alt_refusal(spec.alt)
+            if why is None and spec.alt < 1.0:
+                why = f"altitude {spec.alt:g} m: a take-off climbs 1 m at least"
+        elif spec.kind in (CommandKind.GOTO, CommandKind.WAYPOINT) and a is not None:
+            if spec.alt_amsl is not None:
+                if a.home is None:
+                    raise CommandRefused(
+                        409, f"{self._label(a.id)}'s home is unknown here: give 'alt' (metres above home)"
+                    )
+                spec = replace(spec, alt=round(spec.alt_amsl - a.home[2], 1), alt_amsl=None)
+            why = fence.refusal(spec.lat, spec.lon, spec.alt, None if a.home is None else a.home[:2])
+        else:
+            return spec
+        if why is not None:
+            raise CommandRefused(400, f"{what} refused by the station's geofence: {why}")
+        return spec
 
     def ack(self, msg: CommandAck, now: float, leader: int) -> None:
         """A CommandAck heard (the station is not passive)."""

@@ -22,6 +22,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from swarm.core.geofence import Geofence
 from swarm.core.messages import Message, Phase, Pose
 
 
@@ -43,6 +44,8 @@ class StationConfig:
     trail_points: int = 120
     events: int = 200
     passive_timeout: float = 5.0
+    #: what a command may ask (swarm.core.geofence); submit refuses the rest
+    fence: Geofence = field(default_factory=Geofence)
 
     def __post_init__(self) -> None:
         for k in (
@@ -126,6 +129,9 @@ class AgentView:
     #: (t, lat, lon, the point as JSON text): formatted once when stored, because
     #: formatting 50 agents' trails at every push cost more than the messages
     trail: deque[tuple[float, float, float, str]] = field(default_factory=deque)
+    #: where Telemetry last showed the vehicle on the ground (lat, lon, m AMSL): its
+    #: home once it takes off from there; None until seen on the ground
+    home: tuple[float, float, float] | None = None
 
     def as_dict(self, now: float) -> dict[str, Any]:
         d = self._fields(now)
@@ -149,6 +155,7 @@ class AgentView:
             "lat": round(p.lat, 7) if p else None,
             "lon": round(p.lon, 7) if p else None,
             "alt": round(p.alt, 1) if p else None,
+            "home_alt": round(self.home[2], 1) if self.home else None,
             "heading": round(p.heading, 1) if p else None,
             "groundspeed": None if self.groundspeed is None else round(self.groundspeed, 2),
             "mode": self.mode or None,

@@ -563,7 +563,8 @@ class Agent(StartOnce):
         if pose is None:
             self.stats["poses_withheld"] += 1
             return
-        self.loop.put(OwnPose(pose, bool(s.in_air)))
+        home = s.home if s.home is not None and s.home[:2] != (0.0, 0.0) else None
+        self.loop.put(OwnPose(pose, bool(s.in_air), home))
         self.transport.publish_pose(PoseReport(pose))
         self.stats["poses"] += 1
 

@@ -90,7 +90,8 @@ class AgentConfig:
     ``fast`` (its windows from ``round_s``, the radio network's TDM round: None for a
     SiK pair at 64 kbit/s), ``vote`` ``random``, ``battery`` or ``link``, ``pose_hz``
     with a flight controller, ``fc_timeout`` to hear it first, ``seed`` for the random
-    draws (None: unseeded), ``pilot`` the formation and flight settings.
+    draws (None: unseeded), ``pilot`` the formation and flight settings and the
+    geofence (:class:`~swarm.core.geofence.Geofence`, ``pilot.fence``).
 
     Raises:
         ValueError: an unknown profile or vote, a round or pose rate out of range.

@@ -213,7 +213,7 @@ class FlightSim(Sim):
                 self._leader_after_crash()
                 for i in range(n):
                     if self.alive[i]:
-                        self.nodes[i].handle(OwnPose(self.pose_of(i, t), True), t)
+                        self.nodes[i].handle(OwnPose(self.pose_of(i, t), True, HOME), t)
             self._step_nodes(t, next_pose, next_vehicle)
             if pilot_due:
                 next_pilot += 0.1
@@ -226,7 +226,7 @@ class FlightSim(Sim):
         for i in range(self.fs.agents):
             self.started[i] = True
             nd = self.nodes[i]
-            nd.handle(OwnPose(self.pose_of(i, 0.0), True), 0.0)
+            nd.handle(OwnPose(self.pose_of(i, 0.0), True, HOME), 0.0)
             self._send(i, self._node_outs(i, nd.start(0.0), 0.0), 0.0)
             nd.pilot._hold("hovering")
 
@@ -334,7 +334,9 @@ class FlightSim(Sim):
         b = pymap3d.ned2geodetic(leg, leg, 0.0, o.lat, o.lon, o.alt)
         self.route_end_heading = 90.0  # the second leg: east
         for k, (kind, p) in enumerate(((CommandKind.GOTO, a), (CommandKind.WAYPOINT, b))):
-            res, why = self._command(i, Command(255, 2 + k, i + 1, kind, float(p[0]), float(p[1]), o.alt), t)
+            res, why = self._command(
+                i, Command(255, 2 + k, i + 1, kind, float(p[0]), float(p[1]), o.alt - HOME[2]), t
+            )
             if res != AckResult.ACCEPTED:
                 raise RuntimeError(f"route refused: {why}")
         self.route_at = t

@@ -61,6 +61,7 @@ from firmware_bridge.errors import BridgeError
 from radios.errors import ATError, RadioError
 from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
 from swarm.cli.configfile import file_errors, read_arguments
+from swarm.cli.fence_args import add_fence_arguments, fence_from
 from swarm.cli.util import (
     StopFlag,
     UsageError,
@@ -115,6 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
     _add_flight_arguments(p)
+    add_fence_arguments(p, "the agent's pilot")
     _add_capture_arguments(p)
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
     return p
@@ -357,6 +359,7 @@ def _check_arguments(a: argparse.Namespace) -> None:
     if not 1 <= a.id <= 250:
         raise UsageError(f"--id {a.id}: agent ids are 1..250 (255 is the ground station)")
     a.node = node_options(a, "an agent")
+    a.fence = fence_from(a)
     if a.round_s is None:
         if not 2 <= a.slots <= 32:
             raise UsageError("--slots: 2..32")
@@ -380,7 +383,9 @@ def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
         formation = FormationConfig(
             back_m=a.back, side_m=a.side, stagger_m=a.stagger, min_separation_m=a.min_separation
         )
-        pilot = PilotConfig(speed_mps=a.speed, turn_radius_m=a.turn_radius, formation=formation)
+        pilot = PilotConfig(
+            speed_mps=a.speed, turn_radius_m=a.turn_radius, formation=formation, fence=a.fence
+        )
         config = AgentConfig(
             profile=a.profile, round_s=a.round_s, vote=a.vote, pose_hz=a.pose_hz, pilot=pilot
         )

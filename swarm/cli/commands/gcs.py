@@ -35,6 +35,7 @@ from typing import Any
 from radios.errors import CaptureError
 from radios.smallfile import read_small_file
 from swarm.cli.configfile import file_errors, read_arguments
+from swarm.cli.fence_args import add_fence_arguments, fence_from
 from swarm.cli.util import (
     StopFlag,
     UsageError,
@@ -100,6 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"state pushes per second on the WebSocket (default 2, at most {MAX_WS_HZ:g})",
     )
     _add_security_arguments(p)
+    add_fence_arguments(p, "the station")
     p.add_argument("--capture", metavar="FILE", help="record the radio's traffic to a .tlog (with --radio)")
     p.add_argument("--name", default="gcs", help="station name (default gcs)")
     p.add_argument("--id", type=int, default=255, help="station system id, 251..255 (default 255)")
@@ -257,6 +259,7 @@ def _check(a: argparse.Namespace) -> None:
         raise UsageError(f"--id {a.id}: ground stations use {STATION_IDS.start}..{STATION_IDS.stop - 1}")
     if a.speed is not None and not (math.isfinite(a.speed) and 0 < a.speed <= 100):
         raise UsageError(f"--speed {a.speed}: a factor in (0, 100]")
+    a.fence = fence_from(a)
 
 
 @guarded(PROG)
@@ -287,10 +290,11 @@ def _open_station(a: argparse.Namespace) -> Any:
         return ReplayStation(
             cap, speed=a.speed or 1.0, name=None if a.name == "gcs" else a.name, playing=not a.paused
         ).start()
+    from swarm.core.station import StationConfig
     from swarm.runtime.station import Station
 
     n = a.node
-    st = Station(a.name, a.id, node=n, capture=a.capture)
+    st = Station(a.name, a.id, node=n, capture=a.capture, config=StationConfig(fence=a.fence))
     try:
         return st.start()
     except CaptureError as exc:  # the capture file is the user's input too

@@ -393,9 +393,14 @@
     if (isLeader) return "leader";
     return String(a.phase || "—").toLowerCase();
   }
-  // above home when the telemetry carries it (alt_rel), else the AMSL altitude, marked so
+  // metres above home (the convention of every altitude typed or read here) when the
+  // station knows the agent's home, else the AMSL altitude, marked so
+  function altAboveHome(a) {
+    return typeof a.alt === "number" && typeof a.home_alt === "number" ? a.alt - a.home_alt : null;
+  }
   function altText(a) {
-    if (typeof a.alt_rel === "number") return fmt(a.alt_rel, 1);
+    const rel = altAboveHome(a);
+    if (rel !== null) return fmt(rel, 1);
     return typeof a.alt === "number" ? fmt(a.alt, 1) + " AMSL" : "—";
   }
   // the link column: RSSI / remote RSSI as the radio gives them (a hook for loss and margin)
@@ -427,7 +432,7 @@
     if (key === "name") return String(a.name || "");
     if (key === "role") return a.id === (S.drawn && S.drawn.leader) ? "" : String(a.phase || "~");
     if (key === "armed") return a.armed === true ? 1 : a.armed === false ? 0 : null;
-    if (key === "alt") return typeof a.alt_rel === "number" ? a.alt_rel : a.alt;
+    if (key === "alt") return altAboveHome(a) !== null ? altAboveHome(a) : a.alt;
     if (key === "link") return a.rssi;
     if (key === "seen") return a.last_seen_s;
     const v = a[key];
@@ -563,7 +568,11 @@
     setText($("#telemetry-title"), a.name + " (" + a.id + ")" + (a.connected ? "" : " — disconnected"));
     f("mode", a.vehicle_link === false ? "unknown (vehicle link lost)" : a.mode || "—");
     f("armed", a.armed ? "armed" : "disarmed");
-    f("alt", fmt(a.alt, 1, "m") + (a.airborne ? " (airborne)" : ""));
+    // altitudes are metres above home (as QGroundControl), AMSL beside; home: where the station saw it on the ground
+    const rel = typeof a.alt === "number" && typeof a.home_alt === "number" ? a.alt - a.home_alt : null;
+    f("alt", (rel === null ? "home unknown" : fmt(rel, 1, "m above home")) + " (" + fmt(a.alt, 1, "m AMSL") + ")" + (a.airborne ? " (airborne)" : ""));
+    const typed = parseFloat($("#goto-alt").value);
+    setText($("#goto-amsl"), !Number.isFinite(typed) ? "" : "alt " + typed + " m above home" + (typeof a.home_alt === "number" ? " = " + (a.home_alt + typed).toFixed(1) + " m AMSL" : " (home unknown here: AMSL not shown)"));
     f("groundspeed", fmt(a.groundspeed, 1, "m/s"));
     f("heading", fmt(a.heading, 0, "°"));
     f("battery", a.battery === null || a.battery === undefined ? "unknown" : fmt(a.battery, 0, "%"));
@@ -581,10 +590,12 @@
     }
     const rec = id !== null ? S.agents.get(id) : null;
     if (rec && pan && rec.marker && S.map) S.map.panTo(rec.marker.getLatLng());
-    // the go-to altitude (AMSL) follows the selected agent until the operator types one:
-    // its own altitude when flying, 10 m above it on the ground
-    if (rec && !S.altTyped && typeof rec.data.alt === "number") {
-      $("#goto-alt").value = String(Math.round(rec.data.alt + (rec.data.airborne ? 0 : 10)));
+    // the go-to altitude (above home) follows the selected agent until the operator types one:
+    // its own height above home when flying, 10 m on the ground
+    if (rec && !S.altTyped) {
+      const d = rec.data;
+      const flying = d.airborne && typeof d.alt === "number" && typeof d.home_alt === "number";
+      $("#goto-alt").value = String(flying ? Math.round(d.alt - d.home_alt) : 10);
     }
     drawTelemetry();
     drawTarget();
@@ -724,8 +735,8 @@
   function describe(cmd) {
     const who = cmd.target === "swarm" ? "swarm" : agentName(cmd.target);
     let what = cmd.kind;
-    if (cmd.kind === "goto" || cmd.kind === "waypoint") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m";
-    if (cmd.kind === "takeoff") what += " to " + cmd.alt + " m";
+    if (cmd.kind === "goto" || cmd.kind === "waypoint") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m above home";
+    if (cmd.kind === "takeoff") what += " to " + cmd.alt + " m above home";
     if (cmd.kind === "follow") what += " heading " + cmd.heading + "°";
     return what + " → " + who;
   }
@@ -794,7 +805,7 @@
       command({ target: S.selected, kind, lat, lon, alt });
     });
     $("#fit-swarm").addEventListener("click", fitToAgents);
-    $("#goto-alt").addEventListener("input", () => { S.altTyped = true; });
+    $("#goto-alt").addEventListener("input", () => { S.altTyped = true; drawTelemetry(); });
     for (const input of [$("#goto-lat"), $("#goto-lon")]) {
       input.addEventListener("change", () => {
         const lat = parseFloat($("#goto-lat").value);

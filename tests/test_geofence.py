@@ -335,3 +335,38 @@ def test_parse_refuses_what_is_no_altitude(body: dict[str, Any], words: str) -> 
     with pytest.raises(CommandRefused) as ei:
         parse_command(body)
     assert ei.value.status == 400 and words in ei.value.reason, ei.value.reason
+
+
+# -- mixed versions: an earlier agent or station never misreads a height -------------------
+#: the command kinds of the version before altitudes above home (GOTO 6 and WAYPOINT 9
+#: carried AMSL), as that version's decoder knew them
+EARLIER_KINDS = frozenset(range(1, 10))
+
+
+def test_a_goto_above_home_is_a_kind_an_earlier_agent_cannot_decode() -> None:
+    """An earlier agent read a go-to's altitude as AMSL: 20 m above home would be 20 m
+    above the sea, into the ground. The new kinds are unknown to it: it drops the
+    Command (an undecodable kind) and the station reports no answer; nothing flies."""
+    for kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
+        raw = encode(goto(20.0, kind=kind))
+        assert raw[5] == kind.value and kind.value not in EARLIER_KINDS  # after header, sender, seq, target
+    for kind in CommandKind:  # every other kind means what it meant
+        if kind not in (CommandKind.GOTO, CommandKind.WAYPOINT):
+            assert kind.value in EARLIER_KINDS, kind
+
+
+@pytest.mark.parametrize("kind", [CommandKind.GOTO_AMSL, CommandKind.WAYPOINT_AMSL])
+def test_an_earlier_stations_amsl_goto_is_decoded_and_refused_by_the_agent(kind: CommandKind) -> None:
+    node = _node()
+    raw = encode(goto(604.0, kind=kind))  # 20 m above a 584 m home, as an earlier station sent it
+    assert raw[5] in (6, 9)
+    ack = _answer(node, raw, 0.1)
+    assert ack.result == AckResult.REJECTED and "update the station" in ack.reason, ack
+    assert node.pilot.mode == Mode.HOLD
+
+
+@pytest.mark.parametrize("name", ["goto_amsl", "waypoint_amsl", "GOTO_AMSL"])
+def test_the_station_never_sends_an_earlier_kind(name: str) -> None:
+    with pytest.raises(CommandRefused) as info:
+        parse_command({"target": 1, "kind": name, "lat": HOME[0], "lon": HOME[1], "alt": 20.0})
+    assert info.value.status == 400

@@ -146,10 +146,20 @@ class CommandKind(IntEnum):
     TAKEOFF = 3  # alt: metres above home
     LAND = 4
     RETURN = 5
-    GOTO = 6  # lat, lon, alt (metres above home)
     FOLLOW = 7  # heading degrees
     STOP = 8
-    WAYPOINT = 9  # lat, lon, alt (above home): append to the route being flown (GOTO replaces it)
+    GOTO = 10  # lat, lon, alt (metres above home)
+    WAYPOINT = 11  # lat, lon, alt (above home): append to the route being flown (GOTO replaces it)
+    #: an earlier version's GOTO and WAYPOINT, whose altitude was AMSL: decoded (captures
+    #: replay) and refused by an agent, never sent. The kinds above home took new numbers
+    #: so that an agent of that version drops them (an unknown kind) instead of reading
+    #: 20 m above home as 20 m above the sea.
+    GOTO_AMSL = 6
+    WAYPOINT_AMSL = 9
+
+
+#: the kinds only an earlier version sends (see :class:`CommandKind`)
+LEGACY_KINDS = frozenset({CommandKind.GOTO_AMSL, CommandKind.WAYPOINT_AMSL})
 
 
 class AckResult(IntEnum):
@@ -369,6 +379,7 @@ class NameConflict(Message):
 
 __all__ = [
     "GCS_ID",
+    "LEGACY_KINDS",
     "MAX_NAME",
     "NAME_RE",
     "PROTOCOL_VERSION",

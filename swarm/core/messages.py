@@ -365,6 +365,16 @@ _CMD_ARGS: dict[mt.CommandKind, list[tuple[str, tuple[Callable[[_W, Any], None],
         ("lon", _scaled("i", 1e7)),
         ("alt", _scaled("H", 10, 1000.0)),
     ],
+    mt.CommandKind.GOTO_AMSL: [
+        ("lat", _scaled("i", 1e7)),
+        ("lon", _scaled("i", 1e7)),
+        ("alt", _scaled("H", 10, 1000.0)),
+    ],
+    mt.CommandKind.WAYPOINT_AMSL: [
+        ("lat", _scaled("i", 1e7)),
+        ("lon", _scaled("i", 1e7)),
+        ("alt", _scaled("H", 10, 1000.0)),
+    ],
 }
 
 BY_TYPE: dict[int, type[mt.Message]] = {cls.TYPE: cls for cls in _LAYOUT}

@@ -87,7 +87,7 @@ from swarm.core.formation import (
     turn_window_m,
 )
 from swarm.core.geofence import Geofence
-from swarm.core.messages import AckResult, Command, CommandKind, Phase, Pose, Task, TaskKind
+from swarm.core.messages import LEGACY_KINDS, AckResult, Command, CommandKind, Phase, Pose, Task, TaskKind
 
 MAX_GOTO_M = 5000.0
 MIN_TAKEOFF_M = 1.0
@@ -300,6 +300,8 @@ class Pilot:
             return AckResult.ACCEPTED, "", []
         if k in (CommandKind.GOTO, CommandKind.WAYPOINT):
             return self._goto(cmd, now, append=k == CommandKind.WAYPOINT)
+        if k in LEGACY_KINDS:  # its altitude is AMSL: never guess which a sender meant
+            return AckResult.REJECTED, "an older station's go-to (altitude AMSL): update the station", []
         return AckResult.BAD_ARGUMENT, f"unknown command {k!r}", []
 
     def _goto(self, cmd: Command, now: float, *, append: bool) -> tuple[AckResult, str, list[Call]]:

@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from swarm.core.messages import AckResult, Command, CommandKind
+from swarm.core.messages import LEGACY_KINDS, AckResult, Command, CommandKind
 from swarm.errors import SwarmError
 
 NO_ANSWER = "NO_ANSWER"
@@ -46,7 +46,7 @@ CARRIED_OUT = "CARRIED_OUT"
 RESULTS = (*(r.name for r in AckResult), CARRIED_OUT, NO_ANSWER)
 #: results that mean the command was carried out
 DONE_RESULTS = (AckResult.ACCEPTED.name, CARRIED_OUT)
-KINDS: dict[str, CommandKind] = {k.name.lower(): k for k in CommandKind}
+KINDS: dict[str, CommandKind] = {k.name.lower(): k for k in CommandKind if k not in LEGACY_KINDS}
 #: kinds a swarm target accepts (FOLLOW and STOP through the leader; the rest fanned out)
 SWARM_KINDS = {
     CommandKind.ARM,

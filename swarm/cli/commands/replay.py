@@ -10,7 +10,14 @@ by a power cut at the end of a file is skipped with one note on stderr). Four
 modes (each its own function below; only one runs):
 
 * dump (default): one line per frame, MAVProxy-like text or, with ``--json``, one
-  JSON object per line (:func:`radios.replay.decode_record`);
+  JSON object per line (:func:`radios.replay.decode_record`). A swarm TUNNEL frame
+  is shown as the message it carries (:func:`swarm.core.tunnel_decode.decode_tunnel`):
+  text ``TIME SYSID/COMPID KIND FROM -> TO {field : value, ...}``, JSON the header
+  facts plus ``tunnel``, ``kind``, ``from``, ``to`` and ``fields``; a payload that
+  does not decode (a capture is hostile input) is one line saying why (``kind``
+  null and ``error`` in JSON). TUNNEL frames are read by the swarm's own codec
+  without pymavlink, which keeps ``--json`` fast (``swarm bench gcs``:
+  ``replay_json_speed``);
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
   object;
@@ -43,6 +50,7 @@ from typing import Any
 
 from radios.errors import CaptureDamagedError, ConfigError, LinkError
 from radios.link import open_link
+from radios.mavlink import MSG_TUNNEL, STX_V2
 from radios.replay import (
     DEFAULT_MAX_GAP,
     DEFAULT_SPEED,
@@ -54,7 +62,7 @@ from radios.replay import (
     format_time,
 )
 from radios.rotating import FC, RADIO
-from radios.tlog import TlogReader, read_tlog
+from radios.tlog import TlogReader, TlogRecord, read_tlog
 from radios.tlogset import FlightLogReader, read_flight_log
 from radios.url import parse_link_url
 from swarm.cli.util import (
@@ -66,8 +74,10 @@ from swarm.cli.util import (
     parser,
     print_json,
 )
+from swarm.core.tunnel_decode import decode_tunnel, format_fields, format_to
 
 PROG = "swarm replay"
+_dumps = json.JSONEncoder(check_circular=False).encode
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -184,13 +194,56 @@ def _silence_stdout() -> None:
 
 def _dump(reader: TlogReader | FlightLogReader, *, as_json: bool) -> int:
     write = sys.stdout.write
+    line = _json_line if as_json else _text_line
     try:
         for rec in reader:
-            write((json.dumps(decode_record(rec)) if as_json else format_record(rec)) + "\n")
+            write(line(rec))
     except CaptureDamagedError as exc:
         return _damaged(exc)
     sys.stdout.flush()
     return 0
+
+
+def _swarm(rec: TlogRecord) -> dict[str, Any] | None:
+    """The record's swarm message (:func:`swarm.core.tunnel_decode.decode_tunnel`) with
+    the MAVLink header facts, or None when it is not a swarm TUNNEL frame."""
+    frame = rec.frame
+    raw = frame.raw
+    v2 = raw[0] == STX_V2
+    if (raw[7] | raw[8] << 8 | raw[9] << 16 if v2 else raw[5]) != MSG_TUNNEL:
+        return None
+    d = decode_tunnel(frame.payload)
+    if d is None:
+        return None
+    sysid = raw[5] if v2 else raw[3]
+    head = {
+        "t": rec.t,
+        "sysid": sysid,
+        "compid": raw[6] if v2 else raw[4],
+        "seq": raw[4] if v2 else raw[2],
+        "msg": "TUNNEL",
+        "msgid": MSG_TUNNEL,
+        "len": len(raw),
+        "from": sysid,
+    }
+    head.update(d)
+    return head
+
+
+def _json_line(rec: TlogRecord) -> str:
+    d = _swarm(rec)
+    return _dumps(d if d is not None else decode_record(rec)) + "\n"
+
+
+def _text_line(rec: TlogRecord) -> str:
+    d = _swarm(rec)
+    if d is None:
+        return format_record(rec) + "\n"
+    head = f"{format_time(d['t'])} {d['sysid']}/{d['compid']}"
+    route = f"{d['from']} -> {format_to(d['to'])}"
+    if d["kind"] is None:
+        return f"{head} TUNNEL swarm {d['tunnel']} {route} <cannot decode: {d['error']}>\n"
+    return f"{head} {d['kind']} {route} {format_fields(d['fields'])}\n"
 
 
 # -- statistics -------------------------------------------------------------------

@@ -17,8 +17,12 @@ playing; pause, seek (backwards re-feeds a fresh core from the start, quickly,
 without announcing the events again) and speed. :meth:`ReplayStation.step` does
 the work and takes its time from the injected ``clock``, so tests drive it
 without real time passing; :meth:`ReplayStation.start` calls it from a thread.
-It offers the server the same view as the live station; commands are refused
-(409).
+It offers the server the same view as the live station, in the capture's time (the
+state's ``time`` and the events' times are the capture's; an agent counts as
+connected if heard within ``passive_timeout`` of that time); commands are refused
+(409). :meth:`ReplayStation.status` adds the capture's time at the play position
+(``time``, ``start``) for the page's "REPLAY" header, and ``seeks``, which counts
+seeks: the page rebuilds its event log from the state when it changes.
 """
 
 from __future__ import annotations
@@ -212,6 +216,7 @@ class ReplayStation(StationView):
         self.speed = float(speed)
         self.playing = playing
         self.position = 0.0
+        self.seeks = 0
         self.core = self._new_core()
         self._index = 0
         self._last = clock()
@@ -298,6 +303,9 @@ class ReplayStation(StationView):
                 "speed": self.speed,
                 "position_s": round(self.position, 3),
                 "duration_s": round(self.capture.duration, 3),
+                "time": round(self.capture.t0 + self.position, 3),
+                "start": round(self.capture.t0, 3),
+                "seeks": self.seeks,
             }
 
     def control(self, action: Any, value: Any = None) -> dict[str, Any]:
@@ -332,6 +340,7 @@ class ReplayStation(StationView):
 
     def seek(self, position: float) -> None:
         with self._lock:
+            self.seeks += 1
             if position < self.position:
                 self.core = self._new_core()
                 self._index = 0

@@ -16,6 +16,10 @@ connected:
   with the station still fed; null with a ``page_error`` when no browser can run.
 
 Targets (the issue): station under 20% of one core; page frame p95 under 50 ms.
+
+``replay_json_speed`` (and its companions): ``swarm replay --json`` on the checked-in
+demo capture, capture seconds per wall second (:mod:`swarm.cli.bench.replay_speed`,
+measured first, while the station idles); target 200.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import time
 import urllib.request
 from typing import Any
 
+from swarm.cli.bench import replay_speed
 from swarm.cli.procs import Child, cpu_seconds, free_tcp_port
 from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
 from swarm.core.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
@@ -84,6 +89,7 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     )
     feeder: subprocess.Popen[bytes] | None = None
     out: dict[str, Any] = {"agents": agents, "rate_hz": hz, "warm_up_s": warm_up, "measure_s": seconds}
+    out.update(replay_speed.measure(runs=2 if quick else 3))  # before the feeder loads the machine
     try:
         url = json.loads(station.wait_lines(1, 30)[0])["url"]
         feeder = subprocess.Popen(

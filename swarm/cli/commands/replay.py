@@ -46,10 +46,9 @@ import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from radios.errors import CaptureDamagedError, ConfigError, LinkError
-from radios.link import open_link
 from radios.mavlink import MSG_TUNNEL, STX_V2
 from radios.replay import (
     DEFAULT_MAX_GAP,
@@ -61,9 +60,7 @@ from radios.replay import (
     format_record,
     format_time,
 )
-from radios.rotating import FC, RADIO
 from radios.tlog import TlogReader, TlogRecord, read_tlog
-from radios.tlogset import FlightLogReader, read_flight_log
 from radios.url import parse_link_url
 from swarm.cli.util import (
     EXIT_FAILURE,
@@ -75,6 +72,9 @@ from swarm.cli.util import (
     print_json,
 )
 from swarm.core.tunnel_decode import decode_tunnel, format_fields, format_to
+
+if TYPE_CHECKING:  # the flight log and link modules are imported where used: a dump needs neither
+    from radios.tlogset import FlightLogReader
 
 PROG = "swarm replay"
 _dumps = json.JSONEncoder(check_circular=False).encode
@@ -154,6 +154,9 @@ def _open(path: str, args: argparse.Namespace) -> TlogReader | FlightLogReader:
     if not os.path.exists(path):
         raise UsageError(f"{path}: no such capture file")
     if os.path.isdir(path):
+        from radios.rotating import FC, RADIO
+        from radios.tlogset import read_flight_log
+
         if args.plot is not None:
             raise UsageError(f"--plot reads one capture file, not the folder {path}")
         try:
@@ -316,6 +319,8 @@ def _signals(flag: StopFlag) -> Iterator[None]:
 
 
 def _feed(reader: TlogReader | FlightLogReader, args: argparse.Namespace) -> int:
+    from radios.link import open_link
+
     url = _with_baud(args.to, args.baud)
     speed = DEFAULT_SPEED if args.speed is None else args.speed
     max_gap = DEFAULT_MAX_GAP if args.max_gap is None else args.max_gap

@@ -24,44 +24,34 @@ def get(url: str) -> Any:
         return json.loads(r.read())
 
 
+def _fly(links: list[str], cap: Path, procs: list[Child]) -> None:
+    """A station capturing its radio (links[1]) and agent1 (links[0]) until connected;
+    the processes go into ``procs`` as they start (the caller stops them)."""
+    http = f"127.0.0.1:{free_port()}"
+    gcs = Child(["gcs", "--radio", links[1], "--capture", str(cap), "--http", http, "--json"], name="gcs")
+    procs.append(gcs)
+    url = json.loads(gcs.wait_lines(1, 30)[0])["url"]
+    procs.append(Child(["agent", "--name", "agent1", "--id", "1", "--radio", links[0], "--json"], name="a1"))
+
+    def agent1_connected() -> bool:
+        agents = get(url + "api/state")["agents"]
+        return any(a["id"] == 1 and a["connected"] and a["phase"] for a in agents)
+
+    wait_until(agent1_connected, "agent1 connected over the radio", 60, children=procs)
+    gcs.proc.send_signal(signal.SIGTERM)  # the station closes its capture
+    assert gcs.proc.wait(10) == 0
+
+
 @pytest.fixture(scope="module")
 def station_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("station-capture")
-    emu, links = start_emulator(2, d)
     cap = d / "gcs.tlog"
-    children: list[Child] = []
+    emu, links = start_emulator(2, d)
+    procs: list[Child] = []
     try:
-        gcs = Child(
-            [
-                "gcs",
-                "--radio",
-                links[1],
-                "--capture",
-                str(cap),
-                "--http",
-                f"127.0.0.1:{free_port()}",
-                "--json",
-            ],
-            name="gcs",
-        )
-        children.append(gcs)
-        url = json.loads(gcs.wait_lines(1, 30)[0])["url"]
-        children.append(
-            Child(["agent", "--name", "agent1", "--id", "1", "--radio", links[0], "--json"], name="a1")
-        )
-
-        def connected() -> bool:
-            for c in children:
-                assert c.proc.poll() is None, f"{c.name} exited: {c.errors[-5:]}"
-            return any(
-                a["connected"] and a["id"] == 1 and a["phase"] for a in get(url + "api/state")["agents"]
-            )
-
-        wait_until(connected, "agent1 connected over the radio", 60)
-        gcs.proc.send_signal(signal.SIGTERM)
-        assert gcs.proc.wait(10) == 0
+        _fly(links, cap, procs)
     finally:
-        for c in children:
+        for c in procs:
             c.stop(grace=3)
         emu.stop()
     return cap

@@ -113,6 +113,9 @@ def test_replay_shows_capture_time_count_and_rebuilds_the_log_on_seek(
     up_late = sum(a["connected"] for a in st["agents"])
     assert up_late >= 3
     assert st["events"] and all(start["start"] <= e["t"] <= late["time"] for e in st["events"])
+    radio = late["radio"]  # the station radio's link quality, as the capture holds it
+    assert radio is not None
+    assert f"radio RSSI {radio['rssi']}/{radio['remrssi']}" in page.inner_text("#replay-time")
     late_log = log_entries(page)
     assert any(k == "leader" for k, _ in late_log), late_log
     screenshot(page, "replay_page_60s.png")
@@ -125,4 +128,13 @@ def test_replay_shows_capture_time_count_and_rebuilds_the_log_on_seek(
     assert 0 < sum(a["connected"] for a in st["agents"]) < up_late
     early_log = log_entries(page)
     assert len(early_log) < len(late_log) and not any(k == "leader" for k, _ in early_log), early_log
+    # the map too: only the agents heard by then, no leader mark from later
+    heard = {a["id"] for a in st["agents"]}
+    poll(
+        lambda: set(page.evaluate("window.gcs.agents")) == heard,
+        "the agents of 2 s on the page",
+        UI_DEADLINE,
+        [station],
+    )
+    assert page.locator(".agent-marker.leader").count() == 0
     screenshot(page, "replay_page_2s.png")

@@ -666,7 +666,9 @@
       if (!Array.from(sp.options).some((o) => o.value === v)) sp.add(new Option(v + "×", v));
       sp.value = v;
     }
-    setText($("#replay-time"), mmss(r.position_s) + " / " + mmss(r.duration_s));
+    const radio = r.radio && typeof r.radio === "object" ? r.radio : null;
+    setText($("#replay-time"), mmss(r.position_s) + " / " + mmss(r.duration_s)
+      + (radio ? " · radio RSSI " + radio.rssi + "/" + radio.remrssi + " noise " + radio.noise + "/" + radio.remnoise : ""));
     if (typeof r.time === "number") {
       // the header tells a replay from a live station, with the capture's own time
       const el = $("#link-status");
@@ -682,6 +684,7 @@
       if (S.replaySeeks !== undefined) {
         $("#log").replaceChildren();
         S.seenEvents = new Set();
+        for (const id of Array.from(S.agents.keys())) dropAgent(id);  // markers and trails: redrawn as of then
         if (S.state && S.state.replay && S.state.replay.seeks === r.seeks && Array.isArray(S.state.events)) {
           S.state.events.forEach(stationEvent);
         }

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
+from radios.replay import capture_stats
 from radios.tlog import read_tlog
 from swarm.cli.commands.replay import main as replay_main
 from swarm.cli.procs import Child, start_emulator
@@ -63,6 +64,10 @@ def test_station_capture_holds_its_radios_status(station_capture: Path) -> None:
     assert names[109] >= 1, names  # RADIO_STATUS from the station's own radio (sysid 51)
     radio = [r.frame for r in read_tlog(station_capture) if r.frame.msgid == 109]
     assert {(f.sysid, f.compid) for f in radio} == {(51, 68)}
+    # the radio's reports to its host never went on air: no share of the air time
+    stats = capture_stats(read_tlog(station_capture))
+    shares = {s["sysid"]: s["airtime_share"] for s in stats["systems"]}
+    assert shares[51] == 0.0 and sum(shares.values()) == pytest.approx(1.0)
 
 
 @pytest.mark.processes

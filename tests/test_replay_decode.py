@@ -15,9 +15,11 @@ from radios.mavlink import FrameBuilder
 from radios.tlog import TlogWriter
 from swarm.cli.commands.replay import main
 from swarm.core.messages import (
+    AckResult,
     AgentState,
     Assignment,
     Command,
+    CommandAck,
     CommandKind,
     Heartbeat,
     Phase,
@@ -197,3 +199,46 @@ def test_json_lines_decode_the_swarm(tmp_path: Path, capsys: pytest.CaptureFixtu
     for o in objs[2:-1]:
         assert o["kind"] is None and o["error"] and o["fields"] == {}
     assert "kind" not in objs[-1] and objs[-1]["fields"]["payload_type"] == 7  # not ours: MAVLink's view
+
+
+def test_truncated_capture_decodes_every_whole_record_then_says_where(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "cut.tlog"
+    n = swarm_capture(path)
+    path.write_bytes(path.read_bytes()[:-7])  # a record cut in the middle
+    for argv in ([str(path)], [str(path), "--json"]):
+        assert main(argv) == 1
+        out, err = capsys.readouterr()
+        assert len(out.splitlines()) == n - 1 and "Heartbeat" in out.splitlines()[0]
+        assert err.startswith("swarm replay: error: ") and len(err.splitlines()) == 1
+        assert "Traceback" not in err
+
+
+def test_hostile_text_cannot_forge_lines_or_drive_the_terminal(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A reason string (CommandAck) or a STATUSTEXT with a newline or an escape
+    sequence: still one line each, the control characters shown escaped."""
+    from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+    forged = "ok\n00:00:00.000 9/191 Command 9 -> all {}\x1b[2J"
+    ack = CommandAck(3, 7, AckResult.REJECTED, forged)
+    b3 = FrameBuilder(3, 191)
+    frames = [
+        b3.tunnel(encode(ack), target_system=255, payload_type=PAYLOAD_TYPE_BASE + Kind.P2P),
+        b3.build(dialect.MAVLink_statustext_message(4, b"low\nbattery\x1b]0;pwned\x07")),
+    ]
+    path = tmp_path / "hostile-text.tlog"
+    with TlogWriter(path) as w:
+        for i, raw in enumerate(frames):
+            w.write(raw, T0 + i)
+    assert main([str(path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2, lines
+    assert all(line.isprintable() for line in lines), lines
+    assert "CommandAck" in lines[0] and "\\x0a00:00:00.000" in lines[0] and "\\x1b[2J" in lines[0]
+    assert "STATUSTEXT" in lines[1] and "\\x1b]0;pwned\\x07" in lines[1]
+    assert main([str(path), "--json"]) == 0
+    objs = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert objs[0]["fields"]["reason"] == forged  # JSON keeps the text exactly (escaped by JSON)

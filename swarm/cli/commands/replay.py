@@ -15,9 +15,10 @@ modes (each its own function below; only one runs):
   text ``TIME SYSID/COMPID KIND FROM -> TO {field : value, ...}``, JSON the header
   facts plus ``tunnel``, ``kind``, ``from``, ``to`` and ``fields``; a payload that
   does not decode (a capture is hostile input) is one line saying why (``kind``
-  null and ``error`` in JSON). TUNNEL frames are read by the swarm's own codec
-  without pymavlink, which keeps ``--json`` fast (``swarm bench gcs``:
-  ``replay_json_speed``);
+  null and ``error`` in JSON). A text line's unprintable characters (a newline or
+  an escape sequence in a sender's text) are written as ``\\xNN`` escapes. TUNNEL
+  frames are read by the swarm's own codec without pymavlink, which keeps
+  ``--json`` fast (``swarm bench gcs``: ``replay_json_speed``);
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
   object;
@@ -241,12 +242,24 @@ def _json_line(rec: TlogRecord) -> str:
 def _text_line(rec: TlogRecord) -> str:
     d = _swarm(rec)
     if d is None:
-        return format_record(rec) + "\n"
-    head = f"{format_time(d['t'])} {d['sysid']}/{d['compid']}"
-    route = f"{d['from']} -> {format_to(d['to'])}"
-    if d["kind"] is None:
-        return f"{head} TUNNEL swarm {d['tunnel']} {route} <cannot decode: {d['error']}>\n"
-    return f"{head} {d['kind']} {route} {format_fields(d['fields'])}\n"
+        line = format_record(rec)
+    else:
+        head = f"{format_time(d['t'])} {d['sysid']}/{d['compid']}"
+        route = f"{d['from']} -> {format_to(d['to'])}"
+        if d["kind"] is None:
+            line = f"{head} TUNNEL swarm {d['tunnel']} {route} <cannot decode: {d['error']}>"
+        else:
+            line = f"{head} {d['kind']} {route} {format_fields(d['fields'])}"
+    return (line if line.isprintable() else _escaped(line)) + "\n"
+
+
+def _escaped(line: str) -> str:
+    """``line`` with its control and other unprintable characters as ``\\xNN``/``\\uNNNN``:
+    a sender's text (a refusal's reason, a STATUSTEXT) cannot start a forged line or
+    send escape sequences to the terminal."""
+    return "".join(
+        c if c.isprintable() else f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}" for c in line
+    )
 
 
 # -- statistics -------------------------------------------------------------------

@@ -21,7 +21,9 @@ master ends and drives one :class:`radios.air.AirModel` in real time
   ``ATI5``, ``ATS3=..``, ``AT&W``, ``ATZ`` and ``RT..`` behave as on hardware;
   ``aes=True`` makes every radio an RFD900P running a SiK build with AES
   (ENCRYPTION_LEVEL, ``AT&E``; standard firmware only);
-* every MAVLink frame put on air is captured to a ``.tlog`` when asked, and the
+* every MAVLink frame put on air is captured to a ``.tlog`` when asked (with
+  ``capture_status`` also one radio's RADIO_STATUS reports to its host, as a capture
+  on that host, say a ground station, holds them: RADIO_STATUS never goes on air), and the
   model's counters can be written to a JSON file (at exit and every 2 s);
 * **unplug and plug back** (:meth:`Emulator.unplug`, :meth:`Emulator.replug`, or
   lines written to the FIFO ``DIR/control``: ``unplug I [FOR_S]``, ``replug I``):
@@ -64,7 +66,7 @@ from radios.emulator_config import (
 )
 from radios.errors import CaptureError, ConfigError
 from radios.loss import GilbertElliott, PositionFile, RangeLoss, UniformLoss, sensitivity_dbm
-from radios.mavlink import FrameParser
+from radios.mavlink import MSG_RADIO_STATUS, FrameParser
 from radios.sik.at import ATEngine
 from radios.sik.params import SikParams
 
@@ -92,6 +94,7 @@ class Emulator:
         self._pending: list[bytearray] = []
         self._capture: Any = None
         self._parsers: list[FrameParser] = []
+        self._status_parser = FrameParser()
         self._epoch_offset = time.time() - clock()
         self.model: AirModel | None = None
         self.frames_captured = 0
@@ -400,8 +403,20 @@ class Emulator:
                         del pend[: len(pend) - MAX_PENDING]
                 else:
                     self.dropped_output += len(out)
+            if out and i == self.cfg.capture_status:
+                self._capture_status(out, now)
             if self._pending[i]:
                 self._flush(i)
+
+    def _capture_status(self, out: bytes | bytearray, now: float) -> None:
+        """The RADIO_STATUS reports in what radio ``capture_status`` gave its host."""
+        for frame in self._status_parser.feed(out):
+            if frame.msgid == MSG_RADIO_STATUS and self._capture is not None:
+                try:
+                    self._capture.write(frame.raw, self._epoch_offset + now)
+                    self.frames_captured += 1
+                except (CaptureError, OSError, ValueError):
+                    pass
 
     def _arm(self, model: AirModel, now: float, poller: Any, registered: list[int]) -> float:
         """Register what to wait for on each master (input while the radio's serial

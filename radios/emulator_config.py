@@ -40,6 +40,9 @@ class EmulatorConfig:
     params: dict[str, int] = field(default_factory=dict)
     flow_control: bool = False
     capture: str | None = None
+    #: the radio (0-based, as ``radioN``) whose RADIO_STATUS reports to its host the
+    #: capture records too, as a capture on that host (a ground station) would hold them
+    capture_status: int | None = None
     stats_json: str | None = None
     seed: int = 0
     aes: bool = False  # RFD900P radios running a SiK build with AES (standard firmware)
@@ -69,6 +72,12 @@ class EmulatorConfig:
             validate_user_value(self.resolved_firmware(), "NETID", n)
         if not 0.0 <= self.loss <= 1.0:
             raise ConfigError(f"--loss {self.loss}: a probability between 0 and 1")
+        if self.capture_status is not None and (
+            self.capture is None or not 0 <= self.capture_status < self.nodes
+        ):
+            raise ConfigError(
+                f"--capture-status {self.capture_status}: a radio 0..{self.nodes - 1}, with --capture"
+            )
         if self.aes and self.resolved_firmware() != "standard":
             raise ConfigError("--aes: the multipoint SiK firmware has no AES encryption")
         for name, value in self.params.items():

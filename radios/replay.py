@@ -57,7 +57,7 @@ from radios.errors import (
     LinkOpenError,
 )
 from radios.linkbase import Link
-from radios.mavlink import Frame, decode
+from radios.mavlink import MSG_RADIO_STATUS, Frame, decode
 from radios.tlog import TlogReader, TlogRecord, read_tlog
 from radios.url import LinkURL, Options, parse_link_url
 
@@ -71,6 +71,9 @@ DEFAULT_MAX_GAP = 5.0
 #: and the peer's window; the emulator's air model accounts for all that. This
 #: constant only keeps many short frames from looking free next to a few long ones.
 AIRTIME_OVERHEAD_BYTES = 14
+
+#: The ids a SiK radio gives the RADIO_STATUS it reports to its host (not on air).
+LOCAL_RADIO_IDS = (51, 68)
 
 #: Longest uninterrupted wait of the default sleeps (see _wait_unless).
 _SIGNAL_SLICE = 0.25
@@ -503,16 +506,19 @@ class CaptureStats:
         s.frames += 1
         s.bytes += n
         s.messages[name] += 1
+        if frame.msgid == MSG_RADIO_STATUS and (frame.sysid, frame.compid) == LOCAL_RADIO_IDS:
+            s.local += n + AIRTIME_OVERHEAD_BYTES  # the radio's report to its host: never on air
 
     def as_dict(self) -> dict[str, Any]:
         duration = 0.0
         if self.start is not None and self.end is not None:
             duration = self.end - self.start
-        air_total = self.bytes + AIRTIME_OVERHEAD_BYTES * self.frames
+        local = sum(s.local for s in self._systems.values())
+        air_total = self.bytes + AIRTIME_OVERHEAD_BYTES * self.frames - local
         systems = []
         for sysid in sorted(self._systems):
             s = self._systems[sysid]
-            air = s.bytes + AIRTIME_OVERHEAD_BYTES * s.frames
+            air = s.bytes + AIRTIME_OVERHEAD_BYTES * s.frames - s.local
             systems.append(
                 {
                     "sysid": sysid,
@@ -536,11 +542,12 @@ class CaptureStats:
 
 
 class _SystemStats:
-    __slots__ = ("bytes", "frames", "messages")
+    __slots__ = ("bytes", "frames", "local", "messages")
 
     def __init__(self) -> None:
         self.frames = 0
         self.bytes = 0
+        self.local = 0  # air-time bytes of frames that never went on air
         self.messages: Counter[str] = Counter()
 
 
@@ -552,7 +559,9 @@ def capture_stats(records: Iterable[TlogRecord]) -> dict[str, Any]:
     ``airtime_share``.
 
     ``airtime_share`` is an approximation: the system's share of frame bytes plus
-    :data:`AIRTIME_OVERHEAD_BYTES` per frame. It ignores packing of several frames
+    :data:`AIRTIME_OVERHEAD_BYTES` per frame; a SiK radio's RADIO_STATUS to its own
+    host (system 51, component 68: in a station's capture) never goes on air and
+    counts for none. It ignores packing of several frames
     per SiK packet, TDM silences and retransmission-free loss; the emulator's air
     model is the fuller account.
 

@@ -460,7 +460,14 @@ def test_replay_plays_pauses_seeks_and_changes_speed(tmp_path: Path, manual_cloc
     rp.control("pause")
     manual_clock.advance(100.0)
     rp.step()
-    assert rp.status() == {"playing": False, "speed": 2.0, "position_s": 7.0, "duration_s": 20.01}
+    st = rp.status()
+    assert {k: st[k] for k in ("playing", "speed", "position_s", "duration_s")} == {
+        "playing": False,
+        "speed": 2.0,
+        "position_s": 7.0,
+        "duration_s": 20.01,
+    }
+    assert st["time"] == pytest.approx(st["start"] + 7.0) and st["radio"] is None  # no RADIO_STATUS here
     rp.control("seek", 18.0)  # agent 1 silent since 12.1 s: disconnected
     s = rp.snapshot()
     assert s["agents"][0]["connected"] is False and s["agents"][1]["connected"] is True

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.metadata
 import sys
 
 from swarm.cli.util import EXIT_USAGE, LOG_FORMATS, LOG_LEVELS, configure_logging
@@ -52,6 +51,8 @@ DIST_NAME = "uav-swarm"
 
 def version_line() -> str:
     """``swarm (uav-swarm) X.Y.Z``, from the installed package's metadata."""
+    import importlib.metadata  # here, not at the top: it costs every command tens of ms
+
     try:
         version = importlib.metadata.version(DIST_NAME)
     except importlib.metadata.PackageNotFoundError:

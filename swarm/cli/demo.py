@@ -300,6 +300,7 @@ class _Demo:
             radios,
             os.path.join(self.workdir, "radios"),
             *("--capture", self.capture, "--loss", str(cfg.loss)),
+            *(("--capture-status", str(n + 1)) if cfg.gcs else ()),  # the station's radio: link quality
             *("--stats-json", self.stats, "--seed", str(cfg.seed)),
         )
         self.children.append(emu)

@@ -17,8 +17,15 @@ playing; pause, seek (backwards re-feeds a fresh core from the start, quickly,
 without announcing the events again) and speed. :meth:`ReplayStation.step` does
 the work and takes its time from the injected ``clock``, so tests drive it
 without real time passing; :meth:`ReplayStation.start` calls it from a thread.
-It offers the server the same view as the live station; commands are refused
-(409).
+It offers the server the same view as the live station, in the capture's time (the
+state's ``time`` and the events' times are the capture's; an agent counts as
+connected if heard within ``passive_timeout`` of that time); commands are refused
+(409). :meth:`ReplayStation.status` adds the capture's time at the play position
+(``time``, ``start``) for the page's "REPLAY" header, ``seeks``, which counts
+seeks (the page rebuilds its event log from the state when it changes), and
+``radio``: the station radio's last RADIO_STATUS by then (a capture made on the
+station's radio holds them: rssi, remrssi, noise, remnoise, txbuf, rxerrors), so a
+replay shows the link's quality.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ from typing import Any
 
 from firmware_bridge.modes import autopilot_name, decode_mode
 from radios.errors import FrameError
-from radios.mavlink import MSG_HEARTBEAT, MSG_TUNNEL
+from radios.mavlink import MSG_HEARTBEAT, MSG_RADIO_STATUS, MSG_TUNNEL, radio_status_fields
 from radios.mavlink import decode as decode_frame
 from radios.tlog import read_tlog
 from swarm.core.gslink import is_station
@@ -51,13 +58,15 @@ MSG_GLOBAL_POSITION_INT = 33
 MAV_TYPE_GCS = 6
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAX_SPEED = 100.0
+RADIO_STATUS_IDS = (51, 68)  # the ids a SiK radio gives its own RADIO_STATUS
 STEP_S = 0.05
 
 
 @dataclass(frozen=True)
 class Item:
     """One timed input: ``op`` is msg (a swarm message, ``arg`` the key's agent name),
-    learn (``arg`` a name), pose (``arg`` a Pose) or vehicle (``arg`` (mode, armed))."""
+    learn (``arg`` a name), pose (``arg`` a Pose), vehicle (``arg`` (mode, armed)) or
+    radio (the station radio's RADIO_STATUS, ``arg`` its fields)."""
 
     t: float
     op: str
@@ -102,6 +111,8 @@ def load_capture(path: str) -> Capture:
         sysid = frame.sysid
         if frame.msgid == MSG_TUNNEL:
             _tunnel(cap, names, rec.t, sysid, frame.payload)
+        elif frame.msgid == MSG_RADIO_STATUS and (sysid, frame.compid) == RADIO_STATUS_IDS:
+            cap.items.append(Item(rec.t, "radio", 0, arg=radio_status_fields(frame)))
         elif (
             frame.msgid in (MSG_HEARTBEAT, MSG_GLOBAL_POSITION_INT)
             and frame.compid != COMP_ID
@@ -212,6 +223,8 @@ class ReplayStation(StationView):
         self.speed = float(speed)
         self.playing = playing
         self.position = 0.0
+        self.seeks = 0
+        self.radio: dict[str, Any] | None = None  # the station radio's last RADIO_STATUS
         self.core = self._new_core()
         self._index = 0
         self._last = clock()
@@ -286,6 +299,8 @@ class ReplayStation(StationView):
             core.learn(it.agent, it.arg, it.t)
         elif it.op == "pose":
             core.observe_pose(it.agent, it.arg, it.t)
+        elif it.op == "radio":
+            self.radio = {**it.arg, "t": round(it.t, 3)}
         elif it.op == "vehicle":
             mode, armed = it.arg
             core.observe_vehicle(it.agent, it.t, mode=mode, armed=armed)
@@ -298,6 +313,10 @@ class ReplayStation(StationView):
                 "speed": self.speed,
                 "position_s": round(self.position, 3),
                 "duration_s": round(self.capture.duration, 3),
+                "time": round(self.capture.t0 + self.position, 3),
+                "start": round(self.capture.t0, 3),
+                "seeks": self.seeks,
+                "radio": self.radio,
             }
 
     def control(self, action: Any, value: Any = None) -> dict[str, Any]:
@@ -332,8 +351,10 @@ class ReplayStation(StationView):
 
     def seek(self, position: float) -> None:
         with self._lock:
+            self.seeks += 1
             if position < self.position:
                 self.core = self._new_core()
+                self.radio = None
                 self._index = 0
             self._advance(position, announce=False)
 

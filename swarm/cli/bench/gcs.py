@@ -16,6 +16,10 @@ connected:
   with the station still fed; null with a ``page_error`` when no browser can run.
 
 Targets (the issue): station under 20% of one core; page frame p95 under 50 ms.
+
+``replay_json_speed`` (and its companions): ``swarm replay --json`` on the checked-in
+demo capture, capture seconds per wall second (:mod:`swarm.cli.bench.replay_speed`,
+measured first, before the bench starts its processes); target 200.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import time
 import urllib.request
 from typing import Any
 
+from swarm.cli.bench import replay_speed
 from swarm.cli.procs import Child, cpu_seconds, free_tcp_port
 from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
 from swarm.core.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
@@ -77,6 +82,7 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     seconds = 8.0 if quick else 20.0
     # full trails (60 s) make the biggest state messages: the steady state
     warm_up = 2.0 if quick else 62.0
+    replay = replay_speed.measure(runs=3 if quick else 5)  # first: before the bench's processes run
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     station = Child(
         ["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_tcp_port()}", "--tiles", "none", "--json"],
@@ -84,6 +90,7 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     )
     feeder: subprocess.Popen[bytes] | None = None
     out: dict[str, Any] = {"agents": agents, "rate_hz": hz, "warm_up_s": warm_up, "measure_s": seconds}
+    out.update(replay)
     try:
         url = json.loads(station.wait_lines(1, 30)[0])["url"]
         feeder = subprocess.Popen(

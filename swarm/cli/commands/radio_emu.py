@@ -56,6 +56,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_channel_arguments(p)
     p.add_argument("--capture", metavar="FILE", help="write every frame put on air to a .tlog")
     p.add_argument(
+        "--capture-status",
+        type=int,
+        metavar="I",
+        help="with --capture: also record radioI's RADIO_STATUS reports (a ground station's radio)",
+    )
+    p.add_argument(
         "--stats-json", metavar="FILE", help="write counters and channel utilisation (every 2 s and at exit)"
     )
     p.add_argument("--seed", type=int, default=0, help="random seed for loss and timing")
@@ -107,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             params=params,
             flow_control=args.flow_control,
             capture=args.capture,
+            capture_status=args.capture_status,
             stats_json=args.stats_json,
             seed=args.seed,
         )

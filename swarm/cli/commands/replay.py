@@ -10,7 +10,15 @@ by a power cut at the end of a file is skipped with one note on stderr). Four
 modes (each its own function below; only one runs):
 
 * dump (default): one line per frame, MAVProxy-like text or, with ``--json``, one
-  JSON object per line (:func:`radios.replay.decode_record`);
+  JSON object per line (:func:`radios.replay.decode_record`). A swarm TUNNEL frame
+  is shown as the message it carries (:func:`swarm.core.tunnel_decode.decode_tunnel`):
+  text ``TIME SYSID/COMPID KIND FROM -> TO {field : value, ...}``, JSON the header
+  facts plus ``tunnel``, ``kind``, ``from``, ``to`` and ``fields``; a payload that
+  does not decode (a capture is hostile input) is one line saying why (``kind``
+  null and ``error`` in JSON). A text line's unprintable characters (a newline or
+  an escape sequence in a sender's text) are written as ``\\xNN`` escapes. TUNNEL
+  frames are read by the swarm's own codec without pymavlink, which keeps
+  ``--json`` fast (``swarm bench gcs``: ``replay_json_speed``);
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
   object;
@@ -39,10 +47,10 @@ import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from radios.errors import CaptureDamagedError, ConfigError, LinkError
-from radios.link import open_link
+from radios.mavlink import MSG_TUNNEL, STX_V2
 from radios.replay import (
     DEFAULT_MAX_GAP,
     DEFAULT_SPEED,
@@ -53,9 +61,7 @@ from radios.replay import (
     format_record,
     format_time,
 )
-from radios.rotating import FC, RADIO
-from radios.tlog import TlogReader, read_tlog
-from radios.tlogset import FlightLogReader, read_flight_log
+from radios.tlog import TlogReader, TlogRecord, read_tlog
 from radios.url import parse_link_url
 from swarm.cli.util import (
     EXIT_FAILURE,
@@ -66,8 +72,13 @@ from swarm.cli.util import (
     parser,
     print_json,
 )
+from swarm.core.tunnel_decode import decode_tunnel, format_fields, format_to
+
+if TYPE_CHECKING:  # the flight log and link modules are imported where used: a dump needs neither
+    from radios.tlogset import FlightLogReader
 
 PROG = "swarm replay"
+_dumps = json.JSONEncoder(check_circular=False).encode
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -144,6 +155,9 @@ def _open(path: str, args: argparse.Namespace) -> TlogReader | FlightLogReader:
     if not os.path.exists(path):
         raise UsageError(f"{path}: no such capture file")
     if os.path.isdir(path):
+        from radios.rotating import FC, RADIO
+        from radios.tlogset import read_flight_log
+
         if args.plot is not None:
             raise UsageError(f"--plot reads one capture file, not the folder {path}")
         try:
@@ -184,13 +198,68 @@ def _silence_stdout() -> None:
 
 def _dump(reader: TlogReader | FlightLogReader, *, as_json: bool) -> int:
     write = sys.stdout.write
+    line = _json_line if as_json else _text_line
     try:
         for rec in reader:
-            write((json.dumps(decode_record(rec)) if as_json else format_record(rec)) + "\n")
+            write(line(rec))
     except CaptureDamagedError as exc:
         return _damaged(exc)
     sys.stdout.flush()
     return 0
+
+
+def _swarm(rec: TlogRecord) -> dict[str, Any] | None:
+    """The record's swarm message (:func:`swarm.core.tunnel_decode.decode_tunnel`) with
+    the MAVLink header facts, or None when it is not a swarm TUNNEL frame."""
+    frame = rec.frame
+    raw = frame.raw
+    v2 = raw[0] == STX_V2
+    if (raw[7] | raw[8] << 8 | raw[9] << 16 if v2 else raw[5]) != MSG_TUNNEL:
+        return None
+    d = decode_tunnel(frame.payload)
+    if d is None:
+        return None
+    sysid = raw[5] if v2 else raw[3]
+    head = {
+        "t": rec.t,
+        "sysid": sysid,
+        "compid": raw[6] if v2 else raw[4],
+        "seq": raw[4] if v2 else raw[2],
+        "msg": "TUNNEL",
+        "msgid": MSG_TUNNEL,
+        "len": len(raw),
+        "from": sysid,
+    }
+    head.update(d)
+    return head
+
+
+def _json_line(rec: TlogRecord) -> str:
+    d = _swarm(rec)
+    return _dumps(d if d is not None else decode_record(rec)) + "\n"
+
+
+def _text_line(rec: TlogRecord) -> str:
+    d = _swarm(rec)
+    if d is None:
+        line = format_record(rec)
+    else:
+        head = f"{format_time(d['t'])} {d['sysid']}/{d['compid']}"
+        route = f"{d['from']} -> {format_to(d['to'])}"
+        if d["kind"] is None:
+            line = f"{head} TUNNEL swarm {d['tunnel']} {route} <cannot decode: {d['error']}>"
+        else:
+            line = f"{head} {d['kind']} {route} {format_fields(d['fields'])}"
+    return (line if line.isprintable() else _escaped(line)) + "\n"
+
+
+def _escaped(line: str) -> str:
+    """``line`` with its control and other unprintable characters as ``\\xNN``/``\\uNNNN``:
+    a sender's text (a refusal's reason, a STATUSTEXT) cannot start a forged line or
+    send escape sequences to the terminal."""
+    return "".join(
+        c if c.isprintable() else f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}" for c in line
+    )
 
 
 # -- statistics -------------------------------------------------------------------
@@ -263,6 +332,8 @@ def _signals(flag: StopFlag) -> Iterator[None]:
 
 
 def _feed(reader: TlogReader | FlightLogReader, args: argparse.Namespace) -> int:
+    from radios.link import open_link
+
     url = _with_baud(args.to, args.baud)
     speed = DEFAULT_SPEED if args.speed is None else args.speed
     max_gap = DEFAULT_MAX_GAP if args.max_gap is None else args.max_gap

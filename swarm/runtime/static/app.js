@@ -608,6 +608,7 @@
     const el = $("#link-status");
     el.dataset.status = status;
     el.textContent = status;
+    if (S.replay) drawReplay(S.replay);  // a replay shows "REPLAY" and the capture's time, not "live"
   }
 
   function connect() {
@@ -916,7 +917,31 @@
       if (!Array.from(sp.options).some((o) => o.value === v)) sp.add(new Option(v + "×", v));
       sp.value = v;
     }
-    setText($("#replay-time"), mmss(r.position_s) + " / " + mmss(r.duration_s));
+    const radio = r.radio && typeof r.radio === "object" ? r.radio : null;
+    setText($("#replay-time"), mmss(r.position_s) + " / " + mmss(r.duration_s)
+      + (radio ? " · radio RSSI " + radio.rssi + "/" + radio.remrssi + " noise " + radio.noise + "/" + radio.remnoise : ""));
+    if (typeof r.time === "number") {
+      // the header tells a replay from a live station, with the capture's own time
+      const el = $("#link-status");
+      if (S.wsStatus === "live") {
+        el.dataset.status = "replay";
+        setText(el, "REPLAY " + clock(r.time));
+      }
+      el.dataset.time = String(r.time);
+      el.title = "replay of a capture: " + new Date(r.time * 1000).toLocaleString();
+    }
+    if (typeof r.seeks === "number" && r.seeks !== S.replaySeeks) {
+      // a seek: the station rebuilt its log up to the new position; the next state redraws it
+      if (S.replaySeeks !== undefined) {
+        $("#log").replaceChildren();
+        S.seenEvents = new Set();
+        for (const id of Array.from(S.agents.keys())) dropAgent(id);  // markers and trails: redrawn as of then
+        if (S.state && S.state.replay && S.state.replay.seeks === r.seeks && Array.isArray(S.state.events)) {
+          S.state.events.forEach(stationEvent);
+        }
+      }
+      S.replaySeeks = r.seeks;
+    }
   }
   async function replayAction(action, value) {
     try {

@@ -59,6 +59,11 @@ class StationView:
             a = self.core.agents.get(agent_id)
             return a.as_dict(self._now()) if a is not None else None
 
+    def ack_alert(self, alert_id: Any) -> dict[str, Any]:
+        """Acknowledge an alert (CommandRefused: 400 a bad id, 404 no such alert)."""
+        with self._lock:
+            return self.core.ack_alert(alert_id)
+
 
 class Station(StartOnce, StationView):
     """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.

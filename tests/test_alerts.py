@@ -69,6 +69,13 @@ def test_a_notice_that_is_not_one_printable_line_is_refused_both_ways() -> None:
             decode(bad)
 
 
+def test_a_notice_costs_at_most_70_bytes_and_one_every_4_s_in_the_long_run() -> None:
+    longest = AgentNotice(250, AUTO, 0, one_line("é" * 200), 255)
+    assert len(encode(longest)) <= 70  # + 17 of TUNNEL framing, + 13 signed: 100 bytes on air
+    cfg = NoticeConfig()
+    assert cfg.interval_s >= 4.0 and cfg.burst <= 2  # at most 25 bytes/s per agent
+
+
 def test_autopilot_texts_below_warning_stay_on_the_agent() -> None:
     g = NoticeGate()
     assert not g.offer(AUTO, 6, "EKF3 IMU0 is using GPS", 0.0)  # INFO

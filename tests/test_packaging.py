@@ -51,6 +51,7 @@ RUNTIME = ROOT / "swarm" / "runtime"
 LEAFLET = RUNTIME / "vendor" / "leaflet"
 #: what the page needs, under swarm/runtime; served as /, /static/..., /vendor/leaflet/...
 PAGE_FILES = ("static/index.html", "static/app.js", "static/app.css", "static/icon.svg")
+PAGE_FILES += ("static/alerts.js", "static/alerts.css")  # the alert banner
 LEAFLET_FILES = (
     "vendor/leaflet/leaflet.js",
     "vendor/leaflet/leaflet.css",
@@ -67,6 +68,7 @@ URLS = {
     "/static/app.js": "static/app.js",
     "/static/app.css": "static/app.css",
     "/static/icon.svg": "static/icon.svg",
+    "/static/alerts.js": "static/alerts.js",
     "/vendor/leaflet/leaflet.js": "vendor/leaflet/leaflet.js",
     "/vendor/leaflet/leaflet.css": "vendor/leaflet/leaflet.css",
     "/vendor/leaflet/images/marker-icon.png": "vendor/leaflet/images/marker-icon.png",

@@ -151,6 +151,13 @@ def test_the_node_forwards_warnings_and_its_own_events_to_its_station() -> None:
     ]
 
 
+def test_a_statustext_in_bytes_with_bad_utf8_is_forwarded_as_a_clean_line() -> None:
+    node = node_with_station()
+    node.handle(AutopilotText(3, b"EKF3 \xff lane\x00\x00"), 1.0)
+    (n,) = notices(node.tick(1.0))
+    assert n.text == "EKF3 \ufffd lane" and n.severity == 3
+
+
 def test_without_a_station_notices_wait_bounded() -> None:
     node = AgentNode(3, "agent3", profile_by_name("paper", 0.2368), has_fc=True)
     node.start(0.0)

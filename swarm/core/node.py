@@ -155,10 +155,11 @@ class PositionFix:
 
 @dataclass(frozen=True)
 class AutopilotText:
-    """A STATUSTEXT of the flight controller (MAVLink severity, its text as sent)."""
+    """A STATUSTEXT of the flight controller (MAVLink severity, its text as received:
+    str, or bytes from some dialects)."""
 
     severity: int
-    text: str
+    text: str | bytes
 
 
 @dataclass(frozen=True)

@@ -43,10 +43,13 @@ SEVERITY_NAMES = ("emergency", "alert", "critical", "error", "warning", "notice"
 SEPARATION_HOLD = "holding: too close"
 
 
-def one_line(text: str, limit: int = NOTICE_MAX) -> str:
+def one_line(text: str | bytes, limit: int = NOTICE_MAX) -> str:
     """``text`` as one printable line: every character that is not printable (control
-    characters, line ends, NUL) becomes a blank, runs of blanks one space, cut to
-    ``limit`` bytes of UTF-8 (whole characters) with "..." where it was cut."""
+    characters, line ends, NUL; bytes are read as UTF-8, bad bytes replaced) becomes a
+    blank, runs of blanks one space, cut to ``limit`` bytes of UTF-8 (whole
+    characters) with "..." where it was cut."""
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", "replace")
     line = " ".join("".join(c if c.isprintable() else " " for c in str(text)).split())
     raw = line.encode("utf-8")
     if len(raw) <= limit:
@@ -118,7 +121,7 @@ class NoticeGate:
         self._tokens = float(self.cfg.burst)
         self._t = -math.inf
 
-    def offer(self, source: NoticeSource, severity: int, text: str, now: float) -> bool:
+    def offer(self, source: NoticeSource, severity: int, text: str | bytes, now: float) -> bool:
         """One line from ``source``; False when it is not forwarded (below the severity
         kept for autopilot texts, empty, or dropped for a fuller queue)."""
         c = self.counters

@@ -539,10 +539,7 @@ class Agent(StartOnce):
     def _fc_text(self, msg: Any) -> None:
         """The driver's receiver thread: the autopilot's STATUSTEXT to the node (its notices)."""
         if msg.get_type() == "STATUSTEXT" and msg.get_srcSystem() == self.vehicle.state.system_id:
-            raw = msg.text  # str from pymavlink; bytes from some dialects
-            self.loop.put(
-                AutopilotText(int(msg.severity), raw.decode() if isinstance(raw, bytes) else str(raw))
-            )
+            self.loop.put(AutopilotText(int(msg.severity), msg.text))
 
     # -- pose thread -------------------------------------------------------------------
     def _pose_loop(self) -> None:

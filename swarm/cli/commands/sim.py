@@ -68,6 +68,17 @@ def join_negative_values(argv: Sequence[str]) -> list[str]:
     return out
 
 
+def _add_battery_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--battery-drain",
+        type=float,
+        default=0.0,
+        metavar="PCT_PER_MIN",
+        help="every battery also loses this many percent per simulated minute, armed or not "
+        "(tests of low-battery alerts; default 0: only flying drains it)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = parser(
         PROG,
@@ -111,14 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="hold",
         help="PX4 action when the offboard stream is lost (default hold)",
     )
-    p.add_argument(
-        "--battery-drain",
-        type=float,
-        default=0.0,
-        metavar="PCT_PER_MIN",
-        help="every battery also loses this many percent per simulated minute, armed or not "
-        "(tests of low-battery alerts; default 0: only flying drains it)",
-    )
+    _add_battery_arguments(p)
     boot = p.add_mutually_exclusive_group()
     boot.add_argument(
         "--boot-time",

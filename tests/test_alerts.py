@@ -395,6 +395,30 @@ def test_the_state_carries_the_alerts() -> None:
     assert POSE is not None
 
 
+def test_the_station_radio_margins_are_shown_while_fresh() -> None:
+    core = StationCore()
+    assert core.snapshot(0.0)["radio"] is None
+    core.observe_radio(180, 60, 170, 75, 10.0)
+    assert core.snapshot(12.0)["radio"] == {
+        "rssi": 180,
+        "noise": 60,
+        "margin": 120,
+        "remrssi": 170,
+        "remnoise": 75,
+        "remmargin": 95,
+    }
+    assert core.snapshot(15.1)["radio"] is None  # stale: not shown as if current
+
+
+def test_a_replay_shows_battery_alerts_but_judges_no_link() -> None:
+    core = StationCore(passive=True)
+    core.learn(3, "agent3", 0.0)
+    for i in range(30):
+        core.handle(tm(3, battery=10), float(i))
+    assert [a.kind for a in core.alerts.alerts.values()] == ["battery"]
+    assert core.agents[3].link.loss is None
+
+
 # -- the simulator's battery ------------------------------------------------------------------
 
 

@@ -15,6 +15,7 @@ import pytest
 from gcs_security_helpers import JSON, request
 from net_helpers import free_port, wait_until
 
+from swarm.cli.procs import start_emulator
 from swarm.core.messages import AgentNotice, NoticeSource
 from swarm.runtime.server import GcsServer, ServerConfig
 from swarm.runtime.station import Station
@@ -130,3 +131,20 @@ def test_acknowledging_over_the_websocket_with_hostile_messages_first(live: dict
     state = request(server.port, "GET", "/api/state", None, AUTH).json
     assert {a["kind"] for a in state["alerts"]} == {"statustext"}
     assert {a["level"] for a in state["alerts"]} == {"warning", "critical"}
+
+
+@pytest.mark.processes
+def test_a_station_on_a_radio_shows_its_radio_margins(tmp_path: Any) -> None:
+    """The radio emulator's SiK radios send RADIO_STATUS: the state's ``radio`` has RSSI,
+    noise and their margins while the reports keep coming."""
+    emu, links = start_emulator(1, tmp_path)
+    station = None
+    try:
+        station = Station("gcs", radio=links[0]).start()
+        st = wait_until(lambda: station.snapshot()["radio"], "the station radio's RADIO_STATUS", 30)
+        assert set(st) == {"rssi", "noise", "margin", "remrssi", "remnoise", "remmargin"}
+        assert st["margin"] == st["rssi"] - st["noise"] and st["remmargin"] == st["remrssi"] - st["remnoise"]
+    finally:
+        if station is not None:
+            station.stop()
+        emu.stop()

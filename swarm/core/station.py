@@ -38,6 +38,8 @@ station's part:
    separation holds) are :class:`~swarm.core.station_watch.AlertWatch`'s, kept in
    an :class:`~swarm.core.station_alerts.AlertBook` (``alerts`` in the state;
    :meth:`StationCore.ack_alert` acknowledges one). AgentNotice lines go to the log.
+   The station radio's RADIO_STATUS (:meth:`StationCore.observe_radio`) gives the
+   state's ``radio``: RSSI, noise and their margins, local and remote.
 7. The views and settings (:class:`AgentView`, :class:`Event`, :class:`StOut`,
    :class:`StationConfig`) are :mod:`swarm.core.station_view`'s; this module
    re-exports them, and the command names, so ``swarm.core.station`` stays the one
@@ -110,6 +112,9 @@ from swarm.core.station_view import AgentView, Event, StationConfig, StationCoun
 from swarm.core.station_watch import AlertWatch
 from swarm.errors import SwarmError
 
+#: a RADIO_STATUS older than this is not shown (ArduPilot's reports go stale after 5 s too)
+RADIO_STALE_S = 5.0
+
 
 class StationCore:
     """The station's protocol and view of the swarm. See the module docstring."""
@@ -151,6 +156,7 @@ class StationCore:
         self.alerts = AlertBook(self.cfg.alerts.keep, wall_offset)
         self.watch = AlertWatch(self.cfg.alerts, self.alerts, self._label, self._event)
         self._now = 0.0  # the latest now seen (finished commands are handed out without one)
+        self._radio: tuple[float, int, int, int, int] | None = None  # when, rssi, noise, remrssi, remnoise
 
     # -- inputs -----------------------------------------------------------------
     def handle(self, msg: Message, now: float, name: str = "") -> list[StOut]:
@@ -229,6 +235,25 @@ class StationCore:
             a.mode = mode
         if armed is not None:
             a.armed = armed
+
+    def observe_radio(self, rssi: int, noise: int, remrssi: int, remnoise: int, now: float) -> None:
+        """The station radio's RADIO_STATUS (accepted at ``now``): its margins go in the state."""
+        self._radio = (now, rssi, noise, remrssi, remnoise)
+
+    def radio_dict(self, now: float) -> dict[str, int] | None:
+        """The station radio's RSSI, noise and margins (RSSI - noise, SiK units: about 1.9
+        per dB), local and remote; None without a report in the last 5 s."""
+        if self._radio is None or now - self._radio[0] > RADIO_STALE_S:
+            return None
+        _, rssi, noise, rem, remnoise = self._radio
+        return {
+            "rssi": rssi,
+            "noise": noise,
+            "margin": rssi - noise,
+            "remrssi": rem,
+            "remnoise": remnoise,
+            "remmargin": rem - remnoise,
+        }
 
     def learn(self, agent_id: int, name: str, now: float) -> AgentView:
         """Record an agent's name (Advertize seen in a replay)."""
@@ -343,6 +368,7 @@ class StationCore:
             "agents": [self.agents[i].as_dict(now) for i in sorted(self.agents)],
             "events": [e.as_dict() for e in self.events],
             "alerts": self.alerts.as_list(),
+            "radio": self.radio_dict(now),
         }
 
     def snapshot_json(self, now: float, station: dict[str, Any]) -> str:
@@ -358,6 +384,8 @@ class StationCore:
             + events
             + ', "alerts": '
             + json.dumps(self.alerts.as_list())
+            + ', "radio": '
+            + json.dumps(self.radio_dict(now))
             + ', "station": '
             + json.dumps(station)
             + "}"
@@ -441,8 +469,8 @@ class StationCore:
         a.battery = None if msg.battery > 100 else msg.battery
         a.rssi, a.remrssi = msg.rssi, msg.remrssi
         a.groundspeed = msg.groundspeed if fc else a.groundspeed
-        if a.connected and not self.passive:
-            self.watch.telemetry(a, now, self.cfg.timeout_heartbeats)
+        if a.connected:  # a replay shows the battery alerts as they were, not its own link's
+            self.watch.telemetry(a, now, self.cfg.timeout_heartbeats, link=not self.passive)
         self._set_election(a, msg.phase, msg.leader)
         if self.commands.in_flight:
             self.commands.look_for_evidence(a)

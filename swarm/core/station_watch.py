@@ -74,9 +74,11 @@ class AlertWatch:
         if self.book.clear(kind, agent, now) is not None:
             self._event(now, "alert", text)
 
-    def telemetry(self, a: AgentView, now: float, base_heartbeats: float) -> None:
+    def telemetry(self, a: AgentView, now: float, base_heartbeats: float, *, link: bool = True) -> None:
+        """``link``: judge the link too (not in a replay: its arrivals are the capture's)."""
         cfg = self.cfg
-        a.link.arrival(now, a.hb_interval, cfg, base_heartbeats)
+        if link:
+            a.link.arrival(now, a.hb_interval, cfg, base_heartbeats)
         who = self._label(a.id)
         level = battery_level(a.battery, cfg)
         if level is not None:

@@ -223,7 +223,11 @@ class Station(StartOnce, StationView):
         self._send(outs)
 
     def _tick(self, now: float) -> None:
+        radio = self.bridge.radio if self.bridge is not None else None
         with self._lock:
+            if radio is not None and radio.t > -1e9:  # a RADIO_STATUS was heard (at radio.t, bridge clock)
+                age = self.bridge.clock() - radio.t
+                self.core.observe_radio(radio.rssi, radio.noise, radio.remrssi, radio.remnoise, now - age)
             outs = self.core.tick(now)
         self._send(outs)
 

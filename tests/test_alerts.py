@@ -380,6 +380,18 @@ def test_acknowledging_a_bad_id_is_a_clear_refusal(alert_id: object, status: int
     assert core.ack_alert(a.id)["acked"] is True and a.acked
 
 
+def test_the_state_carries_open_alerts_and_only_the_last_acknowledged() -> None:
+    core = StationCore()
+    for i in range(30):
+        core.handle(AgentNotice(3, AUTO, 4, f"text {i}"), 10.0 * i)  # slow enough to pass the bucket
+    ids = [a.id for a in core.alerts.alerts.values()]
+    for i in ids[:25]:
+        core.ack_alert(i)
+    shown = core.snapshot(300.0)["alerts"]
+    assert [a["id"] for a in shown] == ids[15:]  # 10 acknowledged, then the 5 still open
+    assert [a["acked"] for a in shown] == [True] * 10 + [False] * 5
+
+
 def test_the_state_carries_the_alerts() -> None:
     import json
 

@@ -30,7 +30,8 @@ condition that ended; a one-off such as a STATUSTEXT is cleared when raised) and
 whether an operator acknowledged it. A condition raised again while its alert is
 still open updates it (a battery going from warning to critical is unacknowledged
 again); a one-off raised again while unacknowledged counts (``count``) instead of
-piling up. At most ``keep`` alerts are kept: acknowledged ones go first.
+piling up. At most ``keep`` alerts are kept: acknowledged ones go first; the state
+shows the unacknowledged ones and the last 10 acknowledged (:meth:`AlertBook.as_list`).
 
 Pure: fed with ``now`` (the station core's monotonic seconds; times shown are
 ``now + wall_offset``), no I/O, no clock.
@@ -203,8 +204,12 @@ class AlertBook:
             a.acked = True
         return a
 
-    def as_list(self) -> list[dict[str, Any]]:
-        return [a.as_dict() for a in self.alerts.values()]
+    def as_list(self, acked: int = 10) -> list[dict[str, Any]]:
+        """Every unacknowledged alert and the last ``acked`` acknowledged ones, oldest
+        first (what a page needs, without resending what is settled at every push)."""
+        done = [i for i, a in self.alerts.items() if a.acked]
+        keep = set(done[-acked:]) if acked > 0 else set()
+        return [a.as_dict() for i, a in self.alerts.items() if not a.acked or i in keep]
 
     def _add(self, kind: str, agent: int, level: str, text: str, now: float) -> Alert:
         a = Alert(self._next_id, kind, agent, level, text, now + self.wall_offset)

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from swarm.core.messages import (
     AckResult,
     Advertize,
+    AgentNotice,
     AgentState,
     Assignment,
     Command,
@@ -24,6 +25,7 @@ from swarm.core.messages import (
     Heartbeat,
     HeartbeatAck,
     NameConflict,
+    NoticeSource,
     Phase,
     PoolStatus,
     Pose,
@@ -151,6 +153,14 @@ messages = st.one_of(
     commands,
     st.builds(CommandAck, ids, st.integers(0, 65535), st.sampled_from(AckResult), st.text(max_size=8)),
     st.builds(NameConflict, ids, names, ids),
+    st.builds(
+        AgentNotice,
+        ids,
+        st.sampled_from(NoticeSource),
+        st.integers(0, 7),
+        st.text(st.characters(codec="utf-8", categories=("L", "N", "P", "S")), min_size=1, max_size=16),
+        st.integers(0, 255),
+    ),
 )
 
 

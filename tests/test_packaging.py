@@ -69,6 +69,7 @@ URLS = {
     "/static/app.js": "static/app.js",
     "/static/app.css": "static/app.css",
     "/static/icon.svg": "static/icon.svg",
+    "/static/alerts.js": "static/alerts.js",
     "/vendor/leaflet/leaflet.js": "vendor/leaflet/leaflet.js",
     "/vendor/leaflet/leaflet.css": "vendor/leaflet/leaflet.css",
     "/vendor/leaflet/images/marker-icon.png": "vendor/leaflet/images/marker-icon.png",

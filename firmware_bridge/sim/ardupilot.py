@@ -101,6 +101,8 @@ class ArduPilot(Flavour):
     text_disarm_denied = "Disarm: vehicle is flying"
     text_armed = "Arming motors"
     text_disarmed = "Disarming motors"
+    text_battery_low = "Battery 1 is low"
+    text_battery_critical = "Battery 1 is critical"
     refusal_severity = 2
     heartbeat_on_mode_change = True
     gps_fix_type = 6  # as SITL reports

@@ -54,6 +54,9 @@ from firmware_bridge.sim.flavour import (
 from firmware_bridge.sim.px4 import MIS_TAKEOFF_ALT, Px4
 
 FORCE_MAGIC = 21196  # arm param 2: force (disarm in the air)
+#: battery percentages below which the autopilot warns once (PX4 BAT_LOW_THR, BAT_CRIT_THR)
+BATTERY_LOW = 15.0
+BATTERY_CRITICAL = 7.0
 RTL_ALT = 15.0  # return altitude above home, m (AP RTL_ALT; PX4 shortened (I))
 MAX_STREAM_HZ = 50.0
 #: the flavour class of each profile (its class data: SITL link and ports)
@@ -104,7 +107,10 @@ class Autopilot:
         dt: float = 0.02,
         noise: float = 0.01,
         boot_time: float = 0.0,
+        battery_drain: float = 0.0,
     ) -> None:
+        if not (math.isfinite(battery_drain) and 0.0 <= battery_drain <= 6000.0):
+            raise ValueError(f"battery_drain {battery_drain!r}: 0..6000 percent per minute")
         self.flavour = make_flavour(profile, offboard_loss_action, boot_time)
         self.profile = profile
         self.sysid = sysid
@@ -122,6 +128,10 @@ class Autopilot:
         self.failsafe = False
         self.gps_ok = True
         self.battery = 100.0
+        #: percent per simulated minute drawn at all times, armed or not (tests: a battery
+        #: that runs low in seconds), on top of what flying draws
+        self.battery_drain = battery_drain
+        self._battery_warned = 0  # 1: low told, 2: critical told
         self.home = (0.0, 0.0, 0.0)
         self.arm_time = 0.0
         self.took_off = False
@@ -300,14 +310,21 @@ class Autopilot:
                 self._disarm(self.flavour.text_landed_disarm)
 
     def _drain(self) -> None:
-        if not self.armed:
-            return
-        if self.body.on_ground:
-            rate = 0.02
-        else:
+        rate = self.battery_drain / 60.0
+        if self.armed and self.body.on_ground:
+            rate += 0.02
+        elif self.armed:
             a = self.body.acc
-            rate = 0.08 + 0.004 * math.sqrt(a[0] ** 2 + a[1] ** 2 + a[2] ** 2)
+            rate += 0.08 + 0.004 * math.sqrt(a[0] ** 2 + a[1] ** 2 + a[2] ** 2)
+        if rate <= 0.0:
+            return
         self.battery = max(0.0, self.battery - rate * self.dt)
+        if self.battery < BATTERY_CRITICAL and self._battery_warned < 2:
+            self._battery_warned = 2
+            self.text(2, self.flavour.text_battery_critical)
+        elif self.battery < BATTERY_LOW and self._battery_warned < 1:
+            self._battery_warned = 1
+            self.text(4, self.flavour.text_battery_low)
 
     def _emit_due(self) -> None:
         t = self.t + 1e-9

@@ -105,6 +105,8 @@ class Flavour(ABC):
     text_disarm_denied: ClassVar[str]
     text_armed: ClassVar[str | None]  # after an accepted arm command
     text_disarmed: ClassVar[str | None]  # after an accepted disarm command
+    text_battery_low: ClassVar[str]  # WARNING, when the battery falls below BATTERY_LOW
+    text_battery_critical: ClassVar[str]  # CRITICAL, below BATTERY_CRITICAL
     refusal_severity: ClassVar[int] = 4  # STATUSTEXT severity of a refused arm's reasons
     heartbeat_on_mode_change: ClassVar[bool] = False  # one more HEARTBEAT with the ACK
     gps_fix_type: ClassVar[int] = 3  # GPS_RAW_INT fix_type with a fix

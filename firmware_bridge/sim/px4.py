@@ -79,6 +79,8 @@ class Px4(Flavour):
     text_disarm_denied = "Disarming denied: not landed"
     text_armed = "Armed by external command"
     text_disarmed = "Disarmed by external command"
+    text_battery_low = "Low battery level! Return advised"
+    text_battery_critical = "Critical battery level! Land now"
 
     def __init__(self, loss_action: str = "hold") -> None:
         self.loss_action = loss_action

@@ -65,6 +65,8 @@ class SimConfig:
     #: ardupilot: the recorded boot scaled to these simulated seconds (0: booted already;
     #: REALISTIC_BOOT: as recorded); px4: no boot phase
     boot_time: float = 0.0
+    #: percent per simulated minute every battery loses, armed or not (tests; 0: flight only)
+    battery_drain: float = 0.0
 
     def validate(self) -> None:
         """Raise :class:`ConnectError` (a :class:`BridgeError`) for impossible values."""
@@ -85,6 +87,8 @@ class SimConfig:
             )
         if not (math.isfinite(self.boot_time) and 0.0 <= self.boot_time <= 600.0):
             raise ConnectError(f"boot_time must be 0..600 s, got {self.boot_time}")
+        if not (math.isfinite(self.battery_drain) and 0.0 <= self.battery_drain <= 6000.0):
+            raise ConnectError(f"battery_drain must be 0..6000 percent per minute, got {self.battery_drain}")
         base = self.first_port()
         last = base + (self.vehicles - 1) * FLAVOURS[self.profile].sitl_port_step
         if not base >= 1 or last > 65535:
@@ -418,6 +422,7 @@ class VehicleSim:
                 rng=random.Random(cfg.seed * 1009 + i),
                 offboard_loss_action=cfg.offboard_loss_action,
                 boot_time=cfg.boot_time,
+                battery_drain=cfg.battery_drain,
             )
             v = Vehicle(self, i, core, tr, start)
             self._vehicles.append(v)

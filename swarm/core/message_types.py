@@ -33,6 +33,7 @@ GCS_ID = 255
 MAX_NAME = 16
 NAME_RE = re.compile(r"^[A-Za-z0-9_-]{1,16}$")
 REASON_MAX = 96  # a CommandAck's reason, bytes of UTF-8 (the frame holds 128)
+NOTICE_MAX = 64  # an AgentNotice's text, bytes of UTF-8 (an autopilot's STATUSTEXT holds 50)
 
 _crc32 = crcmod.predefined.mkCrcFun("crc-32")
 
@@ -171,6 +172,13 @@ class AckResult(IntEnum):
     BAD_ARGUMENT = 5
     FAILED = 6
     IN_PROGRESS = 7
+
+
+class NoticeSource(IntEnum):
+    """Who an :class:`AgentNotice` speaks for."""
+
+    AUTOPILOT = 0  # a STATUSTEXT of the agent's flight controller
+    AGENT = 1  # the agent's own event (took off, arrived, holding...)
 
 
 class PoolStatus(IntEnum):
@@ -377,15 +385,39 @@ class NameConflict(Message):
     other_id: int
 
 
+@dataclass(frozen=True)
+class AgentNotice(Message):
+    """Agent -> ground station: one line for the operator, rate-limited by the agent
+    (:mod:`swarm.core.notices`). ``severity`` is MAVLink's (0 emergency .. 7 debug);
+    ``repeats`` how many more times the same line came since it was last sent."""
+
+    TYPE: ClassVar[int] = 19
+    sender: int
+    source: NoticeSource
+    severity: int
+    text: str
+    repeats: int = 0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.severity, int) and 0 <= self.severity <= 7):
+            raise MessageError(f"notice severity {self.severity!r} outside 0..7")
+        if not (isinstance(self.repeats, int) and 0 <= self.repeats <= 255):
+            raise MessageError(f"notice repeats {self.repeats!r} outside 0..255")
+        if not isinstance(self.text, str) or not self.text.isprintable() or not self.text:
+            raise MessageError("a notice's text is one non-empty printable line")
+
+
 __all__ = [
     "GCS_ID",
     "LEGACY_KINDS",
     "MAX_NAME",
     "NAME_RE",
+    "NOTICE_MAX",
     "PROTOCOL_VERSION",
     "REASON_MAX",
     "AckResult",
     "Advertize",
+    "AgentNotice",
     "AgentState",
     "Assignment",
     "Command",
@@ -399,6 +431,7 @@ __all__ = [
     "HeartbeatAck",
     "Message",
     "NameConflict",
+    "NoticeSource",
     "Phase",
     "PoolStatus",
     "Pose",

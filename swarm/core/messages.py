@@ -304,6 +304,7 @@ U8, U16, U32 = _fmt("B"), _fmt("H"), _fmt("I")
 ID, ANY_ID, OPT_ID = _id(), _id(gcs=True), _opt_id()
 NAME = ((lambda w, v: _w_str(w, mt.check_name(v))), _r_name)
 TEXT = ((lambda w, v: _w_str(w, v, mt.REASON_MAX)), (lambda r: _r_str(r, mt.REASON_MAX)))
+NOTICE_TEXT = ((lambda w, v: _w_str(w, v, mt.NOTICE_MAX)), (lambda r: _r_str(r, mt.NOTICE_MAX)))
 IDS = (_w_ids, _r_ids)
 POSE = (_w_pose, _r_pose)
 TASK = (_w_task, _r_task)
@@ -349,6 +350,13 @@ _LAYOUT: dict[type[mt.Message], list[tuple[str, tuple[Callable[[_W, Any], None],
     mt.Command: [("sender", ANY_ID), ("seq", U16), ("target", OPT_ID), ("kind", _enum(mt.CommandKind))],
     mt.CommandAck: [("sender", ID), ("seq", U16), ("result", _enum(mt.AckResult)), ("reason", TEXT)],
     mt.NameConflict: [("sender", ID), ("name", NAME), ("other_id", ID)],
+    mt.AgentNotice: [
+        ("sender", ID),
+        ("source", _enum(mt.NoticeSource)),
+        ("severity", U8),
+        ("repeats", U8),
+        ("text", NOTICE_TEXT),
+    ],
 }
 
 # per-kind arguments of a Command

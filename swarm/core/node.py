@@ -17,7 +17,8 @@ virtual-time flight simulator (:mod:`swarm.sim.flightsim`) drive the same code:
   local radio's RSSI); :class:`SetTask` (the task a leader carries on its
   Heartbeats); :class:`VehicleLink` (the flight controller fell silent or came back);
   :class:`PositionFix` (the flight controller's position became valid or stopped
-  being one); :class:`CallDone` (a vehicle call finished).
+  being one); :class:`CallDone` (a vehicle call finished); :class:`AutopilotText`
+  (a STATUSTEXT of the flight controller).
 * **Outputs**: :class:`Send` (a message to an agent or station id, with the name the
   node learnt for it, or to everyone: ``to`` 0 for Advertize and GSAdvertize);
   :class:`PublishState` (when the election state changed, and as a keep-alive:
@@ -40,6 +41,11 @@ core (a leader that cannot fly hands over). Without a valid position the node sa
 "waiting for position" once (with the reason) and "position valid" when it comes;
 a fix that is lost takes the node's own pose back to none, so neither Telemetry nor
 a HeartbeatAck carries the last position as if it were current.
+
+The autopilot's STATUSTEXTs at WARNING or worse and the node's own events (the
+pilot's, the position fix, an id conflict) go to every connected station as
+AgentNotice, through :class:`~swarm.core.notices.NoticeGate` (one line, rate-limited,
+repeats counted; its counters are ``notices``).
 
 Counters are kept in ``stats`` (a dict the runtime may share with its own counters).
 """
@@ -65,6 +71,7 @@ from swarm.core.gslink import (
 from swarm.core.messages import (
     AckResult,
     Advertize,
+    AgentNotice,
     AgentState,
     Command,
     CommandAck,
@@ -72,12 +79,14 @@ from swarm.core.messages import (
     GSConnect,
     GSHeartbeat,
     Message,
+    NoticeSource,
     Phase,
     Pose,
     Task,
     TaskKind,
     Telemetry,
 )
+from swarm.core.notices import NoticeGate, agent_severity
 from swarm.core.pilot import Call, Mode, Pilot, PilotConfig, Role, Setpoint
 from swarm.core.protocol import ADVERTIZE, NO_POSE, Core, Out, Profile, RandomVote, VotePolicy
 
@@ -143,6 +152,15 @@ class PositionFix:
 
     valid: bool
     reason: str = ""
+
+
+@dataclass(frozen=True)
+class AutopilotText:
+    """A STATUSTEXT of the flight controller (MAVLink severity, its text as received:
+    str, or bytes from some dialects)."""
+
+    severity: int
+    text: str | bytes
 
 
 @dataclass(frozen=True)
@@ -243,6 +261,7 @@ class AgentNode:
         self.reported_conflicts: set[tuple[int, str]] = set()
         self._next_publish = 0.0
         self._next_step = 0.0
+        self.notices = NoticeGate()
 
     # -- driving ---------------------------------------------------------------------
     def start(self, now: float) -> list[NodeOut]:
@@ -251,6 +270,8 @@ class AgentNode:
 
     def next_deadline(self) -> float:
         d = min(self._next_publish, self._next_step, self.gs.next_deadline())
+        if self.gs.connected:
+            d = min(d, self.notices.next_deadline())
         for x in (self.core.next_deadline(), self.commands.next_deadline()):
             if x is not None:
                 d = min(d, x)
@@ -270,8 +291,20 @@ class AgentNode:
         out += [self._send(station, ack) for station, ack in self.commands.due(now)]
         if now >= self._next_step:
             self._next_step = max(self._next_step + SETPOINT_PERIOD, now - SETPOINT_PERIOD)
-            out += self._pilot_step(now)
+            out += self._tell(self._pilot_step(now), now)
+        stations = self.gs.connected
+        if stations:
+            for n in self.notices.take(now):
+                note = AgentNotice(self.id, n.source, n.severity, n.text, n.repeats)
+                out += [self._send(st, note) for st in stations]
         return out
+
+    def _tell(self, outs: list[NodeOut], now: float) -> list[NodeOut]:
+        """Offer the events among ``outs`` to the stations (as notices); ``outs`` unchanged."""
+        for o in outs:
+            if isinstance(o, EventOut):
+                self.notices.offer(NoticeSource.AGENT, agent_severity(o.text), o.text, now)
+        return outs
 
     def handle(self, ev: object, now: float) -> list[NodeOut]:
         if isinstance(ev, Message):
@@ -300,7 +333,9 @@ class AgentNode:
             core.set_vehicle_link(ev.up, now)  # a leader that cannot fly hands over
             return [EventOut(VEHICLE_LINK_BACK if ev.up else VEHICLE_LINK_LOST)]
         elif isinstance(ev, PositionFix):
-            return self._position_fix(ev)
+            return self._tell(self._position_fix(ev), now)
+        elif isinstance(ev, AutopilotText):
+            self.notices.offer(NoticeSource.AUTOPILOT, ev.severity, ev.text, now)
         return []
 
     def _position_fix(self, ev: PositionFix) -> list[NodeOut]:
@@ -327,7 +362,7 @@ class AgentNode:
                 if msg.name == self.name:
                     self.stats["own_echo"] += 1  # our own advertisement, delivered locally
                     return []
-                return self._id_conflict(msg)
+                return self._tell(self._id_conflict(msg), now)
             self.names[msg.sender] = msg.name
             self.ids[msg.name] = msg.sender
         hb = core.last_hb
@@ -461,6 +496,7 @@ __all__ = [
     "VEHICLE_LINK_LOST",
     "WAITING_FOR_POSITION",
     "AgentNode",
+    "AutopilotText",
     "CallDone",
     "CallOut",
     "EventOut",

@@ -17,7 +17,9 @@ station's part:
 3. Connected agents get GSHeartbeat every ``heartbeat_interval`` (one seq for all
    agents in a round, so a radio bridge sends one multicast frame); an agent without
    Telemetry for ``max(min_timeout, 3 * hb_interval)`` is disconnected (an event)
-   and reconnected when it advertises again.
+   and reconnected when it advertises again; once its link has a record, for as
+   long as that record says a silence is no chance (up to 10 heartbeats: a lossy
+   link does not flap, :mod:`swarm.core.station_alerts`).
 4. Telemetry, ``swarm/<name>/state`` (AgentState) and ``swarm/<name>/pose``
    (PoseReport) fill each agent's view: position, a trail (the last ``trail_s``,
    at most ``trail_points`` points), mode, flags, battery, radio, election state.
@@ -32,7 +34,13 @@ station's part:
    and so does each change of leader and each Telemetry (evidence of a command
    carried out). What a command is, parses to and ends with is
    :mod:`swarm.core.station_commands`.
-6. The views and settings (:class:`AgentView`, :class:`Event`, :class:`StOut`,
+6. Alerts (battery, link, vehicle link, the agents' notices, refused commands,
+   separation holds) are :class:`~swarm.core.station_watch.AlertWatch`'s, kept in
+   an :class:`~swarm.core.station_alerts.AlertBook` (``alerts`` in the state;
+   :meth:`StationCore.ack_alert` acknowledges one). AgentNotice lines go to the log.
+   The station radio's RADIO_STATUS (:meth:`StationCore.observe_radio`) gives the
+   state's ``radio``: RSSI, noise and their margins, local and remote.
+7. The views and settings (:class:`AgentView`, :class:`Event`, :class:`StOut`,
    :class:`StationConfig`) are :mod:`swarm.core.station_view`'s; this module
    re-exports them, and the command names, so ``swarm.core.station`` stays the one
    import for the runtime and the tests.
@@ -67,6 +75,7 @@ from swarm.core.gslink import (
 )
 from swarm.core.messages import (
     GCS_ID,
+    AgentNotice,
     AgentState,
     Command,
     CommandAck,
@@ -81,6 +90,7 @@ from swarm.core.messages import (
     Telemetry,
     check_name,
 )
+from swarm.core.station_alerts import AlertBook
 from swarm.core.station_commands import (
     AGENT_KINDS,
     ALT_AMSL,
@@ -99,7 +109,11 @@ from swarm.core.station_commands import (
 )
 from swarm.core.station_delivery import CommandDelivery
 from swarm.core.station_view import AgentView, Event, StationConfig, StationCounters, StOut, has_position
+from swarm.core.station_watch import AlertWatch
 from swarm.errors import SwarmError
+
+#: a RADIO_STATUS older than this is not shown (ArduPilot's reports go stale after 5 s too)
+RADIO_STALE_S = 5.0
 
 
 class StationCore:
@@ -138,12 +152,18 @@ class StationCore:
             self.id, self.cfg, self.counters, self.agents, self._label, self._event, first_seq
         )
         self._leader_dirty = False  # a connection, phase or leader changed
+        # alerts and link health (swarm.core.station_alerts, station_watch)
+        self.alerts = AlertBook(self.cfg.alerts.keep, wall_offset)
+        self.watch = AlertWatch(self.cfg.alerts, self.alerts, self._label, self._event)
+        self._now = 0.0  # the latest now seen (finished commands are handed out without one)
+        self._radio: tuple[float, int, int, int, int] | None = None  # when, rssi, noise, remrssi, remnoise
 
     # -- inputs -----------------------------------------------------------------
     def handle(self, msg: Message, now: float, name: str = "") -> list[StOut]:
         """One message heard. ``name`` is the agent name from the key of a pose or
         state sample (``swarm/<name>/pose``); unused for the other messages."""
         self.counters.received += 1
+        self._now = max(self._now, now)
         out: list[StOut] = []
         if isinstance(msg, GSAdvertize):
             if is_station(msg.sender) or not 1 <= msg.sender <= 250:
@@ -165,6 +185,8 @@ class StationCore:
                 self.counters.unknown_agent += 1
             else:
                 self.observe_pose(aid, msg.pose, now)
+        elif isinstance(msg, AgentNotice):
+            self._notice(msg, now)
         elif isinstance(msg, Command) and self.passive and is_station(msg.sender):
             who = self._label(msg.target) if msg.target else "the swarm (leader)"
             self._event(now, "command", f"station {msg.sender} sent {msg.kind.name} to {who} (seq {msg.seq})")
@@ -214,6 +236,25 @@ class StationCore:
         if armed is not None:
             a.armed = armed
 
+    def observe_radio(self, rssi: int, noise: int, remrssi: int, remnoise: int, now: float) -> None:
+        """The station radio's RADIO_STATUS (accepted at ``now``): its margins go in the state."""
+        self._radio = (now, rssi, noise, remrssi, remnoise)
+
+    def radio_dict(self, now: float) -> dict[str, int] | None:
+        """The station radio's RSSI, noise and margins (RSSI - noise, SiK units: about 1.9
+        per dB), local and remote; None without a report in the last 5 s."""
+        if self._radio is None or now - self._radio[0] > RADIO_STALE_S:
+            return None
+        _, rssi, noise, rem, remnoise = self._radio
+        return {
+            "rssi": rssi,
+            "noise": noise,
+            "margin": rssi - noise,
+            "remrssi": rem,
+            "remnoise": remnoise,
+            "remmargin": rem - remnoise,
+        }
+
     def learn(self, agent_id: int, name: str, now: float) -> AgentView:
         """Record an agent's name (Advertize seen in a replay)."""
         return self._learn(agent_id, name, now)
@@ -247,6 +288,7 @@ class StationCore:
 
     # -- time -----------------------------------------------------------------------
     def tick(self, now: float) -> list[StOut]:
+        self._now = max(self._now, now)
         out: list[StOut] = []
         if not self.passive and now + 1e-9 >= self._next_advertize:
             out.append(StOut(0, "", GSAdvertize(self.id, self.name)))
@@ -260,6 +302,8 @@ class StationCore:
                     "disconnect",
                     f"{self._label(a.id)} disconnected (silent for {now - self._last_alive(a):.1f} s)",
                 )
+                if not self.passive:
+                    self.watch.disconnected(a, now - self._last_alive(a), now)
             if self.passive:
                 continue
             if a.connect_seq is not None and now + 1e-9 >= a.next_connect:
@@ -297,7 +341,24 @@ class StationCore:
         return ev
 
     def take_finished(self) -> list[Request]:
-        return self.commands.take_finished()
+        done = self.commands.take_finished()
+        for r in done:
+            self.watch.finished(r, self._now)
+        return done
+
+    def ack_alert(self, alert_id: Any) -> dict[str, Any]:
+        """Acknowledge alert ``alert_id``: its dict.
+
+        Raises:
+            CommandRefused: 400 not an alert id (an integer), 404 no such alert.
+        """
+        if isinstance(alert_id, bool) or not isinstance(alert_id, int):
+            raise CommandRefused(400, "an alert id is an integer")
+        a = self.alerts.ack(alert_id)
+        if a is None:
+            shown = alert_id if -(10**9) < alert_id < 10**9 else "out of range"
+            raise CommandRefused(404, f"no alert {shown}")
+        return a.as_dict()
 
     def snapshot(self, now: float) -> dict[str, Any]:
         """The API's state object (without the station's link description)."""
@@ -306,6 +367,8 @@ class StationCore:
             "leader": self.leader,
             "agents": [self.agents[i].as_dict(now) for i in sorted(self.agents)],
             "events": [e.as_dict() for e in self.events],
+            "alerts": self.alerts.as_list(),
+            "radio": self.radio_dict(now),
         }
 
     def snapshot_json(self, now: float, station: dict[str, Any]) -> str:
@@ -319,6 +382,10 @@ class StationCore:
             + agents
             + '], "events": '
             + events
+            + ', "alerts": '
+            + json.dumps(self.alerts.as_list())
+            + ', "radio": '
+            + json.dumps(self.radio_dict(now))
             + ', "station": '
             + json.dumps(station)
             + "}"
@@ -356,6 +423,7 @@ class StationCore:
         again = " again" if a.ever_connected else ""
         a.ever_connected = True
         self._event(now, "connect", f"{self._label(a.id)} connected{again}")
+        self.watch.connected(a, now)
 
     def _last_alive(self, a: AgentView) -> float:
         return a.last_heard if self.passive else a.last_telemetry
@@ -363,7 +431,8 @@ class StationCore:
     def _timeout(self, a: AgentView) -> float:
         if self.passive:
             return self.cfg.passive_timeout
-        return max(self.cfg.min_timeout, self.cfg.timeout_heartbeats * a.hb_interval)
+        base = max(self.cfg.min_timeout, self.cfg.timeout_heartbeats * a.hb_interval)
+        return base if a.link.silence_s is None else max(base, a.link.silence_s)  # the link's record
 
     def _start_connect(self, a: AgentView, now: float) -> list[StOut]:
         a.connect_seq = next(self._connect_seq) & 0xFFFF or next(self._connect_seq)
@@ -402,6 +471,8 @@ class StationCore:
         a.battery = None if msg.battery > 100 else msg.battery
         a.rssi, a.remrssi = msg.rssi, msg.remrssi
         a.groundspeed = msg.groundspeed if fc else a.groundspeed
+        if a.connected:  # a replay shows the battery alerts as they were, not its own link's
+            self.watch.telemetry(a, now, self.cfg.timeout_heartbeats, link=not self.passive)
         self._set_election(a, msg.phase, msg.leader)
         if self.commands.in_flight:
             self.commands.look_for_evidence(a)
@@ -419,7 +490,14 @@ class StationCore:
             )
         elif a.vehicle_link is False:
             self._event(now, "vehicle", f"{self._label(a.id)}: vehicle link back")
+        self.watch.vehicle_link(a, up, now)
         a.vehicle_link = up
+
+    def _notice(self, msg: AgentNotice, now: float) -> None:
+        a = self.agents.get(msg.sender)
+        if a is not None:
+            self._heard(a, now)
+        self.watch.notice(msg, now)
 
     def _state(self, msg: AgentState, name: str, now: float) -> None:
         if not 1 <= msg.sender <= 250:

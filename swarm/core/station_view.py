@@ -7,7 +7,8 @@ built: positive numbers of seconds, positive counts). :class:`StOut` is one mess
 agent's inbox, or 0 for ``swarm/GSAdvertize``); :class:`Event` one line of the
 station's log (connect, disconnect, leader, command, vehicle, info) in Unix time.
 :class:`AgentView` is what the station knows of one agent (position and trail, mode,
-flags, battery, radio, election state), as the API's dict or JSON text; its trail's
+flags, battery, radio, measured Telemetry loss, election state), as the API's dict or
+JSON text; its trail's
 points are formatted once when stored (:meth:`AgentView.add_trail`).
 :class:`StationCounters` counts what the station received, ignored and sent.
 
@@ -24,6 +25,7 @@ from typing import Any
 
 from swarm.core.geofence import Geofence
 from swarm.core.messages import Message, Phase, Pose
+from swarm.core.station_alerts import AlertConfig, LinkHealth
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,8 @@ class StationConfig:
     passive_timeout: float = 5.0
     #: what a command may ask (swarm.core.geofence); submit refuses the rest
     fence: Geofence = field(default_factory=Geofence)
+    #: battery and link-loss thresholds, the link's judgement (swarm.core.station_alerts)
+    alerts: AlertConfig = field(default_factory=AlertConfig)
 
     def __post_init__(self) -> None:
         for k in (
@@ -63,6 +67,8 @@ class StationConfig:
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{k} {v!r}: a positive number of seconds")
+        if not isinstance(self.alerts, AlertConfig):
+            raise ValueError(f"alerts {self.alerts!r}: an AlertConfig")
         b = self.command_backoff
         if not (
             isinstance(b, tuple)
@@ -126,6 +132,8 @@ class AgentView:
     pool: frozenset[int] = frozenset()
     members: frozenset[int] = frozenset()
     locked: bool = False
+    #: Telemetry arrivals: measured loss, the silence that means lost (station_alerts)
+    link: LinkHealth = field(default_factory=LinkHealth)
     #: (t, lat, lon, the point as JSON text): formatted once when stored, because
     #: formatting 50 agents' trails at every push cost more than the messages
     trail: deque[tuple[float, float, float, str]] = field(default_factory=deque)
@@ -166,6 +174,7 @@ class AgentView:
             "battery": self.battery,
             "rssi": self.rssi,
             "remrssi": self.remrssi,
+            "loss_pct": None if self.link.loss is None else round(100.0 * self.link.loss, 1),
             "phase": self.phase.name if self.phase is not None else None,
             "leader": self.leader,
             "pool": sorted(self.pool),

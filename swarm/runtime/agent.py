@@ -42,6 +42,8 @@ the paper has it (section 2.2: one thread per protocol or link, queues between t
   counted in ``stats['poses_withheld']``) and the node is told once
   (:class:`~swarm.core.node.PositionFix`): it says "waiting for position" and then
   "position valid".
+* **Autopilot texts**: each STATUSTEXT goes from the driver's receiver thread to the node,
+  which forwards the warnings to the stations, rate-limited (:mod:`swarm.core.notices`).
 * **Vehicle link**: the driver's link-lost / link-restored callbacks come through
   the queue to the node (an event, a leader that cannot fly hands over, Telemetry
   without FLAG_FC_OK and with the mode unknown).
@@ -104,6 +106,7 @@ from swarm.core.node import (
     VEHICLE_LINK_BACK,
     VEHICLE_LINK_LOST,
     AgentNode,
+    AutopilotText,
     CallDone,
     CallOut,
     EventOut,
@@ -293,6 +296,7 @@ class Agent(StartOnce):
                 on_link_lost=lambda: self.loop.put(VehicleLink(False)),
                 on_link_restored=lambda: self.loop.put(VehicleLink(True)),
             )
+            self.vehicle.add_message_hook(self._fc_text)
             if self.flight_log is not None:
                 self.vehicle.add_message_hook(self._log_fc)
         self.node = AgentNode(
@@ -531,6 +535,11 @@ class Agent(StartOnce):
         """The driver's receiver thread: queue a key message for the flight log."""
         if msg.get_msgId() in FC_LOG_MESSAGES:
             self.flight_log.put("fc", msg.get_msgbuf())
+
+    def _fc_text(self, msg: Any) -> None:
+        """The driver's receiver thread: the autopilot's STATUSTEXT to the node (its notices)."""
+        if msg.get_type() == "STATUSTEXT" and msg.get_srcSystem() == self.vehicle.state.system_id:
+            self.loop.put(AutopilotText(int(msg.severity), msg.text))
 
     # -- pose thread -------------------------------------------------------------------
     def _pose_loop(self) -> None:

@@ -18,6 +18,7 @@ Routes (README, "Ground station", documents the bodies):
   on a worker thread; a tile that is missing or bad is a 404). The page and Leaflet are
   package data: found beside this module, in a checkout as in an installed wheel;
 * ``GET /api/config``, ``/api/state``, ``/api/agents/<id>``; ``POST /api/command``;
+  ``POST /api/alerts/ack`` (``{"id": N}``: an alert acknowledged);
   ``GET|POST /api/replay`` (replay mode);
 * ``GET /ws``: the state pushed at ``ws_hz``, events as they happen, commands and
   replay controls from the client.
@@ -117,6 +118,8 @@ class StationView(Protocol):
     def snapshot_json(self) -> str: ...
 
     def agent(self, agent_id: int) -> dict[str, Any] | None: ...
+
+    def ack_alert(self, alert_id: Any) -> dict[str, Any]: ...
 
     def center(self) -> list[float] | None: ...
 
@@ -286,6 +289,7 @@ class GcsServer:
         r.add_get("/api/state", self._state)
         r.add_get(r"/api/agents/{id:\d{1,9}}", self._agent)
         r.add_post("/api/command", self._command_http)
+        r.add_post("/api/alerts/ack", self._ack_alert_http)
         r.add_get("/api/replay", self._replay_get)
         r.add_post("/api/replay", self._replay_post)
         r.add_get("/ws", self.ws.handle)
@@ -449,6 +453,16 @@ class GcsServer:
             return error_response(exc.status, exc.reason)
         status, out = await self.run_command(body)
         return web.json_response(out, status=status)
+
+    async def _ack_alert_http(self, request: web.Request) -> web.Response:
+        """``{"id": N}``: acknowledge alert N (the alert back; 400/404 one line)."""
+        try:
+            body = await read_json(request, self.cfg.body_timeout)
+            if not isinstance(body, dict):
+                raise CommandRefused(400, 'an acknowledgement is a JSON object {"id": N}')
+            return web.json_response({"ok": True, "alert": self.station.ack_alert(body.get("id"))})
+        except CommandRefused as exc:
+            return error_response(exc.status, exc.reason)
 
     async def _replay_get(self, request: web.Request) -> web.Response:
         rp = self.station.replay

@@ -61,6 +61,11 @@ class StationView:
             a = self.core.agents.get(agent_id)
             return a.as_dict(self._now()) if a is not None else None
 
+    def ack_alert(self, alert_id: Any) -> dict[str, Any]:
+        """Acknowledge an alert (CommandRefused: 400 a bad id, 404 no such alert)."""
+        with self._lock:
+            return self.core.ack_alert(alert_id)
+
 
 class Station(StartOnce, StationView):
     """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.
@@ -231,7 +236,11 @@ class Station(StartOnce, StationView):
         self._send(outs)
 
     def _tick(self, now: float) -> None:
+        radio = self.bridge.radio if self.bridge is not None else None
         with self._lock:
+            if radio is not None and radio.t > -1e9:  # a RADIO_STATUS was heard (at radio.t, bridge clock)
+                age = self.bridge.clock() - radio.t
+                self.core.observe_radio(radio.rssi, radio.noise, radio.remrssi, radio.remnoise, now - age)
             outs = self.core.tick(now)
         self._send(outs)
 

@@ -9,7 +9,8 @@ station event as it happens (:meth:`WsHub.on_event`, called on the station's
 thread, hands it to the loop). A client sends JSON objects with a ``type``:
 ``command`` (answered by a ``command_result`` with the request's ``id``, the
 command awaited on its own task), ``replay`` (a replay control; 409 when not in
-replay mode) and ``state``. A bad message (binary, too large, malformed, an
+replay mode), ``state`` and ``ack_alert`` (``{"type": "ack_alert", "id": N}``, answered
+``alert_acked`` with the alert). A bad message (binary, too large, malformed, an
 unknown type, a bad id) gets ``{"type": "error", "status", "reason", "id"?}`` and
 the connection stays open; a message that fails unexpectedly answers 500 and logs
 the traceback. A client that does not take a text within 10 s is dropped.
@@ -121,6 +122,8 @@ class WsHub:
             await self._replay(ws, obj, mid)
         elif mtype == "state":
             await self._send(ws, self._state_texts())
+        elif mtype == "ack_alert":
+            await self._ack_alert(ws, obj, mid)
         else:
             shown = (
                 repr(mtype[:24])
@@ -130,8 +133,17 @@ class WsHub:
                 else f"of type {type(mtype).__name__}"
             )
             await self._send(
-                ws, [self._error(400, f"unknown message type {shown}: command, replay or state", mid)]
+                ws,
+                [self._error(400, f"unknown message type {shown}: command, replay, state or ack_alert", mid)],
             )
+
+    async def _ack_alert(self, ws: web.WebSocketResponse, obj: dict[str, Any], mid: Any) -> None:
+        try:
+            alert = self.station.ack_alert(mid)  # the request's id is the alert's
+        except CommandRefused as exc:
+            await self._send(ws, [self._error(exc.status, exc.reason, mid)])
+            return
+        await self._send(ws, [json.dumps({"type": "alert_acked", "id": mid, "alert": alert})])
 
     async def _replay(self, ws: web.WebSocketResponse, obj: dict[str, Any], mid: Any) -> None:
         rp = self.station.replay

@@ -100,6 +100,7 @@ def representative() -> dict[str, sm.Message]:
         sm.Command(255, seq=12, target=0, kind=sm.CommandKind.FOLLOW, heading=45.0),
         sm.CommandAck(1, seq=12, result=sm.AckResult.ACCEPTED),
         sm.NameConflict(3, "agent2", other_id=7),
+        sm.AgentNotice(3, sm.NoticeSource.AUTOPILOT, 4, "PreArm: GPS not healthy", repeats=2),
     ]
     out = {type(m).__name__: m for m in msgs}
     missing = {t.__name__ for t in sm.message_types()} - set(out)

@@ -102,6 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_security_arguments(p)
     add_fence_arguments(p, "the station")
+    _add_alert_arguments(p)
     p.add_argument("--capture", metavar="FILE", help="record the radio's traffic to a .tlog (with --radio)")
     p.add_argument("--name", default="gcs", help="station name (default gcs)")
     p.add_argument("--id", type=int, default=255, help="station system id, 251..255 (default 255)")
@@ -109,6 +110,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paused", action="store_true", help="replay: start paused")
     p.add_argument("--json", action="store_true", help="JSON lines instead of text")
     return p
+
+
+# -- alerts (README, "Alerts and link health") -----------------------------------------
+
+
+def _add_alert_arguments(p: argparse.ArgumentParser) -> None:
+    al = p.add_argument_group("alerts")
+    al.add_argument(
+        "--battery-warning", type=int, default=30, metavar="PCT", help="battery warning at or below (30 %%)"
+    )
+    al.add_argument(
+        "--battery-critical", type=int, default=15, metavar="PCT", help="battery critical at or below (15 %%)"
+    )
+    al.add_argument(
+        "--link-loss-alert",
+        type=float,
+        default=50.0,
+        metavar="PCT",
+        help="link alert when this share of an agent's Telemetry is lost (50 %%; cleared below 30 %%)",
+    )
+
+
+def _station_config(a: argparse.Namespace) -> Any:
+    """The live station's settings from the alert and fence flags (UsageError for bad ones)."""
+    from swarm.core.station_alerts import AlertConfig
+    from swarm.core.station_view import StationConfig
+
+    w, c, loss = a.battery_warning, a.battery_critical, a.link_loss_alert
+    if not 0 <= c < w <= 100:
+        raise UsageError(f"--battery-critical {c} and --battery-warning {w}: 0 <= critical < warning <= 100")
+    if not (math.isfinite(loss) and 30.0 < loss <= 100.0):
+        raise UsageError(f"--link-loss-alert {loss}: more than 30, at most 100 (percent)")
+    alerts = AlertConfig(battery_warning=w, battery_critical=c, loss_alert=loss)
+    return StationConfig(alerts=alerts, fence=a.fence)
 
 
 # -- who may use the page and the API (README, "Security") ----------------------------
@@ -268,6 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     with file_errors(a):
         _check(a)
         cfg = _server_config(a)
+        a.station_config = _station_config(a)
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     stop = StopFlag().install()
     try:
@@ -290,11 +326,10 @@ def _open_station(a: argparse.Namespace) -> Any:
         return ReplayStation(
             cap, speed=a.speed or 1.0, name=None if a.name == "gcs" else a.name, playing=not a.paused
         ).start()
-    from swarm.core.station import StationConfig
     from swarm.runtime.station import Station
 
     n = a.node
-    st = Station(a.name, a.id, node=n, capture=a.capture, config=StationConfig(fence=a.fence))
+    st = Station(a.name, a.id, node=n, capture=a.capture, config=a.station_config)
     try:
         return st.start()
     except CaptureError as exc:  # the capture file is the user's input too

@@ -73,6 +73,17 @@ def join_negative_values(argv: Sequence[str]) -> list[str]:
     return out
 
 
+def _add_battery_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--battery-drain",
+        type=float,
+        default=0.0,
+        metavar="PCT_PER_MIN",
+        help="every battery also loses this many percent per simulated minute, armed or not "
+        "(tests of low-battery alerts; default 0: only flying drains it)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = parser(
         PROG,
@@ -116,6 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="hold",
         help="PX4 action when the offboard stream is lost (default hold)",
     )
+    _add_battery_arguments(p)
     boot = p.add_mutually_exclusive_group()
     boot.add_argument(
         "--boot-time",
@@ -145,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     boot_time = REALISTIC_BOOT if args.realistic_boot else args.boot_time
     if not (math.isfinite(boot_time) and 0.0 <= boot_time <= 600.0):
         raise UsageError(f"--boot-time must be 0..600 s, got {args.boot_time}")
+    if not (math.isfinite(args.battery_drain) and 0.0 <= args.battery_drain <= 6000.0):
+        raise UsageError(f"--battery-drain must be 0..6000 percent per minute, got {args.battery_drain}")
     if args.base_port is not None and not 1 <= args.base_port <= 65535:
         raise UsageError(f"--base-port must be 1..65535, got {args.base_port}")
     cfg = SimConfig(
@@ -158,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         serial=args.serial,
         offboard_loss_action=args.offboard_loss,
         boot_time=boot_time,
+        battery_drain=args.battery_drain,
     )
     stop = StopFlag().install()
     try:

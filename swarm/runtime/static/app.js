@@ -287,6 +287,7 @@
     S.lastStateTime = msg.time;
     S.lastStateAt = performance.now();
     if (Array.isArray(msg.events)) msg.events.forEach(stationEvent);
+    (window.gcsStateHooks || []).forEach((f) => { try { f(msg); } catch (err) { console.error(err); } });
     if (!S.renderQueued) {
       S.renderQueued = true;
       requestAnimationFrame(render);

@@ -433,6 +433,8 @@
     }
     S.ws = ws;
     ws.onopen = () => {
+      S.model = null;  // the station sends the whole state first
+      S.resyncAsked = false;
       S.backoff = 500;
       setLink("live");
       stopPolling();
@@ -484,9 +486,22 @@
 
   function onMessage(msg) {
     switch (msg.type) {
-      case "state":
+      case "state":  // the whole state: deltas follow from its seq
+        S.model = msg;
+        S.resyncAsked = false;
         onState(msg);
         break;
+      case "delta": {  // what changed since the state the page holds (delta.js)
+        const st = window.gcsDelta.next(S.model, S.model ? S.model.seq : null, msg);
+        if (st) {
+          S.model = st;
+          onState(st);
+        } else if (!S.resyncAsked && S.ws && S.ws.readyState === WebSocket.OPEN) {
+          S.resyncAsked = true;  // a gap, or no state yet: ask for the whole state
+          S.ws.send('{"type":"state"}');
+        }
+        break;
+      }
       case "event":
         stationEvent(msg.event);
         break;

@@ -12,6 +12,9 @@ connected:
   the page parses: a browser that negotiates compression gets fewer on the wire),
   with ``ws_messages_per_s``, ``ws_deltas_per_s``, ``ws_delta_bytes`` (the mean
   delta) and ``ws_state_kb`` (the whole state, sent on connect);
+  ``ws_wire_bytes_per_s``: the same texts compressed as on a browser's socket
+  (permessage-deflate, which Chromium negotiates and the station accepts: one
+  raw deflate stream per connection, each message flushed);
 * ``server_cpu_percent``: the station process's CPU time over the same window, as
   a percentage of one core (:func:`swarm.cli.procs.cpu_seconds`);
 * ``page_frame_ms_p95`` (and the page's other figures): the page in headless
@@ -37,6 +40,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+import zlib
 from typing import Any
 
 from swarm.cli.procs import Child, cpu_seconds, free_tcp_port
@@ -66,7 +70,9 @@ async def _ws_count(url: str, seconds: float) -> dict[str, Any]:
         "events": 0,
         "bytes": 0,
         "delta_bytes": 0,
+        "wire_bytes": 0,
     }
+    deflate = zlib.compressobj(wbits=-15)
     async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
         first = await ws.receive(timeout=10)  # the whole state, sent on connect
         counts["state_bytes"] = len(first.data.encode()) if first.type == aiohttp.WSMsgType.TEXT else 0
@@ -81,8 +87,11 @@ async def _ws_count(url: str, seconds: float) -> dict[str, Any]:
             if msg.type != aiohttp.WSMsgType.TEXT:
                 break
             counts["messages"] += 1
-            size = len(msg.data.encode())
+            raw = msg.data.encode()
+            size = len(raw)
             counts["bytes"] += size
+            # permessage-deflate (RFC 7692): the flush's empty block's 4 bytes are not sent
+            counts["wire_bytes"] += len(deflate.compress(raw) + deflate.flush(zlib.Z_SYNC_FLUSH)) - 4
             if msg.data.startswith('{"type": "state"'):
                 counts["states"] += 1
             elif msg.data.startswith('{"type":"delta"'):
@@ -183,6 +192,7 @@ def _measure(station: Child, url: str, seconds: float, agents: int, hz: float) -
     wall = w1 - w0
     out["ws_bytes_per_s"] = round(counts["bytes"] / counts["seconds"])
     out["ws_bytes_target"] = TARGET_WS_BYTES
+    out["ws_wire_bytes_per_s"] = round(counts["wire_bytes"] / counts["seconds"])
     out["ws_messages_per_s"] = round(counts["messages"] / counts["seconds"], 2)
     out["ws_deltas_per_s"] = round(counts["deltas"] / counts["seconds"], 2)
     out["ws_states_per_s"] = round(counts["states"] / counts["seconds"], 2)  # whole states after the first

@@ -237,7 +237,9 @@
     S.stateCount += 1;
     S.lastStateTime = msg.time;
     S.lastStateAt = performance.now();
-    if (Array.isArray(msg.events)) msg.events.forEach(stationEvent);
+    // a delta without new events keeps the same list: nothing to look through
+    if (Array.isArray(msg.events) && msg.events !== S.eventsSeen) msg.events.forEach(stationEvent);
+    S.eventsSeen = msg.events;
     if (!S.renderQueued) {
       S.renderQueued = true;
       requestAnimationFrame(render);
@@ -290,6 +292,9 @@
     const off = !a.connected;
     const selected = S.selected === a.id;
     const v = rec.view;
+    // a delta leaves an unchanged agent's object as it was: nothing to draw
+    if (v.src === a && v.leader === isLeader && v.selected === selected && (rec.marker || !hasPosition(a))) return;
+    v.src = a;
     if (hasPosition(a)) {
       ensureMarker(rec);
       if (a.lat !== v.lat || a.lon !== v.lon) {

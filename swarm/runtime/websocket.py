@@ -130,7 +130,10 @@ class WsHub:
         self.stats["ws_clients"] = len(self._clients)
         writer = asyncio.ensure_future(self._writer(c))
         try:
-            self._send_full(c)
+            try:
+                self._send_full(c)
+            except Exception:  # the station could not give its state: the next push tries again
+                log.exception("gcs server: snapshot failed")
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     try:

@@ -1,17 +1,23 @@
 """The station's state deltas (swarm.core.station_delta): a delta stream applied to the
 first state reproduces every later state exactly, over random changes of agents,
-fields, trails and events (hypothesis), through JSON as on the wire."""
+fields, trails and events (hypothesis), through JSON as on the wire; and the page's
+own code (static/delta.js, in headless Chromium) applies the same streams to the same
+states."""
 
 from __future__ import annotations
 
+import itertools
 import json
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from hypothesis import given, settings
+from gcs_browser import browser
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from swarm.core.station_delta import DeltaError, apply, apply_list, build, list_delta, same
+from swarm.runtime.server import STATIC_DIR
 
 # rounded as the station rounds them; inside a list a -0.0 compares as 0.0 (the page's
 # numbers cannot tell them apart either), so the points here have no negative zero
@@ -143,3 +149,27 @@ def test_a_delta_that_does_not_fit_is_refused(delta: dict[str, Any]) -> None:
     old = {"agents": [{"id": 1, "trail": [[1.0, 2.0]]}], "events": [{"t": 1}]}
     with pytest.raises(DeltaError):
         apply(old, delta)
+
+
+@pytest.fixture(scope="module")
+def js_page() -> Iterator[Any]:
+    """The page's delta code (static/delta.js) alone in headless Chromium."""
+    with browser() as ctx:
+        page = ctx.new_page()
+        page.add_script_tag(path=str(STATIC_DIR / "delta.js"))
+        yield page
+
+
+@pytest.mark.processes
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.data())
+def test_the_page_applies_a_delta_stream_as_the_station_builds_it(js_page: Any, data: Any) -> None:
+    states = [data.draw(state())]
+    for _ in range(data.draw(st.integers(1, 5))):
+        states.append(data.draw(moved_on(states[-1])))
+    deltas = [build(a, b) for a, b in itertools.pairwise(states)]
+    held = js_page.evaluate(
+        "([first, ds]) => { let s = first; return ds.map((d) => (s = window.gcsDelta.apply(s, d))); }",
+        [states[0], deltas],
+    )
+    assert held == states[1:]

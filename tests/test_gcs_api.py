@@ -348,7 +348,7 @@ async def _ws_session(base: str) -> dict[str, Any]:
         ):
             m = await ws.receive_json(timeout=max(0.1, deadline - loop.time()))
             kind = m["type"]
-            if kind == "state":
+            if kind in ("state", "delta"):  # the whole state once, then deltas
                 got["states"] += 1
             elif kind == "error":
                 got["errors"].append(m)

@@ -491,7 +491,7 @@ def test_the_websocket_stays_open_after_extreme_messages(swarm: Swarm, open_serv
                     m = await ws.receive(timeout=20)
                     assert m.type == aiohttp.WSMsgType.TEXT, (k, text[:60], m)
                     obj = json.loads(m.data)
-                    if obj.get("type") in ("state", "event", "replay"):
+                    if obj.get("type") in ("state", "delta", "event", "replay"):
                         continue
                     if obj.get("id") == f"probe{k}":
                         probed = True

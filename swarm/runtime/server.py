@@ -20,8 +20,10 @@ Routes (README, "Ground station", documents the bodies):
 * ``GET /api/config``, ``/api/state``, ``/api/agents/<id>``; ``POST /api/command``;
   ``POST /api/alerts/ack`` (``{"id": N}``: an alert acknowledged);
   ``GET|POST /api/replay`` (replay mode);
-* ``GET /ws``: the state pushed at ``ws_hz``, events as they happen, commands and
-  replay controls from the client.
+* ``GET /ws``: the whole state once, then what changed (deltas with sequence
+  numbers, :mod:`swarm.runtime.websocket`) at ``ws_hz``, events as they happen,
+  commands and replay controls from the client. ``GET /api/state`` (the page's
+  fallback while the socket is down) is always the whole state.
 
 Who may use it (README, "Security": Host, Origin, token) is checked by one
 middleware before any route, :meth:`swarm.runtime.security.Guard.middleware`;
@@ -146,7 +148,7 @@ class ServerConfig:
     tiles_mbtiles: MbTiles | None = None  # serves /tiles/{z}/{x}/{y}.<format> (wins over both)
     attribution: str = OSM_ATTRIBUTION  # HTML; the default means an MBTiles file's own
     center: tuple[float, float] | None = None
-    ws_hz: float = 2.0
+    ws_hz: float = 5.0
     command_timeout: float = 20.0
     static_dir: Path = STATIC_DIR
     leaflet_dir: Path = LEAFLET_DIR

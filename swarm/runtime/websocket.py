@@ -1,19 +1,45 @@
-"""The ground station's WebSocket: state pushes, events, commands and replay controls.
+"""The ground station's WebSocket: state pushes as deltas, events, commands and replay controls.
 
 Theory of operation
 -------------------
 :class:`WsHub` serves ``GET /ws`` for :class:`swarm.runtime.server.GcsServer`, on
-the server's asyncio loop. A client gets the state at once, then the state pushed
-at ``ws_hz`` (one JSON text built per push and shared by all clients) and each
-station event as it happens (:meth:`WsHub.on_event`, called on the station's
-thread, hands it to the loop). A client sends JSON objects with a ``type``:
-``command`` (answered by a ``command_result`` with the request's ``id``, the
-command awaited on its own task), ``replay`` (a replay control; 409 when not in
-replay mode), ``state`` and ``ack_alert`` (``{"type": "ack_alert", "id": N}``, answered
-``alert_acked`` with the alert). A bad message (binary, too large, malformed, an
-unknown type, a bad id) gets ``{"type": "error", "status", "reason", "id"?}`` and
-the connection stays open; a message that fails unexpectedly answers 500 and logs
-the traceback. A client that does not take a text within 10 s is dropped.
+the server's asyncio loop.
+
+State: at ``ws_hz`` the hub takes one snapshot of the station (a *push*, numbered
+``seq`` 1, 2, ...) and builds one delta from the previous push
+(:func:`swarm.core.station_delta.build`), one text shared by every client:
+``{"type": "delta", "seq": N, "base": N - 1, ...}``. A client that is in step (it
+holds push N - 1) gets the delta; any other gets the whole state of push N,
+``{"type": "state", "seq": N, ...the /api/state body}``, and is in step from then
+on. A client gets the whole state of the newest push at once when it connects and
+whenever it sends ``{"type": "state"}`` (a page that sees a gap in ``seq``, or a
+delta that does not fit, asks so). The whole state of a push is formatted once,
+when a client first needs it. Nothing is pushed while no client is connected (the
+next client starts a new push at once).
+
+Events: each station event as it happens (:meth:`WsHub.on_event`, called on the
+station's thread, hands it to the loop) as ``{"type": "event", "event": ...}``; the
+same events also travel in the state, so a page that misses one finds it there.
+
+Messages from a client are JSON objects with a ``type``: ``command`` (answered by
+a ``command_result`` with the request's ``id``, the command awaited on its own
+task), ``replay`` (a replay control; 409 when not in replay mode), ``state`` and
+``ack_alert`` (``{"type": "ack_alert", "id": N}``, answered ``alert_acked`` with the
+alert).
+A bad message (binary, too large, malformed, an unknown type, a bad id) gets
+``{"type": "error", "status", "reason", "id"?}`` and the connection stays open; a
+message that fails unexpectedly answers 500 and logs the traceback.
+
+A slow client: each client has its own queue, written by its own task. A queue
+over :data:`QUEUE_MESSAGES` texts or :data:`QUEUE_BYTES` bytes is emptied and the
+client falls out of step: its next push is the whole state (what it missed is in
+there; a command answer it had not taken yet is lost, the command's outcome is in
+the events). A request for the whole state while one is still queued for that
+client is not queued again, and a client that holds the newest push gets the
+whole state at the next push: a resync storm costs at most two whole states per
+push to the client that makes it. A client that does not
+take a text within :data:`SEND_TIMEOUT` seconds is dropped. So a client that never
+reads holds at most one bounded queue and never slows the others.
 """
 
 from __future__ import annotations
@@ -22,18 +48,37 @@ import asyncio
 import contextlib
 import json
 import logging
+from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import WSMsgType, web
 
 from swarm.core.station import CommandRefused
+from swarm.core.station_delta import build
 from swarm.runtime.security import MAX_BODY, MAX_WS_FRAME, parse_json, replay_args, ws_id
 
 if TYPE_CHECKING:
     from swarm.runtime.server import StationView
 
 log = logging.getLogger(__name__)
+
+QUEUE_MESSAGES = 64
+QUEUE_BYTES = 2 * 1024 * 1024
+SEND_TIMEOUT = 10.0
+
+
+class _Client:
+    """One WebSocket client: its queue of texts, written by its own task."""
+
+    def __init__(self, ws: web.WebSocketResponse) -> None:
+        self.ws = ws
+        self.queue: deque[str] = deque()
+        self.queued_bytes = 0
+        self.wake = asyncio.Event()
+        self.seq = 0  # the push this client holds (0: none, the next is the whole state)
+        self.full_queued = False  # a whole state waits in the queue
+        self.closed = False
 
 
 class WsHub:
@@ -52,10 +97,16 @@ class WsHub:
         self.station = station
         self.ws_hz = ws_hz
         self.stats = stats
+        for k in ("ws_pushes", "ws_full_states", "ws_overflows", "ws_bytes"):
+            stats.setdefault(k, 0)
         self._run_command = run_command
         self._spawn = spawn
-        self._clients: set[web.WebSocketResponse] = set()
+        self._clients: dict[web.WebSocketResponse, _Client] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._seq = 0
+        self._base: dict[str, Any] | None = None  # the newest push's state
+        self._base_text: str | None = None  # ... as a whole-state message, once needed
+        self._replay_text: str | None = None  # the replay status sent with it
 
     def attach(self, loop: asyncio.AbstractEventLoop) -> None:
         """Take the station's events from now on, onto ``loop``."""
@@ -76,24 +127,38 @@ class WsHub:
     async def handle(self, request: web.Request) -> web.StreamResponse:
         ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=MAX_WS_FRAME)
         await ws.prepare(request)
-        self._clients.add(ws)
+        c = _Client(ws)
+        self._clients[ws] = c
         self.stats["ws_clients"] = len(self._clients)
+        writer = asyncio.ensure_future(self._writer(c))
         try:
-            await self._send(ws, self._state_texts())
+            try:
+                self._send_full(c)
+            except Exception:  # the station could not give its state: the next push tries again
+                log.exception("gcs server: snapshot failed")
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     try:
-                        await self._message(ws, msg.data)
+                        await self._message(c, msg.data)
                     except Exception as exc:  # a bug: answer, log, keep the connection
                         log.exception("gcs server: WebSocket message failed")
-                        await self._send(ws, [self._error(500, f"internal error: {type(exc).__name__}")])
+                        self._enqueue(c, self._error(500, f"internal error: {type(exc).__name__}"))
                 elif msg.type == WSMsgType.BINARY:
-                    await self._send(ws, [self._error(400, "send JSON text, not binary")])
+                    self._enqueue(c, self._error(400, "send JSON text, not binary"))
                 elif msg.type == WSMsgType.ERROR:
                     break
+                if c.closed:
+                    break
         finally:
-            self._clients.discard(ws)
+            c.closed = True
+            c.wake.set()
+            self._clients.pop(ws, None)
             self.stats["ws_clients"] = len(self._clients)
+            writer.cancel()
+            with contextlib.suppress(BaseException):
+                await writer
+            if not self._clients:
+                self._base = self._base_text = None  # nobody to push to: hold nothing
         return ws
 
     @staticmethod
@@ -103,9 +168,9 @@ class WsHub:
             d["id"] = mid
         return json.dumps(d)
 
-    async def _message(self, ws: web.WebSocketResponse, text: str) -> None:
+    async def _message(self, c: _Client, text: str) -> None:
         if len(text) > MAX_BODY:
-            await self._send(ws, [self._error(413, f"message too large (at most {MAX_BODY // 1024} KiB)")])
+            self._enqueue(c, self._error(413, f"message too large (at most {MAX_BODY // 1024} KiB)"))
             return
         try:
             obj = parse_json(text)
@@ -113,17 +178,20 @@ class WsHub:
                 raise CommandRefused(400, "a message is a JSON object with a 'type'")
             mid = ws_id(obj)
         except CommandRefused as exc:
-            await self._send(ws, [self._error(exc.status, exc.reason)])
+            self._enqueue(c, self._error(exc.status, exc.reason))
             return
         mtype = obj.get("type")
         if mtype == "command":
-            self._spawn(self._command(ws, obj))
+            self._spawn(self._command(c, obj))
         elif mtype == "replay":
-            await self._replay(ws, obj, mid)
+            self._replay(c, obj, mid)
         elif mtype == "state":
-            await self._send(ws, self._state_texts())
+            if self._base is not None and c.seq == self._seq:
+                c.seq = 0  # it has this push (or it is queued): the whole state at the next one
+            else:
+                self._send_full(c)
         elif mtype == "ack_alert":
-            await self._ack_alert(ws, obj, mid)
+            self._ack_alert(c, mid)
         else:
             shown = (
                 repr(mtype[:24])
@@ -132,55 +200,113 @@ class WsHub:
                 if mtype is None
                 else f"of type {type(mtype).__name__}"
             )
-            await self._send(
-                ws,
-                [self._error(400, f"unknown message type {shown}: command, replay, state or ack_alert", mid)],
+            self._enqueue(
+                c, self._error(400, f"unknown message type {shown}: command, replay, state or ack_alert", mid)
             )
 
-    async def _ack_alert(self, ws: web.WebSocketResponse, obj: dict[str, Any], mid: Any) -> None:
+    def _ack_alert(self, c: _Client, mid: Any) -> None:
         try:
             alert = self.station.ack_alert(mid)  # the request's id is the alert's
         except CommandRefused as exc:
-            await self._send(ws, [self._error(exc.status, exc.reason, mid)])
+            self._enqueue(c, self._error(exc.status, exc.reason, mid))
             return
-        await self._send(ws, [json.dumps({"type": "alert_acked", "id": mid, "alert": alert})])
+        self._enqueue(c, json.dumps({"type": "alert_acked", "id": mid, "alert": alert}))
 
-    async def _replay(self, ws: web.WebSocketResponse, obj: dict[str, Any], mid: Any) -> None:
+    def _replay(self, c: _Client, obj: dict[str, Any], mid: Any) -> None:
         rp = self.station.replay
         if rp is None:
-            await self._send(ws, [self._error(409, "not in replay mode", mid)])
+            self._enqueue(c, self._error(409, "not in replay mode", mid))
             return
         try:
             st = rp.control(*replay_args(obj))
         except CommandRefused as exc:
-            await self._send(ws, [self._error(exc.status, exc.reason, mid)])
+            self._enqueue(c, self._error(exc.status, exc.reason, mid))
             return
-        await self._send(ws, [json.dumps({"type": "replay", "id": mid, **st})])
+        self._enqueue(c, json.dumps({"type": "replay", "id": mid, **st}))
 
-    async def _command(self, ws: web.WebSocketResponse, obj: dict[str, Any]) -> None:
+    async def _command(self, c: _Client, obj: dict[str, Any]) -> None:
         body = {k: v for k, v in obj.items() if k not in ("type", "id")}
         status, out = await self._run_command(body)
-        await self._send(
-            ws, [json.dumps({"type": "command_result", "id": ws_id(obj), "status": status, **out})]
-        )
+        self._enqueue(c, json.dumps({"type": "command_result", "id": ws_id(obj), "status": status, **out}))
 
-    def _state_texts(self) -> list[str]:
-        texts = ['{"type": "state", ' + self.station.snapshot_json()[1:]]
+    # -- state pushes ---------------------------------------------------------------
+    def _send_full(self, c: _Client) -> None:
+        """The whole state of the newest push to ``c`` (a new push if there is none)."""
+        if self._base is None:
+            self.push()  # sends ``c`` the whole state: it is not in step
+            return
+        if c.full_queued:
+            return  # one is on its way: a resync storm costs nothing
+        if self._base_text is None:
+            self._base_text = json.dumps({"type": "state", "seq": self._seq, **self._base})
+        self._enqueue(c, self._base_text, full=True)
+        if self._replay_text is not None:
+            self._enqueue(c, self._replay_text)
+        c.seq = self._seq
+
+    def push(self) -> None:
+        """One push: a new snapshot, its delta to the clients in step, the whole state
+        to the others."""
+        new = self.station.snapshot()
         rp = self.station.replay
         if rp is not None:
-            texts.append(json.dumps({"type": "replay", **rp.status()}))
-        return texts
+            new["replay"] = rp.status()
+        old, self._base, self._base_text = self._base, new, None
+        self._seq += 1
+        self.stats["ws_pushes"] += 1
+        self._replay_text = json.dumps({"type": "replay", **new["replay"]}) if rp is not None else None
+        delta_text = None
+        if old is not None:
+            d = {"type": "delta", "seq": self._seq, "base": self._seq - 1, **build(old, new)}
+            delta_text = json.dumps(d, separators=(",", ":"))
+        for c in list(self._clients.values()):
+            if delta_text is not None and c.seq == self._seq - 1:
+                self._enqueue(c, delta_text)
+                if self._replay_text is not None:
+                    self._enqueue(c, self._replay_text)
+                c.seq = self._seq
+            else:
+                self._send_full(c)
 
-    async def _send(self, ws: web.WebSocketResponse, texts: list[str]) -> None:
-        try:
-            for t in texts:
-                await asyncio.wait_for(ws.send_str(t), 10.0)
+    def _enqueue(self, c: _Client, text: str, *, full: bool = False) -> None:
+        if c.closed:
+            return
+        if len(c.queue) >= QUEUE_MESSAGES or c.queued_bytes + len(text) > QUEUE_BYTES:
+            # a client that does not keep up: forget what it missed, resync it at the next push
+            self.stats["ws_overflows"] += 1
+            c.queue.clear()
+            c.queued_bytes = 0
+            c.seq = 0
+            c.full_queued = False
+            if not full:
+                return
+        c.queue.append(text)
+        c.queued_bytes += len(text)
+        if full:
+            c.full_queued = True
+            self.stats["ws_full_states"] += 1
+        c.wake.set()
+
+    async def _writer(self, c: _Client) -> None:
+        ws = c.ws
+        while not c.closed:
+            await c.wake.wait()
+            c.wake.clear()
+            while c.queue and not c.closed:
+                text = c.queue.popleft()
+                c.queued_bytes -= len(text)
+                if text.startswith('{"type": "state"'):
+                    c.full_queued = False
+                try:
+                    await asyncio.wait_for(ws.send_str(text), SEND_TIMEOUT)
+                except (ConnectionError, RuntimeError, TimeoutError):
+                    self.stats["ws_send_errors"] += 1
+                    c.closed = True
+                    with contextlib.suppress(Exception):
+                        await ws.close()
+                    return
                 self.stats["ws_sent"] += 1
-        except (ConnectionError, RuntimeError, TimeoutError):
-            self.stats["ws_send_errors"] += 1
-            self._clients.discard(ws)
-            with contextlib.suppress(Exception):
-                await ws.close()
+                self.stats["ws_bytes"] += len(text)
 
     async def broadcast(self) -> None:
         """Push the state at ``ws_hz`` for ever (a task of the server's)."""
@@ -195,11 +321,9 @@ class WsHub:
             if not self._clients:
                 continue
             try:
-                texts = self._state_texts()
+                self.push()
             except Exception:
                 log.exception("gcs server: snapshot failed")
-                continue
-            await asyncio.gather(*(self._send(ws, texts) for ws in list(self._clients)))
 
     def on_event(self, event: dict[str, Any]) -> None:
         """Station thread: hand the event to the loop."""
@@ -208,8 +332,8 @@ class WsHub:
             return
         text = json.dumps({"type": "event", "event": event})
         with contextlib.suppress(RuntimeError):  # the loop is closing
-            loop.call_soon_threadsafe(self._push, text)
+            loop.call_soon_threadsafe(self._push_event, text)
 
-    def _push(self, text: str) -> None:
-        for ws in list(self._clients):
-            self._spawn(self._send(ws, [text]))
+    def _push_event(self, text: str) -> None:
+        for c in list(self._clients.values()):
+            self._enqueue(c, text)

@@ -97,8 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--ws-hz",
         type=float,
-        default=2.0,
-        help=f"state pushes per second on the WebSocket (default 2, at most {MAX_WS_HZ:g})",
+        default=5.0,
+        help=f"state pushes per second on the WebSocket (default 5, at most {MAX_WS_HZ:g})",
     )
     _add_security_arguments(p)
     add_fence_arguments(p, "the station")

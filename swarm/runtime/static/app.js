@@ -286,7 +286,9 @@
     S.stateCount += 1;
     S.lastStateTime = msg.time;
     S.lastStateAt = performance.now();
-    if (Array.isArray(msg.events)) msg.events.forEach(stationEvent);
+    // a delta without new events keeps the same list: nothing to look through
+    if (Array.isArray(msg.events) && msg.events !== S.eventsSeen) msg.events.forEach(stationEvent);
+    S.eventsSeen = msg.events;
     (window.gcsStateHooks || []).forEach((f) => { try { f(msg); } catch (err) { console.error(err); } });
     if (!S.renderQueued) {
       S.renderQueued = true;
@@ -342,6 +344,9 @@
     const off = !a.connected;
     const selected = S.selected === a.id;
     const v = rec.view;
+    // a delta leaves an unchanged agent's object as it was: nothing to draw
+    if (v.src === a && v.leader === isLeader && v.selected === selected && (rec.marker || !hasPosition(a))) return;
+    v.src = a;
     if (hasPosition(a)) {
       ensureMarker(rec);
       if (a.lat !== v.lat || a.lon !== v.lon) {
@@ -623,6 +628,8 @@
     }
     S.ws = ws;
     ws.onopen = () => {
+      S.model = null;  // the station sends the whole state first
+      S.resyncAsked = false;
       S.backoff = 500;
       setLink("live");
       stopPolling();
@@ -675,9 +682,22 @@
 
   function onMessage(msg) {
     switch (msg.type) {
-      case "state":
+      case "state":  // the whole state: deltas follow from its seq
+        S.model = msg;
+        S.resyncAsked = false;
         onState(msg);
         break;
+      case "delta": {  // what changed since the state the page holds (delta.js)
+        const st = window.gcsDelta.next(S.model, S.model ? S.model.seq : null, msg);
+        if (st) {
+          S.model = st;
+          onState(st);
+        } else if (!S.resyncAsked && S.ws && S.ws.readyState === WebSocket.OPEN) {
+          S.resyncAsked = true;  // a gap, or no state yet: ask for the whole state
+          S.ws.send('{"type":"state"}');
+        }
+        break;
+      }
       case "event":
         stationEvent(msg.event);
         break;

@@ -74,8 +74,16 @@ def _fly(url: str, children: list[Child]) -> None:
         lambda: (lambda a: a if a and a.get("airborne") else None)(_agent1(url)), "airborne", 90, children
     )
     # the climb done, the pilot takes a go-to (it refuses one while taking off)
-    here = {"target": 1, "kind": "goto", "lat": a["lat"], "lon": a["lon"], "alt": a["alt"]}
+    here = {"target": 1, "kind": "goto", "lat": a["lat"], "lon": a["lon"], "alt": _above_home(a)}
     _until(lambda: ok(_post(url + "api/command", here)), "a go-to taken after the take-off", 90, children)
+
+
+def _above_home(a: dict[str, Any]) -> float:
+    """The agent's height above its home (every altitude a command carries), 10 m when
+    the station has not seen its home."""
+    if isinstance(a.get("alt"), (int, float)) and isinstance(a.get("home_alt"), (int, float)):
+        return max(5.0, round(float(a["alt"]) - float(a["home_alt"])))
+    return 10.0
 
 
 def _trial(page: Any, agent: Child, lat: float, lon: float, alt: float) -> float | None:
@@ -120,7 +128,7 @@ def measure(trials: int = 7, loss: float = 0.1) -> dict[str, Any]:
                 page.click('#agents [data-agent-id="1"]')
                 for i in range(trials):
                     d_lat = 1.5e-4 * (1 if i % 2 else -1)
-                    t = _trial(page, children[1], a["lat"] + d_lat, a["lon"], a["alt"])
+                    t = _trial(page, children[1], a["lat"] + d_lat, a["lon"], _above_home(a))
                     if t is not None:
                         took.append(t * 1000.0)
                     time.sleep(1.0)

@@ -40,7 +40,7 @@ from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
 from radios.loss import GilbertElliott, UniformLoss
-from radios.mavlink import MSG_TUNNEL, FrameBuilder, FrameParser, frame_length
+from radios.mavlink import HEADER_V2, MSG_TUNNEL, STX_V2, FrameBuilder, FrameParser, frame_length
 from swarm.core.messages import Advertize, Message, Phase, Pose, decode, encode
 from swarm.core.protocol import ADVERTIZE, Core, Out, profile_by_name
 from swarm.core.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
@@ -138,6 +138,8 @@ class RunResult:
 
 
 POSE = Pose(47.397742, 8.545594, 500.0)
+_Tunnel = tuple[Kind, int, bytes, Message]
+_CACHE_MAX = 4096  # decoded frames kept per run (a cache: its size changes no result)
 SPLIT_LIMIT_S = 20.0
 
 
@@ -186,7 +188,9 @@ class Sim:
         for c in self.cores:
             c.set_pose(POSE)
         self.builders = [FrameBuilder(i + 1, COMP_ID) for i in range(n)]
-        self.parsers = [FrameParser() for _ in range(n)]
+        self._trusted: set[bytes] = set()  # frames whose CRC one receiver has checked
+        self._decoded: dict[bytes, _Tunnel | None] = {}
+        self.parsers = [FrameParser(trusted=self._trusted) for _ in range(n)]
         self.start_at = [0.0] * n
         for spec in sc.late:
             who, t = parse_at(spec)
@@ -228,31 +232,70 @@ class Sim:
         radio = self.air.radios[i]
         if not radio.host_ready and not radio.outbuf:
             return
+        if not self._frame_ready(i, radio.host_ready):
+            return  # the bytes wait in the radio's output: the parser could not finish a frame
+        self._deliver(i, t)
+
+    def _deliver(self, i: int, t: float) -> None:
+        """Feed what radio ``i`` has output to its parser, and the frames for agent
+        ``i`` to its core."""
         data = self.air.take_output(i, t)
         if not data:
             return
+        frames = self.parsers[i].feed(data)
         if not self.alive[i] or not self.started[i]:
-            self.parsers[i].feed(data)
             return
         # what the core answers to the frames of one read leaves together, as the
         # bridge's 5 ms hold sends it: identical payloads merge into one MULTI frame
         outs: list[Out] = []
         me = i + 1
-        for f in self.parsers[i].feed(data):
-            if f.msgid != MSG_TUNNEL:
+        for f in frames:
+            tun = self._tunnel_of(f.raw)
+            if tun is None:
                 continue
-            try:
-                tun = unpack_tunnel(f.payload)
-                if tun is None:
-                    continue
-                kind, target, ids, body = tun
-                if target not in (0, me) or (kind == Kind.MULTI and me not in ids):
-                    continue
-                msg = decode(body)
-            except DecodeError:
+            kind, target, ids, msg = tun
+            if target not in (0, me) or (kind == Kind.MULTI and me not in ids):
                 continue
-            outs += self._on_message(i, f.sysid, kind, msg, t)
+            outs += self._on_message(i, f.raw[5], kind, msg, t)
         self._send(i, outs, t)
+
+    def _frame_ready(self, i: int, ready: bytearray) -> bool:
+        """Whether the bytes the radio has output for the host (after those the parser
+        holds) can complete a frame or need scanning: the parser yields the same frames
+        at the same step whether it is fed every step or only then."""
+        pend = self.parsers[i]._buf
+        if len(pend) >= 3:
+            head: bytes | bytearray = pend
+        elif pend:
+            head = bytes(pend) + bytes(ready[:3])
+        else:
+            head = ready
+        if len(head) < 3:
+            return False  # no frame is shorter than 8 bytes: nothing to yield yet
+        flen = frame_length(head, 0)
+        return flen is None or len(pend) + len(ready) >= flen
+
+    def _tunnel_of(self, raw: bytes) -> _Tunnel | None:
+        """The swarm message a whole frame carries (kind, target, addressees, message),
+        or None (not a TUNNEL frame, not the swarm's, not a valid message). Every
+        receiver of a broadcast gets the same frame: it is decoded once (messages are
+        frozen) and the answer shared."""
+        cache = self._decoded
+        if raw in cache:
+            return cache[raw]
+        if len(cache) > _CACHE_MAX:
+            cache.clear()
+            self._trusted.clear()
+        res: _Tunnel | None = None
+        if raw[0] == STX_V2 and raw[7] | (raw[8] << 8) | (raw[9] << 16) == MSG_TUNNEL:
+            try:
+                tun = unpack_tunnel(raw[HEADER_V2 : HEADER_V2 + raw[1]])
+                if tun is not None:
+                    res = (tun[0], tun[1], tun[2], decode(tun[3]))
+            except DecodeError:
+                res = None
+        cache[raw] = res
+        return res
 
     def _on_message(self, i: int, sender: int, kind: Kind, msg: Message, t: float) -> list[Out]:
         """A message received by agent ``i`` (a subclass adds other streams)."""
@@ -295,18 +338,17 @@ class Sim:
         while t <= sc.duration:
             self._start_and_crash(t, w)
             self.air.advance(t)
-            for i in range(sc.agents):
-                self._receive(i, t)
+            out_dl = self._serial_pass(t)
             self._tick_cores(t)
             if t < next_check:
-                t = self._next_time(t)
+                t = self._next_time(t, out_dl)
                 continue
             next_check = t + 0.1
             if self._judge(t, w):
                 break
             self._check_dead_leaders(t)
             self._check_split(t, w.elect_s is not None or w.failover_s is not None)
-            t = self._next_time(t)
+            t = self._next_time(t, out_dl)
         return self._run_result(t, w)
 
     def _start_and_crash(self, t: float, w: _Watch) -> None:
@@ -417,27 +459,36 @@ class Sim:
                     if msg not in self.violations:
                         self.violations.append(msg)
 
-    def _air_deadline(self) -> float | None:
-        """The air model's next deadline, except that a radio's serial output wakes
-        the loop when the next whole frame has left the radio (nothing can be decoded
-        before) instead of every 5 ms of output: the same bytes at the same times."""
-        air = self.air
-        t = air._events[0][0] if air._events else None
-        for i, r in enumerate(air.radios):
-            if not r.outbuf:
+    def _serial_pass(self, t: float) -> float | None:
+        """Each radio's output to its host at ``t``: the frames it completes go to the
+        core (:meth:`_receive`); returns when the next frame leaves a radio (nothing can
+        be decoded before), or 5 ms of output at most when the stream is not at a frame
+        (the air model's own wake-up): the same bytes at the same times as waking every
+        5 ms. Nothing changes a radio's output between this pass and the next step."""
+        dl: float | None = None
+        for i, r in enumerate(self.air.radios):
+            ob = r.outbuf
+            if r.host_ready and self._frame_ready(i, r.host_ready):
+                self._deliver(i, t)
+            if not ob:
                 continue
-            need = self._frame_need(i, r.outbuf)
+            need = self._frame_need(i, r.host_ready, ob)
             if need is None:
-                d = r.drain_clock + min(len(r.outbuf) * r.byte_s, 0.005)
+                d = r.drain_clock + min(len(ob) * r.byte_s, 0.005)
             else:
                 d = r.drain_clock + need * r.byte_s + 1e-9
-            t = d if t is None or d < t else t
-        return t
+            if dl is None or d < dl:
+                dl = d
+        return dl
 
-    def _frame_need(self, i: int, outbuf: bytearray) -> int | None:
+    def _frame_need(self, i: int, ready: bytearray, outbuf: bytearray) -> int | None:
         """Bytes of ``outbuf`` that complete the frame the parser is waiting for (all
-        of it if the frame is cut short), or None if the stream is not at a frame."""
+        of it if the frame is cut short), or None if the stream is not at a frame. What
+        waits for the parser is what it holds and what the radio has output but the
+        parser was not yet fed (:meth:`_frame_ready`)."""
         pend = self.parsers[i]._buf
+        if ready:
+            pend = pend + ready
         head: bytes | bytearray = pend if pend else outbuf
         if len(head) < 3 and pend:
             head = bytes(pend) + bytes(outbuf[:3])
@@ -446,18 +497,29 @@ class Sim:
             return None
         return max(1, min(flen - len(pend), len(outbuf)))
 
-    def _next_time(self, t: float) -> float:
-        cands = [t + 0.1]  # invariants are sampled every 100 ms
-        dl = self._air_deadline()
-        if dl is not None:
-            cands.append(dl)
-        for i in range(len(self.cores)):
-            if self.alive[i] and self.started[i]:
-                cands.append(self._due[i])
-            elif not self.started[i]:
-                cands.append(self.start_at[i])
-        cands += [w for _, w in self.crash_at]
-        nxt = min(x for x in cands if x > t + 1e-9) if any(x > t + 1e-9 for x in cands) else t + 0.05
+    def _next_time(self, t: float, out_dl: float | None) -> float:
+        """The next step: the earliest deadline after ``t`` (a core's, the air's, a
+        radio's output (``out_dl``, :meth:`_serial_pass`), a start, a crash), at most
+        100 ms on (invariants are sampled every 100 ms)."""
+        thr = t + 1e-9
+        nxt = t + 0.1
+        ev = self.air._events
+        dl = ev[0][0] if ev else None
+        if out_dl is not None and (dl is None or out_dl < dl):
+            dl = out_dl
+        if dl is not None and thr < dl < nxt:  # the air's earliest deadline, or none
+            nxt = dl
+        due, alive, started, start_at = self._due, self.alive, self.started, self.start_at
+        for i in range(len(due)):
+            if started[i]:
+                x = due[i] if alive[i] else nxt
+            else:
+                x = start_at[i]
+            if thr < x < nxt:
+                nxt = x
+        for _, x in self.crash_at:
+            if thr < x < nxt:
+                nxt = x
         return max(nxt, t + 1e-4)
 
 

@@ -531,8 +531,12 @@ def pct(values: list[float], q: float) -> float | None:
     return round(s[k], 3)
 
 
-def campaign(sc: Scenario, seeds: int, seed0: int = 0) -> dict[str, Any]:
-    results = [Sim(sc, seed0 + k).run() for k in range(seeds)]
+def campaign(sc: Scenario, seeds: int, seed0: int = 0, jobs: int = 1) -> dict[str, Any]:
+    """Seeds ``seed0 ..`` run (over ``jobs`` processes) and summarised; the summary is
+    the same for any number of jobs."""
+    from swarm.sim.parallel import run_seeds  # the pool's module imports this one
+
+    results = run_seeds(sc, seeds, seed0, jobs)
     elect = [r.elect_s for r in results if r.elect_s is not None]
     fail = [r.failover_s for r in results if r.failover_s is not None]
     bad = [r for r in results if r.violations]

@@ -103,7 +103,9 @@ class Scenario:
     profile: str = "paper"
     air_kbps: int = 64
     serial_baud: int = 57600
-    duration: float = 60.0
+    #: virtual seconds a run lasts at most; None: MIN_DURATION_S or DURATION_ROUNDS
+    #: TDM rounds, whichever is longer (an N=50 election takes about ten rounds)
+    duration: float | None = None
     settle: float = 3.0  # converged state must hold this long
 
     def command(self, seed: int) -> str:
@@ -118,7 +120,7 @@ class Scenario:
         parts += [f"--partition {p}" for p in self.partitions]
         parts += [f"--crash {c}" for c in self.crashes]
         parts += [f"--late {x}" for x in self.late]
-        if self.duration != 60.0:
+        if self.duration is not None:
             parts.append(f"--duration {self.duration}")
         return " ".join(parts)
 
@@ -138,6 +140,17 @@ class RunResult:
 
 
 POSE = Pose(47.397742, 8.545594, 500.0)
+MIN_DURATION_S = 60.0
+DURATION_ROUNDS = 20
+
+
+def run_length(round_s: float) -> float:
+    """A run's default length: 60 s, or 20 TDM rounds when that is longer. The paper
+    profile's windows grow with the round (multipoint: one window per radio), so an
+    election of 50 radios at 64 kbps (5.92 s rounds) takes 50-70 s; a fixed 60 s cut
+    such runs short and called them unconverged."""
+    return max(MIN_DURATION_S, DURATION_ROUNDS * round_s)
+
 _Tunnel = tuple[Kind, int, bytes, Message]
 _CACHE_MAX = 4096  # decoded frames kept per run (a cache: its size changes no result)
 SPLIT_LIMIT_S = 20.0
@@ -181,6 +194,7 @@ class Sim:
         self.air = AirModel(cfgs, seed=rng.getrandbits(32), losses=losses)
         round_s = self.air.round_s(0)
         self.round_s = round_s
+        self.duration = sc.duration if sc.duration is not None else run_length(round_s)
         profile = profile_by_name(sc.profile, round_s)
         self.cores = [
             Core(i + 1, f"agent{i + 1}", profile, rng=random.Random(rng.getrandbits(64))) for i in range(n)
@@ -335,7 +349,7 @@ class Sim:
         t = 0.0
         w = _Watch()
         next_check = 0.0
-        while t <= sc.duration:
+        while t <= self.duration:
             self._start_and_crash(t, w)
             self.air.advance(t)
             out_dl = self._serial_pass(t)

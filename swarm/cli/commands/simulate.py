@@ -48,7 +48,12 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--late", action="append", default=[], metavar="ID@T", help="agent ID starts at T s")
     p.add_argument("--profile", choices=("paper", "fast"), default="paper")
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS")
-    p.add_argument("--duration", type=float, default=60.0, help="virtual seconds per run at most")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="virtual seconds per run at most (default: 60, or 20 TDM rounds when longer)",
+    )
     p.add_argument(
         "--jobs",
         type=int,
@@ -82,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--agents: 1..250")
     if a.seeds < 1:
         raise UsageError("--seeds: at least 1")
+    if a.duration is not None and not 0 < a.duration <= 86400:
+        raise UsageError("--duration: virtual seconds, more than 0 and at most 86400")
     if not 1 <= a.jobs <= 256:
         raise UsageError("--jobs: 1..256")
     if not 0 <= a.loss <= 1:

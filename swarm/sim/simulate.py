@@ -151,6 +151,7 @@ def run_length(round_s: float) -> float:
     such runs short and called them unconverged."""
     return max(MIN_DURATION_S, DURATION_ROUNDS * round_s)
 
+
 _Tunnel = tuple[Kind, int, bytes, Message]
 _CACHE_MAX = 4096  # decoded frames kept per run (a cache: its size changes no result)
 SPLIT_LIMIT_S = 20.0

@@ -227,8 +227,12 @@ class Sim:
         if not outs or not self.alive[i]:
             return
         p2p: list[tuple[int, bytes]] = []
+        prev: Message | None = None
+        data = b""
         for o in outs:
-            data = encode(o.msg)
+            if o.msg is not prev:  # one message to many peers is encoded once
+                prev = o.msg
+                data = encode(o.msg)
             if o.to == ADVERTIZE:
                 kind = Kind.ADVERTIZE if isinstance(o.msg, Advertize) else Kind.GS_ADVERTIZE
                 self._write(i, kind, (0,), data, t)
@@ -476,18 +480,33 @@ class Sim:
 
     def _serial_pass(self, t: float) -> float | None:
         """Each radio's output to its host at ``t``: the frames it completes go to the
-        core (:meth:`_receive`); returns when the next frame leaves a radio (nothing can
+        core (:meth:`_deliver`); returns when the next frame leaves a radio (nothing can
         be decoded before), or 5 ms of output at most when the stream is not at a frame
         (the air model's own wake-up): the same bytes at the same times as waking every
-        5 ms. Nothing changes a radio's output between this pass and the next step."""
+        5 ms. Nothing changes a radio's output between this pass and the next step.
+        (:meth:`_frame_ready` and :meth:`_frame_need`, inlined: this runs every step.)"""
         dl: float | None = None
+        parsers = self.parsers
         for i, r in enumerate(self.air.radios):
             ob = r.outbuf
-            if r.host_ready and self._frame_ready(i, r.host_ready):
-                self._deliver(i, t)
+            hr = r.host_ready
+            if hr:
+                pend = parsers[i]._buf
+                if len(pend) >= 3:
+                    flen = frame_length(pend, 0)
+                    ready = flen is None or len(pend) + len(hr) >= flen
+                else:
+                    ready = self._frame_ready(i, hr)
+                if ready:
+                    self._deliver(i, t)
             if not ob:
                 continue
-            need = self._frame_need(i, r.host_ready, ob)
+            if r.host_ready or len(parsers[i]._buf) < 3:
+                need = self._frame_need(i, r.host_ready, ob)
+            else:
+                pend = parsers[i]._buf
+                flen = frame_length(pend, 0)
+                need = None if flen is None else max(1, min(flen - len(pend), len(ob)))
             if need is None:
                 d = r.drain_clock + min(len(ob) * r.byte_s, 0.005)
             else:

@@ -34,6 +34,15 @@ def children_of(pid: int) -> list[int]:
     return out
 
 
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` so far (0 once it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def alive(pid: int) -> bool:
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
@@ -73,7 +82,9 @@ def test_signal_stops_the_workers(sig: signal.Signals) -> None:
         start_new_session=True,
     )
     try:
-        workers = wait_until(lambda: len(children_of(p.pid)) >= 2 and children_of(p.pid), "workers", 120)
+        # running seeds (past their start-up, where a Ctrl-C is not yet the parent's)
+        wait_until(lambda: any(cpu_s(c) > 1.5 for c in children_of(p.pid)), "busy workers", 120)
+        workers = children_of(p.pid)
         if sig == signal.SIGINT:
             os.killpg(p.pid, sig)  # Ctrl-C reaches the whole group
         else:

@@ -350,7 +350,6 @@ class Sim:
         return True, leader_id
 
     def run(self) -> RunResult:
-        sc = self.sc
         t = 0.0
         w = _Watch()
         next_check = 0.0

@@ -385,6 +385,7 @@ class Sim:
                 self.crash_at.pop(k)
                 if 1 <= victim <= n and self.alive[victim - 1]:
                     self.alive[victim - 1] = False
+                    self._due[victim - 1] = float("inf")  # never ticks again
                     self.dead_at[victim] = t
                     w.crash_time = t
                     w.converged_since = None
@@ -392,6 +393,8 @@ class Sim:
                 break
 
     def _tick_cores(self, t: float) -> None:
+        if min(self._due) > t + 1e-9:
+            return  # no core is due (most steps are the air's)
         for i in range(self.sc.agents):
             if self.alive[i] and self.started[i] and self._due[i] <= t + 1e-9:
                 core = self.cores[i]
@@ -494,17 +497,20 @@ class Sim:
                 if len(pend) >= 3:
                     flen = frame_length(pend, 0)
                     ready = flen is None or len(pend) + len(hr) >= flen
+                elif not pend:
+                    flen = frame_length(hr, 0)  # None below 3 bytes: then not ready
+                    ready = len(hr) >= 3 and (flen is None or len(hr) >= flen)
                 else:
                     ready = self._frame_ready(i, hr)
                 if ready:
                     self._deliver(i, t)
             if not ob:
                 continue
-            if r.host_ready or len(parsers[i]._buf) < 3:
+            pend = parsers[i]._buf
+            if r.host_ready or 0 < len(pend) < 3:
                 need = self._frame_need(i, r.host_ready, ob)
             else:
-                pend = parsers[i]._buf
-                flen = frame_length(pend, 0)
+                flen = frame_length(pend if pend else ob, 0)
                 need = None if flen is None else max(1, min(flen - len(pend), len(ob)))
             if need is None:
                 d = r.drain_clock + min(len(ob) * r.byte_s, 0.005)

@@ -86,3 +86,15 @@ def test_same_frames_at_same_virtual_times(name: str, sc: Scenario | FlightScena
 if __name__ == "__main__":  # print the table (only to record it from a trusted version)
     for name, sc, seed in CASES:
         print(f'    "{name}": "{run_digest(sc, seed)[0]}",')
+
+
+def test_default_run_length_grows_with_the_round() -> None:
+    """60 s, or 20 TDM rounds when longer: an N=50 election (5.92 s rounds) takes
+    50-70 s, and a fixed 60 s cut seed 1 short ("never converged")."""
+    small = Sim(Scenario(agents=10, loss=0.1), 0)
+    assert small.duration == 60.0
+    big = Sim(Scenario(agents=50, loss=0.1), 1)
+    assert big.round_s > 5 and big.duration == pytest.approx(20 * big.round_s)
+    assert Sim(Scenario(agents=50, duration=30.0), 1).duration == 30.0
+    assert "--duration" not in Scenario(agents=50).command(1)
+    assert "--duration 30.0" in Scenario(agents=50, duration=30.0).command(1)

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from net_helpers import wait_until
 
+from swarm.cli.commands.simulate import main
 from swarm.sim.simulate import Scenario, campaign
 
 pytestmark = pytest.mark.processes  # worker processes
@@ -99,3 +100,15 @@ def test_signal_stops_the_workers(sig: signal.Signals) -> None:
     assert lines == ["swarm simulate: interrupted, workers stopped, no results"], err
     assert "Traceback" not in err and out == ""
     wait_until(lambda: not any(alive(w) for w in workers), "no worker outlives the command", 30)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["--jobs", "0"], ["--jobs", "-3"], ["--jobs", "100000"], ["--duration", "nan"], ["--duration", "-1"]],
+)
+def test_bad_jobs_or_duration_is_one_line_and_exit_2(
+    args: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["--agents", "3", "--seeds", "1", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("swarm simulate: error: --"), err

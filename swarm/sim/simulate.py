@@ -492,26 +492,36 @@ class Sim:
         for i, r in enumerate(self.air.radios):
             ob = r.outbuf
             hr = r.host_ready
-            if hr:
-                pend = parsers[i]._buf
-                if len(pend) >= 3:
-                    flen = frame_length(pend, 0)
-                    ready = flen is None or len(pend) + len(hr) >= flen
-                elif not pend:
-                    flen = frame_length(hr, 0)  # None below 3 bytes: then not ready
-                    ready = len(hr) >= 3 and (flen is None or len(hr) >= flen)
-                else:
-                    ready = self._frame_ready(i, hr)
-                if ready:
-                    self._deliver(i, t)
-            if not ob:
+            if not ob and not hr:
                 continue
             pend = parsers[i]._buf
-            if r.host_ready or 0 < len(pend) < 3:
+            # the stream's head: the parser's bytes, then those not yet fed, then the
+            # radio's output; flen is its frame's length (None: not at a frame or under
+            # 3 bytes). -1: a split head under 3 bytes, left to the helpers.
+            if len(pend) >= 3:
+                flen = frame_length(pend, 0)
+            elif pend:
+                flen = -1
+            elif hr:
+                flen = frame_length(hr, 0) if len(hr) >= 3 else -1
+            else:
+                flen = frame_length(ob, 0)
+            if hr:
+                if flen == -1:
+                    ready = self._frame_ready(i, hr)
+                else:
+                    ready = flen is None or len(pend) + len(hr) >= flen
+                if ready:
+                    self._deliver(i, t)
+                    if not ob:
+                        continue
+                    flen = -1
+            if not ob:
+                continue
+            if flen == -1:
                 need = self._frame_need(i, r.host_ready, ob)
             else:
-                flen = frame_length(pend if pend else ob, 0)
-                need = None if flen is None else max(1, min(flen - len(pend), len(ob)))
+                need = None if flen is None else max(1, min(flen - len(pend) - len(hr), len(ob)))
             if need is None:
                 d = r.drain_clock + min(len(ob) * r.byte_s, 0.005)
             else:

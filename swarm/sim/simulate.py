@@ -12,6 +12,15 @@ decoded back into the core. There is no wall clock: the loop jumps from one
 deadline (a core's or the air's) to the next, so a run is exactly repeatable for
 its seed.
 
+The loop is the simulator's cost, so each step does the least that gives the same
+bytes at the same times (``tests/test_sim_golden.py`` pins them): one pass over the
+radios (:meth:`Sim._serial_pass`) feeds a parser only when a frame can complete and
+finds when the next frame will have left a radio; a frame every receiver of a
+broadcast gets is CRC-checked and decoded once (:meth:`Sim._tunnel_of`); one
+message to many peers is encoded once. What a run is (:class:`Scenario`, its faults,
+its length, :class:`RunResult`) lives in :mod:`swarm.sim.scenario`; seeds over
+processes in :mod:`swarm.sim.parallel`.
+
 Scenarios add loss (uniform, bursty), partitions (groups that cannot hear each
 other for a while), crashes (an agent stops for good; ``leader`` means whoever
 leads then) and late starts. After each run the invariants are checked:
@@ -35,7 +44,7 @@ from __future__ import annotations
 import random
 import statistics
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
@@ -45,113 +54,9 @@ from swarm.core.messages import Advertize, Message, Phase, Pose, decode, encode
 from swarm.core.protocol import ADVERTIZE, Core, Out, profile_by_name
 from swarm.core.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
 from swarm.errors import DecodeError
-
-
-@dataclass(frozen=True)
-class Partition:
-    t0: float
-    t1: float
-    groups: tuple[frozenset[int], ...]
-
-    @classmethod
-    def parse(cls, spec: str) -> Partition:
-        """``T0-T1:1,2,3|4,5`` (seconds; agent ids, 1-based)."""
-        try:
-            times, groups = spec.split(":", 1)
-            a, b = times.split("-", 1)
-            gs = tuple(frozenset(int(x) for x in g.split(",") if x) for g in groups.split("|"))
-            return cls(float(a), float(b), gs)
-        except ValueError:
-            raise ValueError(f"partition {spec!r}: expected T0-T1:1,2|3,4") from None
-
-    def group_of(self, agent: int) -> int:
-        for i, g in enumerate(self.groups):
-            if agent in g:
-                return i
-        return -1
-
-
-@dataclass
-class PartitionLoss:
-    """Drops every packet between agents of different groups during the partition."""
-
-    parts: list[Partition]
-
-    def lost(self, sender: int, receiver: int, t: float, rng: random.Random) -> bool:
-        for p in self.parts:
-            if p.t0 <= t < p.t1 and p.group_of(sender + 1) != p.group_of(receiver + 1):
-                return True
-        return False
-
-
-def parse_at(spec: str) -> tuple[str, float]:
-    """``ID@T`` or ``leader@T``."""
-    who, _, t = spec.partition("@")
-    if not t:
-        raise ValueError(f"{spec!r}: expected ID@SECONDS or leader@SECONDS")
-    return who, float(t)
-
-
-@dataclass
-class Scenario:
-    agents: int = 5
-    loss: float = 0.0
-    burst_loss: str | None = None
-    partitions: list[str] = field(default_factory=list)
-    crashes: list[str] = field(default_factory=list)
-    late: list[str] = field(default_factory=list)
-    profile: str = "paper"
-    air_kbps: int = 64
-    serial_baud: int = 57600
-    #: virtual seconds a run lasts at most; None: MIN_DURATION_S or DURATION_ROUNDS
-    #: TDM rounds, whichever is longer (an N=50 election takes about ten rounds)
-    duration: float | None = None
-    settle: float = 3.0  # converged state must hold this long
-
-    def command(self, seed: int) -> str:
-        parts = [
-            f"swarm simulate --agents {self.agents} --seeds 1 --seed {seed}",
-            f"--profile {self.profile}",
-        ]
-        if self.loss:
-            parts.append(f"--loss {self.loss}")
-        if self.burst_loss:
-            parts.append(f"--burst-loss {self.burst_loss}")
-        parts += [f"--partition {p}" for p in self.partitions]
-        parts += [f"--crash {c}" for c in self.crashes]
-        parts += [f"--late {x}" for x in self.late]
-        if self.duration is not None:
-            parts.append(f"--duration {self.duration}")
-        return " ".join(parts)
-
-
-@dataclass
-class RunResult:
-    seed: int
-    converged: bool
-    elect_s: float | None
-    failover_s: float | None
-    violations: list[str]
-    air_utilisation: float
-    messages_per_agent: float
-    leader: int
-    end_s: float
-    stable_at_end: bool = True
-
+from swarm.sim.scenario import Partition, PartitionLoss, RunResult, Scenario, parse_at, run_length
 
 POSE = Pose(47.397742, 8.545594, 500.0)
-MIN_DURATION_S = 60.0
-DURATION_ROUNDS = 20
-
-
-def run_length(round_s: float) -> float:
-    """A run's default length: 60 s, or 20 TDM rounds when that is longer. The paper
-    profile's windows grow with the round (multipoint: one window per radio), so an
-    election of 50 radios at 64 kbps (5.92 s rounds) takes 50-70 s; a fixed 60 s cut
-    such runs short and called them unconverged."""
-    return max(MIN_DURATION_S, DURATION_ROUNDS * round_s)
-
-
 _Tunnel = tuple[Kind, int, bytes, Message]
 _CACHE_MAX = 4096  # decoded frames kept per run (a cache: its size changes no result)
 SPLIT_LIMIT_S = 20.0

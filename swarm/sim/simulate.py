@@ -207,7 +207,7 @@ class Sim:
         cache = self._decoded
         if raw in cache:
             return cache[raw]
-        if len(cache) > _CACHE_MAX:
+        if len(cache) > _CACHE_MAX or len(self._trusted) > 2 * _CACHE_MAX:
             cache.clear()
             self._trusted.clear()
         res: _Tunnel | None = None

@@ -169,10 +169,15 @@ class FrameParser:
     accept_v1: bool = True
     stats: ParserStats = field(default_factory=ParserStats)
     _buf: bytearray = field(default_factory=bytearray)
+    #: frames already found valid, shared by parsers that see the same frames (the
+    #: simulator's receivers of one broadcast): their CRC is checked once. The caller
+    #: bounds its size.
+    trusted: set[bytes] | None = None
 
     def feed(self, data: bytes | bytearray) -> list[Frame]:
         buf = self._buf
         buf += data
+        trusted = self.trusted
         self.stats.bytes += len(data)
         out: list[Frame] = []
         i = 0
@@ -188,7 +193,9 @@ class FrameParser:
             if total is None or n - i < total:
                 break  # wait for more bytes
             raw = bytes(buf[i : i + total])
-            if self._check(raw):
+            if (trusted is not None and raw in trusted) or self._check(raw):
+                if trusted is not None:
+                    trusted.add(raw)
                 out.append(Frame(raw))
                 self.stats.frames += 1
                 i += total
@@ -326,9 +333,20 @@ class FrameBuilder:
     def tunnel(self, payload: bytes, *, target_system: int = 0, payload_type: int = 32768) -> bytes:
         if len(payload) > 128:
             raise FrameError(f"TUNNEL payload of {len(payload)} bytes exceeds 128")
-        data = payload.ljust(128, b"\0")
-        return self.build(dialect.MAVLink_tunnel_message(target_system, 0, payload_type, len(payload), data))
+        if self.clock is not None:  # signed: pymavlink signs it
+            data = payload.ljust(128, b"\0")
+            msg = dialect.MAVLink_tunnel_message(target_system, 0, payload_type, len(payload), data)
+            return self.build(msg)
+        # unsigned: the same bytes pymavlink packs, without building its message object
+        # (the simulator sends thousands a second). Field order on the wire: uint16
+        # payload_type, then target_system, target_component, payload_length, payload.
+        body = _TUNNEL_HEAD.pack(payload_type, target_system, 0, len(payload)) + payload
+        seq = self.mav.seq
+        self.mav.seq = (seq + 1) % 256
+        return pack_frame(MSG_TUNNEL, body, sysid=self.mav.srcSystem, compid=self.mav.srcComponent, seq=seq)
 
+
+_TUNNEL_HEAD = struct.Struct("<HBBB")
 
 _decoder = dialect.MAVLink(None)
 _decoder.robust_parsing = False

@@ -12,6 +12,15 @@ decoded back into the core. There is no wall clock: the loop jumps from one
 deadline (a core's or the air's) to the next, so a run is exactly repeatable for
 its seed.
 
+The loop is the simulator's cost, so each step does the least that gives the same
+bytes at the same times (``tests/test_sim_golden.py`` pins them): one pass over the
+radios (:meth:`Sim._serial_pass`) feeds a parser only when a frame can complete and
+finds when the next frame will have left a radio; a frame every receiver of a
+broadcast gets is CRC-checked and decoded once (:meth:`Sim._tunnel_of`); one
+message to many peers is encoded once. What a run is (:class:`Scenario`, its faults,
+its length, :class:`RunResult`) lives in :mod:`swarm.sim.scenario`; seeds over
+processes in :mod:`swarm.sim.parallel`.
+
 Scenarios add loss (uniform, bursty), partitions (groups that cannot hear each
 other for a while), crashes (an agent stops for good; ``leader`` means whoever
 leads then) and late starts. After each run the invariants are checked:
@@ -35,109 +44,21 @@ from __future__ import annotations
 import random
 import statistics
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
 from radios.loss import GilbertElliott, UniformLoss
-from radios.mavlink import MSG_TUNNEL, FrameBuilder, FrameParser, frame_length
+from radios.mavlink import HEADER_V2, MSG_TUNNEL, STX_V2, FrameBuilder, FrameParser, frame_length
 from swarm.core.messages import Advertize, Message, Phase, Pose, decode, encode
 from swarm.core.protocol import ADVERTIZE, Core, Out, profile_by_name
 from swarm.core.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
 from swarm.errors import DecodeError
-
-
-@dataclass(frozen=True)
-class Partition:
-    t0: float
-    t1: float
-    groups: tuple[frozenset[int], ...]
-
-    @classmethod
-    def parse(cls, spec: str) -> Partition:
-        """``T0-T1:1,2,3|4,5`` (seconds; agent ids, 1-based)."""
-        try:
-            times, groups = spec.split(":", 1)
-            a, b = times.split("-", 1)
-            gs = tuple(frozenset(int(x) for x in g.split(",") if x) for g in groups.split("|"))
-            return cls(float(a), float(b), gs)
-        except ValueError:
-            raise ValueError(f"partition {spec!r}: expected T0-T1:1,2|3,4") from None
-
-    def group_of(self, agent: int) -> int:
-        for i, g in enumerate(self.groups):
-            if agent in g:
-                return i
-        return -1
-
-
-@dataclass
-class PartitionLoss:
-    """Drops every packet between agents of different groups during the partition."""
-
-    parts: list[Partition]
-
-    def lost(self, sender: int, receiver: int, t: float, rng: random.Random) -> bool:
-        for p in self.parts:
-            if p.t0 <= t < p.t1 and p.group_of(sender + 1) != p.group_of(receiver + 1):
-                return True
-        return False
-
-
-def parse_at(spec: str) -> tuple[str, float]:
-    """``ID@T`` or ``leader@T``."""
-    who, _, t = spec.partition("@")
-    if not t:
-        raise ValueError(f"{spec!r}: expected ID@SECONDS or leader@SECONDS")
-    return who, float(t)
-
-
-@dataclass
-class Scenario:
-    agents: int = 5
-    loss: float = 0.0
-    burst_loss: str | None = None
-    partitions: list[str] = field(default_factory=list)
-    crashes: list[str] = field(default_factory=list)
-    late: list[str] = field(default_factory=list)
-    profile: str = "paper"
-    air_kbps: int = 64
-    serial_baud: int = 57600
-    duration: float = 60.0
-    settle: float = 3.0  # converged state must hold this long
-
-    def command(self, seed: int) -> str:
-        parts = [
-            f"swarm simulate --agents {self.agents} --seeds 1 --seed {seed}",
-            f"--profile {self.profile}",
-        ]
-        if self.loss:
-            parts.append(f"--loss {self.loss}")
-        if self.burst_loss:
-            parts.append(f"--burst-loss {self.burst_loss}")
-        parts += [f"--partition {p}" for p in self.partitions]
-        parts += [f"--crash {c}" for c in self.crashes]
-        parts += [f"--late {x}" for x in self.late]
-        if self.duration != 60.0:
-            parts.append(f"--duration {self.duration}")
-        return " ".join(parts)
-
-
-@dataclass
-class RunResult:
-    seed: int
-    converged: bool
-    elect_s: float | None
-    failover_s: float | None
-    violations: list[str]
-    air_utilisation: float
-    messages_per_agent: float
-    leader: int
-    end_s: float
-    stable_at_end: bool = True
-
+from swarm.sim.scenario import Partition, PartitionLoss, RunResult, Scenario, parse_at, run_length
 
 POSE = Pose(47.397742, 8.545594, 500.0)
+_Tunnel = tuple[Kind, int, bytes, Message]
+_CACHE_MAX = 4096  # decoded frames kept per run (a cache: its size changes no result)
 SPLIT_LIMIT_S = 20.0
 
 
@@ -179,6 +100,7 @@ class Sim:
         self.air = AirModel(cfgs, seed=rng.getrandbits(32), losses=losses)
         round_s = self.air.round_s(0)
         self.round_s = round_s
+        self.duration = sc.duration if sc.duration is not None else run_length(round_s)
         profile = profile_by_name(sc.profile, round_s)
         self.cores = [
             Core(i + 1, f"agent{i + 1}", profile, rng=random.Random(rng.getrandbits(64))) for i in range(n)
@@ -186,7 +108,9 @@ class Sim:
         for c in self.cores:
             c.set_pose(POSE)
         self.builders = [FrameBuilder(i + 1, COMP_ID) for i in range(n)]
-        self.parsers = [FrameParser() for _ in range(n)]
+        self._trusted: set[bytes] = set()  # frames whose CRC one receiver has checked
+        self._decoded: dict[bytes, _Tunnel | None] = {}
+        self.parsers = [FrameParser(trusted=self._trusted) for _ in range(n)]
         self.start_at = [0.0] * n
         for spec in sc.late:
             who, t = parse_at(spec)
@@ -208,8 +132,12 @@ class Sim:
         if not outs or not self.alive[i]:
             return
         p2p: list[tuple[int, bytes]] = []
+        prev: Message | None = None
+        data = b""
         for o in outs:
-            data = encode(o.msg)
+            if o.msg is not prev:  # one message to many peers is encoded once
+                prev = o.msg
+                data = encode(o.msg)
             if o.to == ADVERTIZE:
                 kind = Kind.ADVERTIZE if isinstance(o.msg, Advertize) else Kind.GS_ADVERTIZE
                 self._write(i, kind, (0,), data, t)
@@ -228,31 +156,70 @@ class Sim:
         radio = self.air.radios[i]
         if not radio.host_ready and not radio.outbuf:
             return
+        if not self._frame_ready(i, radio.host_ready):
+            return  # the bytes wait in the radio's output: the parser could not finish a frame
+        self._deliver(i, t)
+
+    def _deliver(self, i: int, t: float) -> None:
+        """Feed what radio ``i`` has output to its parser, and the frames for agent
+        ``i`` to its core."""
         data = self.air.take_output(i, t)
         if not data:
             return
+        frames = self.parsers[i].feed(data)
         if not self.alive[i] or not self.started[i]:
-            self.parsers[i].feed(data)
             return
         # what the core answers to the frames of one read leaves together, as the
         # bridge's 5 ms hold sends it: identical payloads merge into one MULTI frame
         outs: list[Out] = []
         me = i + 1
-        for f in self.parsers[i].feed(data):
-            if f.msgid != MSG_TUNNEL:
+        for f in frames:
+            tun = self._tunnel_of(f.raw)
+            if tun is None:
                 continue
-            try:
-                tun = unpack_tunnel(f.payload)
-                if tun is None:
-                    continue
-                kind, target, ids, body = tun
-                if target not in (0, me) or (kind == Kind.MULTI and me not in ids):
-                    continue
-                msg = decode(body)
-            except DecodeError:
+            kind, target, ids, msg = tun
+            if target not in (0, me) or (kind == Kind.MULTI and me not in ids):
                 continue
-            outs += self._on_message(i, f.sysid, kind, msg, t)
+            outs += self._on_message(i, f.raw[5], kind, msg, t)
         self._send(i, outs, t)
+
+    def _frame_ready(self, i: int, ready: bytearray) -> bool:
+        """Whether the bytes the radio has output for the host (after those the parser
+        holds) can complete a frame or need scanning: the parser yields the same frames
+        at the same step whether it is fed every step or only then."""
+        pend = self.parsers[i]._buf
+        if len(pend) >= 3:
+            head: bytes | bytearray = pend
+        elif pend:
+            head = bytes(pend) + bytes(ready[:3])
+        else:
+            head = ready
+        if len(head) < 3:
+            return False  # no frame is shorter than 8 bytes: nothing to yield yet
+        flen = frame_length(head, 0)
+        return flen is None or len(pend) + len(ready) >= flen
+
+    def _tunnel_of(self, raw: bytes) -> _Tunnel | None:
+        """The swarm message a whole frame carries (kind, target, addressees, message),
+        or None (not a TUNNEL frame, not the swarm's, not a valid message). Every
+        receiver of a broadcast gets the same frame: it is decoded once (messages are
+        frozen) and the answer shared."""
+        cache = self._decoded
+        if raw in cache:
+            return cache[raw]
+        if len(cache) > _CACHE_MAX or len(self._trusted) > 2 * _CACHE_MAX:
+            cache.clear()
+            self._trusted.clear()
+        res: _Tunnel | None = None
+        if raw[0] == STX_V2 and raw[7] | (raw[8] << 8) | (raw[9] << 16) == MSG_TUNNEL:
+            try:
+                tun = unpack_tunnel(raw[HEADER_V2 : HEADER_V2 + raw[1]])
+                if tun is not None:
+                    res = (tun[0], tun[1], tun[2], decode(tun[3]))
+            except DecodeError:
+                res = None
+        cache[raw] = res
+        return res
 
     def _on_message(self, i: int, sender: int, kind: Kind, msg: Message, t: float) -> list[Out]:
         """A message received by agent ``i`` (a subclass adds other streams)."""
@@ -288,25 +255,23 @@ class Sim:
         return True, leader_id
 
     def run(self) -> RunResult:
-        sc = self.sc
         t = 0.0
         w = _Watch()
         next_check = 0.0
-        while t <= sc.duration:
+        while t <= self.duration:
             self._start_and_crash(t, w)
             self.air.advance(t)
-            for i in range(sc.agents):
-                self._receive(i, t)
+            out_dl = self._serial_pass(t)
             self._tick_cores(t)
             if t < next_check:
-                t = self._next_time(t)
+                t = self._next_time(t, out_dl)
                 continue
             next_check = t + 0.1
             if self._judge(t, w):
                 break
             self._check_dead_leaders(t)
             self._check_split(t, w.elect_s is not None or w.failover_s is not None)
-            t = self._next_time(t)
+            t = self._next_time(t, out_dl)
         return self._run_result(t, w)
 
     def _start_and_crash(self, t: float, w: _Watch) -> None:
@@ -325,6 +290,7 @@ class Sim:
                 self.crash_at.pop(k)
                 if 1 <= victim <= n and self.alive[victim - 1]:
                     self.alive[victim - 1] = False
+                    self._due[victim - 1] = float("inf")  # never ticks again
                     self.dead_at[victim] = t
                     w.crash_time = t
                     w.converged_since = None
@@ -332,6 +298,8 @@ class Sim:
                 break
 
     def _tick_cores(self, t: float) -> None:
+        if min(self._due) > t + 1e-9:
+            return  # no core is due (most steps are the air's)
         for i in range(self.sc.agents):
             if self.alive[i] and self.started[i] and self._due[i] <= t + 1e-9:
                 core = self.cores[i]
@@ -417,27 +385,64 @@ class Sim:
                     if msg not in self.violations:
                         self.violations.append(msg)
 
-    def _air_deadline(self) -> float | None:
-        """The air model's next deadline, except that a radio's serial output wakes
-        the loop when the next whole frame has left the radio (nothing can be decoded
-        before) instead of every 5 ms of output: the same bytes at the same times."""
-        air = self.air
-        t = air._events[0][0] if air._events else None
-        for i, r in enumerate(air.radios):
-            if not r.outbuf:
+    def _serial_pass(self, t: float) -> float | None:
+        """Each radio's output to its host at ``t``: the frames it completes go to the
+        core (:meth:`_deliver`); returns when the next frame leaves a radio (nothing can
+        be decoded before), or 5 ms of output at most when the stream is not at a frame
+        (the air model's own wake-up): the same bytes at the same times as waking every
+        5 ms. Nothing changes a radio's output between this pass and the next step.
+        (:meth:`_frame_ready` and :meth:`_frame_need`, inlined: this runs every step.)"""
+        dl: float | None = None
+        parsers = self.parsers
+        for i, r in enumerate(self.air.radios):
+            ob = r.outbuf
+            hr = r.host_ready
+            if not ob and not hr:
                 continue
-            need = self._frame_need(i, r.outbuf)
+            pend = parsers[i]._buf
+            # the stream's head: the parser's bytes, then those not yet fed, then the
+            # radio's output; flen is its frame's length (None: not at a frame or under
+            # 3 bytes). -1: a split head under 3 bytes, left to the helpers.
+            if len(pend) >= 3:
+                flen = frame_length(pend, 0)
+            elif pend:
+                flen = -1
+            elif hr:
+                flen = frame_length(hr, 0) if len(hr) >= 3 else -1
+            else:
+                flen = frame_length(ob, 0)
+            if hr:
+                if flen == -1:
+                    ready = self._frame_ready(i, hr)
+                else:
+                    ready = flen is None or len(pend) + len(hr) >= flen
+                if ready:
+                    self._deliver(i, t)
+                    if not ob:
+                        continue
+                    flen = -1
+            if not ob:
+                continue
+            if flen == -1:
+                need = self._frame_need(i, r.host_ready, ob)
+            else:
+                need = None if flen is None else max(1, min(flen - len(pend) - len(hr), len(ob)))
             if need is None:
-                d = r.drain_clock + min(len(r.outbuf) * r.byte_s, 0.005)
+                d = r.drain_clock + min(len(ob) * r.byte_s, 0.005)
             else:
                 d = r.drain_clock + need * r.byte_s + 1e-9
-            t = d if t is None or d < t else t
-        return t
+            if dl is None or d < dl:
+                dl = d
+        return dl
 
-    def _frame_need(self, i: int, outbuf: bytearray) -> int | None:
+    def _frame_need(self, i: int, ready: bytearray, outbuf: bytearray) -> int | None:
         """Bytes of ``outbuf`` that complete the frame the parser is waiting for (all
-        of it if the frame is cut short), or None if the stream is not at a frame."""
+        of it if the frame is cut short), or None if the stream is not at a frame. What
+        waits for the parser is what it holds and what the radio has output but the
+        parser was not yet fed (:meth:`_frame_ready`)."""
         pend = self.parsers[i]._buf
+        if ready:
+            pend = pend + ready
         head: bytes | bytearray = pend if pend else outbuf
         if len(head) < 3 and pend:
             head = bytes(pend) + bytes(outbuf[:3])
@@ -446,18 +451,29 @@ class Sim:
             return None
         return max(1, min(flen - len(pend), len(outbuf)))
 
-    def _next_time(self, t: float) -> float:
-        cands = [t + 0.1]  # invariants are sampled every 100 ms
-        dl = self._air_deadline()
-        if dl is not None:
-            cands.append(dl)
-        for i in range(len(self.cores)):
-            if self.alive[i] and self.started[i]:
-                cands.append(self._due[i])
-            elif not self.started[i]:
-                cands.append(self.start_at[i])
-        cands += [w for _, w in self.crash_at]
-        nxt = min(x for x in cands if x > t + 1e-9) if any(x > t + 1e-9 for x in cands) else t + 0.05
+    def _next_time(self, t: float, out_dl: float | None) -> float:
+        """The next step: the earliest deadline after ``t`` (a core's, the air's, a
+        radio's output (``out_dl``, :meth:`_serial_pass`), a start, a crash), at most
+        100 ms on (invariants are sampled every 100 ms)."""
+        thr = t + 1e-9
+        nxt = t + 0.1
+        ev = self.air._events
+        dl = ev[0][0] if ev else None
+        if out_dl is not None and (dl is None or out_dl < dl):
+            dl = out_dl
+        if dl is not None and thr < dl < nxt:  # the air's earliest deadline, or none
+            nxt = dl
+        due, alive, started, start_at = self._due, self.alive, self.started, self.start_at
+        for i in range(len(due)):
+            if started[i]:
+                x = due[i] if alive[i] else nxt
+            else:
+                x = start_at[i]
+            if thr < x < nxt:
+                nxt = x
+        for _, x in self.crash_at:
+            if thr < x < nxt:
+                nxt = x
         return max(nxt, t + 1e-4)
 
 
@@ -469,8 +485,12 @@ def pct(values: list[float], q: float) -> float | None:
     return round(s[k], 3)
 
 
-def campaign(sc: Scenario, seeds: int, seed0: int = 0) -> dict[str, Any]:
-    results = [Sim(sc, seed0 + k).run() for k in range(seeds)]
+def campaign(sc: Scenario, seeds: int, seed0: int = 0, jobs: int = 1) -> dict[str, Any]:
+    """Seeds ``seed0 ..`` run (over ``jobs`` processes) and summarised; the summary is
+    the same for any number of jobs."""
+    from swarm.sim.parallel import run_seeds  # the pool's module imports this one
+
+    results = run_seeds(sc, seeds, seed0, jobs)
     elect = [r.elect_s for r in results if r.elect_s is not None]
     fail = [r.failover_s for r in results if r.failover_s is not None]
     bad = [r for r in results if r.violations]

@@ -1,11 +1,20 @@
-"""``swarm simulate``: seeded runs of N protocol cores over the air model, in virtual time."""
+"""``swarm simulate``: seeded runs of N protocol cores over the air model, in virtual time.
+
+Seeds run over ``--jobs`` processes (:mod:`swarm.sim.parallel`; the figures do not
+depend on it). Ctrl-C or SIGTERM stops the workers, prints one line and exits 130.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
 
-from swarm.cli.util import UsageError, guarded, parser, print_json
+from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 
 PROG = "swarm simulate"
@@ -39,9 +48,36 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--late", action="append", default=[], metavar="ID@T", help="agent ID starts at T s")
     p.add_argument("--profile", choices=("paper", "fast"), default="paper")
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS")
-    p.add_argument("--duration", type=float, default=60.0, help="virtual seconds per run at most")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="virtual seconds per run at most (default: 60, or 20 TDM rounds when longer)",
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        metavar="N",
+        help="worker processes for the seeds (default: all cores; 1 runs them here); "
+        "the results are the same for any N",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     return p
+
+
+def _raise_interrupt(_signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM stops the run as Ctrl-C does (the pool's workers are ended before exit)."""
+    old = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 @guarded(PROG)
@@ -51,6 +87,10 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--agents: 1..250")
     if a.seeds < 1:
         raise UsageError("--seeds: at least 1")
+    if a.duration is not None and not 0 < a.duration <= 86400:
+        raise UsageError("--duration: virtual seconds, more than 0 and at most 86400")
+    if not 1 <= a.jobs <= 256:
+        raise UsageError("--jobs: 1..256")
     if not 0 <= a.loss <= 1:
         raise UsageError("--loss: a probability between 0 and 1")
     try:
@@ -73,7 +113,12 @@ def main(argv: list[str] | None = None) -> int:
         air_kbps=a.air_speed,
         duration=a.duration,
     )
-    result = campaign(sc, a.seeds, a.seed)
+    try:
+        with _sigterm_interrupts():
+            result = campaign(sc, a.seeds, a.seed, jobs=a.jobs)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
     if a.json:
         print_json(result)
     else:

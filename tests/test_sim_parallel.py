@@ -1,0 +1,114 @@
+"""``swarm simulate --jobs``: seeds over worker processes give the serial run's figures
+exactly, and a signal stops the workers with the parent (no orphan, one line, 130)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from net_helpers import wait_until
+
+from swarm.cli.commands.simulate import main
+from swarm.sim.simulate import Scenario, campaign
+
+pytestmark = pytest.mark.processes  # worker processes
+
+
+def children_of(pid: int) -> list[int]:
+    """The live processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(d.name))
+    return out
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` so far (0 once it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_jobs_give_the_serial_figures() -> None:
+    sc = Scenario(agents=6, loss=0.1, crashes=["leader@15"], duration=40)
+    assert campaign(sc, 6, 3, jobs=2) == campaign(sc, 6, 3, jobs=1)
+
+
+def test_cli_json_is_the_same_for_any_jobs() -> None:
+    def run(jobs: str) -> dict[str, object]:
+        args = ["simulate", "--agents", "5", "--loss", "0.1", "--seeds", "6", "--seed", "2", "--json"]
+        p = subprocess.run(
+            [sys.executable, "-m", "swarm.cli", *args, "--jobs", jobs],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert p.returncode == 0, p.stderr
+        return dict(json.loads(p.stdout))
+
+    assert run("3") == run("1")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_the_workers(sig: signal.Signals) -> None:
+    args = ["simulate", "--agents", "40", "--seeds", "40", "--jobs", "2", "--duration", "120"]
+    p = subprocess.Popen(
+        [sys.executable, "-m", "swarm.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        # running seeds (past their start-up, where a Ctrl-C is not yet the parent's)
+        wait_until(lambda: any(cpu_s(c) > 1.5 for c in children_of(p.pid)), "busy workers", 120)
+        workers = children_of(p.pid)
+        if sig == signal.SIGINT:
+            os.killpg(p.pid, sig)  # Ctrl-C reaches the whole group
+        else:
+            p.send_signal(sig)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 130, err
+    lines = err.strip().splitlines()
+    assert lines == ["swarm simulate: interrupted, workers stopped, no results"], err
+    assert "Traceback" not in err and out == ""
+    wait_until(lambda: not any(alive(w) for w in workers), "no worker outlives the command", 30)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["--jobs", "0"], ["--jobs", "-3"], ["--jobs", "100000"], ["--duration", "nan"], ["--duration", "-1"]],
+)
+def test_bad_jobs_or_duration_is_one_line_and_exit_2(
+    args: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["--agents", "3", "--seeds", "1", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("swarm simulate: error: --"), err

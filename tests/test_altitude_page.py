@@ -125,6 +125,7 @@ def take_off(page: Any, url: str, kids: list[Child]) -> None:
     poll(lambda: accepted(page, "arm"), "arm accepted", DEADLINE, kids)
     page.fill("#takeoff-alt", "10")
     page.click('#commands [data-kind="takeoff"]')
+    page.click("#confirm-ok")  # a take-off is asked about first
     poll(lambda: accepted(page, "takeoff"), "take-off accepted", DEADLINE, kids)
     poll(lambda: (above_home(url) or 0.0) > 8.0, "agent1 10 m above home", DEADLINE, kids)
 

@@ -11,7 +11,8 @@ process tests run in real time and some judge rates, formation errors or recover
 a shared machine, so they stay one after another in one session, as they always
 ran; the other session runs the tests that start no process, then the light process
 tests (:data:`LIGHT`, marked ``light`` here: AT commands over ptys, a wheel build,
-the pre-flight check: little CPU, no rates judged).
+the pre-flight check, pages and stations checked for what they show: no rates or
+durations judged), balancing the two sessions' lengths.
 """
 
 from __future__ import annotations
@@ -31,6 +32,18 @@ LIGHT = frozenset(
         "test_packaging.py",
         "test_readme_driver.py",  # one simulated vehicle, mostly waiting out its boot
         "test_cold_start.py",  # the same, with an agent and a station
+        # pages and stations checked for what they show and answer, not for how fast
+        "test_fleet_page.py",
+        "test_altitude_page.py",
+        "test_alerts_processes.py",
+        "test_command_results_processes.py",
+        "test_gcs_push.py",
+        "test_geofence_api.py",
+        "test_gcs_sysid.py",
+        "test_gcs_offline_map.py",
+        "test_replay_capture_processes.py",
+        "test_plan_page.py",
+        "test_sim_parallel.py",  # virtual time: the figures do not depend on the machine
     }
 )
 

@@ -112,3 +112,29 @@ def test_bad_jobs_or_duration_is_one_line_and_exit_2(
     assert main(["--agents", "3", "--seeds", "1", *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("swarm simulate: error: --"), err
+
+
+def test_a_worker_that_dies_ends_the_run_with_one_error_and_no_orphan() -> None:
+    """A worker killed from outside (the OOM killer, an operator): the run ends with
+    WorkerDied instead of waiting for ever, and the other worker is stopped too."""
+    import multiprocessing
+    import threading
+
+    from swarm.sim.parallel import WorkerDied, run_seeds
+
+    killed: list[int] = []
+
+    def killer() -> None:  # the run itself must be on the main thread (it sets signals)
+        busy = wait_until(
+            lambda: [p for p in multiprocessing.active_children() if cpu_s(p.pid) > 1.0], "a busy worker", 120
+        )
+        os.kill(busy[0].pid, signal.SIGKILL)
+        killed.append(busy[0].pid)
+
+    th = threading.Thread(target=killer, daemon=True)
+    th.start()
+    with pytest.raises(WorkerDied):
+        run_seeds(Scenario(agents=30, loss=0.1, duration=240), 8, 0, 2)
+    th.join(10)
+    assert killed
+    wait_until(lambda: not multiprocessing.active_children(), "no worker outlives the run", 30)

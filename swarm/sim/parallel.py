@@ -3,73 +3,151 @@
 Theory of operation
 -------------------
 A run (:class:`swarm.sim.simulate.Sim`) depends on nothing but its scenario and its
-seed, so seeds can run anywhere in any order: :func:`run_seeds` hands them in
-chunks to a pool of worker processes and puts the results back in seed order, so a
-campaign's figures and its JSON are the same whatever the number of jobs. Workers
-are started with ``spawn`` (a fresh interpreter: nothing of the parent's state is
-shared, and it works the same on every platform); the function they run is a
-top-level one. Workers ignore SIGINT from their start (the parent ignores it while
-it spawns them, and they inherit that): a Ctrl-C reaches the whole process group,
-and only the parent decides. When the parent is interrupted (KeyboardInterrupt,
-which the CLI also raises for SIGTERM) it terminates the pool and waits for every
-worker before passing the interruption on, so no worker outlives it.
+seed, so seeds can run anywhere in any order: :func:`run_seeds` starts ``jobs``
+worker processes, each with a pipe of its own, hands each one seed at a time (the
+next one as soon as it answers, so a slow seed holds up nobody) and puts the results
+back in seed order, so a campaign's figures and its JSON are the same whatever the
+number of jobs. Workers are started with ``spawn`` (a fresh interpreter: nothing of
+the parent's state is shared, and it works the same on every platform); the function
+they run is a top-level one. No queue or lock is shared between processes (a pool's
+shared queue can deadlock its own terminate when a worker dies holding the queue's
+lock), so stopping is always possible: the parent terminates its workers and waits
+for each of them.
+
+Workers ignore SIGINT from their start (the parent ignores it while it spawns them,
+and they inherit that): a Ctrl-C reaches the whole process group, and only the
+parent decides. When the parent is interrupted (KeyboardInterrupt, which the CLI
+also raises for SIGTERM) it terminates every worker (SIGTERM, then SIGKILL) and
+waits for them before passing the interruption on, so no worker outlives it. A
+worker that dies on its own ends the run with :class:`WorkerDied`.
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import signal
+from collections.abc import Callable, Iterator
+from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
 
+from swarm.errors import SwarmError
 from swarm.sim.simulate import RunResult, Scenario, Sim
 
+STOP_GRACE_S = 5.0  # after SIGTERM, before SIGKILL
 
-def _worker_start() -> None:
-    """A worker ignores SIGINT (it started so: see :func:`run_seeds`) and takes SIGTERM
-    (:meth:`Pool.terminate`) as it comes, also one that came while it started."""
+
+class WorkerDied(SwarmError):
+    """A worker process ended without answering (killed, out of memory)."""
+
+
+def _serve(conn: Connection) -> None:
+    """A worker: runs each ``(scenario, seed)`` it receives, answers ``(seed, result)``,
+    ends on ``None`` or when the parent's end closes. It ignores SIGINT (it started
+    so) and takes SIGTERM as it comes, also one that came while it started."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+    try:
+        while True:
+            job = conn.recv()
+            if job is None:
+                return
+            sc, seed = job
+            conn.send((seed, Sim(sc, seed).run()))
+    except (EOFError, OSError):  # the parent went away
+        return
 
 
-def _run_one(job: tuple[Scenario, int]) -> RunResult:
-    sc, seed = job
-    return Sim(sc, seed).run()
-
-
-def run_seeds(sc: Scenario, seeds: int, seed0: int, jobs: int) -> list[RunResult]:
+def run_seeds(
+    sc: Scenario, seeds: int, seed0: int, jobs: int, on_done: Callable[[], None] = lambda: None
+) -> list[RunResult]:
     """The results of seeds ``seed0 .. seed0 + seeds - 1``, in that order, computed by
-    ``jobs`` worker processes (in this process when ``jobs`` is 1 or there is one seed)."""
+    ``jobs`` worker processes (in this process when ``jobs`` is 1 or there is one seed);
+    ``on_done`` is called as each seed's result arrives (a progress display).
+
+    Raises:
+        WorkerDied: a worker ended without answering.
+    """
     if jobs <= 1 or seeds <= 1:
-        return [Sim(sc, seed0 + k).run() for k in range(seeds)]
+        return [_done(Sim(sc, seed0 + k).run(), on_done) for k in range(seeds)]
     jobs = min(jobs, seeds)
-    work = [(sc, seed0 + k) for k in range(seeds)]
-    chunk = max(1, seeds // (jobs * 4))
+    procs: list[BaseProcess] = []
+    try:
+        conns = _start(jobs, procs)
+        results = _hand_out(sc, iter(range(seed0, seed0 + seeds)), conns, on_done)
+        for c in conns:
+            c.send(None)
+    finally:
+        _stop(procs)
+    return [results[seed0 + k] for k in range(seeds)]
+
+
+def _start(jobs: int, procs: list[BaseProcess]) -> list[Connection]:
+    """Spawn the workers (appended to ``procs`` as they start); their pipes.
+
+    Workers are spawned with SIGINT ignored: an ignored signal stays ignored across
+    exec and Python then leaves it so, so no worker prints a Ctrl-C traceback while it
+    is still importing. (A Ctrl-C in those few milliseconds is lost for the parent too;
+    a SIGTERM waits, blocked, and stops the run once the workers have started.)"""
     ctx = multiprocessing.get_context("spawn")
-    # Workers are spawned with SIGINT ignored: an ignored signal stays ignored across
-    # exec and Python then leaves it so, so no worker prints a Ctrl-C traceback while it
-    # is still importing. (A Ctrl-C in those few milliseconds is lost for the parent
-    # too; a SIGTERM waits, blocked, and stops the run once the pool has started.)
     old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
-
-    def restore() -> None:
+    conns: list[Connection] = []
+    try:
+        for _ in range(jobs):
+            ours, theirs = ctx.Pipe()
+            p = ctx.Process(target=_serve, args=(theirs,), daemon=True)
+            p.start()
+            procs.append(p)
+            theirs.close()
+            conns.append(ours)
+    finally:
         signal.signal(signal.SIGINT, old_int)
-        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a SIGTERM that waited is raised here
+    return conns
 
-    try:
-        pool = ctx.Pool(jobs, initializer=_worker_start)
-    except BaseException:
-        restore()
-        raise
-    try:
-        restore()  # a SIGTERM that waited is raised here: the pool is ended below
-        results = pool.map(_run_one, work, chunksize=chunk)
-    except BaseException:
-        pool.terminate()
-        pool.join()
-        raise
-    pool.close()
-    pool.join()
+
+def _done(result: RunResult, on_done: Callable[[], None]) -> RunResult:
+    on_done()
+    return result
+
+
+def _hand_out(
+    sc: Scenario, todo: Iterator[int], conns: list[Connection], on_done: Callable[[], None]
+) -> dict[int, RunResult]:
+    """One seed at a time to each worker, the next as soon as it answers."""
+    results: dict[int, RunResult] = {}
+    busy: list[Connection] = []
+    for c in conns:
+        seed = next(todo, None)
+        if seed is not None:
+            c.send((sc, seed))
+            busy.append(c)
+    while busy:
+        for ready in wait(busy):
+            c = busy[busy.index(ready)]  # type: ignore[arg-type]  # one of ours
+            try:
+                seed, result = c.recv()
+            except (EOFError, OSError):
+                raise WorkerDied("a simulation worker died without answering") from None
+            results[seed] = _done(result, on_done)
+            nxt = next(todo, None)
+            if nxt is None:
+                busy.remove(c)
+            else:
+                c.send((sc, nxt))
     return results
 
 
-__all__ = ["run_seeds"]
+def _stop(procs: list[BaseProcess]) -> None:
+    """Every worker ended and waited for: SIGTERM, then SIGKILL after STOP_GRACE_S."""
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(STOP_GRACE_S)
+        if p.is_alive():
+            p.kill()
+            p.join()
+
+
+__all__ = ["WorkerDied", "run_seeds"]

@@ -140,6 +140,9 @@ class AgentView:
     #: where Telemetry last showed the vehicle on the ground (lat, lon, m AMSL): its
     #: home once it takes off from there; None until seen on the ground
     home: tuple[float, float, float] | None = None
+    #: the route the station knows it flies (swarm.core.station_plan): [[lat, lon, alt above
+    #: home]...], its go-to target last; None without one
+    route: list[list[float]] | None = None
 
     def as_dict(self, now: float) -> dict[str, Any]:
         d = self._fields(now)
@@ -164,6 +167,8 @@ class AgentView:
             "lon": round(p.lon, 7) if p else None,
             "alt": round(p.alt, 1) if p else None,
             "home_alt": round(self.home[2], 1) if self.home else None,
+            "home": [round(self.home[0], 7), round(self.home[1], 7)] if self.home else None,
+            "route": self.route,
             "heading": round(p.heading, 1) if p else None,
             "groundspeed": None if self.groundspeed is None else round(self.groundspeed, 2),
             "mode": self.mode or None,

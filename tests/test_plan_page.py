@@ -172,6 +172,8 @@ def test_route_target_slots_and_homes(live: Live, page: Any) -> None:
         assert err < 0.05, f"agent{member}'s slot is {err:.3f} m off"
     assert count(page, ".plan-slot") == 4
     poll(lambda: count(page, ".plan-home") == len(V), "every home drawn", UI_DEADLINE)
+    page.evaluate(f"window.gcs.map.setView([{HOME[0] + 15 / M_PER_DEG}, {HOME[1]}], 19, {{animate: false}})")
+    poll(lambda: count(page, ".plan-home") == len(V), "homes drawn after the zoom", UI_DEADLINE)
     screenshot(page, "gcs_plan.png")
     # the layer control hides a layer and shows it again
     page.get_by_label("Go-to targets").uncheck()
@@ -191,7 +193,8 @@ def test_measure_tool_against_pymap3d(page: Any) -> None:
     before = page.evaluate("document.querySelector('#goto-lat').value")
     page.click("#plan-measure")
     box = page.evaluate(
-        "(() => { const r = window.gcs.map.getContainer().getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; })()"
+        """(() => { const r = window.gcs.map.getContainer().getBoundingClientRect();
+        return [r.left, r.top, r.width, r.height]; })()"""
     )
     a = (box[0] + box[2] * 0.3, box[1] + box[3] * 0.7)
     b = (box[0] + box[2] * 0.75, box[1] + box[3] * 0.25)
@@ -223,7 +226,8 @@ def test_labels_do_not_overlap_and_show_on_hover(page: Any) -> None:
             page.evaluate(
                 """Array.from(document.querySelectorAll('#map .agent-marker .tag'))
                 .filter(t => getComputedStyle(t).visibility !== 'hidden')
-                .map(t => { const r = t.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom]; })"""
+                .map(t => { const r = t.getBoundingClientRect();
+                  return [r.left, r.top, r.right, r.bottom]; })"""
             )
         )
 
@@ -260,9 +264,8 @@ def test_labels_do_not_overlap_and_show_on_hover(page: Any) -> None:
             break
     assert spot is not None, "no hidden tag's marker is uncovered at any zoom"
     page.mouse.move(spot[1], spot[2])
-    vis = page.evaluate(
-        f"getComputedStyle(document.querySelector('#map .agent-marker[data-agent-id=\"{spot[0]}\"] .tag')).visibility"
-    )
+    tag = f'#map .agent-marker[data-agent-id="{spot[0]}"] .tag'
+    vis = page.evaluate(f"getComputedStyle(document.querySelector({tag!r})).visibility")
     assert vis == "visible"
 
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 
+from test_gcs_station import station_with, tm
+
 from swarm.core.messages import (
     AckResult,
     AgentNotice,
@@ -25,7 +27,6 @@ from swarm.core.messages import (
 from swarm.core.station import CommandSpec, StationCore
 from swarm.core.station_delta import apply, build
 from swarm.core.station_plan import ROUTE_MAX, PlanBook
-from test_gcs_station import station_with, tm
 
 
 def goto(

@@ -138,7 +138,8 @@
     }
   }
   function isPoint(p) {
-    return Array.isArray(p) && Number.isFinite(p[0]) && Number.isFinite(p[1]);
+    return Array.isArray(p) && Number.isFinite(p[0]) && Number.isFinite(p[1])
+      && Math.abs(p[0]) <= 90 && Math.abs(p[1]) <= 180;
   }
   function hasPos(a) {
     return Number.isFinite(a.lat) && Number.isFinite(a.lon) && !(a.lat === 0 && a.lon === 0);
@@ -150,6 +151,7 @@
   function drawRoutes(agents) {
     const routes = new Map(), targets = new Map();
     for (const a of agents) {
+      if (!Number.isInteger(a.id)) continue;
       const r = Array.isArray(a.route) ? a.route.filter(isPoint) : [];
       if (!r.length) continue;
       const pts = (hasPos(a) ? [[a.lat, a.lon]] : []).concat(r.map((p) => [p[0], p[1]]));
@@ -182,6 +184,9 @@
       });
       return m;
     }, (m, v) => {
+      const key = v.p.join(",") + "," + v.name;
+      if (key === m.key) return;
+      m.key = key;
       m.setLatLng([v.p[0], v.p[1]]);
       m.text = v.name + ": go-to target, " + v.p[2] + " m above home";
       redecorate(m);
@@ -191,7 +196,8 @@
   function drawSlots(st, byId) {
     const want = new Map();
     const t = st.task;
-    if (t && Number.isFinite(t.heading) && Array.isArray(st.slots)) {
+    const ok = t && [t.heading, t.back, t.side].every((x) => Number.isFinite(x) && Math.abs(x) < 1e4);
+    if (ok && Array.isArray(st.slots)) {
       for (const s of st.slots) {
         if (!Array.isArray(s) || s.length < 3) continue;
         const [member, follows, side] = s;
@@ -230,6 +236,9 @@
       });
       return m;
     }, (m, v) => {
+      const key = v.p[0] + "," + v.p[1] + "," + v.name;
+      if (key === m.key) return;  // a home moves only while its agent is on the ground
+      m.key = key;
       m.setLatLng(v.p);
       m.text = v.name + " home";
       redecorate(m);
@@ -397,10 +406,14 @@
     // after app.js has drawn this state (it draws in the next animation frame)
     requestAnimationFrame(() => {
       if (P.last !== st) return;
-      drawRoutes(agents);
-      drawSlots(st, byId);
-      drawHomes(agents);
-      followSwarm(agents);
+      try {
+        drawRoutes(agents);
+        drawSlots(st, byId);
+        drawHomes(agents);
+        followSwarm(agents);
+      } catch (err) {
+        console.error(err);  // a bad value in one state draws nothing new; the next one may
+      }
       queueLabels();
     });
   }

@@ -39,7 +39,7 @@ def goto(
 
 
 def route(core: StationCore, agent: int) -> object:
-    return core.snapshot(5.0)["agents"][[a.id for a in core.agents.values()].index(agent)]["route"]
+    return core.snapshot(5.0)["agents"][[a.id for a in core.agents.values()].index(agent)].get("route")
 
 
 def arrived(agent: int) -> AgentNotice:
@@ -164,3 +164,8 @@ def test_plan_fields_travel_in_small_deltas() -> None:
     goto(core, 4, 47.398, 8.546)
     d = build(new, core.snapshot(1.0))
     assert d["agents"] == {"4": {"route": [[47.398, 8.546, 20.0]]}}
+    old = core.snapshot(1.0)
+    core.handle(AgentNotice(4, NoticeSource.AGENT, 6, "arrived: holding"), 1.5)
+    d = build(old, core.snapshot(1.0))
+    assert d["agents"]["4"]["unset"] == ["route"]  # gone, not a null on every agent
+    assert apply(old, d) == core.snapshot(1.0)

@@ -156,6 +156,15 @@ class AgentView:
         )
 
     def _fields(self, now: float) -> dict[str, Any]:
+        d = self._base_fields(now)
+        # the plan's fields only when known: 50 agents' nulls would weigh on every full state
+        if self.home:
+            d["home"] = [round(self.home[0], 7), round(self.home[1], 7)]
+        if self.route:
+            d["route"] = self.route
+        return d
+
+    def _base_fields(self, now: float) -> dict[str, Any]:
         p = self.pose
         return {
             "id": self.id,
@@ -167,8 +176,6 @@ class AgentView:
             "lon": round(p.lon, 7) if p else None,
             "alt": round(p.alt, 1) if p else None,
             "home_alt": round(self.home[2], 1) if self.home else None,
-            "home": [round(self.home[0], 7), round(self.home[1], 7)] if self.home else None,
-            "route": self.route,
             "heading": round(p.heading, 1) if p else None,
             "groundspeed": None if self.groundspeed is None else round(self.groundspeed, 2),
             "mode": self.mode or None,

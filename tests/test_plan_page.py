@@ -17,7 +17,7 @@ Screenshot: ``test-artifacts/gcs_plan.png``.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import pymap3d.vincenty
@@ -85,42 +85,42 @@ class VAgent(ScriptedAgent):
 
 @dataclass
 class Live:
-    url: str
     station: Station
-    agents: dict[int, VAgent]
+    url: str = ""
+    agents: dict[int, VAgent] = field(default_factory=dict)
+
+    def connected(self) -> bool:
+        snap = self.station.snapshot()
+        return snap["leader"] == 1 and sum(a["connected"] for a in snap["agents"]) == len(V)
 
 
 @pytest.fixture(scope="module")
 def live() -> Iterator[Live]:
     ep = f"tcp/127.0.0.1:{free_port()}"
-    station = Station("gcs", zenoh_listen=[ep]).start()
-    server = GcsServer(station, ServerConfig(port=free_port())).start()
-    agents: dict[int, VAgent] = {}
+    live = Live(Station("gcs", zenoh_listen=[ep]).start())
+    server = GcsServer(live.station, ServerConfig(port=free_port())).start()
+    live.url = server.url
     try:
-        for k in V:
-            agents[k] = VAgent(ep, k, phase=Phase.LEADER if k == 1 else Phase.MEMBER, leader=1)
-
-        def ready() -> bool:
-            snap = station.snapshot()
-            return snap["leader"] == 1 and sum(a["connected"] for a in snap["agents"]) == len(V)
-
-        wait_until(ready, "every agent connected, agent1 the leader", DEADLINE)
+        live.agents.update(
+            {k: VAgent(ep, k, phase=Phase.LEADER if k == 1 else Phase.MEMBER, leader=1) for k in V}
+        )
+        wait_until(live.connected, "every agent connected, agent1 the leader", DEADLINE)
         seq = [0]
 
         def task_heard() -> bool:
             seq[0] += 1  # the leader's Heartbeat, to a member's inbox (the station overhears it)
-            agents[1].tr.send("agent2", Heartbeat(1, 1, seq[0] & 0xFF, frozenset({2, 3, 4, 5}), TASK))
-            return station.snapshot()["slots"] is not None
+            live.agents[1].tr.send("agent2", Heartbeat(1, 1, seq[0] & 0xFF, frozenset({2, 3, 4, 5}), TASK))
+            return live.station.snapshot()["slots"] is not None
 
         wait_until(task_heard, "the leader's task in the station's state", DEADLINE)
-        yield Live(server.url, station, agents)
+        yield live
     finally:
-        for a in agents.values():
+        for a in live.agents.values():
             a.stop_ev.set()
             a.thread.join(2)
             a.tr.close()
         server.stop()
-        station.stop()
+        live.station.stop()
 
 
 @pytest.fixture(scope="module")

@@ -31,6 +31,7 @@ from swarm.core.gslink import FLAG_FC_OK, mode_code
 from swarm.core.messages import (
     AgentNotice,
     Assignment,
+    Command,
     CommandKind,
     Heartbeat,
     NoticeSource,
@@ -141,14 +142,40 @@ def count(page: Any, sel: str) -> int:
     return int(page.evaluate(f"document.querySelectorAll({sel!r}).length"))
 
 
+def cross_shown(page: Any) -> bool:
+    """app.js's cross where the operator clicked (the form's point)."""
+    return bool(
+        page.evaluate(
+            "(() => { const e = document.querySelector('#goto-target');"
+            " return !!e && getComputedStyle(e).display !== 'none'; })()"
+        )
+    )
+
+
 def test_route_target_slots_and_homes(live: Live, page: Any) -> None:
-    wp1 = (HOME[0] + 30 / M_PER_DEG, HOME[1] + 20 / 75_800.0)
+    # the operator clicks the map: the form's cross; once sent, the route's target replaces it
+    page.mouse.click(
+        *page.evaluate(
+            f"""(() => {{ const m = window.gcs.map;
+            const p = m.latLngToContainerPoint([{HOME[0] + 30 / M_PER_DEG}, {HOME[1]}]);
+            const r = m.getContainer().getBoundingClientRect(); return [r.left + p.x, r.top + p.y]; }})()"""
+        )
+    )
+    assert cross_shown(page)
+    wp1 = (float(page.input_value("#goto-lat")), float(page.input_value("#goto-lon")))
     wp2 = (HOME[0] + 50 / M_PER_DEG, HOME[1] - 10 / 75_800.0)
     live.station.submit(CommandSpec(1, CommandKind.GOTO, lat=wp1[0], lon=wp1[1], alt=20.0)).result(DEADLINE)
     live.station.submit(CommandSpec(1, CommandKind.WAYPOINT, lat=wp2[0], lon=wp2[1], alt=25.0)).result(
         DEADLINE
     )
     poll(lambda: count(page, ".plan-wp") == 1, "one numbered waypoint before the target", UI_DEADLINE)
+    assert not cross_shown(page)  # the form's cross is the route's now
+    # another station's GOTO to agent3, overheard on its way to agent3's inbox
+    far = (HOME[0] + 20 / M_PER_DEG, HOME[1] + 40 / 75_800.0)
+    live.agents[1].tr.send("agent3", Command(252, 77, 3, CommandKind.GOTO, far[0], far[1], 15.0))
+    poll(lambda: count(page, '.plan-target[data-agent-id="3"]') == 1, "agent3's target", UI_DEADLINE)
+    live.agents[3].tr.send("gcs", AgentNotice(3, NoticeSource.AGENT, 6, "arrived: holding"))
+    poll(lambda: count(page, '.plan-target[data-agent-id="3"]') == 0, "agent3 arrived", UI_DEADLINE)
     assert count(page, '.plan-route[data-agent-id="1"]') == 1
     target = page.evaluate(
         """() => { const el = document.querySelector('.plan-target[data-agent-id="1"]');
@@ -187,6 +214,7 @@ def test_route_target_slots_and_homes(live: Live, page: Any) -> None:
         "route cleared",
         UI_DEADLINE,
     )
+    assert not cross_shown(page)  # the sent point does not linger after "arrived"
 
 
 def test_measure_tool_against_pymap3d(page: Any) -> None:

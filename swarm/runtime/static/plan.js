@@ -18,6 +18,9 @@
  *   in every state;
  * - Homes: an "H" at each agent's home.
  *
+ * The form's cross (where the operator clicked, app.js) hides once a route holds its
+ * point (the Targets layer draws it from then on, and not after the route ended).
+ *
  * Tools: "Follow swarm" (a toggle: while on, every state that leaves an agent outside
  * the map's view refits the map to the swarm, never zooming in), and "Measure" (click
  * two points: the ellipsoidal distance in metres and the initial bearing in degrees,
@@ -41,7 +44,7 @@
   const WGS_A = 6378137.0;
   const WGS_F = 1 / 298.257223563;
   const P = {
-    map: null, layers: null, control: null, last: null, follow: false,
+    map: null, layers: null, control: null, last: null, follow: false, sent: new Set(),
     routes: new Map(), targets: new Map(), slots: new Map(), homes: new Map(),
     measuring: false, points: [], line: null, out: null, down: null, labelAt: 0, labelQueued: false,
   };
@@ -245,6 +248,24 @@
     });
   }
 
+  // The form's own cross (app.js's #goto-target, where the operator clicked) is only a
+  // point not sent yet: once a route holds it, the Targets layer draws it, and when that
+  // route ends (arrived, replaced) it must not stay behind: hidden while the form holds
+  // a point some route held, shown again when the operator picks another.
+  function pointKey(lat, lon) {
+    return Number(lat).toFixed(6) + "," + Number(lon).toFixed(6);
+  }
+  function markSent(agents) {
+    for (const a of agents) {
+      if (!Array.isArray(a.route)) continue;
+      for (const p of a.route) if (isPoint(p)) P.sent.add(pointKey(p[0], p[1]));
+    }
+    while (P.sent.size > 500) P.sent.delete(P.sent.values().next().value);
+    const el = document.getElementById("goto-target");
+    const lat = document.getElementById("goto-lat"), lon = document.getElementById("goto-lon");
+    if (el && lat && lon) el.classList.toggle("plan-sent", P.sent.has(pointKey(lat.value, lon.value)));
+  }
+
   // ------------------------------------------------------------------ follow swarm
   function followSwarm(agents) {
     if (!P.follow) return;
@@ -410,6 +431,7 @@
         drawRoutes(agents);
         drawSlots(st, byId);
         drawHomes(agents);
+        markSent(agents);
         followSwarm(agents);
       } catch (err) {
         console.error(err);  // a bad value in one state draws nothing new; the next one may

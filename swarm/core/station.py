@@ -44,6 +44,8 @@ station's part:
    :class:`StationConfig`) are :mod:`swarm.core.station_view`'s; this module
    re-exports them, and the command names, so ``swarm.core.station`` stays the one
    import for the runtime and the tests.
+8. The plan (:mod:`swarm.core.station_plan`): each agent's ``route`` (GOTO, WAYPOINT, any
+   station's) until "arrived"; the leader's Heartbeat task (``task``, ``slots``).
 
 :class:`StationCore` does no I/O, starts no thread and reads no clock:
 ``handle(msg, now)``, ``submit(spec, now)`` and ``tick(now)`` return the
@@ -83,7 +85,9 @@ from swarm.core.messages import (
     GSConnect,
     GSConnectAck,
     GSHeartbeat,
+    Heartbeat,
     Message,
+    NoticeSource,
     Phase,
     Pose,
     PoseReport,
@@ -108,6 +112,7 @@ from swarm.core.station_commands import (
     parse_command,
 )
 from swarm.core.station_delivery import CommandDelivery
+from swarm.core.station_plan import PlanBook
 from swarm.core.station_view import AgentView, Event, StationConfig, StationCounters, StOut, has_position
 from swarm.core.station_watch import AlertWatch
 from swarm.errors import SwarmError
@@ -157,6 +162,7 @@ class StationCore:
         self.watch = AlertWatch(self.cfg.alerts, self.alerts, self._label, self._event)
         self._now = 0.0  # the latest now seen (finished commands are handed out without one)
         self._radio: tuple[float, int, int, int, int] | None = None  # when, rssi, noise, remrssi, remnoise
+        self.plan = PlanBook()  # routes, go-to targets, the leader's task (swarm.core.station_plan)
 
     # -- inputs -----------------------------------------------------------------
     def handle(self, msg: Message, now: float, name: str = "") -> list[StOut]:
@@ -187,9 +193,14 @@ class StationCore:
                 self.observe_pose(aid, msg.pose, now)
         elif isinstance(msg, AgentNotice):
             self._notice(msg, now)
-        elif isinstance(msg, Command) and self.passive and is_station(msg.sender):
-            who = self._label(msg.target) if msg.target else "the swarm (leader)"
-            self._event(now, "command", f"station {msg.sender} sent {msg.kind.name} to {who} (seq {msg.seq})")
+        elif isinstance(msg, Heartbeat):
+            self.plan.heartbeat(msg)
+        elif isinstance(msg, Command) and is_station(msg.sender) and (self.passive or msg.sender != self.id):
+            self._plan_command(msg)
+            if self.passive:
+                who = self._label(msg.target) if msg.target else "the swarm (leader)"
+                what = f"station {msg.sender} sent {msg.kind.name} to {who} (seq {msg.seq})"
+                self._event(now, "command", what)
         else:
             self.counters.ignored += 1
         self._update_leader(now)
@@ -269,7 +280,17 @@ class StationCore:
         """
         if self.passive:
             raise CommandRefused(409, "replay: this station only plays a capture, it sends no commands")
-        return self.commands.submit(spec, now, self.leader)
+        req, out = self.commands.submit(spec, now, self.leader)
+        for p in req.pending:
+            self._plan_command(p.msg)
+        return req, out
+
+    def _plan_command(self, cmd: Command | None) -> None:
+        """A command for the plan (None: the plan changed): each agent's route as it has it."""
+        if cmd is not None:
+            self.plan.command(cmd)
+        for a in self.agents.values():
+            a.route = self.plan.route_list(a.id)
 
     def _command_ack(self, msg: CommandAck, now: float) -> None:
         a = self.agents.get(msg.sender)
@@ -344,6 +365,10 @@ class StationCore:
         done = self.commands.take_finished()
         for r in done:
             self.watch.finished(r, self._now)
+            for p in r.pending:  # a refused go-to is not flown to
+                if p.result not in (*DONE_RESULTS, NO_ANSWER, "IN_PROGRESS"):
+                    self.plan.refused(p.agent, p.msg)
+                    self._plan_command(None)
         return done
 
     def ack_alert(self, alert_id: Any) -> dict[str, Any]:
@@ -369,6 +394,8 @@ class StationCore:
             "events": [e.as_dict() for e in self.events],
             "alerts": self.alerts.as_list(),
             "radio": self.radio_dict(now),
+            "task": self.plan.task_dict(self.leader),
+            "slots": self.plan.slots_list(self.leader),
         }
 
     def snapshot_json(self, now: float, station: dict[str, Any]) -> str:
@@ -386,6 +413,10 @@ class StationCore:
             + json.dumps(self.alerts.as_list())
             + ', "radio": '
             + json.dumps(self.radio_dict(now))
+            + ', "task": '
+            + json.dumps(self.plan.task_dict(self.leader))
+            + ', "slots": '
+            + json.dumps(self.plan.slots_list(self.leader))
             + ', "station": '
             + json.dumps(station)
             + "}"
@@ -497,6 +528,9 @@ class StationCore:
         a = self.agents.get(msg.sender)
         if a is not None:
             self._heard(a, now)
+            if msg.source == NoticeSource.AGENT:
+                self.plan.notice(a.id, msg.text)
+                self._plan_command(None)
         self.watch.notice(msg, now)
 
     def _state(self, msg: AgentState, name: str, now: float) -> None:

@@ -140,6 +140,9 @@ class AgentView:
     #: where Telemetry last showed the vehicle on the ground (lat, lon, m AMSL): its
     #: home once it takes off from there; None until seen on the ground
     home: tuple[float, float, float] | None = None
+    #: the route the station knows it flies (swarm.core.station_plan): [[lat, lon, alt above
+    #: home]...], its go-to target last; None without one
+    route: list[list[float]] | None = None
 
     def as_dict(self, now: float) -> dict[str, Any]:
         d = self._fields(now)
@@ -153,6 +156,15 @@ class AgentView:
         )
 
     def _fields(self, now: float) -> dict[str, Any]:
+        d = self._base_fields(now)
+        # the plan's fields only when known: 50 agents' nulls would weigh on every full state
+        if self.home:
+            d["home"] = [round(self.home[0], 7), round(self.home[1], 7)]
+        if self.route:
+            d["route"] = self.route
+        return d
+
+    def _base_fields(self, now: float) -> dict[str, Any]:
         p = self.pose
         return {
             "id": self.id,

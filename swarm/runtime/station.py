@@ -5,6 +5,10 @@ to a radio (exactly as :class:`swarm.runtime.agent.Agent` does), and gives the
 server thread-safe snapshots, command futures and an event feed. On a radio, the
 bridge's ``id_collision`` (a frame with the station's system id that it did not send:
 MAVProxy or QGroundControl left at their default 255) becomes one ``radio`` event.
+The agents' inboxes are heard too, for the plan (:mod:`swarm.core.station_plan`):
+the leader's Heartbeats (one per round: the copies to each member are dropped
+before the core's queue) and other stations' Commands; other messages there, and the
+station's own inbox, are passed over on their first byte, undecoded.
 :class:`StationView` is what the server reads from a station, live or replayed.
 """
 
@@ -18,15 +22,18 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from typing import Any, cast
 
-from swarm.core.messages import GCS_ID, GSAdvertize, Message
+from swarm.core.messages import GCS_ID, Command, GSAdvertize, Heartbeat, Message
 from swarm.core.station import CommandRefused, CommandSpec, Event, StationConfig, StationCore, StOut, outcome
 from swarm.runtime.loop import EventLoop
 from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
 from swarm.runtime.options import NodeOptions
+from swarm.runtime.transport import inbox_key
 
 log = logging.getLogger(__name__)
 
 TICK_S = 0.05
+#: the message types overheard on the agents' inboxes for the plan (the first byte's low bits)
+PLAN_TYPES = (Heartbeat.TYPE, Command.TYPE)
 
 
 class StationView:
@@ -127,6 +134,7 @@ class Station(StartOnce, StationView):
             min_tick_gap=TICK_S,
         )
         self._started = self._stopped = False
+        self._hb_round: tuple[int, int, int] | None = None  # the last Heartbeat round passed on
 
     def _open(self) -> None:
         self.io = io = open_node_io(self.name, self.id, self.node, capture=self.capture)
@@ -136,9 +144,24 @@ class Station(StartOnce, StationView):
         tr.on_gs_advertize(lambda m: self.loop.put((m, "")))
         tr.on_pose("*", lambda n, m: self.loop.put((m, n)))
         tr.on_state("*", lambda n, m: self.loop.put((m, n)))
+        own = inbox_key(self.name)
+        tr.subscribe(
+            "swarm/*", self._on_inboxes, lambda k, b: k != own and bool(b) and b[0] & 0x1F in PLAN_TYPES
+        )
         if io.bridge is not None:
             io.bridge.add_listener(self._on_radio)
         self.loop.start()
+
+    def _on_inboxes(self, _key: str, msg: Message) -> None:
+        """A message to any agent: the plan's (a Heartbeat once per round, a Command)."""
+        if isinstance(msg, Heartbeat):
+            round_ = (msg.sender, msg.epoch, msg.seq)
+            if round_ == self._hb_round:
+                return
+            self._hb_round = round_
+        elif not isinstance(msg, Command):
+            return
+        self.loop.put((msg, ""))
 
     def _on_radio(self, what: str, text: str) -> None:
         """The bridge heard our system id from another sender: say so (once, as the bridge does)."""

@@ -133,13 +133,22 @@ class Transport:
         self.put(state_key(self.name), msg)
 
     # -- subscribing ------------------------------------------------------------
-    def subscribe(self, key: str, callback: Callable[[str, Message], None]) -> None:
+    def subscribe(
+        self,
+        key: str,
+        callback: Callable[[str, Message], None],
+        accept: Callable[[str, bytes], bool] | None = None,
+    ) -> None:
         """Call ``callback(key, message)`` for every decodable sample on ``key``
-        (wildcards allowed)."""
+        (wildcards allowed); with ``accept``, only for samples it accepts (key and raw
+        bytes, looked at before decoding: a wide subscription that wants few)."""
 
         def handler(sample: Any) -> None:
+            data = sample.payload.to_bytes()
+            if accept is not None and not accept(str(sample.key_expr), data):
+                return
             try:
-                msg = decode(sample.payload.to_bytes())
+                msg = decode(data)
             except DecodeError as exc:
                 with self._lock:
                     self.decode_errors += 1

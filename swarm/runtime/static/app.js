@@ -1011,6 +1011,7 @@
 
   window.gcs = Object.freeze({
     get ready() { return S.map !== null; },
+    get map() { return S.map; },  // plan.js draws its layers on it
     get config() { return S.config; },
     get markers() { let n = 0; for (const r of S.agents.values()) if (r.marker) n += 1; return n; },
     get agents() { return Array.from(S.agents.keys()); },

@@ -138,6 +138,53 @@ def test_coverage_of_the_readme_examples() -> None:
             assert "README" in (ROOT / covered).read_text(encoding="utf-8")
 
 
+def make_targets() -> dict[str, tuple[list[str], str]]:
+    """The Makefile's rules: target -> (prerequisites, recipe text)."""
+    rules: dict[str, tuple[list[str], str]] = {}
+    current = ""
+    for line in (ROOT / "Makefile").read_text(encoding="utf-8").splitlines():
+        rule = re.match(r"^([A-Za-z$()._/-]+):(?!=)\s*(.*)$", line)
+        if rule and not line.startswith("\t"):
+            current = rule.group(1)
+            rules[current] = (rule.group(2).split(), "")
+        elif line.startswith("\t") and current:
+            prereqs, recipe = rules[current]
+            rules[current] = (prereqs, recipe + line + "\n")
+        elif not line.strip() or line.startswith("#"):
+            current = ""
+    return rules
+
+
+def test_setup_statements_match_what_the_makefile_does() -> None:
+    """README's set-up paragraph (before **Status.**) and the Makefile's messages say
+    what `make setup` does: no npm, Debian's chromium packages, apt-get only as root or
+    through a sudo that asks no password, page tests that fail (never skip) without a
+    browser, python3's venv module."""
+    readme = " ".join(README.read_text(encoding="utf-8").split("**Status.**", 1)[0].split())
+    makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
+    rules = make_targets()
+    reached, todo = set(), ["setup", "test", "demo"]
+    while todo:
+        target = todo.pop()
+        if target in rules and target not in reached:
+            reached.add(target)
+            todo.extend(rules[target][0])
+    assert "browser" in reached and "leaflet" not in reached
+    assert not any("npm" in rules[t][1] for t in reached), "set-up runs npm"
+    assert "No npm" in readme
+    packages = re.search(r"^CHROMIUM_PKGS := (.+)$", makefile, re.M)
+    assert packages is not None
+    for package in packages.group(1).split():
+        assert f"`{package}`" in readme, f"README's set-up does not name {package}"
+    assert "asks no password" in readme and "the set-up never prompts" in readme
+    for line in makefile.splitlines():  # apt-get only as root or through a sudo that never prompts
+        assert "sudo " not in line or "sudo -n" in line or "echo" in line or line.startswith("#"), line
+    assert "skip" not in rules["browser"][1], "the page tests fail without a browser, never skip"
+    assert "the page tests then fail" in readme and "never skip" in readme
+    assert 'pytest.fail("no chromium' in (ROOT / "tests" / "gcs_browser.py").read_text(encoding="utf-8")
+    assert "python3-venv" in readme and "python3-venv" in makefile
+
+
 def test_agents_on_the_emulator_are_told_its_slots() -> None:
     """An agent cannot read the TDM round from its radio: an example that starts N > 2
     emulated radios gives its agents ``--slots N`` (without it they assume a pair)."""

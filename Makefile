@@ -12,8 +12,10 @@ CHROMIUM_BIN ?= chromium
 
 .PHONY: setup browser systemd-analyze demo test test-quick lint check clean leaflet
 
+# Debian's own python3 makes a venv only with its python3-venv package.
 $(STAMP): pyproject.toml
-	$(PY) -m venv $(VENV)
+	@$(PY) -m venv $(VENV) || { rm -rf $(VENV); \
+	  echo "setup: $(PY) -m venv failed (on Debian: sudo apt-get install python3-venv)" >&2; exit 1; }
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
@@ -33,14 +35,16 @@ leaflet:
 	cd $(LEAFLET) && sha256sum LICENSE leaflet.css leaflet.js images/*.png > SHA256SUMS
 
 # A headless browser for the page tests: Debian's chromium, installed only when
-# missing (root, or sudo). Elsewhere set CHROMIUM=/path/to/chromium instead.
+# missing, as root or with a sudo that asks no password (set-up never prompts:
+# otherwise it says what to run and goes on). Elsewhere set CHROMIUM=/path/to/chromium.
+# Without a browser the page tests fail (tests/gcs_browser.py): they never skip.
 browser:
 	@if [ -n "$$CHROMIUM" ] || command -v $(CHROMIUM_BIN) >/dev/null 2>&1; then exit 0; fi; \
 	if ! command -v apt-get >/dev/null 2>&1; then \
-	  echo "setup: no chromium and no apt-get: the page tests will skip (set CHROMIUM=/path/to/chromium)" >&2; exit 0; fi; \
+	  echo "setup: no chromium and no apt-get: the page tests will fail (install chromium, or set CHROMIUM=/path/to/chromium)" >&2; exit 0; fi; \
 	SUDO=; if [ "$$(id -u)" != 0 ]; then \
 	  if sudo -n true 2>/dev/null; then SUDO="sudo -n"; else \
-	    echo "setup: chromium missing and no root or sudo: apt-get install chromium, or the page tests skip" >&2; \
+	    echo "setup: chromium missing and no root or password-less sudo: run sudo apt-get install $(CHROMIUM_PKGS), or the page tests fail" >&2; \
 	    exit 0; fi; fi; \
 	echo "setup: installing Debian's chromium (headless browser for the page tests)"; \
 	log=$$(mktemp); \
@@ -50,14 +54,14 @@ browser:
 	rm -f "$$log"
 
 # systemd-analyze checks the shipped unit files (tests/test_systemd.py): Debian's
-# systemd package, installed only when missing (root, or sudo).
+# systemd package, installed only when missing (root, or a sudo that asks no password).
 systemd-analyze:
 	@if command -v systemd-analyze >/dev/null 2>&1; then exit 0; fi; \
 	if ! command -v apt-get >/dev/null 2>&1; then \
 	  echo "setup: no systemd-analyze and no apt-get: install systemd, or the unit test fails" >&2; exit 0; fi; \
 	SUDO=; if [ "$$(id -u)" != 0 ]; then \
 	  if sudo -n true 2>/dev/null; then SUDO="sudo -n"; else \
-	    echo "setup: systemd-analyze missing and no root or sudo: apt-get install systemd" >&2; \
+	    echo "setup: systemd-analyze missing and no root or password-less sudo: run sudo apt-get install systemd, or the unit test fails" >&2; \
 	    exit 0; fi; fi; \
 	echo "setup: installing Debian's systemd (systemd-analyze verify for the unit files)"; \
 	log=$$(mktemp); \

@@ -31,6 +31,7 @@ LIGHT = frozenset(
         "test_doctor_bench.py",
         "test_packaging.py",
         "test_readme_driver.py",  # one simulated vehicle, mostly waiting out its boot
+        "test_readme_examples.py",  # small emulators, agents and simulators for seconds each; no rates judged
         "test_cold_start.py",  # the same, with an agent and a station
         # pages and stations checked for what they show and answer, not for how fast
         "test_fleet_page.py",

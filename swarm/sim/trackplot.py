@@ -137,13 +137,10 @@ def _errors(ax: Any, an: Analysis, t0: float, target_m: float | None) -> None:
     ax.set_title("slot error over time, per member", fontsize=9)
 
 
-def plot(
-    an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "", target_m: float | None = 1.5
-) -> str:
-    """Draw the map and the error panel to ``out`` (PNG). Returns ``out``.
+def figure(an: Analysis, *, slot_every_s: float = 10.0, title: str = "", target_m: float | None = 1.5) -> Any:
+    """The two panels as a matplotlib figure (Agg; the caller saves and closes it).
 
     Raises:
-        OSError: the file cannot be written.
         ValueError: nothing to draw (no pose in the capture).
     """
     import matplotlib
@@ -173,6 +170,7 @@ def plot(
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, lw=0.3)
     ax.legend(loc="best", fontsize=8)
+    ax.set_title("tracks (colour: the route; grey: before and after)", fontsize=9)
     _errors(ax2, an, t0, target_m)
     s = an.summary()
     default = (
@@ -181,11 +179,26 @@ def plot(
         f"(formation_rms_m), max {fmt(s['formation_max_m'])}; turns max {fmt(s['turn_max_m'])}"
     )
     fig.suptitle(title or default, fontsize=10)
-    ax.set_title("tracks (colour: the route; grey: before and after)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
+    return fig
+
+
+def plot(
+    an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "", target_m: float | None = 1.5
+) -> str:
+    """Draw :func:`figure` to ``out`` (PNG). Returns ``out``.
+
+    Raises:
+        OSError: the file cannot be written.
+        ValueError: nothing to draw (no pose in the capture).
+    """
+    fig = figure(an, slot_every_s=slot_every_s, title=title, target_m=target_m)
+    import matplotlib.pyplot as plt  # after figure() chose the Agg backend
+    try:
+        fig.savefig(out)
+    finally:
+        plt.close(fig)
     return out
 
 
-__all__ = ["plot"]
+__all__ = ["figure", "plot"]

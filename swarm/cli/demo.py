@@ -384,8 +384,8 @@ class _Demo:
         lines = sim.wait_lines(n + 1, 30)
         return [line.split("-> ", 1)[1].split()[0] for line in lines[:n]]
 
-    def close(self) -> None:
-        """Stop everything started; remove the working folder the demo made (unless ``keep``)."""
+    def stop_all(self) -> None:
+        """Stop everything started (safe twice): the capture is then whole and final."""
         if self.station is not None:
             self.station.stop()
         for ch in reversed(self.children):
@@ -393,7 +393,12 @@ class _Demo:
                 ch.stop()
             except Exception:
                 pass
+        self.children = []
         self.summary["gcs_running"] = False  # it stopped with the demo
+
+    def close(self) -> None:
+        """Stop everything started; remove the working folder the demo made (unless ``keep``)."""
+        self.stop_all()
         if self.made_workdir and not self.cfg.keep:
             shutil.rmtree(self.workdir, ignore_errors=True)
             self.summary["workdir_kept"] = False
@@ -515,6 +520,7 @@ def run_demo(
         leader = demo.take_off_and_follow(leader)
         demo.route(leader)
         demo.land()
+        demo.stop_all()  # the capture final: the figures are those a replay of it computes
         demo.analyse()
     except (DemoError, ChildError) as exc:
         demo.summary["missed"] = [{"target": demo.phase, "text": f"{demo.phase}: {exc}"}]

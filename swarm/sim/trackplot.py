@@ -49,6 +49,7 @@ def _in_turn(t: float, windows: list[tuple[float, float]]) -> bool:
 def _tracks(ax: Any, an: Analysis, ne: NE, t0: float, t1: float) -> None:
     """Each agent's track: the counted interval in its colour, the rest thin and grey."""
     grey_said = False
+    leader_route: list[tuple[float, float, float]] = []
     for agent, track in sorted(an.tracks.items()):
         lead = agent == an.leader
         pts = [(t, *ne((p.lat, p.lon))) for t, p in track]
@@ -64,7 +65,9 @@ def _tracks(ax: Any, an: Analysis, ne: NE, t0: float, t1: float) -> None:
         name = f"agent {agent}" + (" (leader)" if lead else "")
         ax.plot(xs, ys, lw=2.5 if lead else 1.2, color=_colour(agent), label=name)
         if lead:
-            _leader_marks(ax, route, an.turn_windows)
+            leader_route = route
+    if leader_route:  # after every track: the legend lists the agents first
+        _leader_marks(ax, leader_route, an.turn_windows)
 
 
 def _leader_marks(
@@ -194,6 +197,7 @@ def plot(
     """
     fig = figure(an, slot_every_s=slot_every_s, title=title, target_m=target_m)
     import matplotlib.pyplot as plt  # after figure() chose the Agg backend
+
     try:
         fig.savefig(out)
     finally:

@@ -320,7 +320,8 @@ class _Demo:
         """Emulator, vehicles, agents (ready), the demo's station, the ground station."""
         cfg, n = self.cfg, self.cfg.agents
         radios = n + 1 + (1 if cfg.gcs else 0)
-        self.out(f"== {n} agents, {cfg.loss:.0%} loss, {cfg.profile} profile; files in {self.workdir}")
+        gone = " (removed at the end; --keep keeps it)" if self.made_workdir and not cfg.keep else ""
+        self.out(f"== {n} agents, {cfg.loss:.0%} loss, {cfg.profile} profile; files in {self.workdir}{gone}")
         os.makedirs(os.path.join(self.workdir, "radios"), exist_ok=True)
         emu, links = start_emulator(
             radios,

@@ -22,9 +22,11 @@ modes (each its own function below; only one runs):
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
   object;
-* ``--plot FILE.png``: the formation: every agent's track from its pose stream,
-  the leader marked, the slots, and the slot-error metrics
-  (:mod:`swarm.sim.tracks`; matplotlib is imported only here);
+* ``--plot FILE.png``: the formation: a map of every agent's track from its pose
+  stream (start, end, direction, turns, slots) and each member's slot error over
+  time (:mod:`swarm.sim.trackplot`; matplotlib is imported only here), and the
+  formation figures, each named with its legs and interval exactly as ``swarm
+  demo`` names and computes them (:data:`swarm.sim.tracks.FIGURES`);
 * ``--to URL``: the frames are written to a link opened with
   :func:`radios.link.open_link` (a radio, an emulator pty, ``loop://``...) at the
   recorded pace scaled by ``--speed`` with silences capped at ``--max-gap``

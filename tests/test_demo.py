@@ -134,6 +134,36 @@ def test_demo_bad_input_is_refused_cleanly() -> None:
     assert p.returncode == 2 and "Traceback" not in p.stderr
 
 
+def test_a_step_that_did_not_happen_is_a_missed_target_and_keep_keeps_the_folder(tmp_path: Path) -> None:
+    # the shortest --duration ends the run before the route: it says where it stopped
+    p = run_swarm(
+        "demo",
+        "--agents",
+        "2",
+        "--headless",
+        "--no-gcs",
+        "--keep",
+        "--duration",
+        "20",
+        timeout=120,
+        tmpdir=tmp_path,
+    )
+    assert p.returncode == 1, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "Traceback" not in p.stderr
+    missed = [line for line in p.stdout.splitlines() if "MISSED:" in line]
+    assert len(missed) == 1 and "did not finish within --duration 20 s" in missed[0], p.stdout[-2000:]
+    kept = os.listdir(tmp_path)
+    assert len(kept) == 1 and kept[0].startswith("swarm-demo-")  # --keep
+    assert f"working folder: {tmp_path / kept[0]}\n" in p.stdout and "ok: false" in p.stdout
+    assert "capture: " + str(tmp_path / kept[0] / "air.tlog") in p.stdout
+
+
+def test_demo_refuses_a_capture_or_plot_in_no_directory(tmp_path: Path) -> None:
+    for flag in ("--capture", "--plot"):
+        p = run_swarm("demo", flag, str(tmp_path / "no" / "x"), timeout=30)
+        assert p.returncode == 2 and "no such directory" in p.stderr and "Traceback" not in p.stderr
+
+
 def _processes_mentioning(text: str) -> list[int]:
     pids = []
     for pid in os.listdir("/proc"):

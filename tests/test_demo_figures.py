@@ -180,3 +180,14 @@ def test_without_a_display_the_page_not_opening_is_said(
     _open_page("http://127.0.0.1:8080/", _Lines(io.StringIO(), quiet=False))
     err = capsys.readouterr().err
     assert err == "   page not opened: no display here; open http://127.0.0.1:8080/ while the demo runs\n"
+
+
+def test_the_bench_names_its_figures_with_the_same_definitions() -> None:
+    import dataclasses
+
+    from swarm.cli.bench.formation import FIGURE_NAMES
+    from swarm.sim.flightsim import FlightResult
+
+    fields = {f.name for f in dataclasses.fields(FlightResult)}
+    assert set(FIGURE_NAMES) <= fields and set(FIGURE_NAMES.values()) <= set(FIGURES)
+    assert FIGURE_NAMES["rms_straight_m"] == "formation_rms_m" and FIGURE_NAMES["max_turn_m"] == "turn_max_m"

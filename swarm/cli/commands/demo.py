@@ -116,6 +116,10 @@ def _config(a: argparse.Namespace) -> DemoConfig:
             raise ValueError("--speed 0.5..15 m/s, --max-rms 0.1..50 m, --settle 0..300 s")
         if not 0.1 <= a.max_turn <= 100:
             raise ValueError("--max-turn 0.1..100 m")
+        for flag, path in (("--capture", a.capture), ("--plot", a.plot)):
+            parent = os.path.dirname(os.path.abspath(path)) if path else ""
+            if path and not os.path.isdir(parent):
+                raise ValueError(f"{flag} {path}: no such directory {parent}")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     return cfg

@@ -8,6 +8,8 @@ from __future__ import annotations
 import io
 import math
 import os
+import select
+import time
 from pathlib import Path
 
 import pytest
@@ -150,7 +152,11 @@ def test_progress_is_one_updating_line_on_a_terminal() -> None:
         lines.progress("   t=  1.0 s route 1/45 s: leader agent2")
         lines.progress("   t=  2.0 s route 2/45 s: leader agent2")
         lines.step("== landing")
-        got = os.read(master, 4096).decode()
+        got = ""
+        end = time.monotonic() + 10
+        while not got.endswith("== landing\r\n") and time.monotonic() < end:
+            if select.select([master], [], [], 0.5)[0]:  # a pty delivers in pieces
+                got += os.read(master, 4096).decode()
     finally:
         stream.close()
         os.close(master)

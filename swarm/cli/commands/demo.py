@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import time
 import webbrowser
@@ -147,7 +148,8 @@ class _Lines:
         if self.quiet:
             return
         if self.tty:
-            self.stream.write("\r\x1b[K" + line.strip())
+            width = shutil.get_terminal_size().columns - 1  # a wrapped line would not be redrawn
+            self.stream.write("\r\x1b[K" + line.strip()[:width])
             self.stream.flush()
             self.open = True
         elif time.monotonic() - self.last >= self.PLAIN_EVERY_S:

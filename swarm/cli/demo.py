@@ -23,24 +23,33 @@ station; TAKEOFF to the swarm (each agent); once all report ``took off``, FOLLOW
 (heading north) through the leader; ``settle_s`` later the route: GOTO north
 ``leg_m`` then WAYPOINT east ``leg_m`` (a rounded 90 degree right turn); when
 the leader reports ``arrived``, ``tail_s`` more, then the swarm STOP (the
-FOLLOW task ends, on the air too) and LAND to the swarm. Progress
-lines every few seconds show phase, leader and the formation error so far (read
-from the capture as it grows). The summary (leader, election time, formation RMS
-and maximum, air utilisation, capture, plot) comes from
-:func:`swarm.sim.tracks.analyse` on the capture and the emulator's channel counters;
-``ok`` is true when the swarm flew the route in formation with an RMS slot error
-within ``max_rms_m`` on the straight legs (on the whole route, reported as
-``route_rms_m``, when it is too short to have straight legs).
+FOLLOW task ends, on the air too) and LAND to the swarm. Step lines go to
+``out``; a progress line every second to ``progress`` (phase, seconds into the
+route of the expected, leader, members following, the slot error over the last 5 s
+read from the capture as it grows).
+
+The summary (leader, election time, formation figures, air utilisation, capture,
+plot) comes from :func:`swarm.sim.tracks.analyse` on the capture, exactly as
+``swarm replay --plot`` computes it (the same interval and legs:
+:data:`swarm.sim.tracks.FIGURES`, whose definitions the summary carries), and the
+emulator's channel counters. Each target the run is judged on is checked in
+:func:`targets`: the formation RMS on the straight legs within ``max_rms_m`` (on
+the whole route, ``route_rms_m``, when it is too short to have straight legs) and
+the largest error in the turns within ``max_turn_m``; a step that did not happen
+(no agreed leader, a take-off refused...) is a missed target too. ``missed`` lists
+each with what was measured and the limit; ``ok`` is true when it is empty.
 
 Everything started is stopped on the way out (SIGTERM, then SIGKILL), also on
-Ctrl-C/SIGTERM of the demo, which then exits 130.
+Ctrl-C/SIGTERM of the demo, which then exits 130. The working folder the demo made
+itself (no ``workdir``) is removed then unless ``keep``; a capture or plot the user
+asked for (``capture``, ``plot``) is written where asked and stays.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
+import shutil
 import socket
 import tempfile
 import threading
@@ -84,6 +93,8 @@ class DemoConfig:
     tail_s: float = 5.0
     pose_hz: float = 4.0
     max_rms_m: float = 1.5
+    max_turn_m: float = 10.0
+    keep: bool = False
     gcs: bool = True
     http: str = "127.0.0.1:8080"
     seed: int = 0
@@ -175,7 +186,10 @@ class _Demo:
 
     def __init__(self, cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None]) -> None:
         self.cfg, self.stop, self.out = cfg, stop, out
+        self.made_workdir = cfg.workdir is None  # ours to remove at the end (unless keep)
         self.workdir = cfg.workdir or tempfile.mkdtemp(prefix="swarm-demo-")
+        self.progress = out
+        self.phase = "start"
         os.makedirs(self.workdir, exist_ok=True)
         self.capture = cfg.capture or os.path.join(self.workdir, "air.tlog")
         self.plot_path = cfg.plot or os.path.join(self.workdir, "formation.png")
@@ -198,7 +212,10 @@ class _Demo:
             "capture": self.capture,
             "plot": None,
             "gcs": None,
+            "gcs_running": False,
             "workdir": self.workdir,
+            "workdir_kept": True,
+            "missed": [],
             "ok": False,
         }
 
@@ -224,27 +241,36 @@ class _Demo:
                 raise DemoError(f"timed out after {timeout:.0f} s waiting for {what}")
             self.stop.wait(every)
 
-    def progress_until(self, done: Callable[[], bool], every: float = 5.0) -> None:
-        """Wait for ``done``, with a progress line every ``every`` s (the formation
-        error so far, read from the capture as it grows)."""
+    def progress_until(
+        self, done: Callable[[], bool], every: float = 5.0, expect: tuple[float, float] | None = None
+    ) -> None:
+        """Wait for ``done``, with a progress line every second (the slot error over the last
+        ``every`` s, read from the capture as it grows, refreshed that often). ``expect``:
+        (when the stretch started, how long it should take), shown as a count."""
         from swarm.sim.tracks import analyse
 
         watch = self.watch
-        last = time.monotonic()
+        last = shown = 0.0
+        err = "no slot samples yet"
         while True:
             watch.poll()
             if done():
                 return
             self.check_stop()
-            if time.monotonic() - last >= every:
-                last = time.monotonic()
-                an = analyse(self.capture, start=time.time() - every)
-                errs = [e for _t, _m, e, _turn in an.errors]
-                lead = watch.leader()
-                modes = sum(1 for k in watch.events if watch.has_event(k, "following"))
+            now = time.monotonic()
+            if now - last >= every:
+                last = now
+                errs = [e for _t, _m, e, _turn in analyse(self.capture, start=time.time() - every).errors]
                 err = f"slot error last {every:g} s: max {max(errs):.1f} m" if errs else "no slot samples yet"
-                n = len(watch.agents)
-                self.out(f"   t={self.elapsed():5.1f} s leader=agent{lead} following={modes}/{n - 1} {err}")
+            if now - shown >= 1.0:
+                shown = now
+                n, lead = len(watch.agents), watch.leader()
+                modes = sum(1 for k in watch.events if watch.has_event(k, "following"))
+                count = f" {self.elapsed() - expect[0]:.0f}/{expect[1]:.0f} s" if expect else ""
+                self.progress(
+                    f"   t={self.elapsed():5.1f} s {self.phase}{count}: leader agent{lead}, "
+                    f"following {modes}/{n - 1}, {err}"
+                )
             self.stop.wait(0.2)
 
     # -- the station's commands ----------------------------------------------------------
@@ -294,7 +320,8 @@ class _Demo:
         """Emulator, vehicles, agents (ready), the demo's station, the ground station."""
         cfg, n = self.cfg, self.cfg.agents
         radios = n + 1 + (1 if cfg.gcs else 0)
-        self.out(f"== {n} agents, {cfg.loss:.0%} loss, {cfg.profile} profile; files in {self.workdir}")
+        gone = " (removed at the end; --keep keeps it)" if self.made_workdir and not cfg.keep else ""
+        self.out(f"== {n} agents, {cfg.loss:.0%} loss, {cfg.profile} profile; files in {self.workdir}{gone}")
         os.makedirs(os.path.join(self.workdir, "radios"), exist_ok=True)
         emu, links = start_emulator(
             radios,
@@ -358,7 +385,8 @@ class _Demo:
         lines = sim.wait_lines(n + 1, 30)
         return [line.split("-> ", 1)[1].split()[0] for line in lines[:n]]
 
-    def close(self) -> None:
+    def stop_all(self) -> None:
+        """Stop everything started (safe twice): the capture is then whole and final."""
         if self.station is not None:
             self.station.stop()
         for ch in reversed(self.children):
@@ -366,11 +394,25 @@ class _Demo:
                 ch.stop()
             except Exception:
                 pass
+        self.children = []
+        self.summary["gcs_running"] = False  # it stopped with the demo
+
+    def close(self) -> None:
+        """Stop everything started; remove the working folder the demo made (unless ``keep``)."""
+        self.stop_all()
+        if self.made_workdir and not self.cfg.keep:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+            self.summary["workdir_kept"] = False
+            for key in ("capture", "plot"):
+                path = self.summary.get(key)
+                if path and not os.path.exists(path):
+                    self.summary[key] = None  # it was in the removed folder
 
     # -- the flight ------------------------------------------------------------------------
     def elect(self) -> int:
         n = self.cfg.agents
         self.out("== election")
+        self.phase = "election"
         leader = int(self.wait_for(self.watch.leader, "one leader agreed by every agent", 120))
         self.summary["leader"] = leader
         self.summary["elect_s"] = round(self.elapsed() - self.started, 1)
@@ -388,6 +430,7 @@ class _Demo:
         """Take-off, then the V behind the leader; the leader then (it may have changed)."""
         n = self.cfg.agents
         self.out(f"== take-off to {self.cfg.alt_m:g} m")
+        self.phase = "take-off"
         self.command(None, CommandKind.TAKEOFF, "take-off", slow=True, alt=self.cfg.alt_m)
         self.wait_for(
             lambda: all(self.watch.has_event(k, "took off") for k in range(1, n + 1)),
@@ -396,18 +439,22 @@ class _Demo:
         )
         self.out("== follow in V (heading north)")
         leader = self.watch.leader() or leader
+        self.phase = "forming the V"
         self.command(None, CommandKind.FOLLOW, "follow", heading=0.0)
         follow_t = self.elapsed()
-        self.progress_until(lambda: self.elapsed() - follow_t >= self.cfg.settle_s)
+        self.progress_until(
+            lambda: self.elapsed() - follow_t >= self.cfg.settle_s, expect=(follow_t, self.cfg.settle_s)
+        )
         return leader
 
-    def route(self, leader: int) -> float:
-        """The route, ``leg_m`` north then east; the wall time it started."""
+    def route(self, leader: int) -> None:
+        """The route, ``leg_m`` north then east, then ``tail_s``."""
         import pymap3d
 
         cfg = self.cfg
         emu_before = _emu_stats(self.stats)
         self.out(f"== route: {cfg.leg_m:g} m north, then {cfg.leg_m:g} m east at {cfg.speed_mps:g} m/s")
+        self.phase = "route"
         lat, lon, alt = _leader_position(self.capture, leader)
         a = pymap3d.ned2geodetic(cfg.leg_m, 0.0, 0.0, lat, lon, alt)
         b = pymap3d.ned2geodetic(cfg.leg_m, cfg.leg_m, 0.0, lat, lon, alt)
@@ -415,15 +462,15 @@ class _Demo:
             self.command(
                 leader, kind, f"the leader's {kind.name}", lat=float(p[0]), lon=float(p[1]), alt=cfg.alt_m
             )
-        route_wall = time.time()
-        self.progress_until(lambda: self.watch.has_event(leader, "arrived"))
+        expect = (self.elapsed(), 2 * cfg.leg_m / cfg.speed_mps + cfg.tail_s)
+        self.progress_until(lambda: self.watch.has_event(leader, "arrived"), expect=expect)
         end_wait = self.elapsed() + cfg.tail_s
-        self.progress_until(lambda: self.elapsed() >= end_wait)
+        self.progress_until(lambda: self.elapsed() >= end_wait, expect=expect)
         self.summary["air_utilisation"] = _utilisation(emu_before, _emu_stats(self.stats))
-        return route_wall
 
     def land(self) -> None:
         self.out("== landing")
+        self.phase = "landing"
         # the swarm stop ends the FOLLOW task on the air: the capture's analysis stops there
         for kind, what in ((CommandKind.STOP, "stop"), (CommandKind.LAND, "landing")):
             try:
@@ -431,49 +478,58 @@ class _Demo:
             except DemoError as exc:
                 self.out(f"   {exc}")
 
-    def analyse(self, route_wall: float) -> None:
-        """The formation's figures from the capture, the plot, and ``ok``."""
-        from swarm.sim.tracks import analyse, plot
+    def analyse(self) -> None:
+        """The formation's figures from the capture (as ``swarm replay --plot`` computes
+        them), the plot, the targets missed and ``ok``."""
+        from swarm.cli.demo_report import targets
+        from swarm.sim.tracks import FIGURES, analyse, plot
 
         summary = self.summary
-        an = analyse(self.capture, start=route_wall)
+        an = analyse(self.capture)
         s = an.summary()
-        summary["formation_rms_m"] = s["formation_rms_m"]
-        summary["turn_max_m"] = s["turn_max_m"]
-        summary["heading_error_after_turn_deg"] = s["heading_error_after_turn_deg"]
-        all_err = [e for _t, _m, e, _turn in an.errors]
-        summary["formation_max_m"] = round(max(all_err), 2) if all_err else None
-        summary["per_member"] = s["per_member"]
+        for key in (*FIGURES, "per_member", "interval"):
+            summary[key] = s[key]
+        summary["figures"] = FIGURES
         try:
-            summary["plot"] = plot(an, self.plot_path)
+            summary["plot"] = plot(an, self.plot_path, target_m=self.cfg.max_rms_m)
         except (OSError, ValueError) as exc:
             self.out(f"   no plot: {exc}")
-        rms = summary["formation_rms_m"]
-        if rms is None and all_err:  # a route too short for straight legs: judge it whole
-            rms = math.sqrt(sum(e * e for e in all_err) / len(all_err))
-            summary["route_rms_m"] = round(rms, 3)
-        summary["ok"] = rms is not None and rms <= self.cfg.max_rms_m
+        summary["missed"] = targets(summary, self.cfg.max_rms_m, self.cfg.max_turn_m)
+        summary["ok"] = not summary["missed"]
         summary["wall_s"] = round(self.elapsed(), 1)
 
 
-def run_demo(cfg: DemoConfig, stop: threading.Event, out: Callable[[str], None]) -> dict[str, Any]:
-    """Run the demo; returns the summary. ``out`` gets progress lines.
+def run_demo(
+    cfg: DemoConfig,
+    stop: threading.Event,
+    out: Callable[[str], None],
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run the demo; returns the summary. ``out`` gets step lines, ``progress`` (default
+    ``out``) a progress line every second. A step that failed (a process exited, no
+    leader agreed, a command refused) is a missed target in the summary, not an error.
 
     Raises:
-        DemoError, ChildError: a process failed or a step did not happen in time.
+        KeyboardInterrupt: ``stop`` was set (everything started is stopped).
     """
     cfg.check()
     demo = _Demo(cfg, stop, out)
+    demo.progress = progress or out
     try:
         demo.start()
         leader = demo.elect()
         leader = demo.take_off_and_follow(leader)
-        route_wall = demo.route(leader)
+        demo.route(leader)
         demo.land()
-        demo.analyse(route_wall)
-        return demo.summary
+        demo.stop_all()  # the capture final: the figures are those a replay of it computes
+        demo.analyse()
+    except (DemoError, ChildError) as exc:
+        demo.summary["missed"] = [{"target": demo.phase, "text": f"{demo.phase}: {exc}"}]
+        demo.summary["ok"] = False
+        demo.summary["wall_s"] = round(demo.elapsed(), 1)
     finally:
         demo.close()
+    return demo.summary
 
 
 def _station(radio: str) -> Station:

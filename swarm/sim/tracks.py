@@ -15,18 +15,28 @@ swarm task (heading, assignments). :func:`analyse` rebuilds from it:
 * the **task timeline**: which leader, heading and assignments held when;
 * each member's **slot error** at each of its pose samples: the distance from
   the slot (the followed agent's position, interpolated at the same instant,
-  plus the slot offset for the task heading then). A sample is in a *turn* when
-  the task heading changed within ``turn_margin_s`` of it; the others, from
-  ``settle_s`` after the first follow task, are *straight*;
+  plus the slot offset for the task heading then), counted over one interval:
+  from the **route's start** (the leader's first pose faster than
+  ``MOVING_MPS`` after the first follow task: it hovers while the V forms; when
+  it never moves, the first follow task + ``settle_s``) to the **end of the
+  follow task** (the swarm STOP after the leader's arrival + tail). A sample is
+  in a *turn* when the task heading changed within ``turn_margin_s`` of it; the
+  others are *straight*. :data:`FIGURES` names each figure with its legs and
+  interval, in the words every report uses (``swarm demo``, ``swarm replay
+  --plot``; ``swarm bench formation`` measures the same figures in virtual time);
 * the **heading error after the turn** (when the task heading turned): the last
   follow task's heading against the leader's course over ground on its last
   straight stretch (its last ``course_s`` seconds faster than 1 m/s), which is the
   route's last heading whatever the route was.
 
-:func:`plot` draws the tracks (local metres from the first leader pose), the
-leader's thick with a star where it ended, and the slots every ``slot_every_s``
-seconds (crosses, with a thin line to the agent followed), with matplotlib's Agg
-backend (no display needed).
+:func:`plot` draws two panels with matplotlib's Agg backend (no display needed).
+Left, the map (local metres from the leader's first pose): each agent's track
+during the counted interval (take-off, the V forming and landing drawn thin and
+grey, apart from it), the leader's thick with arrows along it, its straight legs
+and turns told apart (turn stretches shaded), a start (circle) and end (star)
+marker, both in the legend, and the slots every ``slot_every_s`` seconds (crosses,
+with a thin line to the agent followed). Right, each member's slot error over
+time (seconds from the route's start) with the target line and the turns shaded.
 
 Nothing here raises for a damaged capture: the whole records before the damage
 are used and ``damaged`` says where it stopped.
@@ -36,19 +46,45 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from radios.errors import CaptureError
 from radios.mavlink import MSG_TUNNEL
 from radios.tlog import read_tlog
-from swarm.core.formation import POSE_T_WRAP, ne_between, slot_error, slot_offset
+from swarm.core.formation import POSE_T_WRAP, ne_between, slot_error
 from swarm.core.messages import Heartbeat, Pose, PoseReport, Task, TaskKind, decode
 from swarm.core.tunnel import Kind, unpack_tunnel
 from swarm.errors import DecodeError
 
 KIND_P2P, KIND_POSE, KIND_MULTI = Kind.P2P, Kind.POSE, Kind.MULTI
+
+#: the leader moves faster than this once the route has started (it hovers while the V forms)
+MOVING_MPS = 1.0
+
+#: each formation figure: which legs, which interval (the same words in every report)
+INTERVAL = "from the route's start to the end of the follow task (the leader's arrival + tail)"
+FIGURES = {
+    "formation_rms_m": f"RMS slot error on the straight legs, {INTERVAL}",
+    "formation_max_m": f"largest slot error on the straight legs, {INTERVAL}",
+    "turn_max_m": f"largest slot error in the turns (within 8 s of a heading change), {INTERVAL}",
+    "route_rms_m": f"RMS slot error on the whole route, turns included, {INTERVAL}",
+    "heading_error_after_turn_deg": "the last follow heading against the leader's course on its last "
+    "straight stretch",
+}
+
+#: the same figures in a few words, for a line that names the interval once
+LEGS = {
+    "formation_rms_m": "RMS on the straight legs",
+    "formation_max_m": "largest on the straight legs",
+    "turn_max_m": "largest in the turns",
+    "route_rms_m": "RMS on the whole route",
+}
+
+
+def fmt(v: float | None, unit: str = " m") -> str:
+    """A figure for people: ``1.27 m``, or ``n/a`` when there was nothing to measure."""
+    return "n/a" if v is None else f"{v:g}{unit}"
 
 
 @dataclass
@@ -60,6 +96,11 @@ class Analysis:
     damaged: str = ""
     follow_at: float | None = None
     heading_error_after_turn_deg: float | None = None
+    #: the counted interval's start (capture time) and what it is ("route start" or "settled")
+    t_from: float | None = None
+    from_what: str = ""
+    #: (from, to) capture times within the turn margin of a task heading change
+    turn_windows: list[tuple[float, float]] = field(default_factory=list)
 
     @property
     def leader(self) -> int:
@@ -74,6 +115,7 @@ class Analysis:
             s = [e for _t, mm, e, turn in self.errors if mm == m and not turn]
             a = [e for _t, mm, e, _turn in self.errors if mm == m]
             per[str(m)] = {"rms_m": _rms(s), "max_m": round(max(a), 2) if a else None, "samples": len(a)}
+        ends = [t for t, _m, _e, _turn in self.errors]
         return {
             "leader": self.leader,
             "agents": sorted(self.tracks),
@@ -81,8 +123,15 @@ class Analysis:
             "formation_rms_m": _rms(straight),
             "formation_max_m": round(max(straight), 2) if straight else None,
             "turn_max_m": round(max(turns), 2) if turns else None,
+            "route_rms_m": _rms(straight + turns),
             "heading_error_after_turn_deg": self.heading_error_after_turn_deg,
             "samples": len(self.errors),
+            "straight_samples": len(straight),
+            "interval": {
+                "from": self.from_what or None,
+                "duration_s": round(ends[-1] - self.t_from, 1) if ends and self.t_from is not None else None,
+            },
+            "figures": FIGURES,
             "per_member": per,
             **({"damaged": self.damaged} if self.damaged else {}),
         }
@@ -159,11 +208,18 @@ def analyse(
     path: str, *, settle_s: float = 15.0, turn_margin_s: float = 8.0, start: float | None = None
 ) -> Analysis:
     """Tracks, tasks and slot errors (see the module docstring). ``start``: count
-    samples from this capture time (default: the first follow task + ``settle_s``)."""
+    samples from this capture time (default: the route's start, :func:`route_start`)."""
     an = read_capture(path)
     if an.follow_at is None:
         return an
-    t_from = start if start is not None else an.follow_at + settle_s
+    if start is not None:
+        an.t_from, an.from_what = start, "given time"
+    else:
+        rs = route_start(an)
+        an.t_from, an.from_what = (
+            (rs, "route start") if rs is not None else (an.follow_at + settle_s, "settled")
+        )
+    t_from = an.t_from
     times = {a: [x[0] for x in tr] for a, tr in an.tracks.items()}
     task_t = [t for t, _l, _task in an.tasks]
     changes = [
@@ -173,6 +229,11 @@ def analyse(
         and an.tasks[k - 1][2].kind == TaskKind.FOLLOW
         and an.tasks[k][2].heading != an.tasks[k - 1][2].heading
     ]
+    for c in changes:  # merged: one window per turn
+        if an.turn_windows and c - turn_margin_s <= an.turn_windows[-1][1]:
+            an.turn_windows[-1] = (an.turn_windows[-1][0], c + turn_margin_s)
+        else:
+            an.turn_windows.append((c - turn_margin_s, c + turn_margin_s))
     for member, track in an.tracks.items():
         for t, pose in track:
             if t < t_from:
@@ -200,6 +261,21 @@ def analyse(
     return an
 
 
+def route_start(an: Analysis) -> float | None:
+    """The route's start: the leader's first pose faster than ``MOVING_MPS`` after the
+    first follow task (None: no follow task, or the leader never moved)."""
+    if an.follow_at is None:
+        return None
+    return next(
+        (
+            t
+            for t, p in an.tracks.get(an.leader, [])
+            if t > an.follow_at and math.hypot(p.vn, p.ve) > MOVING_MPS
+        ),
+        None,
+    )
+
+
 def heading_error(an: Analysis, course_s: float = 5.0) -> float | None:
     """The last follow task's heading minus the leader's last course (module docstring),
     in degrees (absolute); None without a follow task or a straight stretch of 2 m."""
@@ -216,79 +292,30 @@ def heading_error(an: Analysis, course_s: float = 5.0) -> float | None:
     return round(abs((follows[-1].heading - course + 180.0) % 360.0 - 180.0), 2)
 
 
-def _plot_slots(
-    ax: Any, an: Analysis, ne: Callable[[tuple[float, float]], tuple[float, float]], every_s: float
-) -> None:
-    """Every ``every_s`` from FOLLOW on: each member's slot (a red x) and the line from
-    the agent it follows to it."""
-    times = {a: [x[0] for x in tr] for a, tr in an.tracks.items()}
-    t_end = max(tr[-1][0] for tr in an.tracks.values())
-    task_t = [t for t, _l, _task in an.tasks]
-    assert an.follow_at is not None
-    t = an.follow_at
-    while t <= t_end:
-        k = bisect.bisect_right(task_t, t) - 1
-        task = an.tasks[k][2] if k >= 0 else None
-        if task is not None and task.kind == TaskKind.FOLLOW:
-            for a in task.assignments:
-                if a.follows not in an.tracks:
-                    continue
-                fp = position_at(an.tracks[a.follows], t, times[a.follows])
-                if fp is None:
-                    continue
-                fn, fe = ne(fp)
-                dn, de = slot_offset(task.heading, a.side, task.back_m, task.side_m)
-                ax.plot([fe, fe + de], [fn, fn + dn], color="grey", lw=0.5)
-                ax.plot(fe + de, fn + dn, marker="x", color="red", ms=5)
-        t += every_s
-
-
-def plot(an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "") -> str:
-    """Draw the tracks and slots to ``out`` (PNG). Returns ``out``.
+def plot(
+    an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "", target_m: float | None = 1.5
+) -> str:
+    """The map and the slot error over time to ``out`` (PNG): :func:`swarm.sim.trackplot.plot`.
 
     Raises:
         OSError: the file cannot be written.
         ValueError: nothing to draw (no pose in the capture).
     """
-    import matplotlib
+    from swarm.sim.trackplot import plot as draw
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    if not an.tracks:
-        raise ValueError("no pose stream in the capture: nothing to draw")
-    leader = an.leader
-    ref_track = an.tracks.get(leader) or next(iter(an.tracks.values()))
-    lat0, lon0 = ref_track[0][1].lat, ref_track[0][1].lon
-
-    def ne(p: tuple[float, float]) -> tuple[float, float]:
-        return ne_between(lat0, lon0, p[0], p[1])
-
-    fig, ax = plt.subplots(figsize=(8, 8), dpi=100)
-    for agent, track in sorted(an.tracks.items()):
-        pts = [ne((p.lat, p.lon)) for _t, p in track]
-        xs, ys = [e for _n, e in pts], [n for n, _e in pts]
-        lead = agent == leader
-        ax.plot(xs, ys, lw=2.5 if lead else 1.0, label=f"agent {agent}" + (" (leader)" if lead else ""))
-        if lead and pts:
-            ax.plot(xs[-1], ys[-1], marker="*", ms=16, color="black")
-    if an.follow_at is not None and an.tasks:
-        _plot_slots(ax, an, ne, slot_every_s)
-    ax.set_xlabel("east (m)")
-    ax.set_ylabel("north (m)")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(True, lw=0.3)
-    ax.legend(loc="best", fontsize=8)
-    s = an.summary()
-    default = (
-        f"leader {leader}: slot error RMS {s['formation_rms_m']} m, max {s['formation_max_m']} m "
-        f"on straight legs, {s['turn_max_m']} m in turns\n(x: slots every {slot_every_s:g} s)"
-    )
-    ax.set_title(title or default, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
-    return out
+    return draw(an, out, slot_every_s=slot_every_s, title=title, target_m=target_m)
 
 
-__all__ = ["Analysis", "analyse", "heading_error", "plot", "position_at", "read_capture"]
+__all__ = [
+    "FIGURES",
+    "INTERVAL",
+    "LEGS",
+    "Analysis",
+    "analyse",
+    "fmt",
+    "heading_error",
+    "plot",
+    "position_at",
+    "read_capture",
+    "route_start",
+]

@@ -10,7 +10,17 @@ from typing import Any
 
 from swarm.sim.flightsim import FlightScenario
 from swarm.sim.flightsim import run as fly
+from swarm.sim.tracks import FIGURES
 from swarm.sim.weather import Weather
+
+#: the bench's figures are the demo's (swarm.sim.tracks.FIGURES: the same legs and interval,
+#: the turn margin 8 s), measured here on the true positions every 0.1 s in virtual time
+FIGURE_NAMES = {
+    "rms_straight_m": "formation_rms_m",
+    "max_straight_m": "formation_max_m",
+    "max_turn_m": "turn_max_m",
+    "heading_error_after_turn_deg": "heading_error_after_turn_deg",
+}
 
 #: the weather cases: a 5 m/s west wind (across the first leg, behind the second),
 #: with gusts of 1.5 m/s (standard deviation), and GPS errors of 0.5 m RMS per vehicle
@@ -49,6 +59,10 @@ def run(quick: bool = False) -> dict[str, Any]:
         "turn_deg": 90,
         "note": "worst of the seeds per case; virtual time, same cores and pilots as the "
         "agents, PX4 position-loop dynamics",
+        "figures": {
+            k: f"{FIGURES[v]} (swarm demo's {v}; here on the true positions every 0.1 s)"
+            for k, v in FIGURE_NAMES.items()
+        },
     }
     t0 = time.process_time()
     virtual = 0.0

@@ -2,24 +2,34 @@
 vehicles, agents, ground station): election, take-off, V formation along a route
 with a 90 degree turn, landing, then a summary and a plot.
 
-Progress goes to stdout (to stderr with ``--json``, whose stdout is one JSON
-object: ``leader``, ``elect_s``, ``formation_rms_m``, ``formation_max_m``,
-``turn_max_m``, ``air_utilisation``, ``capture``, ``plot``, ``gcs``, ``ok``...).
-Exit 0 only when the swarm flew in formation (RMS slot error within
-``--max-rms``); 1 otherwise (a process that failed, a step that did not happen in
-time: :class:`~swarm.cli.demo.DemoError` and :class:`~swarm.cli.procs.ChildError`,
-reported by the command guard); 130 on Ctrl-C or SIGTERM, after stopping every
-process it started.
+Steps and progress go to stdout: on a terminal the progress is one line updated in
+place (every second), otherwise a plain line every 5 s; with ``--json`` nothing but the
+summary, one JSON object on stdout (``leader``, ``elect_s``, the formation figures and
+their ``figures`` definitions, ``air_utilisation``, ``capture``, ``plot``, ``gcs``,
+``gcs_running``, ``workdir``, ``workdir_kept``, ``missed``, ``ok``...). The text summary
+(:func:`swarm.cli.demo_report.summary_lines`) names every target missed and by how much.
+The ground station's page is opened once it is up unless ``--headless``; where it cannot
+be (no display, no browser) that is said once.
+
+Exit 0 when every target was met; 1 when one was missed (a formation figure beyond its
+limit, or a step that did not happen: no leader agreed, a process that failed); 2 for bad
+usage; 130 on Ctrl-C or SIGTERM, after stopping every process it started. The working
+folder it made is removed at the end unless ``--keep``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 import sys
+import time
 import webbrowser
+from typing import TextIO
 
 from swarm.cli.configfile import read_arguments
 from swarm.cli.demo import DemoConfig, run_demo
+from swarm.cli.demo_report import summary_lines
 from swarm.cli.util import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
 
 PROG = "swarm demo"
@@ -53,6 +63,13 @@ def _build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="formation RMS slot error that counts as flying in formation (default 1.5)",
     )
+    p.add_argument(
+        "--max-turn",
+        type=float,
+        default=10.0,
+        metavar="M",
+        help="largest slot error in the turn that still counts as in formation (default 10)",
+    )
     p.add_argument("--headless", action="store_true", help="do not open the ground station page")
     p.add_argument("--no-gcs", action="store_true", help="do not start the ground station")
     p.add_argument(
@@ -63,7 +80,12 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--capture", metavar="FILE", help="the radio capture (default DIR/air.tlog)")
     p.add_argument("--plot", metavar="FILE", help="the formation plot (default DIR/formation.png)")
-    p.add_argument("--dir", metavar="DIR", help="working directory (default: a new temporary one)")
+    p.add_argument(
+        "--dir",
+        metavar="DIR",
+        help="working directory, kept (default: a new temporary one, removed at the end)",
+    )
+    p.add_argument("--keep", action="store_true", help="keep the temporary working directory")
     p.add_argument("--seed", type=int, default=0, help="seed of the radio loss")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     return p
@@ -83,6 +105,8 @@ def _config(a: argparse.Namespace) -> DemoConfig:
         speed_mps=a.speed,
         settle_s=a.settle,
         max_rms_m=a.max_rms,
+        max_turn_m=a.max_turn,
+        keep=a.keep,
         gcs=not a.no_gcs,
         http=a.http,
         seed=a.seed,
@@ -91,53 +115,97 @@ def _config(a: argparse.Namespace) -> DemoConfig:
         cfg.check()
         if not 0.5 <= a.speed <= 15 or not 0.1 <= a.max_rms <= 50 or not 0 <= a.settle <= 300:
             raise ValueError("--speed 0.5..15 m/s, --max-rms 0.1..50 m, --settle 0..300 s")
+        if not 0.1 <= a.max_turn <= 100:
+            raise ValueError("--max-turn 0.1..100 m")
+        for flag, path in (("--capture", a.capture), ("--plot", a.plot)):
+            parent = os.path.dirname(os.path.abspath(path)) if path else ""
+            if path and not os.path.isdir(parent):
+                raise ValueError(f"{flag} {path}: no such directory {parent}")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     return cfg
 
 
-SUMMARY_KEYS = (
-    "leader",
-    "elect_s",
-    "formation_rms_m",
-    "formation_max_m",
-    "turn_max_m",
-    "air_utilisation",
-    "capture",
-    "plot",
-    "gcs",
-    "wall_s",
-    "ok",
-)
+class _Lines:
+    """Step lines and progress for people: on a terminal the progress is one line updated in
+    place; otherwise a plain line every ``PLAIN_EVERY_S``; with ``quiet`` nothing."""
+
+    PLAIN_EVERY_S = 5.0
+
+    def __init__(self, stream: TextIO, quiet: bool) -> None:
+        self.stream, self.quiet = stream, quiet
+        self.tty = stream.isatty()
+        self.open = False  # a progress line is on screen, not ended
+        self.last = -1e9
+
+    def step(self, line: str) -> None:
+        if self.quiet:
+            return
+        self.end()
+        print(line, file=self.stream, flush=True)
+
+    def progress(self, line: str) -> None:
+        if self.quiet:
+            return
+        if self.tty:
+            width = shutil.get_terminal_size().columns - 1  # a wrapped line would not be redrawn
+            self.stream.write("\r\x1b[K" + line.strip()[:width])
+            self.stream.flush()
+            self.open = True
+        elif time.monotonic() - self.last >= self.PLAIN_EVERY_S:
+            self.last = time.monotonic()
+            print(line, file=self.stream, flush=True)
+
+    def end(self) -> None:
+        if self.open:
+            self.stream.write("\r\x1b[K")
+            self.stream.flush()
+            self.open = False
+
+
+def _has_display() -> bool:
+    """A browser can show a page here: not a Linux/BSD machine without X or Wayland."""
+    if sys.platform.startswith(("linux", "freebsd", "openbsd", "netbsd")):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+def _open_page(url: str, lines: _Lines) -> None:
+    """Open the station's page, or say once why it was not."""
+    why = "" if _has_display() else "no display here"
+    if not why:
+        try:
+            why = "" if webbrowser.open(url) else "no browser found"
+        except Exception as exc:
+            why = f"the browser did not start ({exc})"
+    if why:
+        print(f"   page not opened: {why}; open {url} while the demo runs", file=sys.stderr, flush=True)
 
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     a = read_arguments(_build_parser(), argv, config=False)
     cfg = _config(a)
-    stream = sys.stderr if a.json else sys.stdout
+    lines = _Lines(sys.stdout, quiet=a.json)
     opened = False
 
     def out(line: str) -> None:
         nonlocal opened
-        print(line, file=stream, flush=True)
+        lines.step(line)
         if line.strip().startswith("ground station: http") and not a.headless and not opened:
             opened = True
-            try:
-                webbrowser.open(line.split(": ", 1)[1])
-            except Exception:
-                pass
+            _open_page(line.split(": ", 1)[1], lines)
 
     stop = StopFlag().install()
     try:
-        summary = run_demo(cfg, stop.event, out)
+        summary = run_demo(cfg, stop.event, out, lines.progress)
     except KeyboardInterrupt:
+        lines.end()
         print(f"{PROG}: stopped; every process it started is stopped", file=sys.stderr)
         return 130
+    lines.end()
     if a.json:
         print_json(summary)
     else:
-        print("== summary")
-        for k in SUMMARY_KEYS:
-            print(f"   {k}: {summary.get(k)}")
+        print("\n".join(summary_lines(summary)), flush=True)
     return 0 if summary["ok"] else EXIT_FAILURE

@@ -22,9 +22,11 @@ modes (each its own function below; only one runs):
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
   object;
-* ``--plot FILE.png``: the formation: every agent's track from its pose stream,
-  the leader marked, the slots, and the slot-error metrics
-  (:mod:`swarm.sim.tracks`; matplotlib is imported only here);
+* ``--plot FILE.png``: the formation: a map of every agent's track from its pose
+  stream (start, end, direction, turns, slots) and each member's slot error over
+  time (:mod:`swarm.sim.trackplot`; matplotlib is imported only here), and the
+  formation figures, each named with its legs and interval exactly as ``swarm
+  demo`` names and computes them (:data:`swarm.sim.tracks.FIGURES`);
 * ``--to URL``: the frames are written to a link opened with
   :func:`radios.link.open_link` (a radio, an emulator pty, ``loop://``...) at the
   recorded pace scaled by ``--speed`` with silences capped at ``--max-gap``
@@ -401,18 +403,27 @@ def _plot(path: str, out: str, *, as_json: bool) -> int:
     if as_json:
         print(json.dumps(s))
     else:
-        print(f"plot: {out}")
-        print(f"leader: agent {s['leader']}; agents {', '.join(map(str, s['agents']))}")
-        print(
-            f"slot error on straight legs: RMS {s['formation_rms_m']} m, max {s['formation_max_m']} m; "
-            f"in turns: max {s['turn_max_m']} m ({s['samples']} samples)"
-        )
-        for m, d in s["per_member"].items():
-            print(f"  agent {m}: RMS {d['rms_m']} m, max {d['max_m']} m")
+        print("\n".join(_plot_lines(s)))
     if an.damaged:
         print(f"{PROG}: error: {an.damaged}", file=sys.stderr)
         return EXIT_FAILURE
     return 0
+
+
+def _plot_lines(s: dict[str, Any]) -> list[str]:
+    """The formation figures for people, named with their legs and interval (as ``swarm demo``)."""
+    from swarm.sim.tracks import INTERVAL, LEGS, fmt
+
+    dur, straight = fmt(s["interval"]["duration_s"], " s"), s["straight_samples"]
+    out = [
+        f"plot: {s['plot']}",
+        f"leader: agent {s['leader']}; agents {', '.join(map(str, s['agents']))}",
+        f"slot error {INTERVAL}: {dur}, {s['samples']} samples ({straight} on straight legs)",
+    ]
+    out += [f"  {key}: {fmt(s[key])} ({LEGS[key]})" for key in LEGS]
+    for m, d in s["per_member"].items():
+        out.append(f"  agent {m}: RMS {fmt(d['rms_m'])} on straight legs, max {fmt(d['max_m'])}")
+    return out
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from firmware_bridge.errors import BridgeError, ConnectError
-from radios.errors import ConfigError, LinkOpenError, RadioError
+from radios.errors import CaptureDamagedError, ConfigError, LinkOpenError, RadioError
 from swarm.errors import SwarmError, TransportError
 
 if TYPE_CHECKING:
@@ -49,10 +49,12 @@ class UsageError(SwarmError):
 ERROR_ROOTS: tuple[type[Exception], ...] = (RadioError, BridgeError, SwarmError)
 #: the kinds that mean the user's input is wrong (exit 2): a command-line value, a
 #: parameter or key file, a link URL or missing device, a flight-controller URL or
-#: port, a Zenoh endpoint. A timeout among them (no heartbeat) is a failure instead.
+#: port, a Zenoh endpoint, a capture that is damaged or not a capture at all. A
+#: timeout among them (no heartbeat) is a failure instead.
 BAD_INPUT: tuple[type[Exception], ...] = (
     UsageError,
     ConfigError,
+    CaptureDamagedError,
     LinkOpenError,
     ConnectError,
     TransportError,
@@ -64,6 +66,14 @@ def exit_code(exc: BaseException) -> int:
     if isinstance(exc, BAD_INPUT) and not isinstance(exc, TimeoutError):
         return EXIT_USAGE
     return EXIT_FAILURE
+
+
+def capture_damage(exc: CaptureDamagedError) -> str:
+    """The one line for a damaged capture; a file with no whole record is named as not
+    a capture at all (a text file given by mistake)."""
+    if exc.records == 0:
+        return f"not a capture (.tlog), or damaged from its first byte: {exc}"
+    return str(exc)
 
 
 def guarded(prog: str) -> Callable[[Callable[[list[str] | None], int]], Callable[[list[str] | None], int]]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import multiprocessing
 import signal
+from collections.abc import Callable
 
 from swarm.sim.simulate import RunResult, Scenario, Sim
 
@@ -35,11 +36,14 @@ def _run_one(job: tuple[Scenario, int]) -> RunResult:
     return Sim(sc, seed).run()
 
 
-def run_seeds(sc: Scenario, seeds: int, seed0: int, jobs: int) -> list[RunResult]:
+def run_seeds(
+    sc: Scenario, seeds: int, seed0: int, jobs: int, on_done: Callable[[], None] = lambda: None
+) -> list[RunResult]:
     """The results of seeds ``seed0 .. seed0 + seeds - 1``, in that order, computed by
-    ``jobs`` worker processes (in this process when ``jobs`` is 1 or there is one seed)."""
+    ``jobs`` worker processes (in this process when ``jobs`` is 1 or there is one seed);
+    ``on_done`` is called as each seed's result arrives (a progress display)."""
     if jobs <= 1 or seeds <= 1:
-        return [Sim(sc, seed0 + k).run() for k in range(seeds)]
+        return [_done(Sim(sc, seed0 + k).run(), on_done) for k in range(seeds)]
     jobs = min(jobs, seeds)
     work = [(sc, seed0 + k) for k in range(seeds)]
     chunk = max(1, seeds // (jobs * 4))
@@ -62,7 +66,7 @@ def run_seeds(sc: Scenario, seeds: int, seed0: int, jobs: int) -> list[RunResult
         raise
     try:
         restore()  # a SIGTERM that waited is raised here: the pool is ended below
-        results = pool.map(_run_one, work, chunksize=chunk)
+        results = [_done(r, on_done) for r in pool.imap(_run_one, work, chunksize=chunk)]
     except BaseException:
         pool.terminate()
         pool.join()
@@ -70,6 +74,11 @@ def run_seeds(sc: Scenario, seeds: int, seed0: int, jobs: int) -> list[RunResult
     pool.close()
     pool.join()
     return results
+
+
+def _done(result: RunResult, on_done: Callable[[], None]) -> RunResult:
+    on_done()
+    return result
 
 
 __all__ = ["run_seeds"]

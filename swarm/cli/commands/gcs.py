@@ -32,13 +32,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from radios.errors import CaptureError
+from radios.errors import CaptureDamagedError, CaptureError
 from radios.smallfile import read_small_file
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
 from swarm.cli.util import (
     StopFlag,
     UsageError,
+    capture_damage,
     add_node_arguments,
     exit_when_stopped,
     guarded,
@@ -319,6 +320,8 @@ def _open_station(a: argparse.Namespace) -> Any:
 
         try:
             cap = load_capture(a.replay)
+        except CaptureDamagedError as exc:
+            raise UsageError(capture_damage(exc)) from None
         except CaptureError as exc:
             raise UsageError(str(exc)) from None
         if cap.records == 0:

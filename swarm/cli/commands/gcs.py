@@ -39,8 +39,8 @@ from swarm.cli.fence_args import add_fence_arguments, fence_from
 from swarm.cli.util import (
     StopFlag,
     UsageError,
-    capture_damage,
     add_node_arguments,
+    capture_damage,
     exit_when_stopped,
     guarded,
     node_options,

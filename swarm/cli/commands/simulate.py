@@ -141,7 +141,7 @@ def text_report(r: dict[str, Any]) -> str:
         f"{r['agents']} agents, {r['profile']} profile, loss {r['loss']:g}: {n} runs "
         f"(TDM round {r['round_s']:g} s)",
         f"  converged             {r['converged']} of {n} runs (one agreed swarm held for the settle time)",
-        f"  stable at the end     {r['stable_at_end']} of {n} runs (one leader all agree on when the run ends)",
+        f"  stable at the end     {r['stable_at_end']} of {n} runs (one leader all agree on at the end)",
         f"  violations            {r['violations']} in all runs (each failing run below says which)",
         f"  election time         p50 {_fig(e['p50'])}, p95 {_fig(e['p95'])}, max {_fig(e['max'])}",
     ]

@@ -104,7 +104,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="vehicle i starts i*M metres east of home (default 5)",
     )
-    p.add_argument("--profile", choices=("px4", "ardupilot"), default="px4")
+    p.add_argument(
+        "--profile",
+        choices=("px4", "ardupilot"),
+        default="px4",
+        help="whose autopilot to speak like: modes, acks and messages (default px4)",
+    )
     p.add_argument(
         "--speedup",
         type=float,

@@ -249,7 +249,9 @@ class _SerialTransport(_Transport):
             self.port = serial.serial_for_url(dev, baudrate=baud, timeout=0)
             self.fd = self.port.fileno()
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise ConnectError(f"cannot open serial device {dev!r}: {exc}") from None
+            # pyserial repeats the errno in its text ("[Errno 2] could not open port X: [Errno 2] ...")
+            why = os.strerror(exc.errno) if isinstance(getattr(exc, "errno", None), int) else str(exc)
+            raise ConnectError(f"cannot open serial device {dev!r}: {why}") from None
         self.endpoint = url
 
     def fileobjs(self) -> list[Any]:

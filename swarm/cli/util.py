@@ -165,6 +165,56 @@ def exit_when_stopped(prog: str, node: Any, what: str) -> int:
     return EXIT_FAILURE
 
 
+#: how long a ``--zenoh-connect`` node may have no peer before it says so, seconds
+PEER_GRACE_S = 3.0
+
+
+class PeerWatch:
+    """Whether the ``--zenoh-connect`` peers are reached, as lines for the user: fed
+    with "connected?" and ``now``, :meth:`update` returns the line to print or None.
+    No peer for :data:`PEER_GRACE_S` (from the start or from a loss): say so once
+    (Zenoh keeps retrying); a peer again after that: say it is connected."""
+
+    def __init__(self, endpoints: list[str], now: float, grace: float = PEER_GRACE_S) -> None:
+        self.where = ", ".join(endpoints)
+        self.grace = grace
+        self.connected = False
+        self.warned = False
+        self.alone_since = now
+
+    def update(self, connected: bool, now: float) -> str | None:
+        if connected and not self.connected:
+            self.connected = True
+            if self.warned:
+                self.warned = False
+                return f"connected to a Zenoh peer ({self.where})"
+            return None
+        if not connected and self.connected:
+            self.connected, self.alone_since = False, now
+        if not connected and not self.warned and now - self.alone_since >= self.grace:
+            self.warned = True
+            return f"warning: no Zenoh peer reachable at {self.where}; still trying"
+        return None
+
+
+def peer_watch(prog: str, a: argparse.Namespace, node: Any) -> Callable[[], None]:
+    """A check to call every half second or so in a node command's loop: prints
+    :class:`PeerWatch`'s lines on stderr. A no-op without ``--zenoh-connect``."""
+    session = getattr(node, "session", None)
+    if not getattr(a, "zenoh_connect", None) or session is None:
+        return lambda: None
+    from swarm.runtime.transport import has_peer
+
+    watch = PeerWatch(list(a.zenoh_connect), time.monotonic())
+
+    def check() -> None:
+        line = watch.update(has_peer(session), time.monotonic())
+        if line is not None:
+            print(f"{prog}: {line}", file=sys.stderr, flush=True)
+
+    return check
+
+
 class StopFlag:
     """A stop request set by SIGINT or SIGTERM (install from the main thread)."""
 

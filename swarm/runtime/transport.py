@@ -23,6 +23,7 @@ dropped, never raised into Zenoh.
 from __future__ import annotations
 
 import json
+import re
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -85,9 +86,35 @@ def open_session(
     except TransportError:
         raise
     except Exception as exc:
-        raise TransportError(
-            f"cannot open Zenoh session (listen={list(listen)}, connect={list(connect)}): {exc}"
-        ) from exc
+        raise TransportError(zenoh_open_message(str(exc), listen, connect)) from exc
+
+
+def has_peer(session: Any) -> bool:
+    """True when ``session`` is connected to at least one other Zenoh node (peer or
+    router). Zenoh keeps retrying a ``connect`` endpoint it cannot reach, silently:
+    this is how a command can tell the user."""
+    info = session.info
+    return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
+
+
+#: Zenoh's errors end with where in its Rust source they were raised: " at /root/.cargo/...rs:61."
+_RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+_BOUND_TO = re.compile(r"bound to ([a-z]+/\S+?):\s")
+
+
+def zenoh_open_message(text: str, listen: Sequence[str], connect: Sequence[str]) -> str:
+    """One line a user understands for Zenoh's ``zenoh.open`` error ``text``: a port in
+    use or an address not of this machine named as such, and never the Rust source
+    paths of the Zenoh build."""
+    m = _BOUND_TO.search(text)
+    endpoint = m.group(1) if m else (listen[0] if len(listen) == 1 else "")
+    port = endpoint.rpartition(":")[2]
+    if "Address already in use" in text and endpoint:
+        return f"cannot listen on {endpoint}: port {port} in use (another program, or another swarm node?)"
+    if "Cannot assign requested address" in text and endpoint:
+        return f"cannot listen on {endpoint}: that address is not one of this machine's"
+    detail = _RUST_SOURCE.sub("", text).replace("[", "").replace("]", "").strip().rstrip(".")
+    return f"cannot open Zenoh session (listen={list(listen)}, connect={list(connect)}): {detail}"
 
 
 class Transport:

@@ -71,6 +71,7 @@ from swarm.cli.util import (
     guarded,
     node_options,
     parser,
+    peer_watch,
     print_json,
 )
 from swarm.core.formation import FormationConfig
@@ -466,7 +467,9 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
     try:
         out.open(agent)
         service.ready(f"agent {a.name} id={a.id} {agent.describe()} ready")
+        check_peer = peer_watch(PROG, a, agent)
         while not stop.wait(0.5):
+            check_peer()
             if (
                 recheck is not None
                 and agent.bridge is not None

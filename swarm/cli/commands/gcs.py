@@ -45,6 +45,7 @@ from swarm.cli.util import (
     guarded,
     node_options,
     parser,
+    peer_watch,
     print_json,
 )
 from swarm.core.gslink import STATION_IDS
@@ -413,7 +414,9 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
         station.add_listener(on_event)
         if bridge is not None:
             bridge.add_listener(on_radio)
+        check_peer = peer_watch(PROG, a, station)
         while not stop.wait(0.5):
+            check_peer()
             if not station.running:
                 return exit_when_stopped(PROG, station, "the station's thread")
     finally:

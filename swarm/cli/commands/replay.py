@@ -410,10 +410,13 @@ def _plot(path: str, out: str, *, as_json: bool) -> int:
     else:
         print(f"plot: {out}")
         print(f"leader: agent {s['leader']}; agents {', '.join(map(str, s['agents']))}")
-        print(
-            f"slot error on straight legs: RMS {s['formation_rms_m']} m, max {s['formation_max_m']} m; "
-            f"in turns: max {s['turn_max_m']} m ({s['samples']} samples)"
-        )
+        if not s["samples"]:  # a short or cut capture: no figures, not "None m"
+            print("slot error: no samples (the capture ends before a formation has settled)")
+        else:
+            print(
+                f"slot error on straight legs: RMS {s['formation_rms_m']} m, max {s['formation_max_m']} m; "
+                f"in turns: max {s['turn_max_m']} m ({s['samples']} samples)"
+            )
         for m, d in s["per_member"].items():
             print(f"  agent {m}: RMS {d['rms_m']} m, max {d['max_m']} m")
     if an.damaged:

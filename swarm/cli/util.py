@@ -231,6 +231,11 @@ class StopFlag:
         self.signal = signum
         self.event.set()
 
+    def exit_code(self) -> int:
+        """How a command stopped by this flag exits: 130 after Ctrl-C (SIGINT), 0 after
+        SIGTERM (a service manager's orderly stop, which systemd counts as success)."""
+        return EXIT_INTERRUPTED if self.signal == signal.SIGINT else 0
+
     def is_set(self) -> bool:
         return self.event.is_set()
 

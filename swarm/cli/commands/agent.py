@@ -482,4 +482,4 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
     finally:
         service.stopping()
         agent.stop()
-    return 0
+    return stop.exit_code()

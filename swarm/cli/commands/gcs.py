@@ -425,4 +425,4 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
         if server is not None:
             server.stop()
         station.stop()
-    return 0
+    return stop.exit_code()

@@ -198,8 +198,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ready: {len(endpoints)} vehicle(s), speedup {args.speedup:g}{booting}", flush=True)
         while not stop.wait(0.5):
             if sim.error is not None:
-                print(f"{PROG}: error: {sim.error}", flush=True)
+                print(f"{PROG}: error: {sim.error}", file=sys.stderr, flush=True)
                 return 1
     finally:
         sim.stop()
-    return 0
+    return stop.exit_code()

@@ -114,7 +114,8 @@ def zenoh_open_message(text: str, listen: Sequence[str], connect: Sequence[str])
     if "Cannot assign requested address" in text and endpoint:
         return f"cannot listen on {endpoint}: that address is not one of this machine's"
     detail = _RUST_SOURCE.sub("", text).replace("[", "").replace("]", "").strip().rstrip(".")
-    return f"cannot open Zenoh session (listen={list(listen)}, connect={list(connect)}): {detail}"
+    where = "; ".join(f"{k} {' '.join(v)}" for k, v in (("listen", listen), ("connect", connect)) if v)
+    return f"cannot open Zenoh session ({where or 'no endpoints'}): {detail}"
 
 
 class Transport:

@@ -398,9 +398,9 @@ def _plot(path: str, out: str, *, as_json: bool) -> int:
     an = analyse(path)
     try:
         plot(an, out)
-    except ValueError as exc:
+    except ValueError as exc:  # nothing to draw in this file (no pose stream): bad input
         print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
+        return EXIT_USAGE
     except OSError as exc:
         raise UsageError(f"--plot {out}: {exc.strerror or exc}") from None
     s = an.summary()

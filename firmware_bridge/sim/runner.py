@@ -250,7 +250,8 @@ class _SerialTransport(_Transport):
             self.fd = self.port.fileno()
         except (serial.SerialException, OSError, ValueError) as exc:
             # pyserial repeats the errno in its text ("[Errno 2] could not open port X: [Errno 2] ...")
-            why = os.strerror(exc.errno) if isinstance(getattr(exc, "errno", None), int) else str(exc)
+            errno = getattr(exc, "errno", None)
+            why = os.strerror(errno) if isinstance(errno, int) else str(exc)
             raise ConnectError(f"cannot open serial device {dev!r}: {why}") from None
         self.endpoint = url
 

@@ -15,11 +15,16 @@ pipe, a file, a test's capture) or when the command was asked for ``--json``
 is the mean time per piece so far times the pieces left; it is drawn only after
 the first piece, and at most a few times a second. The clock is a parameter, so a
 test can drive the display without waiting.
+
+A command that cannot count its pieces (a benchmark, a plot of a big capture)
+uses :class:`Ticker` instead: a thread that redraws ``swarm bench radio: running,
+12 s`` once a second from the first second on, under the same rules.
 """
 
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from collections.abc import Callable
 from types import TracebackType
@@ -120,3 +125,38 @@ class Progress:
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+class Ticker:
+    """Elapsed seconds on one stderr line, redrawn once a second by a thread, for work
+    that cannot be counted; a no-op when not :func:`wanted`. Use as a context manager."""
+
+    def __init__(
+        self, prog: str, what: str = "running", *, as_json: bool = False, stream: TextIO | None = None
+    ) -> None:
+        self.line = Progress(prog, 0, what, as_json=as_json, stream=stream, enabled=False)
+        self.line.enabled = wanted(self.line.stream, as_json=as_json)
+        self.what = what
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="progress", daemon=True)
+
+    def _run(self) -> None:
+        started = time.monotonic()
+        while not self._stop.wait(1.0):
+            seconds = round(time.monotonic() - started)
+            text = f"{self.line.prog}: {self.what}, {seconds} s"
+            self.line._write("\r" + text)
+            self.line._width = len(text)
+
+    def __enter__(self) -> Ticker:
+        if self.line.enabled:
+            self._thread.start()
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._thread.is_alive():
+            self._stop.set()
+            self._thread.join()
+        self.line.close()

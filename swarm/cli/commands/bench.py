@@ -6,6 +6,7 @@ import importlib
 import signal
 from typing import Any
 
+from swarm.cli.progress import Ticker
 from swarm.cli.util import guarded, parser, print_json
 
 PROG = "swarm bench"
@@ -37,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     # SIGTERM as Ctrl-C: the benches stop the processes they started on the way out
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        result = importlib.import_module(f"swarm.cli.bench.{AREAS[args.area][0]}").run(quick=args.quick)
+        with Ticker(f"{PROG} {args.area}", as_json=args.json):
+            result = importlib.import_module(f"swarm.cli.bench.{AREAS[args.area][0]}").run(quick=args.quick)
     finally:
         signal.signal(signal.SIGTERM, previous)
     if args.json:

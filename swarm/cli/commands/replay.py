@@ -390,19 +390,21 @@ def _print_summary(st: PlayStats, args: argparse.Namespace, speed: float, max_ga
 
 def _plot(path: str, out: str, *, as_json: bool) -> int:
     """Tracks, leader, slots (swarm.sim.tracks.plot) and the formation metrics."""
+    from swarm.cli.progress import Ticker
     from swarm.sim.tracks import analyse, plot
 
     parent = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(parent):
         raise UsageError(f"--plot {out}: no such directory {parent}")
-    an = analyse(path)
-    try:
-        plot(an, out)
-    except ValueError as exc:  # nothing to draw in this file (no pose stream): bad input
-        print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except OSError as exc:
-        raise UsageError(f"--plot {out}: {exc.strerror or exc}") from None
+    with Ticker(PROG, f"reading and drawing {os.path.basename(path)}", as_json=as_json):
+        an = analyse(path)
+        try:
+            plot(an, out)
+        except ValueError as exc:  # nothing to draw in this file (no pose stream): bad input
+            print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        except OSError as exc:
+            raise UsageError(f"--plot {out}: {exc.strerror or exc}") from None
     s = an.summary()
     s["plot"] = out
     if as_json:

@@ -47,18 +47,10 @@ def _build_parser() -> argparse.ArgumentParser:
         help="agent ID (or 'leader') stops for good at T s (leader: at T or when one exists)",
     )
     p.add_argument("--late", action="append", default=[], metavar="ID@T", help="agent ID starts at T s")
+    profiles = "timing profile: the paper's windows, or fast (from the TDM round); default paper"
+    p.add_argument("--profile", choices=("paper", "fast"), default="paper", help=profiles)
     p.add_argument(
-        "--profile",
-        choices=("paper", "fast"),
-        default="paper",
-        help="timing profile: the paper's windows, or fast (from the TDM round); default paper",
-    )
-    p.add_argument(
-        "--air-speed",
-        type=int,
-        default=64,
-        metavar="KBPS",
-        help="the radios' air rate in kbit/s (default 64)",
+        "--air-speed", type=int, default=64, metavar="KBPS", help="air rate in kbit/s (default 64)"
     )
     p.add_argument(
         "--duration",

@@ -19,7 +19,7 @@ from swarm.cli.commands.simulate import main as simulate_main
 from swarm.cli.commands.simulate import text_report
 from swarm.cli.util import PeerWatch
 from swarm.errors import TransportError
-from swarm.runtime.transport import open_session, zenoh_open_message
+from swarm.runtime.transport import open_session, session_config, zenoh_open_message
 
 DEMO = Path(__file__).parent / "data" / "demo" / "demo.tlog"
 
@@ -48,6 +48,15 @@ def test_zenoh_other_errors_lose_their_rust_source_paths() -> None:
     msg = zenoh_open_message(raw, ["tcp/10.9.9.9:7447"], [])
     assert ".rs" not in msg and ".cargo" not in msg and "[" not in msg
     assert msg.endswith("Some new error (os error 77)")
+
+
+def test_zenoh_bad_endpoint_is_its_own_sentence_without_rust_wrapping() -> None:
+    with pytest.raises(TransportError) as caught:
+        session_config(listen=["bogus"])
+    msg = str(caught.value)
+    assert msg.startswith("bad Zenoh endpoint: Endpoints must be of the form <protocol>/<address>")
+    assert ".rs" not in msg and "Json5Err" not in msg and "location" not in msg
+    assert msg.endswith(": bogus (for example tcp/127.0.0.1:7447)")
 
 
 def test_sim_serial_missing_device_says_errno_once(capsys: pytest.CaptureFixture[str]) -> None:

@@ -73,7 +73,7 @@ def session_config(
         if connect:
             cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except Exception as exc:  # zenoh raises its own ZError for bad JSON5 values
-        raise TransportError(f"bad Zenoh endpoint configuration: {exc}") from exc
+        raise TransportError(zenoh_config_message(str(exc))) from exc
     return cfg
 
 
@@ -100,6 +100,17 @@ def has_peer(session: Any) -> bool:
 #: Zenoh's errors end with where in its Rust source they were raised: " at /root/.cargo/...rs:61."
 _RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
 _BOUND_TO = re.compile(r"bound to ([a-z]+/\S+?):\s")
+
+
+_JSON5_MSG = re.compile(r'msg: "(.*?)"(?:, location|\s*\})')
+
+
+def zenoh_config_message(text: str) -> str:
+    """One line for Zenoh's refusal of an endpoint: its own sentence, without the
+    Rust debug wrapping (``Json5Err(Message { msg: ...``) or source paths."""
+    m = _JSON5_MSG.search(text)
+    detail = _RUST_SOURCE.sub("", m.group(1) if m else text).strip().rstrip(".")
+    return f"bad Zenoh endpoint: {detail} (for example tcp/127.0.0.1:7447)"
 
 
 def zenoh_open_message(text: str, listen: Sequence[str], connect: Sequence[str]) -> str:

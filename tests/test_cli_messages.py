@@ -13,6 +13,7 @@ from pathlib import Path
 import net_helpers
 import pytest
 
+from swarm.cli.commands.gcs import main as gcs_main
 from swarm.cli.commands.replay import main as replay_main
 from swarm.cli.commands.sim import main as sim_main
 from swarm.cli.commands.simulate import main as simulate_main
@@ -57,6 +58,18 @@ def test_zenoh_bad_endpoint_is_its_own_sentence_without_rust_wrapping() -> None:
     assert msg.startswith("bad Zenoh endpoint: Endpoints must be of the form <protocol>/<address>")
     assert ".rs" not in msg and "Json5Err" not in msg and "location" not in msg
     assert msg.endswith(": bogus (for example tcp/127.0.0.1:7447)")
+
+
+def test_gcs_http_port_in_use_is_one_plain_line(capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        argv = ["--zenoh-listen", f"tcp/127.0.0.1:{net_helpers.free_port()}", "--http", f"127.0.0.1:{port}"]
+        assert gcs_main(argv) == 2
+    err = capsys.readouterr().err
+    why = f"port {port} in use (another program, or another station?)"
+    assert err == f"swarm gcs: error: cannot listen on 127.0.0.1:{port}: {why}\n"
 
 
 def test_sim_serial_missing_device_says_errno_once(capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,7 +11,7 @@ With ``--json``, what the pilot does (commands answered, following, holds and
 why; each command with its seq) comes as ``{"event": "pilot", "name", "id", "text",
 "t"}`` lines, and a flight controller falling silent or heard again as
 ``{"event": "vehicle", "name", "id", "link": false | true, "text", "t"}``.
-SIGINT or SIGTERM stops it cleanly (exit 0).
+SIGINT or SIGTERM stops it cleanly (exit 130 after Ctrl-C, 0 after SIGTERM).
 
 If the radio goes away (a USB radio unplugged) the agent keeps its swarm state and
 waits for the device to come back at the same path, reopening it with back-off;

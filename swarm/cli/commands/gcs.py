@@ -12,7 +12,8 @@ line's address ``.../?token=...``); README, "Security".
 It prints one ready line once the HTTP server listens (``--json``:
 ``{"event": "ready", "url", "name", "id", "link", "replay", "token", ...}``), then one line per
 station event (connections, leader changes, command results; ``--json``:
-``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 130 after Ctrl-C, 0 after SIGTERM).
+``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 130
+after Ctrl-C, 0 after SIGTERM).
 Bad input (a missing serial device, a port in use, a tile folder or an MBTiles
 file that is not one, a damaged capture) prints one line and exits 2. A radio lost
 while running (a USB radio unplugged) is waited for and reopened at the same path,

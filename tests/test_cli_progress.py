@@ -116,3 +116,28 @@ def test_ticker_counts_seconds_for_work_it_cannot_count() -> None:
             wait_until(first_second_shown, "the ticker's first second", 15)
         seen.append(read_all(master))
     assert "".join(seen).endswith("\r")  # wiped on the way out
+
+
+def test_bench_text_is_a_table_for_people() -> None:
+    from swarm.cli.commands.bench import text_table
+
+    text = text_table(
+        {
+            "latency_ms_p50": 114.7,
+            "payload_bytes": {"Advertize": 10, "Heartbeat": 31},
+            "targets": {"pose_payload_le_16": True, "latency_p50_within_1_5x_model": False},
+            "missing": None,
+            "runs": [1, 2],
+        }
+    )
+    assert text.splitlines() == [
+        "latency_ms_p50  114.7",
+        "payload_bytes",
+        "  Advertize  10",
+        "  Heartbeat  31",
+        "targets",
+        "  pose_payload_le_16             yes",
+        "  latency_p50_within_1_5x_model  no",
+        "missing         -",
+        "runs            1, 2",
+    ]

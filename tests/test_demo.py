@@ -122,7 +122,7 @@ def test_replay_plots_the_demo_capture(
 def test_replay_plot_refuses_what_it_cannot_draw(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     empty = tmp_path / "empty.tlog"
     TlogWriter(str(empty)).close()
-    assert replay_main([str(empty), "--plot", str(tmp_path / "x.png")]) == 1
+    assert replay_main([str(empty), "--plot", str(tmp_path / "x.png")]) == 2  # bad input, as in gcs --replay
     assert "no pose stream" in capsys.readouterr().err
     assert replay_main([str(empty), "--plot", str(tmp_path / "no" / "x.png")]) == 2
 

@@ -128,7 +128,7 @@ def test_damaged_file_prints_whole_records_then_fails(
     path, last = damaged_capture(tmp_path)
     for extra in ((), ("--json",)):
         code, out, err = run(capsys, str(path), *extra)
-        assert code == 1
+        assert code == 2  # a damaged file is bad input
         assert len(out.splitlines()) == 5
         assert err == (
             f"swarm replay: error: {path}: damaged record at byte {last} "
@@ -140,7 +140,7 @@ def test_damaged_file_prints_whole_records_then_fails(
 def test_damaged_file_stats(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path, _ = damaged_capture(tmp_path)
     code, out, err = run(capsys, str(path), "--stats", "--json")
-    assert code == 1
+    assert code == 2
     s = json.loads(out)
     assert s["frames"] == 5 and "truncated frame" in s["damage"]
     assert "damaged record" in err
@@ -150,8 +150,8 @@ def test_garbage_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     path = tmp_path / "garbage.tlog"
     path.write_bytes(b"definitely not a capture\n" * 20)
     code, out, err = run(capsys, str(path))
-    assert (code, out) == (1, "")
-    assert "damaged record at byte 0" in err
+    assert (code, out) == (2, "")  # bad input, as for `swarm gcs --replay` (issue 18)
+    assert "not a capture (.tlog)" in err and "damaged record at byte 0" in err
 
 
 def test_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -250,7 +250,7 @@ def test_to_json_summary_and_damage(
     reader.start()
     code, out, err = run(capsys, str(path), "--to", slave_path, "--speed", "0", "--json")
     data = reader.wait_for(last - 5 * 8)  # the five whole records, without timestamps
-    assert code == 1
+    assert code == 2
     summary = json.loads(out)
     assert summary["frames"] == 5 and summary["to"] == slave_path and not summary["stopped"]
     assert summary["bytes"] == len(data) == last - 5 * 8

@@ -208,7 +208,7 @@ def test_truncated_capture_decodes_every_whole_record_then_says_where(
     n = swarm_capture(path)
     path.write_bytes(path.read_bytes()[:-7])  # a record cut in the middle
     for argv in ([str(path)], [str(path), "--json"]):
-        assert main(argv) == 1
+        assert main(argv) == 2  # a damaged file is bad input
         out, err = capsys.readouterr()
         assert len(out.splitlines()) == n - 1 and "Heartbeat" in out.splitlines()[0]
         assert err.startswith("swarm replay: error: ") and len(err.splitlines()) == 1

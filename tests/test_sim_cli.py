@@ -56,7 +56,7 @@ def test_sigint_px4() -> None:
     assert p.stdout is not None
     assert "px4 udp -> udpin:127.0.0.1:" in p.stdout.readline()
     p.send_signal(signal.SIGINT)
-    assert p.wait(timeout=10) == 0
+    assert p.wait(timeout=10) == 130  # interrupted (issue 18: one exit-code rule)
 
 
 def test_bad_input_exit_2_without_traceback() -> None:
@@ -112,4 +112,4 @@ def test_home_negative_latitude_prints_the_southern_home() -> None:
         assert "home=-35.3632610,149.1652300,584.0" in p.stdout.readline()
     finally:
         p.send_signal(signal.SIGINT)
-        assert p.wait(timeout=10) == 0
+        assert p.wait(timeout=10) == 130

@@ -249,7 +249,10 @@ class _SerialTransport(_Transport):
             self.port = serial.serial_for_url(dev, baudrate=baud, timeout=0)
             self.fd = self.port.fileno()
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise ConnectError(f"cannot open serial device {dev!r}: {exc}") from None
+            # pyserial repeats the errno in its text ("[Errno 2] could not open port X: [Errno 2] ...")
+            errno = getattr(exc, "errno", None)
+            why = os.strerror(errno) if isinstance(errno, int) else str(exc)
+            raise ConnectError(f"cannot open serial device {dev!r}: {why}") from None
         self.endpoint = url
 
     def fileobjs(self) -> list[Any]:

@@ -22,7 +22,7 @@ import argparse
 import importlib
 import sys
 
-from swarm.cli.util import EXIT_USAGE, LOG_FORMATS, LOG_LEVELS, configure_logging
+from swarm.cli.util import EXIT_INTERRUPTED, EXIT_USAGE, LOG_FORMATS, LOG_LEVELS, configure_logging
 
 # name -> (module in swarm.cli.commands, one-line summary)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -129,7 +129,10 @@ def main(argv: list[str] | None = None) -> int:
         rest[:0] = [*(["--log-level", level] if level else []), *(["--log-format", fmt] if fmt else [])]
     elif level is not None or fmt is not None:
         configure_logging(level or "WARNING", fmt or "text")
-    module = importlib.import_module(f"swarm.cli.commands.{COMMANDS[a.command][0]}")
+    try:  # a Ctrl-C while the command's modules load: interrupted, as inside the command
+        module = importlib.import_module(f"swarm.cli.commands.{COMMANDS[a.command][0]}")
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
     code: int = module.main(rest)
     return code
 

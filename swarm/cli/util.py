@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from firmware_bridge.errors import BridgeError, ConnectError
-from radios.errors import ConfigError, LinkOpenError, RadioError
+from radios.errors import CaptureDamagedError, ConfigError, LinkOpenError, RadioError
 from swarm.errors import SwarmError, TransportError
 
 if TYPE_CHECKING:
@@ -49,10 +49,12 @@ class UsageError(SwarmError):
 ERROR_ROOTS: tuple[type[Exception], ...] = (RadioError, BridgeError, SwarmError)
 #: the kinds that mean the user's input is wrong (exit 2): a command-line value, a
 #: parameter or key file, a link URL or missing device, a flight-controller URL or
-#: port, a Zenoh endpoint. A timeout among them (no heartbeat) is a failure instead.
+#: port, a Zenoh endpoint, a capture that is damaged or not a capture at all. A
+#: timeout among them (no heartbeat) is a failure instead.
 BAD_INPUT: tuple[type[Exception], ...] = (
     UsageError,
     ConfigError,
+    CaptureDamagedError,
     LinkOpenError,
     ConnectError,
     TransportError,
@@ -64,6 +66,14 @@ def exit_code(exc: BaseException) -> int:
     if isinstance(exc, BAD_INPUT) and not isinstance(exc, TimeoutError):
         return EXIT_USAGE
     return EXIT_FAILURE
+
+
+def capture_damage(exc: CaptureDamagedError) -> str:
+    """The one line for a damaged capture; a file with no whole record is named as not
+    a capture at all (a text file given by mistake)."""
+    if exc.records == 0:
+        return f"not a capture (.tlog), or damaged from its first byte: {exc}"
+    return str(exc)
 
 
 def guarded(prog: str) -> Callable[[Callable[[list[str] | None], int]], Callable[[list[str] | None], int]]:
@@ -155,6 +165,56 @@ def exit_when_stopped(prog: str, node: Any, what: str) -> int:
     return EXIT_FAILURE
 
 
+#: how long a ``--zenoh-connect`` node may have no peer before it says so, seconds
+PEER_GRACE_S = 3.0
+
+
+class PeerWatch:
+    """Whether the ``--zenoh-connect`` peers are reached, as lines for the user: fed
+    with "connected?" and ``now``, :meth:`update` returns the line to print or None.
+    No peer for :data:`PEER_GRACE_S` (from the start or from a loss): say so once
+    (Zenoh keeps retrying); a peer again after that: say it is connected."""
+
+    def __init__(self, endpoints: list[str], now: float, grace: float = PEER_GRACE_S) -> None:
+        self.where = ", ".join(endpoints)
+        self.grace = grace
+        self.connected = False
+        self.warned = False
+        self.alone_since = now
+
+    def update(self, connected: bool, now: float) -> str | None:
+        if connected and not self.connected:
+            self.connected = True
+            if self.warned:
+                self.warned = False
+                return f"connected to a Zenoh peer ({self.where})"
+            return None
+        if not connected and self.connected:
+            self.connected, self.alone_since = False, now
+        if not connected and not self.warned and now - self.alone_since >= self.grace:
+            self.warned = True
+            return f"warning: no Zenoh peer reachable at {self.where}; still trying"
+        return None
+
+
+def peer_watch(prog: str, a: argparse.Namespace, node: Any) -> Callable[[], None]:
+    """A check to call every half second or so in a node command's loop: prints
+    :class:`PeerWatch`'s lines on stderr. A no-op without ``--zenoh-connect``."""
+    session = getattr(node, "session", None)
+    if not getattr(a, "zenoh_connect", None) or session is None:
+        return lambda: None
+    from swarm.runtime.transport import has_peer
+
+    watch = PeerWatch(list(a.zenoh_connect), time.monotonic())
+
+    def check() -> None:
+        line = watch.update(has_peer(session), time.monotonic())
+        if line is not None:
+            print(f"{prog}: {line}", file=sys.stderr, flush=True)
+
+    return check
+
+
 class StopFlag:
     """A stop request set by SIGINT or SIGTERM (install from the main thread)."""
 
@@ -170,6 +230,11 @@ class StopFlag:
     def _handler(self, signum: int, _frame: Any) -> None:
         self.signal = signum
         self.event.set()
+
+    def exit_code(self) -> int:
+        """How a command stopped by this flag exits: 130 after Ctrl-C (SIGINT), 0 after
+        SIGTERM (a service manager's orderly stop, which systemd counts as success)."""
+        return EXIT_INTERRUPTED if self.signal == signal.SIGINT else 0
 
     def is_set(self) -> bool:
         return self.event.is_set()

@@ -44,9 +44,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import json
 import logging
 import math
+import os
 import secrets
 import threading
 import time
@@ -260,7 +262,10 @@ class GcsServer:
         if failure:
             exc = failure[0]
             if isinstance(exc, OSError):
-                why = exc.strerror or str(exc)
+                # aiohttp's text repeats the address: "error while attempting to bind on ..."
+                why = os.strerror(exc.errno) if exc.errno else exc.strerror or str(exc)
+                if exc.errno == errno.EADDRINUSE:
+                    why = f"port {self.cfg.port} in use (another program, or another station?)"
                 raise ServerError(f"cannot listen on {self.cfg.host}:{self.cfg.port}: {why}") from None
             raise ServerError(f"cannot start the HTTP server: {exc}") from exc
         return self

@@ -23,6 +23,7 @@ dropped, never raised into Zenoh.
 from __future__ import annotations
 
 import json
+import re
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -72,7 +73,7 @@ def session_config(
         if connect:
             cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except Exception as exc:  # zenoh raises its own ZError for bad JSON5 values
-        raise TransportError(f"bad Zenoh endpoint configuration: {exc}") from exc
+        raise TransportError(zenoh_config_message(str(exc))) from exc
     return cfg
 
 
@@ -85,9 +86,47 @@ def open_session(
     except TransportError:
         raise
     except Exception as exc:
-        raise TransportError(
-            f"cannot open Zenoh session (listen={list(listen)}, connect={list(connect)}): {exc}"
-        ) from exc
+        raise TransportError(zenoh_open_message(str(exc), listen, connect)) from exc
+
+
+def has_peer(session: Any) -> bool:
+    """True when ``session`` is connected to at least one other Zenoh node (peer or
+    router). Zenoh keeps retrying a ``connect`` endpoint it cannot reach, silently:
+    this is how a command can tell the user."""
+    info = session.info
+    return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
+
+
+#: Zenoh's errors end with where in its Rust source they were raised: " at /root/.cargo/...rs:61."
+_RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+_BOUND_TO = re.compile(r"bound to ([a-z]+/\S+?):\s")
+
+
+_JSON5_MSG = re.compile(r'msg: "(.*?)"(?:, location|\s*\})')
+
+
+def zenoh_config_message(text: str) -> str:
+    """One line for Zenoh's refusal of an endpoint: its own sentence, without the
+    Rust debug wrapping (``Json5Err(Message { msg: ...``) or source paths."""
+    m = _JSON5_MSG.search(text)
+    detail = _RUST_SOURCE.sub("", m.group(1) if m else text).strip().rstrip(".")
+    return f"bad Zenoh endpoint: {detail} (for example tcp/127.0.0.1:7447)"
+
+
+def zenoh_open_message(text: str, listen: Sequence[str], connect: Sequence[str]) -> str:
+    """One line a user understands for Zenoh's ``zenoh.open`` error ``text``: a port in
+    use or an address not of this machine named as such, and never the Rust source
+    paths of the Zenoh build."""
+    m = _BOUND_TO.search(text)
+    endpoint = m.group(1) if m else (listen[0] if len(listen) == 1 else "")
+    port = endpoint.rpartition(":")[2]
+    if "Address already in use" in text and endpoint:
+        return f"cannot listen on {endpoint}: port {port} in use (another program, or another swarm node?)"
+    if "Cannot assign requested address" in text and endpoint:
+        return f"cannot listen on {endpoint}: that address is not one of this machine's"
+    detail = _RUST_SOURCE.sub("", text).replace("[", "").replace("]", "").strip().rstrip(".")
+    where = "; ".join(f"{k} {' '.join(v)}" for k, v in (("listen", listen), ("connect", connect)) if v)
+    return f"cannot open Zenoh session ({where or 'no endpoints'}): {detail}"
 
 
 class Transport:

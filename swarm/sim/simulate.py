@@ -44,6 +44,7 @@ from __future__ import annotations
 import random
 import statistics
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -485,12 +486,14 @@ def pct(values: list[float], q: float) -> float | None:
     return round(s[k], 3)
 
 
-def campaign(sc: Scenario, seeds: int, seed0: int = 0, jobs: int = 1) -> dict[str, Any]:
+def campaign(
+    sc: Scenario, seeds: int, seed0: int = 0, jobs: int = 1, on_done: Callable[[], None] = lambda: None
+) -> dict[str, Any]:
     """Seeds ``seed0 ..`` run (over ``jobs`` processes) and summarised; the summary is
-    the same for any number of jobs."""
+    the same for any number of jobs. ``on_done`` is called once per finished seed."""
     from swarm.sim.parallel import run_seeds  # the pool's module imports this one
 
-    results = run_seeds(sc, seeds, seed0, jobs)
+    results = run_seeds(sc, seeds, seed0, jobs, on_done)
     elect = [r.elect_s for r in results if r.elect_s is not None]
     fail = [r.failover_s for r in results if r.failover_s is not None]
     bad = [r for r in results if r.violations]

@@ -11,7 +11,7 @@ With ``--json``, what the pilot does (commands answered, following, holds and
 why; each command with its seq) comes as ``{"event": "pilot", "name", "id", "text",
 "t"}`` lines, and a flight controller falling silent or heard again as
 ``{"event": "vehicle", "name", "id", "link": false | true, "text", "t"}``.
-SIGINT or SIGTERM stops it cleanly (exit 0).
+SIGINT or SIGTERM stops it cleanly (exit 130 after Ctrl-C, 0 after SIGTERM).
 
 If the radio goes away (a USB radio unplugged) the agent keeps its swarm state and
 waits for the device to come back at the same path, reopening it with back-off;
@@ -71,6 +71,7 @@ from swarm.cli.util import (
     guarded,
     node_options,
     parser,
+    peer_watch,
     print_json,
 )
 from swarm.core.formation import FormationConfig
@@ -466,7 +467,9 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
     try:
         out.open(agent)
         service.ready(f"agent {a.name} id={a.id} {agent.describe()} ready")
+        check_peer = peer_watch(PROG, a, agent)
         while not stop.wait(0.5):
+            check_peer()
             if (
                 recheck is not None
                 and agent.bridge is not None
@@ -479,4 +482,4 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
     finally:
         service.stopping()
         agent.stop()
-    return 0
+    return stop.exit_code()

@@ -1,4 +1,10 @@
-"""``swarm bench <area> [--json] [--quick]``: run a benchmark and print its figures."""
+"""``swarm bench <area> [--json] [--quick]``: run a benchmark and print its figures.
+
+Text output is a table for people (:func:`text_table`: nested groups indented,
+yes/no for targets), ``--json`` one object for programs. While it runs, a person on
+a terminal sees the seconds counted on stderr (:class:`swarm.cli.progress.Ticker`).
+Ctrl-C or SIGTERM stops it (exit 130); the benches stop what they started.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +12,7 @@ import importlib
 import signal
 from typing import Any
 
+from swarm.cli.progress import Ticker
 from swarm.cli.util import guarded, parser, print_json
 
 PROG = "swarm bench"
@@ -37,13 +44,37 @@ def main(argv: list[str] | None = None) -> int:
     # SIGTERM as Ctrl-C: the benches stop the processes they started on the way out
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        result = importlib.import_module(f"swarm.cli.bench.{AREAS[args.area][0]}").run(quick=args.quick)
+        with Ticker(f"{PROG} {args.area}", as_json=args.json):
+            result = importlib.import_module(f"swarm.cli.bench.{AREAS[args.area][0]}").run(quick=args.quick)
     finally:
         signal.signal(signal.SIGTERM, previous)
     if args.json:
         print_json(result)
     else:
-        width = max(len(k) for k in result)
-        for k, v in result.items():
-            print(f"{k:<{width}}  {v}")
+        print(text_table(result), flush=True)
     return 0
+
+
+def _value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, list | tuple):
+        return ", ".join(_value(x) for x in v) if v else "-"
+    return "-" if v is None else str(v)
+
+
+def text_table(result: dict[str, Any], indent: str = "") -> str:
+    """The figures for a person: one ``name  value`` line each, a nested group (a
+    dict) as its name then its own lines indented; no Python dicts. ``--json`` is
+    for programs."""
+    if not result:
+        return ""
+    width = max(len(str(k)) for k in result)
+    lines = []
+    for k, v in result.items():
+        if isinstance(v, dict) and v:
+            lines.append(f"{indent}{k}")
+            lines.append(text_table(v, indent + "  "))
+        else:
+            lines.append(f"{indent}{k!s:<{width}}  {_value(v)}")
+    return "\n".join(lines)

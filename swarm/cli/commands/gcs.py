@@ -12,7 +12,8 @@ line's address ``.../?token=...``); README, "Security".
 It prints one ready line once the HTTP server listens (``--json``:
 ``{"event": "ready", "url", "name", "id", "link", "replay", "token", ...}``), then one line per
 station event (connections, leader changes, command results; ``--json``:
-``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 0).
+``{"event": "log", "t", "kind", "text"}``). SIGINT or SIGTERM stops it (exit 130
+after Ctrl-C, 0 after SIGTERM).
 Bad input (a missing serial device, a port in use, a tile folder or an MBTiles
 file that is not one, a damaged capture) prints one line and exits 2. A radio lost
 while running (a USB radio unplugged) is waited for and reopened at the same path,
@@ -32,7 +33,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from radios.errors import CaptureError
+from radios.errors import CaptureDamagedError, CaptureError
 from radios.smallfile import read_small_file
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
@@ -40,10 +41,12 @@ from swarm.cli.util import (
     StopFlag,
     UsageError,
     add_node_arguments,
+    capture_damage,
     exit_when_stopped,
     guarded,
     node_options,
     parser,
+    peer_watch,
     print_json,
 )
 from swarm.core.gslink import STATION_IDS
@@ -319,6 +322,8 @@ def _open_station(a: argparse.Namespace) -> Any:
 
         try:
             cap = load_capture(a.replay)
+        except CaptureDamagedError as exc:
+            raise UsageError(capture_damage(exc)) from None
         except CaptureError as exc:
             raise UsageError(str(exc)) from None
         if cap.records == 0:
@@ -410,7 +415,9 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
         station.add_listener(on_event)
         if bridge is not None:
             bridge.add_listener(on_radio)
+        check_peer = peer_watch(PROG, a, station)
         while not stop.wait(0.5):
+            check_peer()
             if not station.running:
                 return exit_when_stopped(PROG, station, "the station's thread")
     finally:
@@ -419,4 +426,4 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
         if server is not None:
             server.stop()
         station.stop()
-    return 0
+    return stop.exit_code()

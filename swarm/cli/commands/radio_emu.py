@@ -150,4 +150,4 @@ def main(argv: list[str] | None = None) -> int:
         )
     finally:
         emu.close()
-    return 0
+    return stop.exit_code()

@@ -35,8 +35,9 @@ modes (each its own function below; only one runs):
 
 ``--plot`` reads one file. The capture is streamed, never loaded whole. A damaged
 capture is used up to the damage: every whole record is printed (or counted, or
-sent), then the damage message goes to stderr and the exit code is 1. A missing
-file is bad input (exit 2). Errors never show a traceback (:func:`swarm.cli.util.guarded`).
+sent), then the damage message goes to stderr and the exit code is 2: a damaged
+file, a file that is not a capture and a missing file are all bad input (exit 2,
+as for ``swarm gcs --replay``). Errors never show a traceback (:func:`swarm.cli.util.guarded`).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
-from radios.errors import CaptureDamagedError, ConfigError, LinkError
+from radios.errors import CaptureDamagedError, CaptureError, ConfigError, LinkError
 from radios.mavlink import MSG_TUNNEL, STX_V2
 from radios.replay import (
     DEFAULT_MAX_GAP,
@@ -68,8 +69,10 @@ from radios.url import parse_link_url
 from swarm.cli.util import (
     EXIT_FAILURE,
     EXIT_INTERRUPTED,
+    EXIT_USAGE,
     StopFlag,
     UsageError,
+    capture_damage,
     guarded,
     parser,
     print_json,
@@ -168,7 +171,10 @@ def _open(path: str, args: argparse.Namespace) -> TlogReader | FlightLogReader:
             raise UsageError(str(exc)) from None
     if args.agent is not None or args.fc:
         raise UsageError("--agent and --fc choose among a flight log folder's files: give the folder")
-    return read_tlog(path)
+    try:
+        return read_tlog(path)
+    except CaptureError as exc:  # cannot be read (permissions, a device): the user's input
+        raise UsageError(str(exc)) from None
 
 
 def _torn_notes(reader: TlogReader | FlightLogReader) -> None:
@@ -182,9 +188,10 @@ def _torn_notes(reader: TlogReader | FlightLogReader) -> None:
 
 
 def _damaged(exc: CaptureDamagedError) -> int:
+    """Every whole record is out: say where the damage is; a bad file is bad input (2)."""
     sys.stdout.flush()
-    print(f"{PROG}: error: {exc}", file=sys.stderr, flush=True)
-    return EXIT_FAILURE
+    print(f"{PROG}: error: {capture_damage(exc)}", file=sys.stderr, flush=True)
+    return EXIT_USAGE
 
 
 def _silence_stdout() -> None:
@@ -385,19 +392,21 @@ def _print_summary(st: PlayStats, args: argparse.Namespace, speed: float, max_ga
 
 def _plot(path: str, out: str, *, as_json: bool) -> int:
     """Tracks, leader, slots (swarm.sim.tracks.plot) and the formation metrics."""
+    from swarm.cli.progress import Ticker
     from swarm.sim.tracks import analyse, plot
 
     parent = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(parent):
         raise UsageError(f"--plot {out}: no such directory {parent}")
-    an = analyse(path)
-    try:
-        plot(an, out)
-    except ValueError as exc:
-        print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    except OSError as exc:
-        raise UsageError(f"--plot {out}: {exc.strerror or exc}") from None
+    with Ticker(PROG, f"reading and drawing {os.path.basename(path)}", as_json=as_json):
+        an = analyse(path)
+        try:
+            plot(an, out)
+        except ValueError as exc:  # nothing to draw in this file (no pose stream): bad input
+            print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        except OSError as exc:
+            raise UsageError(f"--plot {out}: {exc.strerror or exc}") from None
     s = an.summary()
     s["plot"] = out
     if as_json:
@@ -406,7 +415,7 @@ def _plot(path: str, out: str, *, as_json: bool) -> int:
         print("\n".join(_plot_lines(s)))
     if an.damaged:
         print(f"{PROG}: error: {an.damaged}", file=sys.stderr)
-        return EXIT_FAILURE
+        return EXIT_USAGE
     return 0
 
 

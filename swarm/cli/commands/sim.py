@@ -104,7 +104,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="vehicle i starts i*M metres east of home (default 5)",
     )
-    p.add_argument("--profile", choices=("px4", "ardupilot"), default="px4")
+    p.add_argument(
+        "--profile",
+        choices=("px4", "ardupilot"),
+        default="px4",
+        help="whose autopilot to speak like: modes, acks and messages (default px4)",
+    )
     p.add_argument(
         "--speedup",
         type=float,
@@ -193,8 +198,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ready: {len(endpoints)} vehicle(s), speedup {args.speedup:g}{booting}", flush=True)
         while not stop.wait(0.5):
             if sim.error is not None:
-                print(f"{PROG}: error: {sim.error}", flush=True)
+                print(f"{PROG}: error: {sim.error}", file=sys.stderr, flush=True)
                 return 1
     finally:
         sim.stop()
-    return 0
+    return stop.exit_code()

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 
@@ -46,8 +47,11 @@ def _build_parser() -> argparse.ArgumentParser:
         help="agent ID (or 'leader') stops for good at T s (leader: at T or when one exists)",
     )
     p.add_argument("--late", action="append", default=[], metavar="ID@T", help="agent ID starts at T s")
-    p.add_argument("--profile", choices=("paper", "fast"), default="paper")
-    p.add_argument("--air-speed", type=int, default=64, metavar="KBPS")
+    profiles = "timing profile: the paper's windows, or fast (from the TDM round); default paper"
+    p.add_argument("--profile", choices=("paper", "fast"), default="paper", help=profiles)
+    p.add_argument(
+        "--air-speed", type=int, default=64, metavar="KBPS", help="air rate in kbit/s (default 64)"
+    )
     p.add_argument(
         "--duration",
         type=float,
@@ -114,19 +118,52 @@ def main(argv: list[str] | None = None) -> int:
         duration=a.duration,
     )
     try:
-        with _sigterm_interrupts():
-            result = campaign(sc, a.seeds, a.seed, jobs=a.jobs)
+        with _sigterm_interrupts(), Progress(PROG, a.seeds, "seeds", as_json=a.json) as bar:
+            result = campaign(sc, a.seeds, a.seed, jobs=a.jobs, on_done=bar.advance)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED
     if a.json:
         print_json(result)
+        for f in result["failing"]:  # for the person running the program that reads stdout
+            print(f"replay failing seed {f['seed']}: {f['replay']}", file=sys.stderr)
     else:
-        for k, v in result.items():
-            if k != "failing":
-                print(f"{k:<20} {v}")
-        for f in result["failing"]:
-            print(f"FAILED seed {f['seed']}: {'; '.join(f['violations'])}\n  replay: {f['replay']}")
-    for f in result["failing"]:
-        print(f"replay failing seed {f['seed']}: {f['replay']}", file=sys.stderr)
+        print(text_report(result), flush=True)
     return 0 if not result["failing"] else 1
+
+
+def _fig(v: float | None, unit: str = " s") -> str:
+    return "-" if v is None else f"{v:g}{unit}"
+
+
+def text_report(r: dict[str, Any]) -> str:
+    """The campaign's figures (:func:`swarm.sim.simulate.campaign`) for a person: one
+    line a figure saying what it counts, then each failing seed once with its replay."""
+    n, e, air = r["runs"], r["elect_s"], r["air_utilisation"]
+    lines = [
+        f"{r['agents']} agents, {r['profile']} profile, loss {r['loss']:g}: {n} runs "
+        f"(TDM round {r['round_s']:g} s)",
+        f"  converged             {r['converged']} of {n} runs (one agreed swarm held for the settle time)",
+        f"  stable at the end     {r['stable_at_end']} of {n} runs (one leader all agree on at the end)",
+        f"  violations            {r['violations']} in all runs (each failing run below says which)",
+        f"  election time         p50 {_fig(e['p50'])}, p95 {_fig(e['p95'])}, max {_fig(e['max'])}",
+    ]
+    if "failover_s" in r:
+        f = r["failover_s"]
+        lines.append(f"  failover time         p50 {_fig(f['p50'])}, p95 {_fig(f['p95'])}")
+    lines += [
+        f"  air time used         p50 {_fig(_pct(air['p50']), ' %')}, max {_fig(_pct(air['max']), ' %')}",
+        f"  messages per agent    p50 {_fig(r['messages_per_agent']['p50'], '')}",
+    ]
+    fails = r["failing"]
+    lines.append(
+        f"failing runs: {len(fails)}" + (" (the first 10)" if len(fails) >= 10 else "") if fails else ""
+    )
+    for f in fails:
+        lines.append(f"  seed {f['seed']}: {'; '.join(f['violations'])}")
+        lines.append(f"    replay: {f['replay']}")
+    return "\n".join(line for line in lines if line)
+
+
+def _pct(share: float | None) -> float | None:
+    return None if share is None else round(100 * share, 1)

@@ -158,7 +158,8 @@ def test_fleet_table_lists_every_agent_in_its_colour_sorts_and_selects(live: Liv
         assert cell(page, k, "alt") == ("0.0" if not f.armed else f"{f.alt:.1f} AMSL ✈")  # ✈: airborne
         assert cell(page, k, "groundspeed") == f"{f.speed:.1f}"
         assert cell(page, k, "battery") == ("unknown" if f.battery > 100 else f"{f.battery} %")
-        assert cell(page, k, "link") == f"{f.rssi} / {f.remrssi}"
+        loss = live.station.agent(k)["loss_pct"]  # type: ignore[index]
+        assert cell(page, k, "link") == f"{f.rssi} / {f.remrssi} · {round(loss)} % loss", loss
         assert cell(page, k, "seen").endswith(" s")
     # the station says how often each agent beats: the page's measure of "silent"
     assert {a["id"]: a["hb_s"] for a in live.station.snapshot()["agents"]} == dict.fromkeys(FLEET, 0.2)

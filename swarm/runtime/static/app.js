@@ -411,8 +411,9 @@
   }
   // the link column: RSSI / remote RSSI as the radio gives them (a hook for loss and margin)
   function linkText(a) {
-    if (a.rssi === null || a.rssi === undefined) return "—";
-    return a.rssi + " / " + (a.remrssi ?? "—");
+    const rssi = a.rssi === null || a.rssi === undefined ? "—" : a.rssi + " / " + (a.remrssi ?? "—");
+    // the share of its Telemetry the station missed lately (judged with hysteresis)
+    return typeof a.loss_pct === "number" ? rssi + " · " + Math.round(a.loss_pct) + " % loss" : rssi;
   }
   // seconds since the station heard the agent, aged by the page's own data age
   function agentAge(a) {

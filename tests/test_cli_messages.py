@@ -87,7 +87,7 @@ def test_truncated_capture_plot_says_no_samples_not_none(
     cut.write_bytes(DEMO.read_bytes()[:20000])  # ends before the formation settles, mid-record
     assert replay_main([str(cut), "--plot", str(tmp_path / "p.png")]) == 2  # a damaged file: bad input
     out, err = capsys.readouterr()
-    assert "None" not in out and "no samples" in out
+    assert "None" not in out and "n/a, 0 samples" in out  # no figures, said so
     assert err.startswith("swarm replay: error: ") and "truncated" in err and len(err.splitlines()) == 1
 
 

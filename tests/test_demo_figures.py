@@ -67,7 +67,7 @@ def test_replay_plot_reports_the_same_figures_with_their_definition(
 def test_a_truncated_capture_prints_no_none(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cut = tmp_path / "cut.tlog"
     cut.write_bytes(Path(DEMO).read_bytes()[:60_000])  # before the route
-    assert replay_main([str(cut), "--plot", str(tmp_path / "p.png")]) == 1
+    assert replay_main([str(cut), "--plot", str(tmp_path / "p.png")]) == 2  # a damaged capture: bad input
     got = capsys.readouterr()
     assert "None" not in got.out and "formation_rms_m: n/a" in got.out
     assert "damaged record" in got.err

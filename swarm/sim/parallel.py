@@ -20,7 +20,8 @@ from __future__ import annotations
 import multiprocessing
 import signal
 
-from swarm.sim.simulate import RunResult, Scenario, Sim
+from swarm.sim.faultsim import make_sim
+from swarm.sim.simulate import RunResult, Scenario
 
 
 def _worker_start() -> None:
@@ -32,17 +33,22 @@ def _worker_start() -> None:
 
 def _run_one(job: tuple[Scenario, int]) -> RunResult:
     sc, seed = job
-    return Sim(sc, seed).run()
+    return make_sim(sc, seed).run()
 
 
 def run_seeds(sc: Scenario, seeds: int, seed0: int, jobs: int) -> list[RunResult]:
     """The results of seeds ``seed0 .. seed0 + seeds - 1``, in that order, computed by
     ``jobs`` worker processes (in this process when ``jobs`` is 1 or there is one seed)."""
-    if jobs <= 1 or seeds <= 1:
-        return [Sim(sc, seed0 + k).run() for k in range(seeds)]
-    jobs = min(jobs, seeds)
-    work = [(sc, seed0 + k) for k in range(seeds)]
-    chunk = max(1, seeds // (jobs * 4))
+    return run_jobs([(sc, seed0 + k) for k in range(seeds)], jobs)
+
+
+def run_jobs(work: list[tuple[Scenario, int]], jobs: int) -> list[RunResult]:
+    """The results of runs (scenario, seed), in that order, computed by ``jobs``
+    worker processes (in this process when ``jobs`` is 1 or there is one run)."""
+    if jobs <= 1 or len(work) <= 1:
+        return [_run_one(job) for job in work]
+    jobs = min(jobs, len(work))
+    chunk = max(1, len(work) // (jobs * 8))
     ctx = multiprocessing.get_context("spawn")
     # Workers are spawned with SIGINT ignored: an ignored signal stays ignored across
     # exec and Python then leaves it so, so no worker prints a Ctrl-C traceback while it
@@ -72,4 +78,4 @@ def run_seeds(sc: Scenario, seeds: int, seed0: int, jobs: int) -> list[RunResult
     return results
 
 
-__all__ = ["run_seeds"]
+__all__ = ["run_jobs", "run_seeds"]

@@ -57,6 +57,75 @@ class PartitionLoss:
         return False
 
 
+@dataclass(frozen=True)
+class Link:
+    """``A>B:P`` or ``A>B:P@T0-T1``: frames agent A sends reach agent B with loss P (1:
+    never; a one-way link), for the whole run or from T0 to T1 s."""
+
+    src: int
+    dst: int
+    p: float
+    t0: float = 0.0
+    t1: float = float("inf")
+
+    @classmethod
+    def parse(cls, spec: str) -> Link:
+        try:
+            pair, _, rest = spec.partition(":")
+            a, b = pair.split(">", 1)
+            p, _, win = rest.partition("@")
+            t0, t1 = (float(x) for x in win.split("-", 1)) if win else (0.0, float("inf"))
+            link = cls(int(a), int(b), float(p), t0, t1)
+        except ValueError:
+            raise ValueError(f"link {spec!r}: expected A>B:P or A>B:P@T0-T1") from None
+        if not 0 <= link.p <= 1 or not 0 <= link.t0 < link.t1 or link.src == link.dst:
+            raise ValueError(f"link {spec!r}: P in 0..1, T0 < T1, A and B different")
+        return link
+
+    def spec(self) -> str:
+        win = "" if self.t1 == float("inf") else f"@{self.t0!r}-{self.t1!r}"
+        return f"{self.src}>{self.dst}:{self.p!r}{win}"
+
+
+@dataclass
+class LinkLoss:
+    """Directed losses: what a sender's frames lose on the way to one receiver."""
+
+    links: list[Link]
+
+    def lost(self, sender: int, receiver: int, t: float, rng: random.Random) -> bool:
+        for k in self.links:
+            if k.src == sender + 1 and k.dst == receiver + 1 and k.t0 <= t < k.t1:
+                if k.p >= 1 or rng.random() < k.p:
+                    return True
+        return False
+
+
+def parse_span(spec: str) -> tuple[int, float, float]:
+    """``ID@T0-T1`` (a restart or a pause: down from T0, up at T1)."""
+    try:
+        who, _, win = spec.partition("@")
+        a, b = win.split("-", 1)
+        agent, t0, t1 = int(who), float(a), float(b)
+    except ValueError:
+        raise ValueError(f"{spec!r}: expected ID@T0-T1") from None
+    if not 0 <= t0 < t1:
+        raise ValueError(f"{spec!r}: T0 < T1, both at least 0")
+    return agent, t0, t1
+
+
+def parse_drift(spec: str) -> tuple[int, float]:
+    """``ID:PPM``: the agent's clock runs PPM parts per million fast (negative: slow)."""
+    try:
+        who, ppm = spec.split(":", 1)
+        agent, d = int(who), float(ppm)
+    except ValueError:
+        raise ValueError(f"drift {spec!r}: expected ID:PPM") from None
+    if not abs(d) <= 50_000:
+        raise ValueError(f"drift {spec!r}: at most 50000 ppm either way")
+    return agent, d
+
+
 def parse_at(spec: str) -> tuple[str, float]:
     """``ID@T`` or ``leader@T``."""
     who, _, t = spec.partition("@")
@@ -80,6 +149,16 @@ class Scenario:
     #: TDM rounds, whichever is longer (an N=50 election takes about ten rounds)
     duration: float | None = None
     settle: float = 3.0  # converged state must hold this long
+    links: list[str] = field(default_factory=list)
+    restarts: list[str] = field(default_factory=list)
+    pauses: list[str] = field(default_factory=list)
+    drift: list[str] = field(default_factory=list)
+    strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
+
+    @property
+    def extended(self) -> bool:
+        """Whether the run needs :class:`swarm.sim.faultsim.FaultSim`."""
+        return bool(self.restarts or self.pauses or self.drift or self.strict)
 
     def command(self, seed: int) -> str:
         parts = [
@@ -93,8 +172,16 @@ class Scenario:
         parts += [f"--partition {p}" for p in self.partitions]
         parts += [f"--crash {c}" for c in self.crashes]
         parts += [f"--late {x}" for x in self.late]
+        parts += [f"--link {x}" for x in self.links]
+        parts += [f"--restart {x}" for x in self.restarts]
+        parts += [f"--pause {x}" for x in self.pauses]
+        parts += [f"--drift {x}" for x in self.drift]
+        if self.air_kbps != 64:
+            parts.append(f"--air-speed {self.air_kbps}")
         if self.duration is not None:
             parts.append(f"--duration {self.duration}")
+        if self.strict:
+            parts.append("--strict")
         return " ".join(parts)
 
 
@@ -127,10 +214,14 @@ def run_length(round_s: float) -> float:
 __all__ = [
     "DURATION_ROUNDS",
     "MIN_DURATION_S",
+    "Link",
+    "LinkLoss",
     "Partition",
     "PartitionLoss",
     "RunResult",
     "Scenario",
     "parse_at",
+    "parse_drift",
+    "parse_span",
     "run_length",
 ]

@@ -15,6 +15,8 @@ from contextlib import contextmanager
 from typing import Any
 
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
+from swarm.sim.campaign import run_campaign
+from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 
 PROG = "swarm simulate"
@@ -46,6 +48,40 @@ def _build_parser() -> argparse.ArgumentParser:
         help="agent ID (or 'leader') stops for good at T s (leader: at T or when one exists)",
     )
     p.add_argument("--late", action="append", default=[], metavar="ID@T", help="agent ID starts at T s")
+    p.add_argument(
+        "--link",
+        action="append",
+        default=[],
+        metavar="A>B:P[@T0-T1]",
+        help="what agent A sends reaches B with loss P (1: a one-way link), for the run or from T0 to T1 s",
+    )
+    p.add_argument(
+        "--restart",
+        action="append",
+        default=[],
+        metavar="ID@T0-T1",
+        help="agent ID's process is down from T0 and starts afresh (no state) at T1 s",
+    )
+    p.add_argument(
+        "--pause",
+        action="append",
+        default=[],
+        metavar="ID@T0-T1",
+        help="agent ID is frozen from T0 and resumes with its state at T1 s (SIGSTOP/SIGCONT)",
+    )
+    p.add_argument(
+        "--drift", action="append", default=[], metavar="ID:PPM", help="agent ID's clock runs PPM ppm fast"
+    )
+    p.add_argument(
+        "--strict", action="store_true", help="check the fault campaign's continuous invariants too"
+    )
+    p.add_argument(
+        "--campaign",
+        type=int,
+        metavar="K",
+        help="run K scenarios drawn from the fault distribution seeded --seed (ignores the scenario "
+        "flags), shrink the failing ones and print their replay commands",
+    )
     p.add_argument("--profile", choices=("paper", "fast"), default="paper")
     p.add_argument("--air-speed", type=int, default=64, metavar="KBPS")
     p.add_argument(
@@ -80,6 +116,52 @@ def _sigterm_interrupts() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old)
 
 
+def _check_specs(a: argparse.Namespace) -> None:
+    """Every fault flag parses and names agents 1..--agents (one line, exit 2 if not)."""
+    n = a.agents
+    try:
+        for spec in a.partition:
+            Partition.parse(spec)
+        ids: list[tuple[str, str]] = []
+        for spec in a.crash + a.late:
+            who, _ = parse_at(spec)
+            ids.append((spec, who))
+        for spec in a.link:
+            k = Link.parse(spec)
+            ids += [(spec, str(k.src)), (spec, str(k.dst))]
+        ids += [(spec, str(parse_span(spec)[0])) for spec in a.restart + a.pause]
+        ids += [(spec, str(parse_drift(spec)[0])) for spec in a.drift]
+        for spec, who in ids:
+            if who != "leader" and not (who.isdigit() and 1 <= int(who) <= n):
+                raise ValueError(f"{spec!r}: agent ids are 1..{n}")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if a.campaign is not None and not 1 <= a.campaign <= 1_000_000:
+        raise UsageError("--campaign: 1..1000000 scenarios")
+
+
+def _campaign(a: argparse.Namespace) -> int:
+    try:
+        with _sigterm_interrupts():
+            result = run_campaign(a.campaign, a.seed, jobs=a.jobs)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    if a.json:
+        print_json(result)
+    else:
+        for k in ("scenarios", "seed", "violations", "virtual_s", "agents_max"):
+            print(f"{k:<20} {result[k]}")
+        for kind, v in result["by_kind"].items():
+            print(f"  {kind:<18} {v['scenarios']:>6} scenarios {v['failing']:>5} failing")
+    for f in result["failing"]:
+        print(f"FAILED scenario {f['index']}: {'; '.join(f['violations'])}", file=sys.stderr)
+        print(f"  replay: {f['replay']}", file=sys.stderr)
+        if "shrunk" in f:
+            print(f"  shrunk: {f['shrunk']['replay']}", file=sys.stderr)
+    return 0 if not result["failing"] else 1
+
+
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     a = _build_parser().parse_args(argv)
@@ -93,15 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--jobs: 1..256")
     if not 0 <= a.loss <= 1:
         raise UsageError("--loss: a probability between 0 and 1")
-    try:
-        for spec in a.partition:
-            Partition.parse(spec)
-        for spec in a.crash + a.late:
-            who, _ = parse_at(spec)
-            if who != "leader" and not (who.isdigit() and 1 <= int(who) <= a.agents):
-                raise ValueError(f"{spec!r}: agent ids are 1..{a.agents}")
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    _check_specs(a)
     sc = Scenario(
         agents=a.agents,
         loss=a.loss,
@@ -112,7 +186,14 @@ def main(argv: list[str] | None = None) -> int:
         profile=a.profile,
         air_kbps=a.air_speed,
         duration=a.duration,
+        links=a.link,
+        restarts=a.restart,
+        pauses=a.pause,
+        drift=a.drift,
+        strict=a.strict,
     )
+    if a.campaign is not None:
+        return _campaign(a)
     try:
         with _sigterm_interrupts():
             result = campaign(sc, a.seeds, a.seed, jobs=a.jobs)

@@ -13,8 +13,9 @@ hundred of 5); both profiles; and, each with its own chance, uniform loss (0-30 
 bursty loss (bad 2-14 % of the time), partitions that heal, crashes of the leader (several leader changes in
 one run), members leaving (they stop without a word: the protocol has no goodbye),
 restarts without state and pauses with it (:mod:`swarm.sim.faultsim`), late
-joiners, asymmetric links (more loss one way, up to 35 % with the uniform loss), one-way links for a while (an agent
-that hears the others but is not heard), and clock drift per agent. Faults fall in a
+joiners, asymmetric links (more loss one way, up to 35 % with the uniform loss),
+one-way links for a while (an agent that hears the others but is not heard), and
+clock drift per agent. Faults fall in a
 horizon of 30 s to 30 virtual minutes (mostly short); a run's cost is bounded: the
 horizon is cut to COST_BUDGET agent-seconds, and the run lasts the horizon plus a
 tail long enough for the swarm to settle (it stops as soon as it has settled after
@@ -129,10 +130,11 @@ def _faults(rng: random.Random, sc: Scenario, h: float) -> list[str]:
     return kinds
 
 
-def draw(seed: int, k: int) -> tuple[Scenario, int, list[str]]:
-    """Scenario ``k`` of the campaign seeded ``seed``: (scenario, run seed, kinds)."""
+def draw(seed: int, k: int, max_agents: int = 50) -> tuple[Scenario, int, list[str]]:
+    """Scenario ``k`` of the campaign seeded ``seed``: (scenario, run seed, kinds);
+    ``max_agents`` caps N (a cheaper campaign: the draws are the same otherwise)."""
     rng = random.Random(f"campaign:{seed}:{k}")
-    n = _agents(rng)
+    n = max(2, min(_agents(rng), max_agents))
     sc = Scenario(agents=n, profile=rng.choice(("paper", "fast")), strict=True)
     h = _horizon(rng, n)
     kinds = _faults(rng, sc, h)
@@ -140,9 +142,11 @@ def draw(seed: int, k: int) -> tuple[Scenario, int, list[str]]:
     return sc, rng.getrandbits(31), kinds
 
 
-def run_campaign(scenarios: int, seed: int, jobs: int = 1, shrink_max: int = SHRINK_MAX) -> dict[str, Any]:
+def run_campaign(
+    scenarios: int, seed: int, jobs: int = 1, shrink_max: int = SHRINK_MAX, max_agents: int = 50
+) -> dict[str, Any]:
     """Runs the campaign; the result is the same for any number of jobs."""
-    drawn = [draw(seed, k) for k in range(scenarios)]
+    drawn = [draw(seed, k, max_agents) for k in range(scenarios)]
     results = run_jobs([(sc, s) for sc, s, _ in drawn], jobs)
     by_kind: dict[str, dict[str, int]] = defaultdict(lambda: {"scenarios": 0, "failing": 0})
     failing: list[dict[str, Any]] = []

@@ -67,7 +67,9 @@ def test_a_message_that_does_not_decode_is_a_violation() -> None:
     assert any("does not decode" in v for v in sim.violations)
 
 
-def test_a_failing_scenario_shrinks_and_its_replay_fails_the_same_way(capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_failing_scenario_shrinks_and_its_replay_fails_the_same_way(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     # agent 1 is never heard by agent 2: the swarm cannot settle before the link heals,
     # and it never heals; the rest is noise the shrinker removes
     sc = Scenario(
@@ -78,7 +80,7 @@ def test_a_failing_scenario_shrinks_and_its_replay_fails_the_same_way(capsys: py
     assert small.agents <= 3 and small.links == ["1>2:1.0"]
     assert not (small.late or small.drift or small.loss)
     argv = shlex.split(small.command(7))[2:]
-    assert main(argv + ["--json", "--jobs", "1"]) == 1
+    assert main([*argv, "--json", "--jobs", "1"]) == 1
     out = json.loads(capsys.readouterr().out)
     assert out["failing"][0]["violations"] == res.violations
 
@@ -138,7 +140,15 @@ def test_serial_and_jobs_campaigns_are_identical() -> None:
 @pytest.mark.processes  # worker processes
 def test_bounded_campaign_has_no_violation() -> None:
     res = bench_campaign.run(quick=True)
-    assert set(res) >= {"scenarios", "violations", "failing", "wall_s", "cpu_s", "scenarios_per_cpu_s", "by_kind"}
+    assert set(res) >= {
+        "scenarios",
+        "violations",
+        "failing",
+        "wall_s",
+        "cpu_s",
+        "scenarios_per_cpu_s",
+        "by_kind",
+    }
     assert res["scenarios"] == bench_campaign.QUICK
     assert res["violations"] == 0, res["failing"]
     assert res["by_kind"]["restart"]["scenarios"] > 0 and res["by_kind"]["one_way"]["scenarios"] > 0

@@ -17,6 +17,7 @@ to the worker processes of :mod:`swarm.sim.parallel`.
 from __future__ import annotations
 
 import random
+import shlex
 from dataclasses import dataclass, field
 
 
@@ -161,6 +162,7 @@ class Scenario:
         return bool(self.restarts or self.pauses or self.drift or self.strict)
 
     def command(self, seed: int) -> str:
+        """The ``swarm simulate`` command that replays ``seed`` (quoted for a POSIX shell)."""
         parts = [
             f"swarm simulate --agents {self.agents} --seeds 1 --seed {seed}",
             f"--profile {self.profile}",
@@ -168,14 +170,14 @@ class Scenario:
         if self.loss:
             parts.append(f"--loss {self.loss}")
         if self.burst_loss:
-            parts.append(f"--burst-loss {self.burst_loss}")
-        parts += [f"--partition {p}" for p in self.partitions]
-        parts += [f"--crash {c}" for c in self.crashes]
-        parts += [f"--late {x}" for x in self.late]
-        parts += [f"--link {x}" for x in self.links]
-        parts += [f"--restart {x}" for x in self.restarts]
-        parts += [f"--pause {x}" for x in self.pauses]
-        parts += [f"--drift {x}" for x in self.drift]
+            parts.append(f"--burst-loss {shlex.quote(self.burst_loss)}")
+        parts += [f"--partition {shlex.quote(p)}" for p in self.partitions]
+        parts += [f"--crash {shlex.quote(c)}" for c in self.crashes]
+        parts += [f"--late {shlex.quote(x)}" for x in self.late]
+        parts += [f"--link {shlex.quote(x)}" for x in self.links]
+        parts += [f"--restart {shlex.quote(x)}" for x in self.restarts]
+        parts += [f"--pause {shlex.quote(x)}" for x in self.pauses]
+        parts += [f"--drift {shlex.quote(x)}" for x in self.drift]
         if self.air_kbps != 64:
             parts.append(f"--air-speed {self.air_kbps}")
         if self.duration is not None:

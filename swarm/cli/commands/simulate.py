@@ -10,7 +10,7 @@ import argparse
 import os
 import signal
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -20,6 +20,41 @@ from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 
 PROG = "swarm simulate"
+#: the repeatable fault flags: (flag, Scenario field, metavar, help)
+_FAULT_FLAGS = (
+    (
+        "--partition",
+        "partitions",
+        "T0-T1:1,2|3,4",
+        "agents in different groups cannot hear each other from T0 to T1 s",
+    ),
+    (
+        "--crash",
+        "crashes",
+        "ID@T",
+        "agent ID (or 'leader') stops for good at T s (leader: at T or when one exists)",
+    ),
+    ("--late", "late", "ID@T", "agent ID starts at T s"),
+    (
+        "--link",
+        "links",
+        "A>B:P[@T0-T1]",
+        "what agent A sends reaches B with loss P (1: a one-way link), for the run or from T0 to T1 s",
+    ),
+    (
+        "--restart",
+        "restarts",
+        "ID@T0-T1",
+        "agent ID's process is down from T0 and starts afresh (no state) at T1 s",
+    ),
+    (
+        "--pause",
+        "pauses",
+        "ID@T0-T1",
+        "agent ID is frozen from T0 and resumes with its state at T1 s (SIGSTOP/SIGCONT)",
+    ),
+    ("--drift", "drift", "ID:PPM", "agent ID's clock runs PPM ppm fast (negative: slow)"),
+)
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -33,45 +68,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     p.add_argument("--loss", type=float, default=0.0, help="uniform packet loss per receiver")
     p.add_argument("--burst-loss", metavar="P_GB,P_BG[,LG,LB]", help="Gilbert-Elliott bursty loss")
-    p.add_argument(
-        "--partition",
-        action="append",
-        default=[],
-        metavar="T0-T1:1,2|3,4",
-        help="agents in different groups cannot hear each other from T0 to T1 s",
-    )
-    p.add_argument(
-        "--crash",
-        action="append",
-        default=[],
-        metavar="ID@T",
-        help="agent ID (or 'leader') stops for good at T s (leader: at T or when one exists)",
-    )
-    p.add_argument("--late", action="append", default=[], metavar="ID@T", help="agent ID starts at T s")
-    p.add_argument(
-        "--link",
-        action="append",
-        default=[],
-        metavar="A>B:P[@T0-T1]",
-        help="what agent A sends reaches B with loss P (1: a one-way link), for the run or from T0 to T1 s",
-    )
-    p.add_argument(
-        "--restart",
-        action="append",
-        default=[],
-        metavar="ID@T0-T1",
-        help="agent ID's process is down from T0 and starts afresh (no state) at T1 s",
-    )
-    p.add_argument(
-        "--pause",
-        action="append",
-        default=[],
-        metavar="ID@T0-T1",
-        help="agent ID is frozen from T0 and resumes with its state at T1 s (SIGSTOP/SIGCONT)",
-    )
-    p.add_argument(
-        "--drift", action="append", default=[], metavar="ID:PPM", help="agent ID's clock runs PPM ppm fast"
-    )
+    for flag, _, metavar, text in _FAULT_FLAGS:
+        p.add_argument(flag, action="append", default=[], metavar=metavar, help=text)
     p.add_argument(
         "--strict", action="store_true", help="check the fault campaign's continuous invariants too"
     )
@@ -116,6 +114,16 @@ def _sigterm_interrupts() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old)
 
 
+def _interruptible(run: Callable[[], dict[str, Any]]) -> dict[str, Any] | None:
+    """``run()``, or None after one line when Ctrl-C or SIGTERM stopped it (and its workers)."""
+    try:
+        with _sigterm_interrupts():
+            return run()
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
+        return None
+
+
 def _check_specs(a: argparse.Namespace) -> None:
     """Every fault flag parses and names agents 1..--agents (one line, exit 2 if not)."""
     n = a.agents
@@ -141,11 +149,8 @@ def _check_specs(a: argparse.Namespace) -> None:
 
 
 def _campaign(a: argparse.Namespace) -> int:
-    try:
-        with _sigterm_interrupts():
-            result = run_campaign(a.campaign, a.seed, jobs=a.jobs)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
+    result = _interruptible(lambda: run_campaign(a.campaign, a.seed, jobs=a.jobs))
+    if result is None:
         return EXIT_INTERRUPTED
     if a.json:
         print_json(result)
@@ -176,29 +181,21 @@ def main(argv: list[str] | None = None) -> int:
     if not 0 <= a.loss <= 1:
         raise UsageError("--loss: a probability between 0 and 1")
     _check_specs(a)
+    faults: dict[str, Any] = {field: getattr(a, flag[2:]) for flag, field, _, _ in _FAULT_FLAGS}
     sc = Scenario(
         agents=a.agents,
         loss=a.loss,
         burst_loss=a.burst_loss,
-        partitions=a.partition,
-        crashes=a.crash,
-        late=a.late,
         profile=a.profile,
         air_kbps=a.air_speed,
         duration=a.duration,
-        links=a.link,
-        restarts=a.restart,
-        pauses=a.pause,
-        drift=a.drift,
         strict=a.strict,
+        **faults,
     )
     if a.campaign is not None:
         return _campaign(a)
-    try:
-        with _sigterm_interrupts():
-            result = campaign(sc, a.seeds, a.seed, jobs=a.jobs)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
+    result = _interruptible(lambda: campaign(sc, a.seeds, a.seed, jobs=a.jobs))
+    if result is None:
         return EXIT_INTERRUPTED
     if a.json:
         print_json(result)

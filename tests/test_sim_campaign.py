@@ -44,6 +44,12 @@ def test_a_paused_agent_resumes_with_its_state() -> None:
     assert res.violations == [] and sim.cores[1] is core and res.end_s >= 16
 
 
+def test_an_agent_that_crashes_while_paused_stays_down() -> None:
+    sim = FaultSim(Scenario(agents=4, pauses=["2@10-30"], crashes=["2@20"], strict=True), 2)
+    res = sim.run()
+    assert res.violations == [] and not sim.alive[1] and res.end_s >= 30
+
+
 def test_drift_runs_an_agents_clock_fast() -> None:
     sim = FaultSim(Scenario(agents=2, drift=["2:1000"]), 0)
     assert isinstance(sim.cores[1], DriftCore) and sim.cores[1].rate == pytest.approx(1.001)

@@ -116,6 +116,9 @@ class FaultSim(Sim):
 
     # -- faults ---------------------------------------------------------------------
     def _start_and_crash(self, t: float, w: _Watch) -> None:
+        for who, when in self.crash_at:  # a crash while down: it stays down for good
+            if when <= t and who.isdigit() and int(who) - 1 in self._down:
+                self._down.discard(int(who) - 1)
         while self.spans and self.spans[0][0] <= t:
             _, i, what, fresh = self.spans.pop(0)
             if what == "down" and self.alive[i]:

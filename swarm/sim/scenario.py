@@ -156,6 +156,20 @@ class Scenario:
     drift: list[str] = field(default_factory=list)
     strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
 
+    def last_fault_s(self) -> float:
+        """When the last fault with an end ends (a partition heals, a link, a restart or
+        a pause is over, the last late agent starts); 0 if none."""
+        ends = [Partition.parse(p).t1 for p in self.partitions]
+        ends += [k.t1 for k in map(Link.parse, self.links) if k.t1 != float("inf")]
+        ends += [parse_span(x)[2] for x in self.restarts + self.pauses]
+        ends += [parse_at(x)[1] for x in self.late]
+        return max(ends, default=0.0)
+
+    def settle_tail_s(self) -> float:
+        """How long after its last fault a strict run must go on before it may be called
+        unsettled: a minute, and 3 s per agent (an N=50 paper election takes ~70 s)."""
+        return 60.0 + 3.0 * self.agents
+
     @property
     def extended(self) -> bool:
         """Whether the run needs :class:`swarm.sim.faultsim.FaultSim`."""

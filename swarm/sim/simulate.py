@@ -21,9 +21,11 @@ message to many peers is encoded once. What a run is (:class:`Scenario`, its fau
 its length, :class:`RunResult`) lives in :mod:`swarm.sim.scenario`; seeds over
 processes in :mod:`swarm.sim.parallel`.
 
-Scenarios add loss (uniform, bursty), partitions (groups that cannot hear each
-other for a while), crashes (an agent stops for good; ``leader`` means whoever
-leads then) and late starts. After each run the invariants are checked:
+Scenarios add loss (uniform, bursty, per directed link), partitions (groups that
+cannot hear each other for a while; overlapping ones split each other's groups),
+crashes (an agent stops for good; ``leader`` means whoever leads then) and late
+starts; restarts, pauses, drift and the campaign's continuous invariants are
+:mod:`swarm.sim.faultsim`'s. After each run the invariants are checked:
 
 * converged: at some point every live agent was in one agreed swarm per
   connected group (one leader, every other agent its member and listed by it)

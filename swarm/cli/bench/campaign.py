@@ -42,7 +42,8 @@ def run(quick: bool = False, scenarios: int | None = None, seed: int = 0) -> dic
         "scenarios_per_cpu_s": round(k / cpu, 2) if cpu > 0 else None,
         "virtual_s": res["virtual_s"],
         "agents_max": res["agents_max"],
-        "full_estimate_wall_s": round(wall * FULL / k) if k else None,
+        # the full campaign's wall time at this rate (the quick one's agents are capped)
+        "full_estimate_wall_s": None if quick or not k else round(wall * FULL / k),
         "seed": seed,
         "by_kind": res["by_kind"],
     }

@@ -45,6 +45,7 @@ LIGHT = frozenset(
         "test_replay_capture_processes.py",
         "test_plan_page.py",
         "test_sim_parallel.py",  # virtual time: the figures do not depend on the machine
+        "test_sim_campaign.py",  # the same
     }
 )
 

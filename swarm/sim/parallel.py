@@ -31,7 +31,8 @@ from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
 
 from swarm.errors import SwarmError
-from swarm.sim.simulate import RunResult, Scenario, Sim
+from swarm.sim.faultsim import make_sim
+from swarm.sim.simulate import RunResult, Scenario
 
 STOP_GRACE_S = 5.0  # after SIGTERM, before SIGKILL
 
@@ -40,8 +41,13 @@ class WorkerDied(SwarmError):
     """A worker process ended without answering (killed, out of memory)."""
 
 
+def _run_one(job: tuple[Scenario, int]) -> RunResult:
+    sc, seed = job
+    return make_sim(sc, seed).run()
+
+
 def _serve(conn: Connection) -> None:
-    """A worker: runs each ``(scenario, seed)`` it receives, answers ``(seed, result)``,
+    """A worker: runs each ``(index, scenario, seed)`` it receives, answers ``(index, result)``,
     ends on ``None`` or when the parent's end closes. It ignores SIGINT (it started
     so) and takes SIGTERM as it comes, also one that came while it started."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -51,8 +57,8 @@ def _serve(conn: Connection) -> None:
             job = conn.recv()
             if job is None:
                 return
-            sc, seed = job
-            conn.send((seed, Sim(sc, seed).run()))
+            index, sc, seed = job
+            conn.send((index, _run_one((sc, seed))))
     except (EOFError, OSError):  # the parent went away
         return
 
@@ -67,18 +73,29 @@ def run_seeds(
     Raises:
         WorkerDied: a worker ended without answering.
     """
-    if jobs <= 1 or seeds <= 1:
-        return [_done(Sim(sc, seed0 + k).run(), on_done) for k in range(seeds)]
-    jobs = min(jobs, seeds)
+    return run_jobs([(sc, seed0 + k) for k in range(seeds)], jobs, on_done)
+
+
+def run_jobs(
+    work: list[tuple[Scenario, int]], jobs: int, on_done: Callable[[], None] = lambda: None
+) -> list[RunResult]:
+    """The results of runs ``(scenario, seed)``, in that order, computed by ``jobs``
+    worker processes (in this process when ``jobs`` is 1 or there is one run).
+
+    Raises:
+        WorkerDied: a worker ended without answering.
+    """
+    if jobs <= 1 or len(work) <= 1:
+        return [_done(_run_one(job), on_done) for job in work]
     procs: list[BaseProcess] = []
     try:
-        conns = _start(jobs, procs)
-        results = _hand_out(sc, iter(range(seed0, seed0 + seeds)), conns, on_done)
+        conns = _start(min(jobs, len(work)), procs)
+        results = _hand_out(work, conns, on_done)
         for c in conns:
             c.send(None)
     finally:
         _stop(procs)
-    return [results[seed0 + k] for k in range(seeds)]
+    return [results[k] for k in range(len(work))]
 
 
 def _start(jobs: int, procs: list[BaseProcess]) -> list[Connection]:
@@ -112,29 +129,31 @@ def _done(result: RunResult, on_done: Callable[[], None]) -> RunResult:
 
 
 def _hand_out(
-    sc: Scenario, todo: Iterator[int], conns: list[Connection], on_done: Callable[[], None]
+    work: list[tuple[Scenario, int]], conns: list[Connection], on_done: Callable[[], None]
 ) -> dict[int, RunResult]:
-    """One seed at a time to each worker, the next as soon as it answers."""
+    """One run at a time to each worker, the next as soon as it answers; results by
+    the run's index in ``work``."""
+    todo: Iterator[tuple[int, Scenario, int]] = ((k, sc, seed) for k, (sc, seed) in enumerate(work))
     results: dict[int, RunResult] = {}
     busy: list[Connection] = []
     for c in conns:
-        seed = next(todo, None)
-        if seed is not None:
-            c.send((sc, seed))
+        job = next(todo, None)
+        if job is not None:
+            c.send(job)
             busy.append(c)
     while busy:
         for ready in wait(busy):
             c = busy[busy.index(ready)]  # type: ignore[arg-type]  # one of ours
             try:
-                seed, result = c.recv()
+                index, result = c.recv()
             except (EOFError, OSError):
                 raise WorkerDied("a simulation worker died without answering") from None
-            results[seed] = _done(result, on_done)
+            results[index] = _done(result, on_done)
             nxt = next(todo, None)
             if nxt is None:
                 busy.remove(c)
             else:
-                c.send((sc, nxt))
+                c.send(nxt)
     return results
 
 
@@ -150,4 +169,4 @@ def _stop(procs: list[BaseProcess]) -> None:
             p.join()
 
 
-__all__ = ["WorkerDied", "run_seeds"]
+__all__ = ["WorkerDied", "run_jobs", "run_seeds"]

@@ -17,6 +17,7 @@ to the worker processes of :mod:`swarm.sim.parallel`.
 from __future__ import annotations
 
 import random
+import shlex
 from dataclasses import dataclass, field
 
 
@@ -57,6 +58,75 @@ class PartitionLoss:
         return False
 
 
+@dataclass(frozen=True)
+class Link:
+    """``A>B:P`` or ``A>B:P@T0-T1``: frames agent A sends reach agent B with loss P (1:
+    never; a one-way link), for the whole run or from T0 to T1 s."""
+
+    src: int
+    dst: int
+    p: float
+    t0: float = 0.0
+    t1: float = float("inf")
+
+    @classmethod
+    def parse(cls, spec: str) -> Link:
+        try:
+            pair, _, rest = spec.partition(":")
+            a, b = pair.split(">", 1)
+            p, _, win = rest.partition("@")
+            t0, t1 = (float(x) for x in win.split("-", 1)) if win else (0.0, float("inf"))
+            link = cls(int(a), int(b), float(p), t0, t1)
+        except ValueError:
+            raise ValueError(f"link {spec!r}: expected A>B:P or A>B:P@T0-T1") from None
+        if not 0 <= link.p <= 1 or not 0 <= link.t0 < link.t1 or link.src == link.dst:
+            raise ValueError(f"link {spec!r}: P in 0..1, T0 < T1, A and B different")
+        return link
+
+    def spec(self) -> str:
+        win = "" if self.t1 == float("inf") else f"@{self.t0!r}-{self.t1!r}"
+        return f"{self.src}>{self.dst}:{self.p!r}{win}"
+
+
+@dataclass
+class LinkLoss:
+    """Directed losses: what a sender's frames lose on the way to one receiver."""
+
+    links: list[Link]
+
+    def lost(self, sender: int, receiver: int, t: float, rng: random.Random) -> bool:
+        for k in self.links:
+            if k.src == sender + 1 and k.dst == receiver + 1 and k.t0 <= t < k.t1:
+                if k.p >= 1 or rng.random() < k.p:
+                    return True
+        return False
+
+
+def parse_span(spec: str) -> tuple[int, float, float]:
+    """``ID@T0-T1`` (a restart or a pause: down from T0, up at T1)."""
+    try:
+        who, _, win = spec.partition("@")
+        a, b = win.split("-", 1)
+        agent, t0, t1 = int(who), float(a), float(b)
+    except ValueError:
+        raise ValueError(f"{spec!r}: expected ID@T0-T1") from None
+    if not 0 <= t0 < t1:
+        raise ValueError(f"{spec!r}: T0 < T1, both at least 0")
+    return agent, t0, t1
+
+
+def parse_drift(spec: str) -> tuple[int, float]:
+    """``ID:PPM``: the agent's clock runs PPM parts per million fast (negative: slow)."""
+    try:
+        who, ppm = spec.split(":", 1)
+        agent, d = int(who), float(ppm)
+    except ValueError:
+        raise ValueError(f"drift {spec!r}: expected ID:PPM") from None
+    if not abs(d) <= 50_000:
+        raise ValueError(f"drift {spec!r}: at most 50000 ppm either way")
+    return agent, d
+
+
 def parse_at(spec: str) -> tuple[str, float]:
     """``ID@T`` or ``leader@T``."""
     who, _, t = spec.partition("@")
@@ -80,8 +150,33 @@ class Scenario:
     #: TDM rounds, whichever is longer (an N=50 election takes about ten rounds)
     duration: float | None = None
     settle: float = 3.0  # converged state must hold this long
+    links: list[str] = field(default_factory=list)
+    restarts: list[str] = field(default_factory=list)
+    pauses: list[str] = field(default_factory=list)
+    drift: list[str] = field(default_factory=list)
+    strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
+
+    def last_fault_s(self) -> float:
+        """When the last fault with an end ends (a partition heals, a link, a restart or
+        a pause is over, the last late agent starts); 0 if none."""
+        ends = [Partition.parse(p).t1 for p in self.partitions]
+        ends += [k.t1 for k in map(Link.parse, self.links) if k.t1 != float("inf")]
+        ends += [parse_span(x)[2] for x in self.restarts + self.pauses]
+        ends += [parse_at(x)[1] for x in self.late]
+        return max(ends, default=0.0)
+
+    def settle_tail_s(self) -> float:
+        """How long after its last fault a strict run must go on before it may be called
+        unsettled: a minute, and 3 s per agent (an N=50 paper election takes ~70 s)."""
+        return 60.0 + 3.0 * self.agents
+
+    @property
+    def extended(self) -> bool:
+        """Whether the run needs :class:`swarm.sim.faultsim.FaultSim`."""
+        return bool(self.restarts or self.pauses or self.drift or self.strict)
 
     def command(self, seed: int) -> str:
+        """The ``swarm simulate`` command that replays ``seed`` (quoted for a POSIX shell)."""
         parts = [
             f"swarm simulate --agents {self.agents} --seeds 1 --seed {seed}",
             f"--profile {self.profile}",
@@ -89,12 +184,20 @@ class Scenario:
         if self.loss:
             parts.append(f"--loss {self.loss}")
         if self.burst_loss:
-            parts.append(f"--burst-loss {self.burst_loss}")
-        parts += [f"--partition {p}" for p in self.partitions]
-        parts += [f"--crash {c}" for c in self.crashes]
-        parts += [f"--late {x}" for x in self.late]
+            parts.append(f"--burst-loss {shlex.quote(self.burst_loss)}")
+        parts += [f"--partition {shlex.quote(p)}" for p in self.partitions]
+        parts += [f"--crash {shlex.quote(c)}" for c in self.crashes]
+        parts += [f"--late {shlex.quote(x)}" for x in self.late]
+        parts += [f"--link {shlex.quote(x)}" for x in self.links]
+        parts += [f"--restart {shlex.quote(x)}" for x in self.restarts]
+        parts += [f"--pause {shlex.quote(x)}" for x in self.pauses]
+        parts += [f"--drift {shlex.quote(x)}" for x in self.drift]
+        if self.air_kbps != 64:
+            parts.append(f"--air-speed {self.air_kbps}")
         if self.duration is not None:
             parts.append(f"--duration {self.duration}")
+        if self.strict:
+            parts.append("--strict")
         return " ".join(parts)
 
 
@@ -127,10 +230,14 @@ def run_length(round_s: float) -> float:
 __all__ = [
     "DURATION_ROUNDS",
     "MIN_DURATION_S",
+    "Link",
+    "LinkLoss",
     "Partition",
     "PartitionLoss",
     "RunResult",
     "Scenario",
     "parse_at",
+    "parse_drift",
+    "parse_span",
     "run_length",
 ]

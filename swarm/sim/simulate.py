@@ -21,9 +21,11 @@ message to many peers is encoded once. What a run is (:class:`Scenario`, its fau
 its length, :class:`RunResult`) lives in :mod:`swarm.sim.scenario`; seeds over
 processes in :mod:`swarm.sim.parallel`.
 
-Scenarios add loss (uniform, bursty), partitions (groups that cannot hear each
-other for a while), crashes (an agent stops for good; ``leader`` means whoever
-leads then) and late starts. After each run the invariants are checked:
+Scenarios add loss (uniform, bursty, per directed link), partitions (groups that
+cannot hear each other for a while; overlapping ones split each other's groups),
+crashes (an agent stops for good; ``leader`` means whoever leads then) and late
+starts; restarts, pauses, drift and the campaign's continuous invariants are
+:mod:`swarm.sim.faultsim`'s. After each run the invariants are checked:
 
 * converged: at some point every live agent was in one agreed swarm per
   connected group (one leader, every other agent its member and listed by it)
@@ -55,7 +57,16 @@ from swarm.core.messages import Advertize, Message, Phase, Pose, decode, encode
 from swarm.core.protocol import ADVERTIZE, Core, Out, profile_by_name
 from swarm.core.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
 from swarm.errors import DecodeError
-from swarm.sim.scenario import Partition, PartitionLoss, RunResult, Scenario, parse_at, run_length
+from swarm.sim.scenario import (
+    Link,
+    LinkLoss,
+    Partition,
+    PartitionLoss,
+    RunResult,
+    Scenario,
+    parse_at,
+    run_length,
+)
 
 POSE = Pose(47.397742, 8.545594, 500.0)
 _Tunnel = tuple[Kind, int, bytes, Message]
@@ -98,6 +109,9 @@ class Sim:
         self.partitions = [Partition.parse(p) for p in sc.partitions]
         if self.partitions:
             losses.append(PartitionLoss(self.partitions))
+        self.links = [Link.parse(x) for x in sc.links]
+        if self.links:
+            losses.append(LinkLoss(self.links))
         self.air = AirModel(cfgs, seed=rng.getrandbits(32), losses=losses)
         round_s = self.air.round_s(0)
         self.round_s = round_s
@@ -126,7 +140,8 @@ class Sim:
         self._due = [0.0] * n  # each core's next deadline (cached)
         self._split_since: float | None = None
         # a run goes on at least until its last partition heals and its last agent starts
-        self._last_event = max([p.t1 for p in self.partitions] + self.start_at + [0.0])
+        ends = [p.t1 for p in self.partitions] + [k.t1 for k in self.links if k.t1 != float("inf")]
+        self._last_event = max(ends + self.start_at + [0.0])
 
     # -- wiring -------------------------------------------------------------------
     def _send(self, i: int, outs: list[Out], t: float) -> None:
@@ -228,6 +243,16 @@ class Sim:
         return self.cores[i].handle(msg, t)
 
     # -- running ------------------------------------------------------------------
+    def _group_key(self, agent: int, t: float) -> int:
+        """Which connected group ``agent`` is in at ``t``: the partitions' groups, each
+        one splitting the others' when they overlap (a subclass with one-way links
+        refines it)."""
+        key = 0
+        for p in self.partitions:
+            if p.t0 <= t < p.t1:
+                key = key * 256 + p.group_of(agent) + 1
+        return key
+
     def _agreement(self) -> tuple[bool, int]:
         """(every live agent in one agreed swarm per connected group, a leader id)."""
         live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
@@ -236,11 +261,7 @@ class Sim:
         groups: dict[int, list[Core]] = defaultdict(list)
         t = self.air.now
         for c in live:
-            key = 0
-            for p in self.partitions:
-                if p.t0 <= t < p.t1:
-                    key = p.group_of(c.me)
-            groups[key].append(c)
+            groups[self._group_key(c.me, t)].append(c)
         leader_id = 0
         for members in groups.values():
             leaders = [c for c in members if c.phase == Phase.LEADER]
@@ -359,11 +380,7 @@ class Sim:
         groups: dict[int, int] = defaultdict(int)
         for i, c in enumerate(self.cores):
             if self.alive[i] and self.started[i] and c.phase == Phase.LEADER:
-                key = 0
-                for p in self.partitions:
-                    if p.t0 <= t < p.t1:
-                        key = p.group_of(c.me)
-                groups[key] += 1
+                groups[self._group_key(c.me, t)] += 1
         if any(n > 1 for n in groups.values()):
             self._split_since = t if self._split_since is None else self._split_since
             if t - self._split_since > SPLIT_LIMIT_S:

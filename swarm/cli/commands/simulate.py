@@ -10,15 +10,52 @@ import argparse
 import os
 import signal
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
+from swarm.sim.campaign import run_campaign
+from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 
 PROG = "swarm simulate"
+#: the repeatable fault flags: (flag, Scenario field, metavar, help)
+_FAULT_FLAGS = (
+    (
+        "--partition",
+        "partitions",
+        "T0-T1:1,2|3,4",
+        "agents in different groups cannot hear each other from T0 to T1 s",
+    ),
+    (
+        "--crash",
+        "crashes",
+        "ID@T",
+        "agent ID (or 'leader') stops for good at T s (leader: at T or when one exists)",
+    ),
+    ("--late", "late", "ID@T", "agent ID starts at T s"),
+    (
+        "--link",
+        "links",
+        "A>B:P[@T0-T1]",
+        "what agent A sends reaches B with loss P (1: a one-way link), for the run or from T0 to T1 s",
+    ),
+    (
+        "--restart",
+        "restarts",
+        "ID@T0-T1",
+        "agent ID's process is down from T0 and starts afresh (no state) at T1 s",
+    ),
+    (
+        "--pause",
+        "pauses",
+        "ID@T0-T1",
+        "agent ID is frozen from T0 and resumes with its state at T1 s (SIGSTOP/SIGCONT)",
+    ),
+    ("--drift", "drift", "ID:PPM", "agent ID's clock runs PPM ppm fast (negative: slow)"),
+)
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -32,21 +69,18 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     p.add_argument("--loss", type=float, default=0.0, help="uniform packet loss per receiver")
     p.add_argument("--burst-loss", metavar="P_GB,P_BG[,LG,LB]", help="Gilbert-Elliott bursty loss")
+    for flag, _, metavar, text in _FAULT_FLAGS:
+        p.add_argument(flag, action="append", default=[], metavar=metavar, help=text)
     p.add_argument(
-        "--partition",
-        action="append",
-        default=[],
-        metavar="T0-T1:1,2|3,4",
-        help="agents in different groups cannot hear each other from T0 to T1 s",
+        "--strict", action="store_true", help="check the fault campaign's continuous invariants too"
     )
     p.add_argument(
-        "--crash",
-        action="append",
-        default=[],
-        metavar="ID@T",
-        help="agent ID (or 'leader') stops for good at T s (leader: at T or when one exists)",
+        "--campaign",
+        type=int,
+        metavar="K",
+        help="run K scenarios drawn from the fault distribution seeded --seed (ignores the scenario "
+        "flags), shrink the failing ones and print their replay commands",
     )
-    p.add_argument("--late", action="append", default=[], metavar="ID@T", help="agent ID starts at T s")
     profiles = "timing profile: the paper's windows, or fast (from the TDM round); default paper"
     p.add_argument("--profile", choices=("paper", "fast"), default="paper", help=profiles)
     p.add_argument(
@@ -84,6 +118,63 @@ def _sigterm_interrupts() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old)
 
 
+def _interruptible(run: Callable[[], dict[str, Any]]) -> dict[str, Any] | None:
+    """``run()``, or None after one line when Ctrl-C or SIGTERM stopped it (and its workers)."""
+    try:
+        with _sigterm_interrupts():
+            return run()
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
+        return None
+
+
+def _check_specs(a: argparse.Namespace) -> None:
+    """Every fault flag parses and names agents 1..--agents (one line, exit 2 if not)."""
+    n = a.agents
+    try:
+        for spec in a.partition:
+            Partition.parse(spec)
+        ids: list[tuple[str, str]] = []
+        for spec in a.crash + a.late:
+            who, _ = parse_at(spec)
+            ids.append((spec, who))
+        for spec in a.link:
+            k = Link.parse(spec)
+            ids += [(spec, str(k.src)), (spec, str(k.dst))]
+        ids += [(spec, str(parse_span(spec)[0])) for spec in a.restart + a.pause]
+        ids += [(spec, str(parse_drift(spec)[0])) for spec in a.drift]
+        for spec, who in ids:
+            if who != "leader" and not (who.isdigit() and 1 <= int(who) <= n):
+                raise ValueError(f"{spec!r}: agent ids are 1..{n}")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if a.campaign is not None and not 1 <= a.campaign <= 1_000_000:
+        raise UsageError("--campaign: 1..1000000 scenarios")
+
+
+def _campaign(a: argparse.Namespace) -> int:
+    def scenarios() -> dict[str, Any]:
+        with Progress(PROG, a.campaign, "scenarios", as_json=a.json) as bar:
+            return run_campaign(a.campaign, a.seed, jobs=a.jobs, on_done=bar.advance)
+
+    result = _interruptible(scenarios)
+    if result is None:
+        return EXIT_INTERRUPTED
+    if a.json:
+        print_json(result)
+    else:
+        for k in ("scenarios", "seed", "violations", "virtual_s", "agents_max"):
+            print(f"{k:<20} {result[k]}")
+        for kind, v in result["by_kind"].items():
+            print(f"  {kind:<18} {v['scenarios']:>6} scenarios {v['failing']:>5} failing")
+    for f in result["failing"]:
+        print(f"FAILED scenario {f['index']}: {'; '.join(f['violations'])}", file=sys.stderr)
+        print(f"  replay: {f['replay']}", file=sys.stderr)
+        if "shrunk" in f:
+            print(f"  shrunk: {f['shrunk']['replay']}", file=sys.stderr)
+    return 0 if not result["failing"] else 1
+
+
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     a = _build_parser().parse_args(argv)
@@ -97,31 +188,27 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--jobs: 1..256")
     if not 0 <= a.loss <= 1:
         raise UsageError("--loss: a probability between 0 and 1")
-    try:
-        for spec in a.partition:
-            Partition.parse(spec)
-        for spec in a.crash + a.late:
-            who, _ = parse_at(spec)
-            if who != "leader" and not (who.isdigit() and 1 <= int(who) <= a.agents):
-                raise ValueError(f"{spec!r}: agent ids are 1..{a.agents}")
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    _check_specs(a)
+    faults: dict[str, Any] = {field: getattr(a, flag[2:]) for flag, field, _, _ in _FAULT_FLAGS}
     sc = Scenario(
         agents=a.agents,
         loss=a.loss,
         burst_loss=a.burst_loss,
-        partitions=a.partition,
-        crashes=a.crash,
-        late=a.late,
         profile=a.profile,
         air_kbps=a.air_speed,
         duration=a.duration,
+        strict=a.strict,
+        **faults,
     )
-    try:
-        with _sigterm_interrupts(), Progress(PROG, a.seeds, "seeds", as_json=a.json) as bar:
-            result = campaign(sc, a.seeds, a.seed, jobs=a.jobs, on_done=bar.advance)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted, workers stopped, no results", file=sys.stderr, flush=True)
+    if a.campaign is not None:
+        return _campaign(a)
+
+    def seeded() -> dict[str, Any]:
+        with Progress(PROG, a.seeds, "seeds", as_json=a.json) as bar:
+            return campaign(sc, a.seeds, a.seed, jobs=a.jobs, on_done=bar.advance)
+
+    result = _interruptible(seeded)
+    if result is None:
         return EXIT_INTERRUPTED
     if a.json:
         print_json(result)

@@ -1,0 +1,161 @@
+"""The fault campaign (``swarm simulate --campaign``, ``swarm bench campaign``): its new
+fault kinds do what they say, its continuous invariants catch what they name, a
+failing scenario shrinks to a small one whose replay command fails the same way, a
+bounded campaign has no violation, and serial and ``--jobs`` campaigns agree."""
+
+from __future__ import annotations
+
+import json
+import shlex
+
+import pytest
+
+from swarm.cli.bench import campaign as bench_campaign
+from swarm.cli.commands.simulate import main
+from swarm.core.messages import Phase
+from swarm.core.tunnel import Kind
+from swarm.sim.campaign import draw, run_campaign
+from swarm.sim.faultsim import DriftCore, FaultSim, make_sim
+from swarm.sim.scenario import Link, Scenario
+from swarm.sim.shrink import fewer_agents, shrink
+from swarm.sim.simulate import Sim
+
+
+def test_plain_scenarios_run_on_the_plain_simulator() -> None:
+    assert type(make_sim(Scenario(agents=3, loss=0.1, links=["1>2:0.3"]), 0)) is Sim
+    assert type(make_sim(Scenario(agents=3, strict=True), 0)) is FaultSim
+
+
+def test_a_restarted_leader_comes_back_without_state_and_rejoins() -> None:
+    sc = Scenario(agents=4, restarts=["1@20-25", "2@20-25", "3@20-25", "4@20-25"], strict=True)
+    sim = FaultSim(sc, 3)
+    before = list(sim.cores)
+    res = sim.run()
+    assert res.violations == [] and res.converged
+    assert all(a is not b for a, b in zip(before, sim.cores, strict=True))  # fresh cores
+    assert res.end_s >= 25
+    assert sum(c.phase == Phase.LEADER for c in sim.cores) == 1
+
+
+def test_a_paused_agent_resumes_with_its_state() -> None:
+    sim = FaultSim(Scenario(agents=3, pauses=["2@15-16"], strict=True), 1)
+    core = sim.cores[1]
+    res = sim.run()
+    assert res.violations == [] and sim.cores[1] is core and res.end_s >= 16
+
+
+def test_an_agent_that_crashes_while_paused_stays_down() -> None:
+    sim = FaultSim(Scenario(agents=4, pauses=["2@10-30"], crashes=["2@20"], strict=True), 2)
+    res = sim.run()
+    assert res.violations == [] and not sim.alive[1] and res.end_s >= 30
+
+
+def test_drift_runs_an_agents_clock_fast() -> None:
+    sim = FaultSim(Scenario(agents=2, drift=["2:1000"]), 0)
+    assert isinstance(sim.cores[1], DriftCore) and sim.cores[1].rate == pytest.approx(1.001)
+    sim.cores[1].start(100.0)
+    assert sim.cores[1].idle_since == pytest.approx(100.1)
+    assert sim.run().violations == []
+
+
+def test_a_one_way_link_drops_one_direction_only() -> None:
+    k = Link.parse("3>1:1@5-40")
+    assert (k.src, k.dst, k.p, k.t0, k.t1) == (3, 1, 1.0, 5.0, 40.0)
+    assert Link.parse(k.spec()) == k
+    for bad in ("3>3:1", "1>2:2", "1>2", "1>2:0.5@9-3", "a>b:1"):
+        with pytest.raises(ValueError):
+            Link.parse(bad)
+
+
+def test_a_message_that_does_not_decode_is_a_violation() -> None:
+    sim = FaultSim(Scenario(agents=2, strict=True), 0)
+    sim._write(0, Kind.ADVERTIZE, (0,), b"\xff\x00garbage", 1.0)
+    assert any("does not decode" in v for v in sim.violations)
+
+
+def test_a_failing_scenario_shrinks_and_its_replay_fails_the_same_way(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # agent 1 is never heard by agent 2: the swarm cannot settle before the link heals,
+    # and it never heals; the rest is noise the shrinker removes
+    sc = Scenario(
+        agents=6, loss=0.05, links=["1>2:1.0"], late=["5@3"], drift=["4:200"], duration=90, strict=True
+    )
+    small, res = shrink(sc, 7)
+    assert res.violations
+    assert small.agents <= 3 and small.links == ["1>2:1.0"]
+    assert not (small.late or small.drift or small.loss)
+    argv = shlex.split(small.command(7))[2:]
+    assert main([*argv, "--json", "--jobs", "1"]) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out["failing"][0]["violations"] == res.violations
+
+
+def test_fewer_agents_drops_faults_naming_agents_no_longer_there() -> None:
+    sc = Scenario(
+        agents=5,
+        links=["5>1:0.3", "1>2:0.3"],
+        crashes=["leader@9", "4@3"],
+        partitions=["1-9:1,4|5", "1-9:1,2|3"],
+        drift=["5:9"],
+    )
+    small = fewer_agents(sc, 3)
+    assert small.links == ["1>2:0.3"] and small.crashes == ["leader@9"] and small.drift == []
+    assert small.partitions == ["1-9:1,2|3"]  # the first one is left with a single group
+
+
+def test_the_draws_depend_only_on_seed_and_index() -> None:
+    assert draw(4, 17) == draw(4, 17)
+    assert [draw(4, k)[1] for k in range(5)] != [draw(5, k)[1] for k in range(5)]
+    sizes = [draw(0, k)[0].agents for k in range(400)]
+    assert min(sizes) == 2 and max(sizes) > 20 and sum(n <= 8 for n in sizes) > 250
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--link", "1>9:0.5"],
+        ["--link", "1>2:1.5"],
+        ["--link", "x"],
+        ["--restart", "2@30-10"],
+        ["--restart", "7@1-2"],
+        ["--pause", "2"],
+        ["--drift", "1:1e9"],
+        ["--drift", "nan:3"],
+        ["--campaign", "0"],
+        ["--campaign", "-5"],
+    ],
+)
+def test_bad_fault_flags_exit_2_with_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--agents", "3", "--jobs", "1", *argv]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_campaign_flag_prints_the_campaign(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--campaign", "4", "--seed", "4", "--jobs", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["scenarios"] == 4 and out["violations"] == 0 and out["failing"] == []
+
+
+@pytest.mark.processes  # worker processes
+def test_serial_and_jobs_campaigns_are_identical() -> None:
+    assert run_campaign(16, 11, jobs=1, max_agents=10) == run_campaign(16, 11, jobs=2, max_agents=10)
+
+
+@pytest.mark.processes  # worker processes
+def test_bounded_campaign_has_no_violation() -> None:
+    # 200 of `swarm bench campaign --quick`'s 300 scenarios (N <= 12): about 35 s of CPU
+    res = bench_campaign.run(quick=True, scenarios=200)
+    assert set(res) >= {
+        "scenarios",
+        "violations",
+        "failing",
+        "wall_s",
+        "cpu_s",
+        "scenarios_per_cpu_s",
+        "by_kind",
+    }
+    assert res["scenarios"] == 200 and res["agents_max"] <= bench_campaign.QUICK_AGENTS
+    assert res["violations"] == 0, res["failing"]
+    assert res["by_kind"]["restart"]["scenarios"] > 0 and res["by_kind"]["one_way"]["scenarios"] > 0

@@ -133,6 +133,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="PX4 action when the offboard stream is lost (default hold)",
     )
     _add_battery_arguments(p)
+    _add_boot_arguments(p)
+    return p
+
+
+def _add_boot_arguments(p: argparse.ArgumentParser) -> None:
+    """``--boot-time S`` or ``--realistic-boot`` (ArduPilot's recorded boot)."""
     boot = p.add_mutually_exclusive_group()
     boot.add_argument(
         "--boot-time",
@@ -148,7 +154,6 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help=f"ardupilot: the recorded boot, {REALISTIC_BOOT:.1f} s to an armable vehicle",
     )
-    return p
 
 
 @guarded(PROG)

@@ -25,6 +25,7 @@ import pytest
 from gcs_browser import (
     browser,
     distance_m,
+    new_page,
     poll,
     screenshot,
     start_station,
@@ -116,11 +117,8 @@ def ctx() -> Iterator[Any]:
 
 @pytest.fixture
 def page(ctx: Any) -> Iterator[Any]:
-    p = ctx.new_page()
-    p.errors = []
-    p.on("pageerror", lambda exc: p.errors.append(str(exc)))
-    yield p
-    p.close()
+    with new_page(ctx) as p:  # keeps the page's script errors in p.errors
+        yield p
 
 
 def gcs(page: Any, expr: str) -> Any:

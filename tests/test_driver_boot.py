@@ -236,6 +236,8 @@ class TracePlayer:
                     conn.recv(65536)  # the driver's requests: drop them
                 except BlockingIOError:
                     pass
+                except OSError:
+                    return  # reset by the driver closing its side: the replay is over
             self._stop.wait()
 
     def close(self) -> None:

@@ -63,6 +63,7 @@ from swarm.core.messages import (
     Message,
     Telemetry,
 )
+from swarm.core.notices import cut_utf8, printable_line
 
 T = TypeVar("T")
 
@@ -340,12 +341,8 @@ def short_reason(text: str) -> str:
     are joined with "; " by the driver: a text repeated is kept once (the driver also
     counts a text heard just before the command, often the last refusal's), and a
     long list keeps its first texts."""
-    line = " ".join("".join(c if c.isprintable() else " " for c in text).split())
-    line = "; ".join(dict.fromkeys(line.split("; ")))
-    raw = line.encode("utf-8")
-    if len(raw) <= REASON_MAX:
-        return line
-    return raw[: REASON_MAX - 3].decode("utf-8", errors="ignore").rstrip() + "..."
+    line = "; ".join(dict.fromkeys(printable_line(text).split("; ")))
+    return cut_utf8(line, REASON_MAX)
 
 
 def answer_command(

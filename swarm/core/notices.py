@@ -43,18 +43,28 @@ SEVERITY_NAMES = ("emergency", "alert", "critical", "error", "warning", "notice"
 SEPARATION_HOLD = "holding: too close"
 
 
-def one_line(text: str | bytes, limit: int = NOTICE_MAX) -> str:
+def printable_line(text: str | bytes) -> str:
     """``text`` as one printable line: every character that is not printable (control
     characters, line ends, NUL; bytes are read as UTF-8, bad bytes replaced) becomes a
-    blank, runs of blanks one space, cut to ``limit`` bytes of UTF-8 (whole
-    characters) with "..." where it was cut."""
+    blank, runs of blanks one space."""
     if isinstance(text, bytes):
         text = text.decode("utf-8", "replace")
-    line = " ".join("".join(c if c.isprintable() else " " for c in str(text)).split())
+    return " ".join("".join(c if c.isprintable() else " " for c in str(text)).split())
+
+
+def cut_utf8(line: str, limit: int) -> str:
+    """``line`` cut to ``limit`` bytes of UTF-8 (whole characters), with "..." where it
+    was cut."""
     raw = line.encode("utf-8")
     if len(raw) <= limit:
         return line
     return raw[: limit - 3].decode("utf-8", errors="ignore").rstrip() + "..."
+
+
+def one_line(text: str | bytes, limit: int = NOTICE_MAX) -> str:
+    """``text`` as one printable line (:func:`printable_line`) of at most ``limit``
+    bytes of UTF-8 (:func:`cut_utf8`)."""
+    return cut_utf8(printable_line(text), limit)
 
 
 def agent_severity(text: str) -> int:

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import socket
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any, Literal, Protocol
 
 #: The socket kinds a test asks a free port of.
@@ -125,3 +126,18 @@ class ManualClock:
         assert seconds >= 0, f"asked to sleep {seconds} s"
         self.sleeps.append(seconds)
         self.now += seconds
+
+
+def live_processes() -> Iterator[tuple[int, int, int]]:
+    """``(pid, parent pid, session id)`` of every live (not zombie) process, from /proc;
+    one that ends while it is read is left out."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue  # gone meanwhile
+        fields = stat[stat.rindex(")") + 2 :].split()  # after the command name, which may hold ")"
+        if fields[0] != "Z":
+            yield int(entry.name), int(fields[1]), int(fields[3])

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from net_helpers import live_processes
 
 pytestmark = pytest.mark.processes  # the examples start emulators, agents and simulators
 
@@ -87,18 +88,14 @@ def runnable() -> list[Example]:
 def session_processes(sid: int) -> list[str]:
     """The processes still alive in session ``sid`` (the block's), as "pid cmdline"."""
     alive = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
+    for pid, _parent, session in live_processes():
+        if session != sid:
             continue
         try:
-            stat = (entry / "stat").read_text()
-            fields = stat[stat.rindex(")") + 2 :].split()
-            if int(fields[3]) != sid or fields[0] == "Z":
-                continue
-            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except (OSError, ValueError):
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
             continue  # gone meanwhile
-        alive.append(f"{entry.name} {cmd.strip()}")
+        alive.append(f"{pid} {cmd.strip()}")
     return alive
 
 

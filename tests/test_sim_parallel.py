@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from net_helpers import wait_until
+from net_helpers import live_processes, wait_until
 
 from swarm.cli.commands.simulate import main
 from swarm.sim.simulate import Scenario, campaign
@@ -21,18 +21,7 @@ pytestmark = pytest.mark.processes  # worker processes
 
 def children_of(pid: int) -> list[int]:
     """The live processes whose parent is ``pid`` (from /proc)."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            stat = (d / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat.rsplit(")", 1)[1].split()
-        if int(fields[1]) == pid and fields[0] != "Z":
-            out.append(int(d.name))
-    return out
+    return [child for child, parent, _sid in live_processes() if parent == pid]
 
 
 def cpu_s(pid: int) -> float:

@@ -41,6 +41,7 @@ class Profile:
     alone_timeout: float = 8.0
     state_interval: float = 1.0
     vehicle_grace: float = 3.0  # a leader without its vehicle this long steps down
+    tdm: bool = False  # vote while pooling, one SyncPool per round (swarm.core.tdm_election)
 
 
 PAPER = Profile()
@@ -68,6 +69,21 @@ def fast_profile(round_s: float) -> Profile:
         leader_timeout=max(6 * r, 1.0),
         alone_timeout=8 * r,
         state_interval=max(r, 0.5),
+    )
+
+
+def tdm_profile(round_s: float, lock_rounds: float = 1.25, vote_rounds: float = 0.75) -> Profile:
+    """The ``tdm`` profile (:mod:`swarm.core.tdm_election`): the fast profile's
+    intervals and timeouts, the vote exchanged while pooling, and windows of a round
+    plus a margin for a lost frame."""
+    r = max(round_s, 0.05)
+    return replace(
+        fast_profile(round_s),
+        name="tdm",
+        lock_window=lock_rounds * r,
+        confirm_window=0.0,
+        vote_window=vote_rounds * r,
+        tdm=True,
     )
 
 
@@ -108,7 +124,9 @@ def profile_by_name(name: str, round_s: float) -> Profile:
         return paper_profile(round_s)
     if name == "fast":
         return fast_profile(round_s)
-    raise ValueError(f"unknown profile {name!r}: paper or fast")
+    if name == "tdm":
+        return tdm_profile(round_s)
+    raise ValueError(f"unknown profile {name!r}: paper, fast or tdm")
 
 
 class VotePolicy(Protocol):

@@ -118,6 +118,8 @@ from swarm.core.profiles import (
     profile_by_name,
 )
 from swarm.core.protocol_rules import ADVERTIZE, FLAG_HAS_FC, FLAG_LEADER, HANDLERS, NO_POSE, Out
+from swarm.core.tdm_election import TDM_HANDLERS
+from swarm.core.tdm_election import pool_timers as tdm_pool_timers
 
 #: a member that hears its leader's poses but no Heartbeat for this many leader timeouts
 #: was expelled (Heartbeats go to members only) and leaves
@@ -209,7 +211,7 @@ class Core:
             self.counters.impossible += 1  # our own id from elsewhere: ignore
             return out
         self.counters.handled += 1
-        h = HANDLERS.get(type(msg))
+        h = (TDM_HANDLERS.get(type(msg)) if self.profile.tdm else None) or HANDLERS.get(type(msg))
         if h is None:
             self.counters.ignored_phase += 1
             return out
@@ -400,6 +402,8 @@ class Core:
         return SyncPool(self.me, d, self.locked, members)
 
     def _pool_timers(self, now: float, out: list[Out]) -> None:
+        if self.profile.tdm:
+            return tdm_pool_timers(self, now, out)
         p = self.profile
         if self._due("sync", now, p.sync_interval):
             for m in sorted(self.pool - {self.me}):

@@ -82,7 +82,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "flags), shrink the failing ones and print their replay commands",
     )
     profiles = "timing profile: the paper's windows, or fast (from the TDM round); default paper"
-    p.add_argument("--profile", choices=("paper", "fast"), default="paper", help=profiles)
+    p.add_argument("--profile", choices=("paper", "fast", "tdm"), default="paper", help=profiles)
     p.add_argument(
         "--air-speed", type=int, default=64, metavar="KBPS", help="air rate in kbit/s (default 64)"
     )

@@ -1,0 +1,129 @@
+"""The ``tdm`` profile's election: pooling and voting in the same rounds of a TDM channel.
+
+Theory of operation
+-------------------
+On a SiK multipoint network every radio speaks once per TDM round and every radio in
+range hears it. The paper's steps run one after the other (pool, lock window, vote,
+vote window), each a round or more. The ``tdm`` profile (:func:`swarm.core.profiles.tdm_profile`,
+``Profile.tdm``) keeps the paper's messages, phases and guarantees but overlaps the
+steps, so an agent's one slot per round carries everything it knows:
+
+* **One SyncPool per round, with its members**: every sync interval (one round) an
+  agent sends the same SyncPool, members included, to all its pool members: one
+  multicast frame instead of one per member, and a member that lost a round's frame
+  learns the pool from the next one.
+* **The vote rides with the pool**: an agent draws its vote (weight, itself) when it
+  first syncs a pool, and sends its best vote beside each SyncPool. A vote is a
+  token "candidate C has weight W": it does not depend on the pool it was sent in,
+  so votes flood while the pool still grows. A receiver adopts a heavier vote whose
+  candidate is in its pool (weight, then candidate id, as the paper's rule); the
+  candidate's own SyncPool, or the sender's, which travels in the same slot just
+  before the vote, brings the candidate into the pool.
+* **Lock, then decide at once**: a pool unchanged for ``lock_window`` (a round and a
+  margin for a lost frame) locks; the agent goes straight to ELECTING, keeping its
+  vote and the time it last changed, and the paper's vote window decides: a vote
+  unchanged for ``vote_window`` makes its candidate the leader and the others its
+  members. A vote that settled while the pool was still growing decides as the pool
+  locks.
+* **The leader's Heartbeat ends it for the others**: an agent that hears a Heartbeat
+  listing it becomes a member at once (the paper's rule), so members need not wait
+  out their own windows.
+
+The guarantees are the paper's: votes are adopted only for pool members, ties break on
+the candidate id, and two leaders that a lost vote left in one connected pool hear each
+other's Heartbeats (each lists the other as a member) and merge by the swarm rule
+(the larger, then the higher id, absorbs the other). Pure: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from swarm.core.messages import Phase, Selection, StartPool, SyncPool, pool_digest
+from swarm.core.protocol_rules import Out
+
+if TYPE_CHECKING:
+    from swarm.core.protocol import Core
+
+
+#: news (a pool or vote change) is sent at once, but an agent sends at most this many news
+#: frames per round divided by its pool's size (bounded to 8 and 1): every frame queued
+#: before its slot leaves in it and a full slot delays the rest, so the whole swarm
+#: sends about as many news frames per round whatever its size
+NEWS_PER_ROUND = 40
+
+
+def _elapsed(now: float, since: float, span: float) -> bool:
+    return now + 1e-9 >= since + span
+
+
+def ensure_vote(core: Core, now: float) -> None:
+    """Draws the agent's own vote once per pool (candidate 0: none drawn yet)."""
+    if core.vote[1] == 0:
+        core.vote = (core.policy.weight(core.rng) if core.can_lead else 0, core.me)
+        core.vote_changed_at = now
+        core.state_dirty = True
+
+
+def pool_timers(core: Core, now: float, out: list[Out]) -> None:
+    """POOLING and LOCKED under the ``tdm`` profile: the round's SyncPool and vote to
+    every member, StartPool retries, and the lock that starts the election."""
+    p = core.profile
+    ensure_vote(core, now)
+    others = sorted(core.pool - {core.me})
+    last = core._next.get("sync", now) - p.sync_interval  # when the last SyncPool was sent
+    gap = p.sync_interval * min(max(len(core.pool) / NEWS_PER_ROUND, 0.125), 1.0)
+    if max(core.changed_at, core.vote_changed_at) > last + 1e-9 and now + 1e-9 >= last + gap:
+        core._next.pop("sync", None)  # news: it leaves in this round's slot, not the next
+    if core._due("sync", now, p.sync_interval) and others:
+        digest = pool_digest(core.pool)
+        sync = SyncPool(core.me, digest, core.locked, frozenset(core.pool))
+        sel = Selection(core.me, core.vote[1], core.vote[0], digest & 0xFFFF)
+        out += [Out(m, sync) for m in others]
+        out += [Out(m, sel) for m in others]
+    for a, t in list(core.asked.items()):
+        if a in core.pool:
+            del core.asked[a]
+        elif _elapsed(now, t, p.startpool_retry) and not core.locked:
+            core.asked[a] = now
+            out.append(Out(a, StartPool(core.me)))
+    if core.locked or _elapsed(now, core.changed_at, p.lock_window):
+        start_election(core, now)
+
+
+def start_election(core: Core, now: float) -> None:
+    """Locked: elect on this pool, keeping the vote gathered while pooling."""
+    core.locked = True
+    core.asked.clear()
+    core._set_phase(Phase.ELECTING)
+    core.epoch = pool_digest(core.pool) & 0xFFFF
+    ensure_vote(core, now)
+    core._next["vote"] = now
+
+
+def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None:
+    """A vote under the ``tdm`` profile: adopted while pooling or electing when it is
+    heavier and names a pool member (its epoch names the sender's pool: not checked)."""
+    if msg.sender not in core.pool:
+        core.counters.ignored_foreign += 1
+        return
+    if core.phase not in (Phase.POOLING, Phase.LOCKED, Phase.ELECTING):
+        core.counters.ignored_phase += 1
+        return
+    if msg.candidate not in core.pool:
+        core.counters.ignored_stale += 1  # our pool has not caught up: its SyncPool will bring it
+        return
+    ensure_vote(core, now)
+    theirs = (msg.weight, msg.candidate)
+    if theirs > core.vote:
+        core.vote = theirs
+        core.vote_changed_at = now
+        core.state_dirty = True
+
+
+#: the message rules the ``tdm`` profile replaces (:meth:`swarm.core.protocol.Core.handle`)
+TDM_HANDLERS: dict[type, Callable[[Core, Any, float, list[Out]], None]] = {Selection: on_selection}
+
+
+__all__ = ["TDM_HANDLERS", "ensure_vote", "on_selection", "pool_timers", "start_election"]

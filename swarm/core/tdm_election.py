@@ -42,6 +42,8 @@ from typing import TYPE_CHECKING, Any
 
 from swarm.core.messages import Phase, Selection, StartPool, SyncPool, pool_digest
 from swarm.core.protocol_rules import Out
+from swarm.core.protocol_rules import on_start_pool as on_start_pool_paper
+from swarm.core.protocol_rules import on_sync_pool as on_sync_pool_paper
 
 if TYPE_CHECKING:
     from swarm.core.protocol import Core
@@ -122,8 +124,32 @@ def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None
         core.state_dirty = True
 
 
+def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> None:
+    """A free or pooling agent takes the asker into its pool without a StartPoolAck:
+    its next SyncPool (news: at once) carries the pool to every member, the asker
+    included, in one frame, where the paper's acks were one frame per asker."""
+    if core.phase == Phase.IDLE:
+        core.open_pool({msg.sender}, now)
+    elif core.phase == Phase.POOLING:
+        core.change_pool({msg.sender}, now)
+    else:
+        on_start_pool_paper(core, msg, now, out)
+
+
+def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
+    """A free agent listed in a SyncPool's members joins that pool (the answer to its
+    StartPool); anything else follows the paper's rule."""
+    if core.phase == Phase.IDLE and msg.members is not None and core.me in msg.members:
+        core.open_pool(set(msg.members) | {msg.sender}, now)
+    on_sync_pool_paper(core, msg, now, out)
+
+
 #: the message rules the ``tdm`` profile replaces (:meth:`swarm.core.protocol.Core.handle`)
-TDM_HANDLERS: dict[type, Callable[[Core, Any, float, list[Out]], None]] = {Selection: on_selection}
+TDM_HANDLERS: dict[type, Callable[[Core, Any, float, list[Out]], None]] = {
+    Selection: on_selection,
+    StartPool: on_start_pool,
+    SyncPool: on_sync_pool,
+}
 
 
 __all__ = ["TDM_HANDLERS", "ensure_vote", "on_selection", "pool_timers", "start_election"]

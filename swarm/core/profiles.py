@@ -72,7 +72,7 @@ def fast_profile(round_s: float) -> Profile:
     )
 
 
-def tdm_profile(round_s: float, lock_rounds: float = 1.25, vote_rounds: float = 0.75) -> Profile:
+def tdm_profile(round_s: float, lock_rounds: float = 1.25, vote_rounds: float = 1.5) -> Profile:
     """The ``tdm`` profile (:mod:`swarm.core.tdm_election`): the fast profile's
     intervals and timeouts, the vote exchanged while pooling, and windows of a round
     plus a margin for a lost frame."""

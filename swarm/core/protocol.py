@@ -193,6 +193,7 @@ class Core:
     _next: dict[str, float] = field(default_factory=dict)
     asked: dict[int, float] = field(default_factory=dict)  # StartPool sent at
     synced_digest: dict[int, int] = field(default_factory=dict)
+    heard: set[int] = field(default_factory=set)  # tdm: pool members whose vote was heard
     state_dirty: bool = True
 
     # -- driver API --------------------------------------------------------------

@@ -65,6 +65,7 @@ def ensure_vote(core: Core, now: float) -> None:
     if core.vote[1] == 0:
         core.vote = (core.policy.weight(core.rng) if core.can_lead else 0, core.me)
         core.vote_changed_at = now
+        core.heard.clear()
         core.state_dirty = True
 
 
@@ -101,7 +102,26 @@ def start_election(core: Core, now: float) -> None:
     core._set_phase(Phase.ELECTING)
     core.epoch = pool_digest(core.pool) & 0xFFFF
     ensure_vote(core, now)
+    # without every vote heard, the vote window runs from the pool's last change too:
+    # a member added late may hold a heavier vote not yet heard
+    core.vote_changed_at = max(core.vote_changed_at, core.changed_at)
     core._next["vote"] = now
+    if complete(core):
+        decide(core, now)
+
+
+def complete(core: Core) -> bool:
+    """Every other pool member's vote heard: each vote is at least its sender's own
+    weight, so the heaviest vote heard is the pool's heaviest."""
+    return core.heard >= core.pool - {core.me}
+
+
+def decide(core: Core, now: float) -> None:
+    """The election's end: the vote's candidate leads, the others follow it."""
+    if core.vote[1] == core.me:
+        core._become_leader(now, core.pool - {core.me})
+    else:
+        core.become_member(core.vote[1], now)
 
 
 def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None:
@@ -117,11 +137,14 @@ def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None
         core.counters.ignored_stale += 1  # our pool has not caught up: its SyncPool will bring it
         return
     ensure_vote(core, now)
+    core.heard.add(msg.sender)
     theirs = (msg.weight, msg.candidate)
     if theirs > core.vote:
         core.vote = theirs
         core.vote_changed_at = now
         core.state_dirty = True
+    if core.phase == Phase.ELECTING and complete(core):
+        decide(core, now)
 
 
 def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> None:

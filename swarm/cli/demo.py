@@ -60,6 +60,7 @@ from typing import TYPE_CHECKING, Any
 
 from swarm.cli.procs import Child, ChildError, start_emulator
 from swarm.core.messages import AckResult, CommandKind
+from swarm.core.profiles import PROFILE_NAMES
 from swarm.errors import SwarmError
 
 if TYPE_CHECKING:
@@ -104,8 +105,8 @@ class DemoConfig:
             raise ValueError("--agents: 2..20")
         if not 0.0 <= self.loss < 0.9:
             raise ValueError("--loss: a probability in 0..0.9")
-        if self.profile not in ("paper", "fast"):
-            raise ValueError("--profile: paper or fast")
+        if self.profile not in PROFILE_NAMES:
+            raise ValueError(f"--profile: {', '.join(PROFILE_NAMES)}")
         if not 20.0 <= self.duration <= 3600.0:
             raise ValueError("--duration: 20..3600 s")
         if not 10.0 <= self.leg_m <= 2000.0:
@@ -333,7 +334,7 @@ class _Demo:
         self.children.append(emu)
         fcs = self.start_vehicles()
         self.out(f"   radio emulator: {radios} radios; vehicle simulator: {n} PX4 vehicles")
-        slots = ["--slots", str(radios)] if cfg.profile == "fast" else []
+        slots = ["--slots", str(radios)] if cfg.profile != "paper" else []
         flight = ["--profile", cfg.profile, *slots, "--json", "--pose-hz", str(cfg.pose_hz)]
         flight += ["--speed", str(cfg.speed_mps)]
         agents = [

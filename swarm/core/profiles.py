@@ -5,9 +5,10 @@ Theory of operation
 A :class:`Profile` holds every window, rate and timeout of
 :class:`swarm.core.protocol.Core` in seconds. :data:`PAPER` is the paper's values;
 :func:`paper_profile` stretches them only where a SiK radio's TDM round makes them
-impossible, and :func:`fast_profile` derives every interval and window from the
-round; :func:`profile_by_name` picks one of the two by name (the ``--profile``
-option).
+impossible, :func:`fast_profile` derives every interval and window from the
+round, and :func:`tdm_profile` adds the ``tdm`` election's rules (votes exchanged
+while pooling, :mod:`swarm.core.tdm_election`); :func:`profile_by_name` picks one
+of the three by name (the ``--profile`` option, :data:`PROFILE_NAMES`).
 
 A :class:`VotePolicy` gives an agent's vote its weight: random (the paper),
 battery, or link quality, each in the high byte with random low bits, so ties are
@@ -117,6 +118,10 @@ def paper_profile(round_s: float = 0.0) -> Profile:
         leader_timeout=timeout,
         alone_timeout=max(PAPER.alone_timeout, 2 * timeout),
     )
+
+
+#: the names :func:`profile_by_name` knows (the ``--profile`` choices)
+PROFILE_NAMES = ("paper", "fast", "tdm")
 
 
 def profile_by_name(name: str, round_s: float) -> Profile:

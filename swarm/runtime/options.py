@@ -24,12 +24,13 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from swarm.core.pilot import PilotConfig
+from swarm.core.profiles import PROFILE_NAMES
 
 if TYPE_CHECKING:
     from radios.link import Link
 
 VOTES = ("random", "battery", "link")
-PROFILES = ("paper", "fast")
+PROFILES = PROFILE_NAMES
 
 
 @dataclass(frozen=True)
@@ -86,8 +87,8 @@ class NodeOptions:
 
 @dataclass(frozen=True)
 class AgentConfig:
-    """How an agent behaves (see :mod:`swarm.runtime.agent`): ``profile`` ``paper`` or
-    ``fast`` (its windows from ``round_s``, the radio network's TDM round: None for a
+    """How an agent behaves (see :mod:`swarm.runtime.agent`): ``profile`` ``paper``,
+    ``fast`` or ``tdm`` (the last two: windows from ``round_s``, the radio network's TDM round: None for a
     SiK pair at 64 kbit/s), ``vote`` ``random``, ``battery`` or ``link``, ``pose_hz``
     with a flight controller, ``fc_timeout`` to hear it first, ``seed`` for the random
     draws (None: unseeded), ``pilot`` the formation and flight settings and the

@@ -9,7 +9,8 @@ order, whatever the number of jobs (:func:`swarm.sim.parallel.run_jobs`).
 
 The distribution: N from 2 to 50, weighted to small swarms (three in four have 2-8
 agents, one in thirty more than 20: a swarm of 50 costs about as much CPU as two
-hundred of 5); both profiles; and, each with its own chance, uniform loss (0-30 %),
+hundred of 5); the paper and fast profiles (or one profile for all, ``profile``);
+and, each with its own chance, uniform loss (0-30 %),
 bursty loss (bad 2-14 % of the time, over at most 15 % uniform loss), partitions
 that heal, crashes of the leader (several leader changes in one run), members
 leaving (they stop without a word: the protocol has no goodbye), restarts without
@@ -132,12 +133,16 @@ def _faults(rng: random.Random, sc: Scenario, h: float) -> list[str]:
     return kinds
 
 
-def draw(seed: int, k: int, max_agents: int = 50) -> tuple[Scenario, int, list[str]]:
+def draw(
+    seed: int, k: int, max_agents: int = 50, profile: str | None = None
+) -> tuple[Scenario, int, list[str]]:
     """Scenario ``k`` of the campaign seeded ``seed``: (scenario, run seed, kinds);
-    ``max_agents`` caps N (a cheaper campaign: the draws are the same otherwise)."""
+    ``max_agents`` caps N and ``profile`` replaces the drawn profile (paper or fast):
+    the draws are the same otherwise."""
     rng = random.Random(f"campaign:{seed}:{k}")
     n = max(2, min(_agents(rng), max_agents))
-    sc = Scenario(agents=n, profile=rng.choice(("paper", "fast")), strict=True)
+    drawn = rng.choice(("paper", "fast"))
+    sc = Scenario(agents=n, profile=profile or drawn, strict=True)
     h = _horizon(rng, n)
     kinds = _faults(rng, sc, h)
     sc.duration = round(max(h, sc.last_fault_s()) + sc.settle_tail_s(), 1)
@@ -151,10 +156,12 @@ def run_campaign(
     shrink_max: int = SHRINK_MAX,
     max_agents: int = 50,
     on_done: Callable[[], None] = lambda: None,
+    profile: str | None = None,
 ) -> dict[str, Any]:
     """Runs the campaign; the result is the same for any number of jobs. ``on_done`` is
-    called as each scenario's run ends (a progress display)."""
-    drawn = [draw(seed, k, max_agents) for k in range(scenarios)]
+    called as each scenario's run ends (a progress display); ``profile`` runs every
+    scenario with that profile (None: each draws paper or fast)."""
+    drawn = [draw(seed, k, max_agents, profile) for k in range(scenarios)]
     results = run_jobs([(sc, s) for sc, s, _ in drawn], jobs, on_done)
     by_kind: dict[str, dict[str, int]] = defaultdict(lambda: {"scenarios": 0, "failing": 0})
     failing: list[dict[str, Any]] = []

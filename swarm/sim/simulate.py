@@ -530,6 +530,7 @@ def campaign(
         },
         "messages_per_agent": {"p50": pct([r.messages_per_agent for r in results], 0.5)},
         "round_s": round(round_s, 4),
+        "election_rounds": {k: None if v is None else round(v / round_s, 2) for k, v in pct2(elect).items()},
     }
     if sc.crashes:
         out["failover_s"] = {"p50": pct(fail, 0.5), "p95": pct(fail, 0.95)}
@@ -538,6 +539,11 @@ def campaign(
         for r in bad[:10]
     ]
     return out
+
+
+def pct2(values: list[float]) -> dict[str, float | None]:
+    """The median and the 95th percentile of ``values`` (None: no values)."""
+    return {"p50": pct(values, 0.5), "p95": pct(values, 0.95)}
 
 
 def elect_stats(values: list[float]) -> dict[str, float | None]:

@@ -17,10 +17,11 @@ import time
 from typing import Any
 
 from swarm.cli.procs import Child, start_emulator
+from swarm.core.profiles import PROFILE_NAMES
 from swarm.sim.simulate import Scenario, campaign
 
 CASES = [(5, 0.0), (5, 0.1), (10, 0.0), (10, 0.1)]
-PROFILES = ("paper", "fast")
+PROFILES = PROFILE_NAMES
 
 
 def real_election(n: int, loss: float, profile: str, timeout: float = 120.0) -> float | None:
@@ -81,9 +82,10 @@ def _last_state(child: Child) -> dict[str, Any] | None:
     return None
 
 
-def run(quick: bool = False) -> dict[str, Any]:
+def run(quick: bool = False, only: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Every case for every profile (``only``: these profiles; quick: the paper's)."""
     cases = CASES[:2] if quick else CASES
-    profiles = ("paper",) if quick else PROFILES
+    profiles = only or (("paper",) if quick else PROFILES)
     repeats = 1 if quick else 3
     seeds = 10 if quick else 50
     rows = []
@@ -106,6 +108,7 @@ def run(quick: bool = False) -> dict[str, Any]:
                     "sim_runs": sim["runs"],
                     "sim_converged": sim["converged"],
                     "round_s": sim["round_s"],
+                    "elect_rounds": round(real_p50 / sim["round_s"], 2) if real_p50 is not None else None,
                     "real_vs_sim": round(real_p50 / sim_p50, 3) if real_p50 and sim_p50 else None,
                 }
             )

@@ -1,4 +1,5 @@
-"""Figures of the deterministic simulator for the election targets (virtual time), and
+"""Figures of the deterministic simulator for the election targets (virtual time; the
+tdm profile's election in TDM rounds, issue 16's target), and
 its own speed: CPU seconds per 1,000 N=10 runs and per N=50 run (issue 15's targets).
 
 Speed is measured on serial runs in this process (``time.process_time``); the N=50
@@ -18,6 +19,8 @@ from swarm.sim.simulate import Scenario, campaign
 #: issue 15's targets, CPU seconds
 TARGET_CPU_S_PER_1000_RUNS = 10.0
 TARGET_CPU_S_PER_RUN_N50 = 2.5
+#: issue 16's target: N=10, 10 % loss, the best profile's election p95 in TDM rounds
+TARGET_TDM_P95_ROUNDS = 3.5
 
 
 def _cpu_s() -> float:
@@ -43,6 +46,9 @@ def run(quick: bool = False) -> dict[str, Any]:
         "fast_n10_loss10": round(1000 * cpu_fast / k, 1),
         "target": TARGET_CPU_S_PER_1000_RUNS,
     }
+    # the tdm profile (issue 16): election p95 within TARGET_TDM_P95_ROUNDS TDM rounds
+    out["tdm_n10_loss10"] = campaign(Scenario(agents=10, loss=0.1, profile="tdm"), k, jobs=jobs)
+    out["tdm_n10_loss10"]["target_p95_rounds"] = TARGET_TDM_P95_ROUNDS
     out["paper_n20_64kbps"] = campaign(Scenario(agents=20, loss=0.1), 5 if quick else 30, jobs=jobs)
     out["fast_n20_64kbps"] = campaign(
         Scenario(agents=20, loss=0.1, profile="fast"), 5 if quick else 30, jobs=jobs

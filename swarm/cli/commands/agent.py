@@ -19,7 +19,7 @@ it prints ``agent NAME: radio lost: ...`` and ``agent NAME: radio back after S s
 (``--json``: ``{"event": "radio", "name", "id", "state": "lost"|"back", "text",
 "t"}``). With ``--exit-on-radio-loss`` it exits 1 instead, with one line on stderr.
 
-The ``fast`` profile derives its windows from the radio network's TDM round, which
+The ``fast`` and ``tdm`` profiles derive their windows from the radio network's TDM round, which
 the agent does not read from the radio: give ``--round-s``, or ``--slots N`` (the
 number of radios of a multipoint network; 2 for a standard pair) and
 ``--air-speed`` and the round is computed as the SiK firmware does.
@@ -182,13 +182,14 @@ def _add_timing_arguments(p: argparse.ArgumentParser) -> None:
         "--profile",
         choices=PROFILES,
         default="paper",
-        help="timing profile: the paper's windows, or fast (from the TDM round)",
+        help="timing profile: the paper's windows, fast (from the TDM round), or tdm (from the "
+        "round, votes exchanged while pooling: the fastest election on SiK multipoint)",
     )
     p.add_argument(
         "--round-s",
         type=float,
         metavar="S",
-        help="TDM round of the radio network in seconds, for --profile fast "
+        help="TDM round of the radio network in seconds, for --profile fast or tdm "
         "(default: computed from --slots and --air-speed)",
     )
     p.add_argument(

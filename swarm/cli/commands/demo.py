@@ -31,6 +31,7 @@ from swarm.cli.configfile import read_arguments
 from swarm.cli.demo import DemoConfig, run_demo
 from swarm.cli.demo_report import summary_lines
 from swarm.cli.util import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
+from swarm.core.profiles import PROFILE_NAMES
 
 PROG = "swarm demo"
 
@@ -39,7 +40,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = parser(PROG, "Run the whole swarm on this machine: radios, vehicles, agents, ground station.")
     p.add_argument("--agents", type=int, default=5, metavar="N", help="agents (2..20, default 5)")
     p.add_argument("--loss", type=float, default=0.1, metavar="P", help="radio packet loss (default 0.1)")
-    p.add_argument("--profile", choices=("paper", "fast"), default="paper", help="election timing profile")
+    p.add_argument("--profile", choices=PROFILE_NAMES, default="paper", help="election timing profile")
     p.add_argument(
         "--duration",
         type=float,

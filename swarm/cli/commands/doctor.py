@@ -75,7 +75,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
         agent._agent(probe, agent._Lines(probe))  # builds (opens nothing): refuses what the agent would
     a.node, a.round_s = probe.node, probe.round_s
     a.expected = parse_expected(a.radio_params) if a.radio_params else None
-    fast = a.profile == "fast" and not round_given  # the round comes from --slots and --air-speed
+    fast = a.profile != "paper" and not round_given  # the round comes from --slots and --air-speed
     a.plan = RadioPlan(
         expected=a.expected,
         slots=a.slots if fast else None,

@@ -16,6 +16,7 @@ from typing import Any
 
 from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
+from swarm.core.profiles import PROFILE_NAMES
 from swarm.sim.campaign import run_campaign
 from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
@@ -81,8 +82,12 @@ def _build_parser() -> argparse.ArgumentParser:
         help="run K scenarios drawn from the fault distribution seeded --seed (ignores the scenario "
         "flags), shrink the failing ones and print their replay commands",
     )
-    profiles = "timing profile: the paper's windows, or fast (from the TDM round); default paper"
-    p.add_argument("--profile", choices=("paper", "fast", "tdm"), default="paper", help=profiles)
+    profiles = (
+        "timing profile: the paper's windows, fast (from the TDM round) or tdm (votes while "
+        "pooling, for SiK multipoint); default paper; with --campaign: every scenario's "
+        "(default: each draws paper or fast)"
+    )
+    p.add_argument("--profile", choices=PROFILE_NAMES, default=None, help=profiles)
     p.add_argument(
         "--air-speed", type=int, default=64, metavar="KBPS", help="air rate in kbit/s (default 64)"
     )
@@ -155,7 +160,7 @@ def _check_specs(a: argparse.Namespace) -> None:
 def _campaign(a: argparse.Namespace) -> int:
     def scenarios() -> dict[str, Any]:
         with Progress(PROG, a.campaign, "scenarios", as_json=a.json) as bar:
-            return run_campaign(a.campaign, a.seed, jobs=a.jobs, on_done=bar.advance)
+            return run_campaign(a.campaign, a.seed, jobs=a.jobs, on_done=bar.advance, profile=a.profile)
 
     result = _interruptible(scenarios)
     if result is None:
@@ -194,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         agents=a.agents,
         loss=a.loss,
         burst_loss=a.burst_loss,
-        profile=a.profile,
+        profile=a.profile or "paper",
         air_kbps=a.air_speed,
         duration=a.duration,
         strict=a.strict,
@@ -227,6 +232,7 @@ def text_report(r: dict[str, Any]) -> str:
     """The campaign's figures (:func:`swarm.sim.simulate.campaign`) for a person: one
     line a figure saying what it counts, then each failing seed once with its replay."""
     n, e, air = r["runs"], r["elect_s"], r["air_utilisation"]
+    rounds = r.get("election_rounds", {"p50": None, "p95": None})
     lines = [
         f"{r['agents']} agents, {r['profile']} profile, loss {r['loss']:g}: {n} runs "
         f"(TDM round {r['round_s']:g} s)",
@@ -234,6 +240,7 @@ def text_report(r: dict[str, Any]) -> str:
         f"  stable at the end     {r['stable_at_end']} of {n} runs (one leader all agree on at the end)",
         f"  violations            {r['violations']} in all runs (each failing run below says which)",
         f"  election time         p50 {_fig(e['p50'])}, p95 {_fig(e['p95'])}, max {_fig(e['max'])}",
+        f"  election in rounds    p50 {_fig(rounds['p50'], '')}, p95 {_fig(rounds['p95'], '')} (TDM rounds)",
     ]
     if "failover_s" in r:
         f = r["failover_s"]

@@ -102,7 +102,7 @@ AGENT_BAD = [
     ('name = "a1"\nid = 1' + "0" * 5000 + "\n", "not TOML: a number too long to read"),
     ('name = "a1"\nid = 1' + "0" * 4000 + "\n" + NODE, "id = 1000", "agent ids are 1..250"),
     ('name = "a1"\nid = 1\nback = 1979-05-27\n', "back = 1979-05-27: a date or time, not a number"),
-    ('name = "a1"\nid = 1\nprofile = "slow"\n', 'profile = "slow": one of paper, fast'),
+    ('name = "a1"\nid = 1\nprofile = "slow"\n', 'profile = "slow": one of paper, fast, tdm'),
     ('name = "a1"\nid = 1\nlog_format = "xml"\n', 'log_format = "xml": one of text, json'),
     ('name = "a1"\nid = 1\nlog_level = "loud"\n', "log_level = ", "one of DEBUG, INFO"),
     ('name = "a\\u0000b"\nid = 1\n', "name = ", "a control character"),

@@ -13,6 +13,8 @@ Three modules: this one holds the core's state, its timers (:meth:`Core.tick`) a
 its transitions; :mod:`swarm.core.protocol_rules` holds what each message does
 (one handler per message type, in one table); :mod:`swarm.core.profiles` holds
 the timing profiles and vote policies. This module re-exports the names of both.
+Under the ``tdm`` profile :mod:`swarm.core.tdm_election` replaces the pooling
+timers and three of the message rules (votes exchanged while pooling).
 
 Phases and the paper's steps (section 2.3):
 
@@ -119,6 +121,7 @@ from swarm.core.profiles import (
 )
 from swarm.core.protocol_rules import ADVERTIZE, FLAG_HAS_FC, FLAG_LEADER, HANDLERS, NO_POSE, Out
 from swarm.core.tdm_election import TDM_HANDLERS
+from swarm.core.tdm_election import news_at as tdm_news_at
 from swarm.core.tdm_election import pool_timers as tdm_pool_timers
 
 #: a member that hears its leader's poses but no Heartbeat for this many leader timeouts
@@ -266,6 +269,8 @@ class Core:
         elif self.phase == Phase.MEMBER:
             times.append(self._member_deadline())
         times += [t + p.startpool_retry for t in self.asked.values()]
+        if p.tdm and (news := tdm_news_at(self)) is not None:
+            times.append(news)
         return min(times) if times else None
 
     def _member_deadline(self) -> float:

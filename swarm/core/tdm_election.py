@@ -75,9 +75,8 @@ def pool_timers(core: Core, now: float, out: list[Out]) -> None:
     p = core.profile
     ensure_vote(core, now)
     others = sorted(core.pool - {core.me})
-    last = core._next.get("sync", now) - p.sync_interval  # when the last SyncPool was sent
-    gap = p.sync_interval * min(max(len(core.pool) / NEWS_PER_ROUND, 0.125), 1.0)
-    if max(core.changed_at, core.vote_changed_at) > last + 1e-9 and now + 1e-9 >= last + gap:
+    news = news_at(core)
+    if news is not None and now + 1e-9 >= news:
         core._next.pop("sync", None)  # news: it leaves in this round's slot, not the next
     if core._due("sync", now, p.sync_interval) and others:
         digest = pool_digest(core.pool)
@@ -93,6 +92,18 @@ def pool_timers(core: Core, now: float, out: list[Out]) -> None:
             out.append(Out(a, StartPool(core.me)))
     if core.locked or _elapsed(now, core.changed_at, p.lock_window):
         start_election(core, now)
+
+
+def news_at(core: Core) -> float | None:
+    """When the pool or vote changed since the last SyncPool can be sent (None: no news)."""
+    p = core.profile
+    sync = core._next.get("sync")
+    if sync is None or core.phase not in (Phase.POOLING, Phase.LOCKED):
+        return None
+    last = sync - p.sync_interval  # when the last SyncPool was sent
+    if max(core.changed_at, core.vote_changed_at) <= last + 1e-9:
+        return None
+    return last + p.sync_interval * min(max(len(core.pool) / NEWS_PER_ROUND, 0.125), 1.0)
 
 
 def start_election(core: Core, now: float) -> None:

@@ -4,27 +4,36 @@ Theory of operation
 -------------------
 On a SiK multipoint network every radio speaks once per TDM round and every radio in
 range hears it. The paper's steps run one after the other (pool, lock window, vote,
-vote window), each a round or more. The ``tdm`` profile (:func:`swarm.core.profiles.tdm_profile`,
-``Profile.tdm``) keeps the paper's messages, phases and guarantees but overlaps the
-steps, so an agent's one slot per round carries everything it knows:
+vote window), each a round or more. The ``tdm`` profile
+(:func:`swarm.core.profiles.tdm_profile`, ``Profile.tdm``) keeps the paper's messages,
+phases and guarantees but overlaps the steps, so an agent's one slot per round carries
+everything it knows:
 
+* **News leaves in the next slot**: a frame a core queues waits for the radio's slot,
+  so what changed (the pool, the vote) is sent at once rather than at the next
+  periodic sync (:func:`news_at`: at most :data:`NEWS_PER_ROUND` / pool size times a
+  round, so a slot does not overflow and delay the rest a round).
 * **One SyncPool per round, with its members**: every sync interval (one round) an
   agent sends the same SyncPool, members included, to all its pool members: one
   multicast frame instead of one per member, and a member that lost a round's frame
-  learns the pool from the next one.
+  learns the pool from the next one. A StartPool is answered by that SyncPool (an
+  idle agent listed in one joins the pool) instead of one StartPoolAck per asker.
 * **The vote rides with the pool**: an agent draws its vote (weight, itself) when it
   first syncs a pool, and sends its best vote beside each SyncPool. A vote is a
   token "candidate C has weight W": it does not depend on the pool it was sent in,
   so votes flood while the pool still grows. A receiver adopts a heavier vote whose
   candidate is in its pool (weight, then candidate id, as the paper's rule); the
-  candidate's own SyncPool, or the sender's, which travels in the same slot just
-  before the vote, brings the candidate into the pool.
-* **Lock, then decide at once**: a pool unchanged for ``lock_window`` (a round and a
-  margin for a lost frame) locks; the agent goes straight to ELECTING, keeping its
-  vote and the time it last changed, and the paper's vote window decides: a vote
-  unchanged for ``vote_window`` makes its candidate the leader and the others its
-  members. A vote that settled while the pool was still growing decides as the pool
-  locks.
+  sender's SyncPool, which travels in the same slot just before the vote, brings
+  the candidate into the pool.
+* **Lock, then decide as soon as everyone is heard**: a pool unchanged for
+  ``lock_window`` (a round and a margin for a lost frame) locks, and the agent goes
+  straight to ELECTING with the vote it gathered. An agent that has heard a vote
+  from every other member decides at once (:func:`complete`): each vote is at least
+  its sender's own weight, so the heaviest heard is the pool's heaviest, and agents
+  that heard everyone on one pool name the same leader. Otherwise the paper's vote
+  window decides, counted from the later of the vote's and the pool's last change
+  (a member added late may hold a heavier vote): a member silent that long is
+  presumed gone.
 * **The leader's Heartbeat ends it for the others**: an agent that hears a Heartbeat
   listing it becomes a member at once (the paper's rule), so members need not wait
   out their own windows.
@@ -50,9 +59,9 @@ if TYPE_CHECKING:
 
 
 #: news (a pool or vote change) is sent at once, but an agent sends at most this many news
-#: frames per round divided by its pool's size (bounded to 8 and 1): every frame queued
-#: before its slot leaves in it and a full slot delays the rest, so the whole swarm
-#: sends about as many news frames per round whatever its size
+#: frames per round divided by its pool's size (at most 8 and at least 1 a round): every
+#: frame queued before its slot leaves in it and a full slot delays the rest, so the
+#: whole swarm sends about as many news frames per round whatever its size
 NEWS_PER_ROUND = 40
 
 
@@ -186,4 +195,16 @@ TDM_HANDLERS: dict[type, Callable[[Core, Any, float, list[Out]], None]] = {
 }
 
 
-__all__ = ["TDM_HANDLERS", "ensure_vote", "on_selection", "pool_timers", "start_election"]
+__all__ = [
+    "NEWS_PER_ROUND",
+    "TDM_HANDLERS",
+    "complete",
+    "decide",
+    "ensure_vote",
+    "news_at",
+    "on_selection",
+    "on_start_pool",
+    "on_sync_pool",
+    "pool_timers",
+    "start_election",
+]

@@ -184,6 +184,14 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
     StartPool); anything else follows the paper's rule."""
     if core.phase == Phase.IDLE and msg.members is not None and core.me in msg.members:
         core.open_pool(set(msg.members) | {msg.sender}, now)
+    if core.phase == Phase.LEADER and msg.members is not None and msg.sender in core.members:
+        # a member still electing knows agents our pool locked without: they are
+        # electing us too; adopt them as late joiners (our Heartbeats will list them)
+        for m in sorted(msg.members - set(core.members) - {core.me}):
+            core.members[m] = now
+            core.pool.add(m)
+            core.state_dirty = True
+        return
     on_sync_pool_paper(core, msg, now, out)
 
 

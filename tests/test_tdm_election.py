@@ -119,6 +119,21 @@ def test_a_missing_vote_holds_the_decision_for_the_window() -> None:
     assert c.phase == Phase.LEADER  # agent 3 silent a whole window: presumed gone
 
 
+def test_a_leader_adopts_the_agents_an_electing_members_syncpool_names() -> None:
+    # the leader locked {1, 2, 3} without agent 4 (its StartPool lost); agent 2, still
+    # electing, knows 4, which elects the same leader: the leader lists it
+    c, t = locked(1, {1, 2, 3}, 50)
+    c.handle(Selection(2, 2, 3, 0), t + 0.1)
+    c.handle(Selection(3, 3, 4, 0), t + 0.1)
+    assert c.phase == Phase.LEADER
+    big = frozenset({1, 2, 3, 4})
+    c.handle(SyncPool(2, pool_digest(big), False, big), t + 0.2)
+    assert set(c.members) == {2, 3, 4}
+    stranger = frozenset({1, 9, 10})
+    c.handle(SyncPool(9, pool_digest(stranger), False, stranger), t + 0.3)  # not a member
+    assert set(c.members) == {2, 3, 4}
+
+
 def test_hostile_votes_are_counted_and_dropped() -> None:
     c = pooled(1, {1, 2, 3}, 5)
     before = c.counters.ignored_foreign

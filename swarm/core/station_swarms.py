@@ -153,17 +153,23 @@ class SwarmBook:
 def _colours(
     new: dict[int, frozenset[int]], old: dict[int, frozenset[int]], colours: dict[int, int]
 ) -> dict[int, int]:
-    """Each swarm's colour: kept while it lives, inherited from the vanished swarm that
-    shared most of its members, else the lowest free one."""
-    out = {lead: colours[lead] for lead in new if lead in colours}
-    gone = {lead: old[lead] for lead in old if lead not in new and lead in colours}
-    for lead in sorted((x for x in new if x not in out), key=lambda x: (-len(new[x]), x)):
-        used = set(out.values())
-        heirs = [(len(new[lead] & m), g) for g, m in gone.items() if colours[g] not in used and new[lead] & m]
-        if heirs:
-            out[lead] = colours[max(heirs)[1]]
-        else:
-            out[lead] = next(c for c in range(len(new) + len(colours) + 1) if c not in used)
+    """Each swarm's colour: the colour of the old swarm it shares most members with (the
+    largest overlaps first, the same leader first on a tie), so a swarm keeps its colour
+    through new members and a re-election; a swarm of new agents the lowest free one."""
+    old_of = {m: o for o, members in old.items() if o in colours for m in members}
+    pairs = []  # (shared members, same leader, -new leader, old leader): at most one per agent
+    for lead, members in new.items():
+        shared = Counter(old_of[m] for m in members if m in old_of)
+        pairs += [(n, lead == o, -lead, o) for o, n in shared.items()]
+    pairs.sort(reverse=True)
+    out: dict[int, int] = {}
+    for n, _, neg, o in pairs:
+        if n and -neg not in out and colours[o] not in out.values():
+            out[-neg] = colours[o]
+    for lead in sorted(new):
+        if lead not in out:
+            used = set(out.values())
+            out[lead] = next(c for c in range(len(new) + 1) if c not in used)
     return out
 
 

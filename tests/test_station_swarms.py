@@ -245,3 +245,22 @@ def test_a_swarm_command_follows_its_members_new_leader() -> None:
     assert req.body()["results"] == [
         {"agent": 5, "result": "ACCEPTED", "reason": "", "swarm": True, "of_swarm": 6}
     ]
+
+
+def test_the_log_names_the_swarms_when_their_leaders_change() -> None:
+    core = station({1: 3, 2: 3, 3: 3})
+    assert [e.text for e in core.events if e.kind == "leader"] == ["agent3 (3) is the leader"]
+    core = station(TWO)
+    assert [e.text for e in core.events if e.kind == "leader"][-2:] == [
+        "2 swarms: agent3 (3) with 3, agent6 (6) with 3",  # agent6 connects: its followers are a swarm
+        "agent6 (6) is the leader",  # then it says it leads: 3 against 3, the higher id
+    ]
+
+    def news() -> list[str]:
+        return [e.text for e in core.events if e.kind == "leader" and " swarm" in e.text]
+
+    for i in (4, 5):
+        core.handle(tm(i, 3), 1.0)  # swarm 6 joins 3; 6 leads alone: the same two leaders
+    assert news() == ["2 swarms: agent3 (3) with 3, agent6 (6) with 3"]
+    core.handle(tm(6, 3), 1.0)
+    assert news()[-1] == "1 swarm: agent3 (3) with 6"

@@ -570,10 +570,9 @@ class StationCore:
         leader = self.swarms.leader
         if leader != self.leader:
             self.leader = leader
-            if leader:
-                self._event(now, "leader", f"{self._label(leader)} is the leader")
-            else:
-                self._event(now, "leader", "no leader")
+            self._event(now, "leader", f"{self._label(leader)} is the leader" if leader else "no leader")
+        for text in self.swarms.take_news(self._label):  # several swarms: each change of their leaders
+            self._event(now, "leader", text)
 
 
 __all__ = [

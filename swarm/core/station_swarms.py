@@ -33,7 +33,7 @@ Heartbeat list keeps ids 1..250 only. Pure: no I/O, no clock.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -69,6 +69,7 @@ class SwarmBook:
         self.members: dict[int, frozenset[int]] = {}  # by leader id, the leader included
         self.colours: dict[int, int] = {}  # by leader id
         self._listed: dict[int, frozenset[int]] = {}  # each sender's latest Heartbeat list
+        self._told: frozenset[int] = frozenset()  # the leaders the log last named
 
     def heartbeat(self, hb: Heartbeat) -> bool:
         """A leader's Heartbeat: its member list. True when the list changed."""
@@ -108,6 +109,20 @@ class SwarmBook:
         self.colours = _colours(members, self.members, self.colours)
         self.leader, self.members = leader, members
         return changed
+
+    def take_news(self, label: Callable[[int], str]) -> list[str]:
+        """A line for the log when the set of leaders changed while there are (or were)
+        several swarms: "2 swarms: agent3 (3) with 3 agents, agent6 (6) with 3"."""
+        leads = frozenset(self.members)
+        if leads == self._told:
+            return []
+        told, self._told = self._told, leads
+        if len(leads) < 2 and len(told) < 2:
+            return []  # one swarm: the leader's own event says it
+        ids = sorted(leads, key=lambda x: (-len(self.members[x]), x))
+        shown = ", ".join(f"{label(x)} with {len(self.members[x])}" for x in ids[:8])
+        more = f" and {len(ids) - 8} more" if len(ids) > 8 else ""
+        return [f"{len(ids)} swarm{'' if len(ids) == 1 else 's'}: {shown or 'none'}{more}"]
 
     def swarm_of(self, agent: int) -> int:
         """The leader of the swarm ``agent`` is in; 0 for none."""

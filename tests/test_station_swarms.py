@@ -180,18 +180,18 @@ def test_a_swarm_field_on_an_agents_command_is_refused() -> None:
 def test_all_is_every_swarm_and_a_leader_id_one_swarm() -> None:
     assert parse_command({"target": "swarm", "kind": "land", "swarm": "all"}).swarm is None
     assert parse_command({"target": "swarm", "kind": "land", "swarm": 6}) == CommandSpec(
-        None, CommandKind.LAND, swarm=6
-    )
+        None, CommandKind.LAND
+    ).for_swarm(6)
 
 
 def test_a_swarm_that_is_not_one_or_vanished_is_refused_before_anything_is_sent() -> None:
     core = station(TWO)
-    assert submit_refused(core, CommandSpec(None, CommandKind.LAND, swarm=2)) == (
+    assert submit_refused(core, CommandSpec(None, CommandKind.LAND).for_swarm(2)) == (
         400,
         "no swarm led by agent 2 now (2 swarms led by 3, 6)",
     )
     core.tick(20.0)  # every agent silent: disconnected, no swarm left
-    assert submit_refused(core, CommandSpec(None, CommandKind.STOP, swarm=6)) == (
+    assert submit_refused(core, CommandSpec(None, CommandKind.STOP).for_swarm(6)) == (
         400,
         "no swarm led by agent 6 now (no swarm)",
     )
@@ -202,13 +202,13 @@ def test_follow_to_every_swarm_is_refused_and_to_one_goes_to_its_leader() -> Non
     core = station(TWO)
     status, reason = submit_refused(core, CommandSpec(None, CommandKind.FOLLOW, heading=90.0))
     assert status == 409 and reason.startswith("follow goes to one swarm (2 swarms led by 3, 6)")
-    _, out = core.submit(CommandSpec(None, CommandKind.FOLLOW, heading=90.0, swarm=6), 1.0)
+    _, out = core.submit(CommandSpec(None, CommandKind.FOLLOW, heading=90.0).for_swarm(6), 1.0)
     assert sent(out) == [(6, 0)]
 
 
 def test_land_to_one_swarm_reaches_only_its_members_with_results_per_swarm() -> None:
     core = station(TWO)
-    req, out = core.submit(CommandSpec(None, CommandKind.LAND, swarm=3), 1.0)
+    req, out = core.submit(CommandSpec(None, CommandKind.LAND).for_swarm(3), 1.0)
     assert sent(out) == [(1, 1), (2, 2), (3, 3)]
     for c in cmds(out):
         core.handle(CommandAck(c.target, c.seq, AckResult.ACCEPTED), 1.2)
@@ -235,7 +235,7 @@ def test_stop_to_every_swarm_goes_to_each_leader_and_every_agent() -> None:
 
 def test_a_swarm_command_follows_its_members_new_leader() -> None:
     core = station(TWO)
-    req, out = core.submit(CommandSpec(None, CommandKind.FOLLOW, heading=45.0, swarm=6), 1.0)
+    req, out = core.submit(CommandSpec(None, CommandKind.FOLLOW, heading=45.0).for_swarm(6), 1.0)
     (seq,) = [c.seq for c in cmds(out)]
     for i in (4, 5, 6):  # swarm 6 elects 5; swarm 3 is untouched
         core.handle(tm(i, 5), 1.2)

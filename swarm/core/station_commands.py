@@ -94,8 +94,16 @@ class CommandSpec:
     #: GOTO/WAYPOINT given as ``alt_amsl`` (metres above sea level): submit converts it
     #: to ``alt`` with the home the station knows for the agent, or refuses it
     alt_amsl: float | None = None
-    #: a swarm command (``target`` None) for the one swarm led by this agent; None: every swarm
-    swarm: int | None = None
+    #: a swarm command (``target`` None) for the one swarm led by this agent; None: every
+    #: swarm. Set with :meth:`for_swarm` (not an argument: callers that pass ``**floats``
+    #: for the position and heading keep their types; ``dataclasses.replace`` drops it)
+    swarm: int | None = field(default=None, init=False)
+
+    def for_swarm(self, leader: int | None) -> CommandSpec:
+        """This command for the swarm led by ``leader`` (None: every swarm)."""
+        spec = replace(self)
+        object.__setattr__(spec, "swarm", leader)
+        return spec
 
 
 def _number(body: dict[str, Any], key: str, lo: float, hi: float, what: str) -> float:
@@ -168,7 +176,7 @@ def parse_command(body: Any) -> CommandSpec:
         )
         raise CommandRefused(400, f'target {shown}: an agent id (1..250) or "swarm"')
     spec = _args(body, target, kind)
-    return replace(spec, swarm=_swarm(body, target)) if "swarm" in body else spec
+    return spec.for_swarm(_swarm(body, target)) if "swarm" in body else spec
 
 
 def _args(body: dict[str, Any], target: int | None, kind: CommandKind) -> CommandSpec:

@@ -16,6 +16,7 @@ Screenshot: ``test-artifacts/gcs_swarms.png``.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,25 +49,27 @@ class Live:
         ] == [(3, [1, 2, 3]), (6, [4, 5, 6])]
 
 
+def stop_agent(a: ScriptedAgent) -> None:
+    a.stop_ev.set()
+    a.thread.join(2)
+    a.tr.close()
+
+
 @pytest.fixture(scope="module")
 def live() -> Iterator[Live]:
     ep = f"tcp/127.0.0.1:{free_port()}"
-    live = Live(Station("gcs", zenoh_listen=[ep]).start())
-    server = GcsServer(live.station, ServerConfig(port=free_port())).start()
-    live.url = server.url
-    try:
+    with ExitStack() as stack:
+        live = Live(Station("gcs", zenoh_listen=[ep]).start())
+        stack.callback(live.station.stop)
+        server = GcsServer(live.station, ServerConfig(port=free_port())).start()
+        stack.callback(server.stop)
+        live.url = server.url
         for k, lead in LEADS.items():
             phase = Phase.LEADER if k == lead else Phase.MEMBER
             live.agents[k] = ScriptedAgent(ep, k, phase=phase, leader=lead)
+            stack.callback(stop_agent, live.agents[k])
         wait_until(live.two_swarms, "six agents connected in two swarms (led by 3 and 6)", DEADLINE)
         yield live
-    finally:
-        for a in live.agents.values():
-            a.stop_ev.set()
-            a.thread.join(2)
-            a.tr.close()
-        server.stop()
-        live.station.stop()
 
 
 @pytest.fixture(scope="module")
@@ -74,9 +77,8 @@ def page(live: Live) -> Iterator[Any]:
     with browser() as ctx, new_page(ctx) as p:
         p.set_viewport_size({"width": 1280, "height": 800})
         p.goto(live.url)
-        p.wait_for_function(
-            "() => window.gcs && window.gcs.ready && window.gcsSwarms", timeout=UI_DEADLINE * 1000
-        )
+        ready = "() => window.gcs && window.gcs.ready && window.gcsSwarms"
+        p.wait_for_function(ready, timeout=UI_DEADLINE * 1000)
         poll(lambda: p.evaluate("window.gcs.markers") == len(LEADS), "every marker drawn", UI_DEADLINE)
         yield p
         assert p.errors == []

@@ -2,12 +2,14 @@
 
 Theory of operation
 -------------------
-The API's command object (``{"target": id | "swarm", "kind": ..., args}``) becomes a
-:class:`CommandSpec` in :func:`parse_command`, or is refused with a
+The API's command object (``{"target": id | "swarm", "kind": ..., args}``, and with
+target ``"swarm"`` an optional ``"swarm"``: the leader id of one swarm, or ``"all"``)
+becomes a :class:`CommandSpec` in :func:`parse_command`, or is refused with a
 :class:`CommandRefused` holding a short reason and an HTTP-like status; nothing about
 the swarm is known here (that check is
 :meth:`swarm.core.station_delivery.CommandDelivery.submit`'s, and so is the
-geofence). Altitudes are metres above the vehicle's home (``alt``); a go-to may give
+geofence; which swarms a swarm command reaches is
+:func:`swarm.core.station_swarms.swarm_plan`'s). Altitudes are metres above the vehicle's home (``alt``); a go-to may give
 ``alt_amsl`` instead, which submit converts with the home the station knows.
 
 A submitted command is a :class:`Request` holding one :class:`Pending` per addressee:

@@ -24,6 +24,10 @@ AgentState wins over another agent's list, so no agent is in two swarms.
   keeps the colour), else the lowest free one. The page maps it to its palette.
 * :meth:`SwarmBook.leader_for` names the leader a group of agents follows now (the swarm
   holding most of them): a swarm command in flight follows its members' new leader.
+* :func:`swarm_plan`: the Commands a swarm command becomes, to one swarm (its leader
+  id) or to all; FOLLOW to all is refused while there are several swarms (they would
+  fly one heading from near each other and meet). :meth:`SwarmBook.take_news` is the
+  log's line when the leaders change while there are several swarms.
 
 Hostile input is bounded by construction: a leader must be a known, connected agent
 (ids 1..250, at most one swarm per agent), members are agents the station knows, and a

@@ -33,6 +33,11 @@
  * addressees; "Hold all" (the swarm STOP: every connected agent holds where it is)
  * is one click.
  *
+ * Several swarms (swarms.js, window.gcsSwarms): each agent's colour is its swarm's,
+ * every swarm's leader is marked, the table sorts by swarm by default (by id with one
+ * swarm), and the "to" selector may hold "swarm:<leader id>"; window.gcsDrawHooks are
+ * called after each drawn state.
+ *
  * Stable hooks for tests: #agents [data-agent-id] (rows, .lead, .stale,
  * [data-field]), .agent-marker[data-agent-id][data-colour], #telemetry [data-field],
  * #election [data-field], #log, #cmd-status, #stale-banner, #confirm, #hold-all,

@@ -22,8 +22,9 @@ not remember it, so the new leader answers for itself). Swarm STOP also goes to
 every connected agent; swarm ARM/DISARM/TAKEOFF/LAND/RETURN go to every connected
 agent. With several swarms (:func:`swarm.core.station_swarms.swarm_plan`) a command
 goes to one swarm or to each: a swarm FOLLOW or STOP keeps its swarm's members and
-every retry goes to the leader most of them follow *then*. At give-up, evidence seen in Telemetry (:meth:`CommandDelivery.look_for_evidence`)
-makes the result ``CARRIED_OUT``, a swarm refusal is final, else ``NO_ANSWER``.
+every retry goes to the leader most of them follow *then*. At give-up, evidence seen
+in Telemetry (:meth:`CommandDelivery.look_for_evidence`) makes the result
+``CARRIED_OUT``, a swarm refusal is final, else ``NO_ANSWER``.
 
 An IN_PROGRESS answer (the agent's vehicle is still carrying the command out: a
 take-off climbs for ten seconds and more) is not a result: it is logged once, and the

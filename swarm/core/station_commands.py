@@ -10,7 +10,8 @@ the swarm is known here (that check is
 :meth:`swarm.core.station_delivery.CommandDelivery.submit`'s, and so is the
 geofence; which swarms a swarm command reaches is
 :func:`swarm.core.station_swarms.swarm_plan`'s). Altitudes are metres above the
-vehicle's home (``alt``); a go-to may give ``alt_amsl`` instead, which submit converts with the home the station knows.
+vehicle's home (``alt``); a go-to may give ``alt_amsl`` instead, which submit
+converts with the home the station knows.
 
 A submitted command is a :class:`Request` holding one :class:`Pending` per addressee:
 its :class:`~swarm.core.messages.Command` (one seq each), the tries made, the agents

@@ -166,6 +166,12 @@ def test_a_follow_to_every_swarm_is_refused_in_one_line(live: Live, page: Any) -
     assert status == 'follow: 2 swarms sent the same way would meet: choose one swarm in "to"'
     assert page.evaluate("document.querySelector('#confirm').open") is False
     screenshot(page, "gcs_swarms.png")
+    # a hold to every swarm is allowed: the dialog names them and counts the agents
+    page.select_option("#cmd-target", "swarm")
+    page.click('#commands button[data-kind="stop"]')
+    page.wait_for_selector("#confirm[open]", timeout=UI_DEADLINE * 1000)
+    assert page.text_content("#confirm-text") == "Hold every swarm (2 swarms, 6 agents)?"
+    page.click("#confirm-cancel")
     # the station refuses it too, and any swarm that is not one
     r = post(page, {"target": "swarm", "kind": "follow", "heading": 90})
     assert r["status"] == 409 and r["body"]["error"].startswith(

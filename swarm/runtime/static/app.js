@@ -275,11 +275,16 @@
     rec.tag = rec.el.querySelector(".tag");
     rec.view = {};  // draw everything on the new marker
   }
+  // an agent without a position now (a replay sought back before its first fix) has no marker
+  function dropMarker(rec) {
+    if (rec.marker) rec.marker.remove();
+    if (rec.trail) rec.trail.remove();
+    rec.marker = rec.trail = rec.el = rec.arrow = rec.tag = null;
+  }
   function dropAgent(id) {
     const rec = S.agents.get(id);
     if (!rec) return;
-    if (rec.marker) rec.marker.remove();
-    if (rec.trail) rec.trail.remove();
+    dropMarker(rec);
     rec.row.remove();
     S.agents.delete(id);
     if (S.selected === id) select(null, false);
@@ -398,6 +403,8 @@
         rec.trail.setLatLngs(trail);
         v.trail = key;
       }
+    } else if (rec.marker) {
+      dropMarker(rec);
     }
     if (isLeader !== v.leader || off !== v.off || selected !== v.selected || a.name !== v.name) {
       const row = rec.row;

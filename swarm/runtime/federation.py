@@ -42,10 +42,13 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
+import zenoh
+
 from swarm.core.federation import (
     KIND_COMMAND,
     KIND_RESULT,
     KIND_STATE,
+    MAX_ENVELOPE,
     PREFIX,
     FederationRefused,
     Gate,
@@ -57,7 +60,8 @@ from swarm.core.federation import (
     seal,
     state_key,
 )
-from swarm.runtime.transport import open_session
+from swarm.errors import TransportError
+from swarm.runtime.transport import session_config, zenoh_open_message
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +132,13 @@ class Federation:
     # -- life cycle ---------------------------------------------------------------------
     def start(self) -> Federation:
         """Open the session and start publishing. Raises TransportError (endpoints)."""
-        self.session = open_session(self.listen, self.connect)
+        cfg = session_config(self.listen, self.connect)
+        # Zenoh takes messages of up to 1 GiB by default: a hostile peer's are cut here
+        cfg.insert_json5("transport/link/rx/max_message_size", str(2 * MAX_ENVELOPE))
+        try:
+            self.session = zenoh.open(cfg)
+        except Exception as exc:
+            raise TransportError(zenoh_open_message(str(exc), self.listen, self.connect)) from exc
         try:
             self._decls.append(self.session.declare_subscriber(f"{PREFIX}/*/state", self._on_state))
             self._decls.append(self.session.declare_queryable(command_key(self.name), self._on_query))
@@ -195,7 +205,11 @@ class Federation:
             if session is None:
                 fut.set_result((503, {"ok": False, "error": "the station is stopping"}))
                 return
-            for reply in session.get(command_key(station), payload=data, timeout=self.command_timeout):
+            # every queryable on the key (a hostile one too: its reply fails the result gate)
+            replies = session.get(
+                command_key(station), payload=data, timeout=self.command_timeout, target=zenoh.QueryTarget.ALL
+            )
+            for reply in replies:
                 if reply.ok is None:
                     continue
                 try:

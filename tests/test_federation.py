@@ -1,0 +1,188 @@
+"""Stations joined through a real Zenoh router (swarm.runtime.federation), in one
+process: what crosses, and a hostile sender on the IP network (a raw Zenoh session
+that reaches the router): forged and replayed commands, huge and malformed states,
+names taken, a station that goes away. The stations' own parts (``local`` and
+``run_local``) are small functions here: what is tested is the federation's gate."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from concurrent.futures import Future
+from typing import Any
+
+import pytest
+import zenoh
+from net_helpers import free_port, wait_until
+
+from swarm.cli.commands.router import open_router
+from swarm.core.federation import KIND_COMMAND, KIND_STATE, command_key, fed_key, seal, state_key
+from swarm.runtime.federation import Federation
+from swarm.runtime.transport import open_session
+
+KEY = fed_key(b"k" * 32)
+DEADLINE = 20.0
+
+
+class Side:
+    """One station's federation with a fixed state and a record of the commands it ran."""
+
+    def __init__(self, name: str, ep: str, key: bytes | None, agents: list[int], **kw: Any) -> None:
+        self.ran: list[Any] = []
+        self.events: list[tuple[str, str]] = []
+        self.agents = [{"id": i, "name": f"a{i}", "connected": True, "leader": agents[0]} for i in agents]
+        self.fed = Federation(
+            name,
+            connect=[ep],
+            key=key,
+            local=lambda: {"agents": self.agents, "events": [], "swarms": []},
+            run_local=self.run,
+            on_event=lambda k, t: self.events.append((k, t)),
+            period=0.2,
+            timeout=1.5,
+            forget=4.0,
+            command_timeout=3.0,
+            **kw,
+        )
+
+    def run(self, body: Any) -> Future[tuple[int, dict[str, Any]]]:
+        self.ran.append(body)
+        f: Future[tuple[int, dict[str, Any]]] = Future()
+        f.set_result((200, {"ok": True, "results": [{"agent": body["target"], "result": "ACCEPTED"}]}))
+        return f
+
+    def remote(self, name: str) -> tuple[Any, bool] | None:
+        return next(((r, alive) for r, alive in self.fed.remotes() if r.name == name), None)
+
+
+@pytest.fixture
+def router() -> Iterator[str]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    session: Any = open_router([ep], [])
+    try:
+        yield ep
+    finally:
+        session.close()
+
+
+def pair(ep: str, key: bytes | None = KEY, **kw: Any) -> tuple[Side, Side]:
+    a, c = Side("gcsA", ep, key, [1, 2], **kw), Side("gcsC", ep, key, [41, 42], **kw)
+    a.fed.start()
+    c.fed.start()
+    wait_until(lambda: a.remote("gcsC") and c.remote("gcsA"), "the stations to hear each other", DEADLINE)
+    return a, c
+
+
+def raw_get(session: Any, key: str, payload: bytes) -> list[bytes]:
+    return [
+        r.ok.payload.to_bytes()
+        for r in session.get(key, payload=payload, timeout=2.0, target=zenoh.QueryTarget.ALL)
+        if r.ok is not None
+    ]
+
+
+@pytest.mark.processes
+def test_states_cross_and_a_command_is_carried_out_by_the_station_that_holds_the_agent(router: str) -> None:
+    a, c = pair(router)
+    try:
+        r, alive = a.remote("gcsC") or (None, False)
+        assert alive and [x["id"] for x in r.state["agents"]] == [41, 42]
+        status, body = a.fed.request("gcsC", {"target": 41, "kind": "land"}).result(10)
+        assert (status, body["ok"]) == (200, True) and c.ran == [{"target": 41, "kind": "land"}]
+        # a command for a station nobody runs: no answer, said so
+        status, body = a.fed.request("gcsZ", {"target": 9, "kind": "land"}).result(10)
+        assert status == 504 and "no answer from station gcsZ" in body["error"]
+    finally:
+        a.fed.stop()
+        c.fed.stop()
+
+
+@pytest.mark.processes
+def test_forged_and_replayed_commands_are_not_carried_out(router: str) -> None:
+    a, c = pair(router)
+    evil = open_session(connect=[router])
+    caught: list[bytes] = []
+    spy = evil.declare_queryable(
+        command_key("gcsC"), lambda q: (caught.append(q.payload.to_bytes()), q.drop())
+    )
+    try:
+        now = int(time.time() * 1e6)
+        body = json.dumps({"to": "gcsC", "command": {"target": 41, "kind": "arm"}}).encode()
+        forgeries = (
+            ("unsigned", seal(KIND_COMMAND, "gcsA", 1, now, body, None)),
+            ("bad signature", seal(KIND_COMMAND, "gcsA", 1, now, body, fed_key(b"x" * 32))),
+            ("malformed", b"\x00" * 64),
+        )
+        gate = c.fed.command_gate
+        for why, forged in forgeries:  # sent until C has refused it (the route may take a moment)
+            wait_until(
+                lambda f=forged, w=why: raw_get(evil, command_key("gcsC"), f) == [] and gate.refused.get(w),
+                f"C to refuse the {why} command",
+                DEADLINE,
+            )
+        assert c.ran == []
+        # a real command, overheard (the spy is a second queryable on the same key)
+        assert a.fed.request("gcsC", {"target": 42, "kind": "disarm"}).result(10)[0] == 200
+        real = wait_until(lambda: [p for p in caught if b"disarm" in p], "the spy to overhear it", DEADLINE)
+        assert raw_get(evil, command_key("gcsC"), real[0]) == []  # replayed: refused
+        assert c.ran == [{"target": 42, "kind": "disarm"}] and gate.refused["replayed"] == 1
+    finally:
+        spy.undeclare()
+        evil.close()
+        a.fed.stop()
+        c.fed.stop()
+
+
+@pytest.mark.processes
+def test_huge_malformed_and_misnamed_states_are_dropped_and_names_taken_are_said(router: str) -> None:
+    a, c = pair(router)
+    evil = open_session(connect=[router])
+    twin = Side("gcsA", router, KEY, [7])  # a second station under A's name, with the key
+    try:
+        now = int(time.time() * 1e6)
+        evil.put(state_key("evil"), b"\xff" * (4 * 1024 * 1024))  # beyond what the session takes
+        evil.put(state_key("evil"), b"\xff" * (1024 * 1024 + 1))
+        evil.put(state_key("evil"), seal(KIND_STATE, "evil", 1, now, b"[" * 50_000, None))
+        evil.put(state_key("evil"), seal(KIND_STATE, "evil", 1, now + 1, b'{"agents": [{"id": 0}]}', KEY))
+        evil.put(state_key("gcsC"), seal(KIND_STATE, "gcsB", 1, now + 2, b'{"agents": []}', KEY))
+        twin.fed.start()
+        wait_until(
+            lambda: any("also called gcsA" in t for _k, t in a.events), "A to see its name taken", DEADLINE
+        )
+        wait_until(
+            lambda: any("under gcsC's name" in t for _k, t in a.events), "the misnamed state", DEADLINE
+        )
+        assert [r.name for r, _alive in a.fed.remotes()] == ["gcsC"]  # never evil, never its twin
+        wait_until(
+            lambda: a.fed.state_gate.refused.get("too large") == 1, "the large state refused", DEADLINE
+        )
+        heard = a.fed.stats["states"]
+        wait_until(lambda: a.fed.stats["states"] > heard + 2, "C's states still heard", DEADLINE)
+        assert a.fed.state_gate.refused.get("unsigned") == 1
+        assert a.fed.stats["refused"] >= 3
+    finally:
+        twin.fed.stop()
+        evil.close()
+        a.fed.stop()
+        c.fed.stop()
+
+
+@pytest.mark.processes
+def test_a_station_gone_ages_out_and_without_a_key_commands_are_refused(router: str) -> None:
+    a, c = pair(router, key=None)
+    try:
+        assert a.fed.request("gcsC", {"target": 41, "kind": "land"}).result(10)[0] == 504
+        assert c.ran == []  # no key: remote commands refused (unless --allow-unsigned-remote)
+        c.fed.stop()
+        wait_until(lambda: (a.remote("gcsC") or (None, True))[1] is False, "C shown gone", DEADLINE)
+        wait_until(lambda: a.remote("gcsC") is None, "C forgotten", DEADLINE)
+    finally:
+        a.fed.stop()
+        c.fed.stop()
+    a2, c2 = pair(router, key=None, accept_unsigned_commands=True)
+    try:
+        assert a2.fed.request("gcsC", {"target": 41, "kind": "land"}).result(10)[0] == 200
+    finally:
+        a2.fed.stop()
+        c2.fed.stop()

@@ -48,7 +48,6 @@ from swarm.core.federation import (
     KIND_COMMAND,
     KIND_RESULT,
     KIND_STATE,
-    MAX_ENVELOPE,
     PREFIX,
     FederationRefused,
     Gate,
@@ -60,8 +59,7 @@ from swarm.core.federation import (
     seal,
     state_key,
 )
-from swarm.errors import TransportError
-from swarm.runtime.transport import session_config, zenoh_open_message
+from swarm.runtime.transport import open_session
 
 log = logging.getLogger(__name__)
 
@@ -132,13 +130,7 @@ class Federation:
     # -- life cycle ---------------------------------------------------------------------
     def start(self) -> Federation:
         """Open the session and start publishing. Raises TransportError (endpoints)."""
-        cfg = session_config(self.listen, self.connect)
-        # Zenoh takes messages of up to 1 GiB by default: a hostile peer's are cut here
-        cfg.insert_json5("transport/link/rx/max_message_size", str(2 * MAX_ENVELOPE))
-        try:
-            self.session = zenoh.open(cfg)
-        except Exception as exc:
-            raise TransportError(zenoh_open_message(str(exc), self.listen, self.connect)) from exc
+        self.session = open_session(self.listen, self.connect)
         try:
             self._decls.append(self.session.declare_subscriber(f"{PREFIX}/*/state", self._on_state))
             self._decls.append(self.session.declare_queryable(command_key(self.name), self._on_query))

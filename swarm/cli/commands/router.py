@@ -6,8 +6,10 @@ Stations on radios join one Zenoh network over IP (``swarm gcs --radio ...
 --zenoh-connect tcp/ROUTER:7447``): each connects to a router, and routers to each
 other (``--connect``), Zenoh's own routing carries the stations' ``gcs/...`` key space
 between them (README, "Several radios and stations"). This command is a Zenoh session
-in router mode and nothing else: Eclipse's ``zenohd`` does the same job in the field
-(``zenohd -l tcp/0.0.0.0:7447``). It prints one ready line (``--json``:
+in router mode that takes messages of at most 2 MiB (a station's envelope is at most 1
+MiB; Zenoh's own bound is 1 GiB): Eclipse's ``zenohd`` does the same job in the field
+(``zenohd -l tcp/0.0.0.0:7447`` with ``transport.link.rx.max_message_size`` set so in its
+configuration). It prints one ready line (``--json``:
 ``{"event": "ready", "listen", "connect", "zid"}``), then runs until SIGINT (exit 130)
 or SIGTERM (exit 0). A bad endpoint or a port in use: one line, exit 2.
 """
@@ -20,6 +22,7 @@ from swarm.cli.util import StopFlag, UsageError, guarded, parser, print_json
 from swarm.errors import TransportError
 
 PROG = "swarm router"
+MAX_MESSAGE = 2 * 1024 * 1024
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -49,6 +52,9 @@ def open_router(listen: list[str], connect: list[str]) -> object:
     cfg = session_config(listen, connect)
     try:
         cfg.insert_json5("mode", '"router"')
+        # Zenoh takes messages of up to 1 GiB by default: a sender's larger than this
+        # (twice a station's largest envelope) close its own link, here, at the router
+        cfg.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE))
     except Exception as exc:
         raise TransportError(zenoh_config_message(str(exc))) from exc
     try:

@@ -135,7 +135,7 @@ def test_a_hostile_state_is_rebuilt_from_known_fields() -> None:
     assert a["leader"] == 0 and a["pool"] == [1, 2] and a["trail"] == [[47.0, 8.0]] and a["net"] is None
     assert "script" not in a and len(a["mode"]) == 32 and "\x1b" not in a["mode"]
     assert len(s["events"]) == 25 and all(len(e["text"]) <= 200 for e in s["events"])
-    assert s["swarms"] == [{"leader": 3, "members": [3, 4]}] and "extra" not in s
+    assert s["swarms"] == [{"leader": 3, "members": [3, 4], "net": None}] and "extra" not in s
     for bad in ({"agents": [{"id": 0, "name": "a"}]}, {"agents": [{"id": 1, "name": "no/slash"}]}, [], {}):
         with pytest.raises(FederationRefused):
             clean_state(bad)

@@ -271,7 +271,9 @@ def clean_swarms(v: Any) -> list[dict[str, Any]]:
     out = []
     for s in v[:MAX_AGENTS] if isinstance(v, list) else []:
         if isinstance(s, dict) and _ids([s.get("leader")]):
-            out.append({"leader": s["leader"], "members": _ids(s.get("members"))})
+            net = s.get("net")
+            net = net if isinstance(net, str) and NAME_RE.match(net) else None
+            out.append({"leader": s["leader"], "members": _ids(s.get("members")), "net": net})
     return out
 
 

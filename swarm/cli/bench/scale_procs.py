@@ -10,8 +10,9 @@ process printed its ready line:
 
 * ``listing_s``: until station A's ``/api/state`` lists all C*N agents connected, in
   C swarms (each with a leader);
-* ``command``: a swarm FOLLOW sent from station A's API, whose results must include
-  an ACCEPTED from the leader on the last channel (carried there by its station);
+* ``command``: a swarm FOLLOW sent as station A's page sends it (its WebSocket), whose
+  results must include an ACCEPTED from the leader on the last channel (carried there
+  by its station);
 * ``survivors``: station B (the second) killed with SIGKILL, until A shows B's agents
   disconnected and the other channels' swarms still led and connected.
 
@@ -46,6 +47,24 @@ def http(url: str, body: Any = None) -> tuple[int, Any]:
             return r.status, json.loads(r.read())
     except urllib.error.HTTPError as e:
         return e.code, json.loads(e.read())
+
+
+def ws_command(url: str, body: dict[str, Any], timeout: float = 30.0) -> dict[str, Any]:
+    """``body`` sent as the page sends a command (on station ``url``'s WebSocket): its
+    ``command_result``."""
+    import asyncio
+
+    import aiohttp
+
+    async def go() -> dict[str, Any]:
+        async with aiohttp.ClientSession() as s, s.ws_connect(url + "ws") as ws:
+            await ws.send_json({"type": "command", "id": 1, **body})
+            while True:
+                msg = await asyncio.wait_for(ws.receive_json(), timeout)
+                if msg.get("type") == "command_result":
+                    return dict(msg)
+
+    return asyncio.run(go())
 
 
 def poll(check: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
@@ -153,7 +172,8 @@ def measure(dep: Deployment) -> dict[str, Any]:
     last = f"c{c - 1}"
     leader = next(a["leader"] for a in dep.state()["agents"] if a["net"] == last)
     t1 = time.monotonic()
-    status, body = http(dep.urls[0] + "api/command", {"target": "swarm", "kind": "follow", "heading": 90})
+    body = ws_command(dep.urls[0], {"target": "swarm", "kind": "follow", "heading": 90})
+    status = body["status"]
     acked = any(r.get("agent") == leader and r.get("result") == "ACCEPTED" for r in body.get("results", []))
     command = {
         "status": status,

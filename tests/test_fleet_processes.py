@@ -59,6 +59,8 @@ def test_two_channels_two_stations_one_router(tmp_path: Path) -> None:
         assert st == 409 and "station st1 is gone" in body["error"], body
     finally:
         dep.stop()
+    router, station_a = dep.children[0], dep.stations[0]
+    assert (router.proc.returncode, station_a.proc.returncode) == (0, 0)  # SIGTERM: a clean stop
     for c in dep.children:
         assert not [e for e in c.errors if "Traceback" in e], (c.name, c.errors[-5:])
 

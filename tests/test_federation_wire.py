@@ -178,3 +178,12 @@ def test_a_command_for_another_station_is_checked_here_and_carried_as_the_api_ob
         {"target": 3, "kind": "arm"},
     ):
         assert spec_body(parse_command(body)) == body
+
+
+def test_a_state_too_large_is_thinned_not_refused() -> None:
+    from swarm.core.federation import thin
+
+    body = {"agents": [{"id": i, "name": f"a{i}", "trail": [[47.0, 8.0]] * 120} for i in range(1, 251)]}
+    small = thin(body)
+    assert all(len(a["trail"]) == 10 for a in small["agents"]) and len(small["agents"]) == 250
+    assert len(body["agents"][0]["trail"]) == 120  # the station's own view untouched

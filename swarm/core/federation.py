@@ -295,6 +295,13 @@ def clean_state(body: Any) -> dict[str, Any]:
     }
 
 
+def thin(body: dict[str, Any], points: int = 10) -> dict[str, Any]:
+    """``body`` (a state to publish) with each agent's trail cut to its last ``points``:
+    a state too large for :data:`MAX_ENVELOPE` is sent so rather than refused."""
+    agents = [{**a, "trail": a.get("trail", [])[-points:]} for a in body.get("agents", [])]
+    return {**body, "agents": agents}
+
+
 # -- commands across stations ----------------------------------------------------------
 
 
@@ -386,4 +393,5 @@ __all__ = [
     "spec_body",
     "state_key",
     "tame",
+    "thin",
 ]

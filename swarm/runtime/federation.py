@@ -9,7 +9,8 @@ agents' key space never leaves its channel. On it, under ``gcs/`` (the key space
 the envelope and what may cross are :mod:`swarm.core.federation`'s):
 
 * a thread publishes ``local()`` (this station's agents, each with its ``net``,
-  its events and swarms) on ``gcs/<name>/state`` every ``period`` seconds;
+  its events and swarms) on ``gcs/<name>/state`` every ``period`` seconds (the
+  trails cut short if it would not fit an envelope);
 * a subscriber on ``gcs/*/state`` opens each envelope through a
   :class:`~swarm.core.federation.Gate` (signature, replay) and keeps each other
   station's cleaned state with the time it came (:meth:`remotes`): one silent for
@@ -48,6 +49,7 @@ from swarm.core.federation import (
     KIND_COMMAND,
     KIND_RESULT,
     KIND_STATE,
+    MAX_ENVELOPE,
     PREFIX,
     FederationRefused,
     Gate,
@@ -58,6 +60,7 @@ from swarm.core.federation import (
     load_body,
     seal,
     state_key,
+    thin,
 )
 from swarm.runtime.transport import open_session
 
@@ -177,7 +180,10 @@ class Federation:
     def _publish_loop(self) -> None:
         while not self._stop.wait(self.period):
             try:
-                _t, data = self._seal(KIND_STATE, self.local())
+                body = self.local()
+                _t, data = self._seal(KIND_STATE, body)
+                if len(data) > MAX_ENVELOPE:  # hundreds of agents with long trails
+                    _t, data = self._seal(KIND_STATE, thin(body))
                 self.session.put(state_key(self.name), data)
                 self.stats["published"] += 1
             except Exception:

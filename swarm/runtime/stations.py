@@ -141,13 +141,15 @@ class Fleet:
         return lambda ev: fn({**ev, "net": net, "station": self.name})
 
     # -- the view -------------------------------------------------------------------------
-    def local_state(self) -> dict[str, Any]:
-        """This station's channels only: what it publishes to the others."""
+    def local_state(self, snaps: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+        """This station's channels only (their ``snaps``, taken now if not given): what
+        it publishes to the others."""
         agents: dict[int, dict[str, Any]] = {}
         events: list[dict[str, Any]] = []
         swarms: list[dict[str, Any]] = []
-        for net, st in self.channels:
-            snap = st.snapshot()
+        if snaps is None:
+            snaps = [st.snapshot() for _net, st in self.channels]
+        for (net, _st), snap in zip(self.channels, snaps, strict=True):
             for a in snap["agents"]:
                 if a["id"] in agents:
                     self.note("federation", f"agent id {a['id']} heard on {agents[a['id']]['net']} and {net}")
@@ -194,8 +196,9 @@ class Fleet:
         return agents, events, swarms
 
     def snapshot(self) -> dict[str, Any]:
-        first = self.channels[0][1].snapshot()
-        mine = self.local_state()
+        snaps = [st.snapshot() for _net, st in self.channels]
+        first = snaps[0]
+        mine = self.local_state(snaps)
         held = {a["id"] for a in mine["agents"]}
         agents, events, swarms = self._remote_agents(held)
         with self._lock:
@@ -203,8 +206,7 @@ class Fleet:
         all_events = sorted(mine["events"] + events + own, key=lambda e: e["t"])[-MAX_EVENTS:]
         n = len(self.channels)
         alerts = []
-        for i, (net, st) in enumerate(self.channels):
-            snap = first if i == 0 else st.snapshot()
+        for i, ((net, _st), snap) in enumerate(zip(self.channels, snaps, strict=True)):
             alerts += [{**al, "id": al["id"] * n + i, "net": net} for al in snap["alerts"]]
         first.update(
             agents=sorted(mine["agents"] + agents, key=lambda a: a["id"]),

@@ -3,6 +3,11 @@
 Live: ``swarm gcs --radio URL`` (a SiK radio or an emulator pty) or
 ``--zenoh-listen/--zenoh-connect EP...`` (Zenoh over IP). Replay:
 ``swarm gcs --replay CAPTURE [--speed X]`` plays a ``.tlog`` on the same page.
+Several channels: ``--radio NAME=URL`` repeated (one radio per NETID); with radios,
+``--zenoh-connect/--zenoh-listen`` join other stations over Zenoh (routers:
+``swarm router``), their agents shown and commanded on this page too
+(:class:`swarm.runtime.stations.Fleet`, :mod:`swarm.runtime.federation`; remote
+commands need the swarm key, or ``--allow-unsigned-remote``).
 
 The page and the API answer only their own page, under this machine's names
 (``--allow-host NAME`` adds one) and, beyond loopback, only with the station's token

@@ -104,7 +104,7 @@ class Federation:
         period: float = 0.5,
         timeout: float = 3.0,
         forget: float = 30.0,
-        command_timeout: float = 15.0,
+        command_timeout: float = 18.0,  # inside the server's 20 s: its answer, not a 504
         clock: Callable[[], float] = time.monotonic,
         wall: Callable[[], float] = time.time,
     ) -> None:

@@ -23,8 +23,10 @@ alerts):
   acknowledgement reaches the channel that raised it;
 * commands: to an agent, the channel that holds it, or the station that does (checked
   here against this station's geofence, :func:`swarm.core.federation.check_remote`,
-  and there again when carried out); to the swarm, every channel and every station
-  that is alive, their results gathered in one (status: the worst one's). A command
+  and there again when carried out); to one swarm (a ``swarm`` leader id on the
+  command, when the command parser gives one), the channel or station holding its
+  leader; to the swarm, every channel and every station that is alive, their results
+  gathered in one (status: the worst one's). A command
   from another station (:meth:`run_local`) is only ever carried out on this station's
   own channels, never passed on.
 """
@@ -269,12 +271,20 @@ class Fleet:
                 :func:`~swarm.core.federation.check_remote` refuses, 409 nothing to
                 command.
         """
+        leader = getattr(spec, "swarm", None)  # a swarm by its leader's id (issue 16's groups)
+        if spec.target is None and leader is not None:
+            here = self._holder(leader)
+            if here is not None:
+                return here[1].submit(spec)
+            if remote:
+                return self._submit_remote(spec, leader)
+            raise CommandRefused(404, f"no swarm led by {leader} at station {self.name}")
         if spec.target is not None:
             here = self._holder(spec.target)
             if here is not None:
                 return here[1].submit(spec)
             if remote:
-                return self._submit_remote(spec)
+                return self._submit_remote(spec, spec.target)
             raise CommandRefused(404, f"unknown agent {spec.target} at station {self.name}")
         parts: list[tuple[dict[str, Any], Future[Result]]] = []
         refusals: list[CommandRefused] = []
@@ -292,19 +302,18 @@ class Fleet:
             raise refusals[0] if refusals else CommandRefused(409, "no connected agents")
         return gather(parts)
 
-    def _submit_remote(self, spec: CommandSpec) -> Future[Result]:
-        assert spec.target is not None
+    def _submit_remote(self, spec: CommandSpec, agent_id: int) -> Future[Result]:
+        """To the station that holds agent ``agent_id`` (the target, or a swarm's leader)."""
         if self.federation is not None:
             for r, alive in self.federation.remotes():
                 for a in r.state["agents"]:
-                    if a["id"] == spec.target:
-                        if not alive:
-                            raise CommandRefused(
-                                409, f"station {r.name} is gone: {a['name']} cannot be reached"
-                            )
-                        checked = check_remote(spec, self.fence, a)
-                        return self.federation.request(r.name, spec_body(checked))
-        raise CommandRefused(404, f"unknown agent {spec.target}")
+                    if a["id"] != agent_id:
+                        continue
+                    if not alive:
+                        raise CommandRefused(409, f"station {r.name} is gone: {a['name']} cannot be reached")
+                    checked = check_remote(spec, self.fence, a if spec.target is not None else None)
+                    return self.federation.request(r.name, spec_body(checked))
+        raise CommandRefused(404, f"unknown agent {agent_id}")
 
     def run_local(self, body: Any) -> Future[Result]:
         """Another station's command object, for this station's own channels only.

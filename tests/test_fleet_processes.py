@@ -1,6 +1,6 @@
 """Swarms across channels with real processes: 2 emulators (NETIDs 25 and 26) x 2
 agents, a station on each joined through a ``swarm router``, one swarm key. Station A's
-API lists all four agents with their channel and station; a command from A reaches an
+API and page list all four agents (the API with their channel and station); a command from A reaches an
 agent on B's channel (checked by A's geofence first) and is answered; B killed, its
 agents are shown gone on A while A's own channel stays. Then the command line's bad
 input: one line, exit 2."""
@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from gcs_browser import browser, new_page
 
 from swarm.cli.bench.scale_procs import Deployment, http, led_swarms, poll
 from swarm.cli.commands.gcs import main as gcs_main
@@ -31,6 +32,13 @@ def test_two_channels_two_stations_one_router(tmp_path: Path) -> None:
         }
         assert {(w["net"], w["station"]) for w in s["swarms"]} == {("c0", "st0"), ("c1", "st1")}
         assert [(x["name"], x["alive"]) for x in s["stations"]] == [("st0", True), ("st1", True)]
+        # the page (headless Chromium): one fleet table with both channels' agents
+        with browser() as ctx, new_page(ctx) as page:
+            page.goto(dep.urls[0])
+            rows = "Array.from(document.querySelectorAll('#agents tbody tr[data-agent-id]'))"
+            rows += ".map(r => +r.dataset.agentId)"
+            poll(lambda: sorted(page.evaluate(rows)) == [1, 2, 21, 22], "the page to list all four agents")
+            assert page.errors == []
         url = dep.urls[0] + "api/command"
         # to one agent of B's: carried by B on its radio, the agent's own answer back
         st, body = http(url, {"target": 22, "kind": "arm"})

@@ -18,7 +18,7 @@ from net_helpers import free_port, wait_until
 
 from swarm.cli.commands.router import open_router
 from swarm.core.federation import KIND_COMMAND, KIND_STATE, Stamp, command_key, fed_key, seal, state_key
-from swarm.runtime.federation import Federation
+from swarm.runtime.federation import MAX_STATIONS, Federation
 from swarm.runtime.transport import open_session
 
 KEY = fed_key(b"k" * 32)
@@ -196,13 +196,27 @@ def test_huge_malformed_and_misnamed_states_are_dropped_and_names_taken_are_said
 @pytest.mark.processes
 def test_a_station_gone_ages_out_and_without_a_key_commands_are_refused(router: str) -> None:
     a, c = pair(router, key=None)
+    evil = open_session(connect=[router])
     try:
         assert a.fed.request("gcsC", {"target": 41, "kind": "land"}).result(10)[0] == 504
         assert c.ran == []  # no key: remote commands refused (unless --allow-unsigned-remote)
+        # without a key anyone may publish a state: stations made up by the dozen are bounded
+        stamp, fakes = Stamp(), [f"fake{i}" for i in range(MAX_STATIONS + 8)]
+
+        def flood() -> bool:
+            for n in fakes:
+                evil.put(
+                    state_key(n), seal(KIND_STATE, n, 1, stamp.next(time.time()), b'{"agents": []}', None)
+                )
+            return any("more than" in t for _k, t in a.events)
+
+        wait_until(flood, "the made-up stations bounded, said once", DEADLINE)
+        assert len(a.fed.remotes()) == MAX_STATIONS
         c.fed.stop()
         wait_until(lambda: (a.remote("gcsC") or (None, True))[1] is False, "C shown gone", DEADLINE)
         wait_until(lambda: a.remote("gcsC") is None, "C forgotten", DEADLINE)
     finally:
+        evil.close()
         a.fed.stop()
         c.fed.stop()
     a2, c2 = pair(router, key=None, accept_unsigned_commands=True)

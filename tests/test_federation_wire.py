@@ -187,3 +187,12 @@ def test_a_state_too_large_is_thinned_not_refused() -> None:
     small = thin(body)
     assert all(len(a["trail"]) == 10 for a in small["agents"]) and len(small["agents"]) == 250
     assert len(body["agents"][0]["trail"]) == 120  # the station's own view untouched
+
+
+def test_a_gate_remembers_a_bounded_number_of_senders() -> None:
+    from swarm.core.federation import MAX_SENDERS
+
+    gate = Gate(None)
+    for i in range(MAX_SENDERS + 50):  # names made up by the thousand, unsigned
+        gate.open(state_env({"agents": []}, sender=f"s{i}", key=None, t=T + i), NOW, KIND_STATE)
+    assert len(gate._newest) == MAX_SENDERS

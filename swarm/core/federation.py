@@ -63,6 +63,7 @@ MAX_AGENTS = 250
 MAX_EVENTS = 50
 MAX_TRAIL = 600
 MAX_TEXT = 200
+MAX_SENDERS = 256  # senders a gate remembers (beyond: the one heard longest ago is forgotten)
 _KEY_LABEL = b"uav-swarm station federation v1"
 
 
@@ -135,6 +136,8 @@ class Gate:
             self.refused[why] = self.refused.get(why, 0) + 1
             raise
         self._newest[(env.sender, env.kind)] = env.t_us
+        if len(self._newest) > MAX_SENDERS:  # names made up by the thousand (without a key)
+            del self._newest[min(self._newest, key=self._newest.__getitem__)]
         return env
 
     def _open(self, data: bytes, wall_s: float, kind: bytes) -> Envelope:

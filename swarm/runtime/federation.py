@@ -67,6 +67,7 @@ from swarm.runtime.transport import open_session
 log = logging.getLogger(__name__)
 
 MAX_IN_FLIGHT = 8
+MAX_STATIONS = 32  # other stations kept at once: names beyond are refused (one event)
 
 Result = tuple[int, dict[str, Any]]
 
@@ -123,7 +124,7 @@ class Federation:
         self.stats = {"published": 0, "states": 0, "refused": 0, "commands_in": 0, "commands_out": 0}
         self._lock = threading.Lock()
         self._remotes: dict[str, Remote] = {}
-        self._collisions: set[str] = set()
+        self._said: set[str] = set()
         self._in_flight = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -242,13 +243,18 @@ class Federation:
             now = self.clock()
             with self._lock:
                 old = self._remotes.get(env.sender)
+                full = old is None and len(self._remotes) >= MAX_STATIONS
                 if old is not None and old.instance != env.instance and now - old.heard < self.timeout:
                     fresh = False  # two processes under one name: keep the first, say so
+                elif full:
+                    fresh = True  # not kept: too many stations (said below)
                 else:
                     self._remotes[env.sender] = Remote(env.sender, state, now, env.instance)
                     fresh = True
             if not fresh:
                 self._collision(env.sender, owner)
+            if full:
+                self._say("full", f"more than {MAX_STATIONS} stations: {env.sender} and later ones ignored")
             self.stats["states"] += 1
         except FederationRefused as exc:
             self._refused("a state", exc)
@@ -257,15 +263,19 @@ class Federation:
             log.debug("federation: a state failed", exc_info=True)
 
     def _collision(self, sender: str, owner: str) -> None:
-        tag = f"{sender}/{owner}"
-        with self._lock:
-            if tag in self._collisions:
-                return
-            self._collisions.add(tag)
         if sender != owner:
             text = f"station {sender} published under {owner}'s name: ignored"
         else:
             text = f"another station is also called {sender}: its state ignored (give each its own --name)"
+        self._say(f"{sender}/{owner}", text)
+
+    def _say(self, tag: str, text: str) -> None:
+        """One event per ``tag``, for at most :data:`MAX_STATIONS` tags (names made up
+        by the thousand are not remembered one by one)."""
+        with self._lock:
+            if tag in self._said or len(self._said) >= MAX_STATIONS:
+                return
+            self._said.add(tag)
         self.on_event("federation", text)
 
     def remotes(self) -> list[tuple[Remote, bool]]:

@@ -127,7 +127,9 @@ def add_node_arguments(p: argparse.ArgumentParser, *, title: str | None = None, 
         ("--zenoh-listen", "listen on (tcp/127.0.0.1:7447)"),
         ("--zenoh-connect", "connect to"),
     ):
-        also = "; with --radio: to meet other stations" if radios else ", instead of a radio"
+        also = (
+            ": the agents' (no --radio), other stations' (with --radio)" if radios else ", instead of a radio"
+        )
         where.add_argument(flag, nargs="+", default=[], metavar="EP", help=f"Zenoh endpoints to {what}{also}")
     p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
     p.add_argument(

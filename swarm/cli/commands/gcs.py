@@ -81,7 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
         "Ground control station: connects the agents that announce themselves, shows "
         "them on a map in the browser and sends them commands (JSON API at /api).",
     )
-    src = add_node_arguments(p, title="where the swarm is (one of)", radios=True)
+    src = add_node_arguments(
+        p, title="where the swarm is: radios (and other stations), Zenoh or a capture", radios=True
+    )
     src.add_argument("--replay", metavar="CAPTURE", help="play a captured flight (.tlog) instead")
     p.add_argument(
         "--http",

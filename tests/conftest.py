@@ -47,6 +47,7 @@ LIGHT = frozenset(
         "test_sim_parallel.py",  # virtual time: the figures do not depend on the machine
         "test_sim_campaign.py",  # the same
         "test_federation.py",  # stations' Zenoh sessions in one process: what crosses, not how fast
+        "test_fleet_view.py",  # two stations' sessions in one process: the merged view
         "test_fleet_processes.py",  # 2 channels, 2 stations, a router: what the API shows and answers
     }
 )

@@ -18,6 +18,7 @@ alerts):
   federation's timeout, and go when it is forgotten;
 * ``swarms``: the channels' own lists when their cores give one (issue 16's groups),
   otherwise one per channel leader: ``{leader, members, net, station}``;
+* ``leader``, ``radio``, ``task``, ``slots``: the first channel's, as before;
 * ``events``: every channel's and station's, by time; ``alerts``: this station's
   channels', each id made unique (``id * channels + channel index``) so an
   acknowledgement reaches the channel that raised it;
@@ -33,8 +34,10 @@ alerts):
 
 from __future__ import annotations
 
+import json
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from typing import Any
@@ -46,10 +49,11 @@ from swarm.runtime.federation import Federation, Result
 from swarm.runtime.station import Station
 
 MAX_EVENTS = 200
+MAX_NOTES = 1000  # the fleet's own events (collisions) it says at most, each once
 
 
 class Fleet:
-    """Channels (``(net name, Station)``) and another stations' view as one station."""
+    """Channels (``(net name, Station)``) and the other stations' agents as one station."""
 
     replay = None
 
@@ -64,7 +68,7 @@ class Fleet:
         self._lock = threading.Lock()
         self._listeners: dict[Callable[[dict[str, Any]], None], list[Callable[[dict[str, Any]], None]]] = {}
         self._noted: set[str] = set()
-        self._own_events: list[dict[str, Any]] = []
+        self._own_events: deque[dict[str, Any]] = deque(maxlen=MAX_EVENTS)
 
     # -- life cycle ---------------------------------------------------------------------
     def start(self) -> Fleet:
@@ -115,7 +119,7 @@ class Fleet:
     def note(self, kind: str, text: str) -> None:
         """An event of the fleet's own (a collision), once per text."""
         with self._lock:
-            if text in self._noted:
+            if text in self._noted or len(self._noted) >= MAX_NOTES:
                 return
             self._noted.add(text)
             ev = Event(time.time(), kind, text).as_dict()
@@ -192,9 +196,7 @@ class Fleet:
                 agents.append(a)
             events += [{**e, "station": r.name} for e in r.state["events"]]
             if alive:
-                swarms += [{**s, "station": r.name} for s in r.state["swarms"]] or self._swarms(
-                    r.state, None, r.name
-                )
+                swarms += [{**s, "station": r.name} for s in r.state["swarms"]]
         return agents, events, swarms
 
     def snapshot(self) -> dict[str, Any]:
@@ -228,8 +230,6 @@ class Fleet:
         return out
 
     def snapshot_json(self) -> str:
-        import json
-
         return json.dumps(self.snapshot())
 
     def agent(self, agent_id: int) -> dict[str, Any] | None:

@@ -196,3 +196,29 @@ def test_a_gate_remembers_a_bounded_number_of_senders() -> None:
     for i in range(MAX_SENDERS + 50):  # names made up by the thousand, unsigned
         gate.open(state_env({"agents": []}, sender=f"s{i}", key=None, t=T + i), NOW, KIND_STATE)
     assert len(gate._newest) == MAX_SENDERS
+
+
+def test_commands_may_cross_on_the_way_but_each_is_taken_once() -> None:
+    gate = Gate(KEY)
+    first, second = (seal(KIND_COMMAND, "gcsA", 1, T + i, b"{}", KEY) for i in (1, 2))
+    assert gate.open(second, NOW, KIND_COMMAND).t_us == T + 2  # sent at once, arrived crossed
+    assert gate.open(first, NOW, KIND_COMMAND).t_us == T + 1
+    for again in (first, second):
+        with pytest.raises(FederationRefused, match="replayed"):
+            gate.open(again, NOW + 5, KIND_COMMAND)
+    with pytest.raises(FederationRefused, match="out of window"):  # once forgotten, too old anyway
+        gate.open(first, NOW + WINDOW_S + 1, KIND_COMMAND)
+    # unsigned commands (allowed) are held to the window too: no record grows without end
+    loose = Gate(None, accept_unsigned_commands=True)
+    with pytest.raises(FederationRefused, match="out of window"):
+        loose.open(seal(KIND_COMMAND, "x", 1, T - 10**9, b"{}", None), NOW, KIND_COMMAND)
+    from swarm.core.federation import MAX_ONCE
+
+    for i in range(MAX_ONCE):
+        loose.open(seal(KIND_COMMAND, "x", 1, T + i, b"{}", None), NOW, KIND_COMMAND)
+    with pytest.raises(FederationRefused, match="busy"):  # until the window has passed
+        loose.open(seal(KIND_COMMAND, "x", 1, T - 1, b"{}", None), NOW, KIND_COMMAND)
+    assert (
+        loose.open(seal(KIND_COMMAND, "x", 1, T + 61_000_000, b"{}", None), NOW + 61, KIND_COMMAND)
+        is not None
+    )

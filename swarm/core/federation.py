@@ -19,10 +19,12 @@ Anyone who can reach a router can publish there, so every payload is an
            | sender length (1) | sender | body | HMAC-SHA256 (32, when signed)
 
 The MAC (with a key derived from the swarm key for this use only, :func:`fed_key`)
-covers everything before it. A :class:`Gate` keeps, per sender and kind, the newest
-time it accepted: an envelope not strictly newer is a replay; a signed one more
-than :data:`WINDOW_S` from the receiver's clock is refused too (a recording played
-later). A gate with a key refuses unsigned envelopes; without a key it accepts
+covers everything before it. A :class:`Gate` keeps, per sender, the newest state's
+time it accepted (a state not strictly newer is a replay) and the times of the
+commands and results it took in the last :data:`WINDOW_S` (one seen again is a
+replay; these may arrive out of order); a signed envelope, and any command or
+result, more than :data:`WINDOW_S` from the receiver's clock is refused (a recording
+played later). A gate with a key refuses unsigned envelopes; without a key it accepts
 unsigned states, and commands only when told so (``accept_unsigned_commands``).
 A result names the request it answers (its sender and time), so an old result
 cannot answer a new request.
@@ -64,6 +66,7 @@ MAX_EVENTS = 50
 MAX_TRAIL = 600
 MAX_TEXT = 200
 MAX_SENDERS = 256  # senders a gate remembers (beyond: the one heard longest ago is forgotten)
+MAX_ONCE = 4096  # command or result times a gate remembers within the window
 _KEY_LABEL = b"uav-swarm station federation v1"
 
 
@@ -114,12 +117,21 @@ class Stamp:
 
 
 class Gate:
-    """Opens envelopes: size, form, signature, replay. Counts what it refuses."""
+    """Opens envelopes: size, form, signature, replay. Counts what it refuses.
+
+    States (``kind`` :data:`KIND_STATE`) must be strictly newer than the sender's last:
+    a late one is dropped, the next comes half a second later. Commands and results
+    may cross on the way (two sent at once), so for them each time is taken once:
+    the gate remembers the times it took within :data:`WINDOW_S` (at most
+    :data:`MAX_ONCE`; a command's or result's time must be inside the window, signed or
+    not) and refuses one seen again.
+    """
 
     def __init__(self, key: bytes | None, *, accept_unsigned_commands: bool = False) -> None:
         self.key = key
         self.accept_unsigned_commands = accept_unsigned_commands
         self._newest: dict[tuple[str, bytes], int] = {}
+        self._once: dict[tuple[str, bytes, int], float] = {}  # (sender, kind, time) -> when taken
         self.refused: dict[str, int] = {}
 
     def open(self, data: bytes, wall_s: float, kind: bytes) -> Envelope:
@@ -131,14 +143,29 @@ class Gate:
         """
         try:
             env = self._open(data, wall_s, kind)
+            if kind == KIND_STATE:
+                self._newest[(env.sender, env.kind)] = env.t_us
+                if len(self._newest) > MAX_SENDERS:  # names made up by the thousand (without a key)
+                    del self._newest[min(self._newest, key=self._newest.__getitem__)]
+            else:
+                self._take_once(env, wall_s)
         except FederationRefused as exc:
             why = str(exc).split(":")[0]
             self.refused[why] = self.refused.get(why, 0) + 1
             raise
-        self._newest[(env.sender, env.kind)] = env.t_us
-        if len(self._newest) > MAX_SENDERS:  # names made up by the thousand (without a key)
-            del self._newest[min(self._newest, key=self._newest.__getitem__)]
         return env
+
+    def _take_once(self, env: Envelope, wall_s: float) -> None:
+        if abs(env.t_us / 1e6 - wall_s) > WINDOW_S:
+            raise FederationRefused(f"out of window: from {env.sender}, {env.t_us / 1e6 - wall_s:+.0f} s")
+        for k in [k for k, t in self._once.items() if t < wall_s - 2 * WINDOW_S]:
+            del self._once[k]
+        tag = (env.sender, env.kind, env.t_us)
+        if tag in self._once:
+            raise FederationRefused(f"replayed: from {env.sender}")
+        if len(self._once) >= MAX_ONCE:
+            raise FederationRefused(f"busy: from {env.sender}, {MAX_ONCE} taken in {WINDOW_S:g} s")
+        self._once[tag] = wall_s
 
     def _open(self, data: bytes, wall_s: float, kind: bytes) -> Envelope:
         if len(data) > MAX_ENVELOPE:
@@ -166,7 +193,7 @@ class Gate:
             signed = False
         if kind == KIND_COMMAND and not signed and not self.accept_unsigned_commands:
             raise FederationRefused(f"unsigned command: from {sender} (give the swarm key, --key)")
-        if t_us <= self._newest.get((sender, kind), 0):
+        if kind == KIND_STATE and t_us <= self._newest.get((sender, kind), 0):
             raise FederationRefused(f"replayed: from {sender}")
         return Envelope(kind, signed, t_us, instance, sender, body)
 
@@ -381,6 +408,8 @@ __all__ = [
     "KIND_RESULT",
     "KIND_STATE",
     "MAX_ENVELOPE",
+    "MAX_ONCE",
+    "MAX_SENDERS",
     "PREFIX",
     "WINDOW_S",
     "Envelope",

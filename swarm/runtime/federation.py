@@ -51,6 +51,7 @@ from swarm.core.federation import (
     KIND_STATE,
     MAX_ENVELOPE,
     PREFIX,
+    Envelope,
     FederationRefused,
     Gate,
     Stamp,
@@ -123,6 +124,7 @@ class Federation:
         self.stamp = Stamp()
         self.stats = {"published": 0, "states": 0, "refused": 0, "commands_in": 0, "commands_out": 0}
         self._lock = threading.Lock()
+        self._gates = threading.Lock()  # a gate's replay record: one envelope at a time
         self._remotes: dict[str, Remote] = {}
         self._said: set[str] = set()
         self._in_flight = 0
@@ -212,7 +214,7 @@ class Federation:
                 if reply.ok is None:
                     continue
                 try:
-                    env = self.result_gate.open(reply.ok.payload.to_bytes(), self.wall(), KIND_RESULT)
+                    env = self._open(self.result_gate, reply.ok.payload.to_bytes(), KIND_RESULT)
                     if env.sender != station:
                         raise FederationRefused(f"malformed: a result from {env.sender}, not {station}")
                     fut.set_result(clean_result(load_body(env.body), self.name, t))
@@ -226,6 +228,10 @@ class Federation:
                 fut.set_result((502, {"ok": False, "error": f"station {station}: {type(exc).__name__}"}))
 
     # -- in -------------------------------------------------------------------------------
+    def _open(self, gate: Gate, data: bytes, kind: bytes) -> Envelope:
+        with self._gates:
+            return gate.open(data, self.wall(), kind)
+
     def _refused(self, what: str, exc: FederationRefused) -> None:
         self.stats["refused"] += 1
         log.debug("federation: %s refused: %s", what, exc)
@@ -233,7 +239,7 @@ class Federation:
     def _on_state(self, sample: Any) -> None:
         try:
             key = str(sample.key_expr)
-            env = self.state_gate.open(sample.payload.to_bytes(), self.wall(), KIND_STATE)
+            env = self._open(self.state_gate, sample.payload.to_bytes(), KIND_STATE)
             owner = key.split("/")[1]
             if env.sender == self.name or owner != env.sender:
                 if env.instance != self.instance or owner != env.sender:
@@ -290,8 +296,8 @@ class Federation:
     def _on_query(self, query: Any) -> None:
         try:
             payload = query.payload
-            env = self.command_gate.open(
-                payload.to_bytes() if payload is not None else b"", self.wall(), KIND_COMMAND
+            env = self._open(
+                self.command_gate, payload.to_bytes() if payload is not None else b"", KIND_COMMAND
             )
         except FederationRefused as exc:
             self._refused("a command", exc)

@@ -90,6 +90,9 @@ def test_states_cross_and_a_command_is_carried_out_by_the_station_that_holds_the
         assert alive and [x["id"] for x in r.state["agents"]] == [41, 42]
         status, body = a.fed.request("gcsC", {"target": 41, "kind": "land"}).result(10)
         assert (status, body["ok"]) == (200, True) and c.ran == [{"target": 41, "kind": "land"}]
+        # several at once (their envelopes may cross on the way): each carried out once
+        many = [a.fed.request("gcsC", {"target": 42, "kind": "stop"}) for _ in range(6)]
+        assert [f.result(10)[0] for f in many] == [200] * 6 and len(c.ran) == 7
         # a command for a station nobody runs: no answer, said so
         status, body = a.fed.request("gcsZ", {"target": 9, "kind": "land"}).result(10)
         assert status == 504 and "no answer from station gcsZ" in body["error"]

@@ -288,16 +288,19 @@ class Fleet:
             raise CommandRefused(404, f"unknown agent {spec.target} at station {self.name}")
         parts: list[tuple[dict[str, Any], Future[Result]]] = []
         refusals: list[CommandRefused] = []
+        fed = self.federation if remote else None
+        body = (
+            spec_body(check_remote(spec, self.fence, None)) if fed is not None else {}
+        )  # before any is sent
         for net, st in self.channels:
             try:
                 parts.append(({"net": net, "station": self.name}, st.submit(spec)))
             except CommandRefused as exc:
                 refusals.append(exc)
-        if self.federation is not None and remote:
-            body = spec_body(check_remote(spec, self.fence, None))
-            for r, alive in self.federation.remotes():
+        if fed is not None:
+            for r, alive in fed.remotes():
                 if alive and r.state["agents"]:
-                    parts.append(({"station": r.name}, self.federation.request(r.name, body)))
+                    parts.append(({"station": r.name}, fed.request(r.name, body)))
         if not parts:
             raise refusals[0] if refusals else CommandRefused(409, "no connected agents")
         return gather(parts)

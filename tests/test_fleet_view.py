@@ -88,3 +88,20 @@ def test_channels_merge_into_one_view(fleet: tuple[Fleet, list[ScriptedAgent]]) 
     wait_until(
         lambda: {e.get("net") for e in seen} >= {"north", "south"}, "events tagged by channel", DEADLINE
     )
+
+
+def test_a_cores_own_swarms_are_tagged_and_their_colours_made_unique() -> None:
+    snap = {
+        "agents": [],
+        "swarms": [{"leader": 4, "members": [4, 5], "colour": 0}, {"leader": 9, "members": [9]}],
+    }
+    got = [Fleet._swarms(snap, net, "gcs", (i, 2)) for i, net in enumerate(("north", "south"))]
+    assert [[(s["leader"], s.get("colour"), s["net"]) for s in g] for g in got] == [
+        [(4, 0, "north"), (9, None, "north")],
+        [(4, 1, "south"), (9, None, "south")],
+    ]
+    # without the cores' list: one swarm per leader the agents name
+    snap = {"agents": [{"id": 1, "leader": 2}, {"id": 2, "leader": 2}, {"id": 3, "leader": 0}]}
+    assert Fleet._swarms(snap, "n", "gcs", (0, 1)) == [
+        {"leader": 2, "members": [1, 2], "net": "n", "station": "gcs"}
+    ]

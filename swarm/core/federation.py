@@ -303,7 +303,11 @@ def clean_swarms(v: Any) -> list[dict[str, Any]]:
         if isinstance(s, dict) and _ids([s.get("leader")]):
             net = s.get("net")
             net = net if isinstance(net, str) and NAME_RE.match(net) else None
-            out.append({"leader": s["leader"], "members": _ids(s.get("members")), "net": net})
+            d = {"leader": s["leader"], "members": _ids(s.get("members")), "net": net}
+            colour = s.get("colour")  # the page's palette index (issue 16's groups)
+            if isinstance(colour, int) and not isinstance(colour, bool) and 0 <= colour < 10_000:
+                d["colour"] = colour
+            out.append(d)
     return out
 
 
@@ -339,8 +343,9 @@ def spec_body(spec: CommandSpec) -> dict[str, Any]:
     """The API's command object for ``spec`` (what the carrying station parses again)."""
     body: dict[str, Any] = {"target": "swarm" if spec.target is None else spec.target}
     body["kind"] = spec.kind.name.lower()
-    if getattr(spec, "swarm", None) is not None:  # one swarm, by its leader (issue 16's groups)
-        body["swarm"] = spec.swarm  # type: ignore[attr-defined]
+    leader = getattr(spec, "swarm", None)  # one swarm, by its leader (issue 16's groups)
+    if leader is not None:
+        body["swarm"] = leader
     if spec.kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
         body.update(lat=spec.lat, lon=spec.lon, alt=spec.alt)
     elif spec.kind == CommandKind.TAKEOFF:

@@ -155,20 +155,27 @@ class Fleet:
         swarms: list[dict[str, Any]] = []
         if snaps is None:
             snaps = [st.snapshot() for _net, st in self.channels]
-        for (net, _st), snap in zip(self.channels, snaps, strict=True):
+        for i, ((net, _st), snap) in enumerate(zip(self.channels, snaps, strict=True)):
             for a in snap["agents"]:
                 if a["id"] in agents:
                     self.note("federation", f"agent id {a['id']} heard on {agents[a['id']]['net']} and {net}")
                     continue
                 agents[a["id"]] = {**a, "net": net, "station": self.name}
             events += [{**e, "net": net} for e in snap["events"]]
-            swarms += self._swarms(snap, net, self.name)
+            swarms += self._swarms(snap, net, self.name, (i, len(self.channels)))
         return {"agents": list(agents.values()), "events": events, "swarms": swarms}
 
     @staticmethod
-    def _swarms(snap: dict[str, Any], net: str | None, station: str) -> list[dict[str, Any]]:
+    def _swarms(snap: dict[str, Any], net: str, station: str, index: tuple[int, int]) -> list[dict[str, Any]]:
+        """A channel's swarms: its core's own list (a ``colour`` made unique across the
+        channels as alert ids are), or one per leader its agents name."""
         if isinstance(snap.get("swarms"), list):
-            return [{**s, "net": s.get("net", net), "station": station} for s in snap["swarms"]]
+            i, n = index
+            out = [{**s, "net": net, "station": station} for s in snap["swarms"]]
+            for s in out:
+                if isinstance(s.get("colour"), int):
+                    s["colour"] = s["colour"] * n + i
+            return out
         lead = [a["leader"] for a in snap["agents"] if a.get("leader")]
         out = []
         for leader in sorted(set(lead)):

@@ -7,6 +7,8 @@ input: one line, exit 2."""
 
 from __future__ import annotations
 
+import json
+import signal
 from pathlib import Path
 
 import pytest
@@ -15,6 +17,7 @@ from gcs_browser import browser, new_page
 from swarm.cli.bench.scale_procs import Deployment, http, led_swarms, poll
 from swarm.cli.commands.gcs import main as gcs_main
 from swarm.cli.commands.router import main as router_main
+from swarm.cli.procs import Child, free_tcp_port
 
 
 @pytest.mark.processes
@@ -86,3 +89,17 @@ def test_bad_radios_and_router_endpoints_are_one_line_errors(capsys: pytest.Capt
     assert router_main(["--listen", "tcp/127.0.0.1:notaport"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("swarm router: error:") and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.processes
+def test_the_router_stops_on_sigint_with_130() -> None:
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    router = Child(["router", "--listen", ep, "--json"], name="router")
+    try:
+        ready = json.loads(router.wait_lines(1, 30)[0])
+        assert ready["event"] == "ready" and ready["listen"] == [ep] and ready["zid"]
+        router.proc.send_signal(signal.SIGINT)
+        assert router.proc.wait(10) == 130
+    finally:
+        router.stop()
+    assert not router.errors, router.errors

@@ -27,6 +27,10 @@ AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
     "formation": ("formation", "V formation slot error and air use vs pose rate and loss"),
     "faults": ("faults", "a signed swarm in flight: crashes, restarts, unplugs, a rogue radio"),
     "agent": ("agent", "one agent: start-up to first Advertize, imports, CPU, memory, flight-log loss"),
+    "scale-procs": (
+        "scale_procs",
+        "channels x agents, a station each and a Zenoh router: listing, command, kill",
+    ),
     "conformance": ("conformance", "simulated ArduCopter vs recorded SITL traces: milestones, acks, timings"),
 }
 

@@ -46,14 +46,23 @@ def test_two_channels_two_stations_one_router(tmp_path: Path) -> None:
         # to one agent of B's: carried by B on its radio, the agent's own answer back
         st, body = http(url, {"target": 22, "kind": "arm"})
         assert st == 200 and body["results"] == [
-            {"agent": 22, "result": "FAILED", "reason": "no flight controller on this agent"}
+            {
+                "agent": 22,
+                "result": "FAILED",
+                "reason": "no flight controller on this agent",
+                "net": "c1",
+                "station": "st1",
+            }
         ], body
         # checked here first: A's geofence (120 m ceiling) refuses, nothing sent
         st, body = http(url, {"target": 21, "kind": "takeoff", "alt": 500})
         assert st == 400 and "geofence" in body["error"], body
-        # to every swarm: each leader answers, B's through B
+        # a route to every swarm: refused, A's swarm and B's would fly one way and meet
         leader_b = next(a["leader"] for a in s["agents"] if a["net"] == "c1")
         st, body = http(url, {"target": "swarm", "kind": "follow", "heading": 90})
+        assert st == 409 and "one swarm" in body["error"], body
+        # to B's swarm by its leader: B's leader answers, through B
+        st, body = http(url, {"target": "swarm", "swarm": leader_b, "kind": "follow", "heading": 90})
         assert st == 200, body
         assert {(r["agent"], r["result"], r.get("station")) for r in body["results"]} >= {
             (leader_b, "ACCEPTED", "st1")

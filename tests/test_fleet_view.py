@@ -16,7 +16,7 @@ from test_gcs_api import ScriptedAgent
 
 from swarm.core.geofence import Geofence
 from swarm.core.messages import Phase, Telemetry
-from swarm.core.station import parse_command
+from swarm.core.station import CommandRefused, parse_command
 from swarm.runtime.station import Station
 from swarm.runtime.stations import Fleet
 
@@ -85,6 +85,14 @@ def test_channels_merge_into_one_view(fleet: tuple[Fleet, list[ScriptedAgent]]) 
     status, body = f.submit(parse_command({"target": "swarm", "kind": "land"})).result(20)
     assert status == 200 and body["ok"] is True
     assert {(r["agent"], r["net"]) for r in body["results"]} >= {(1, "north"), (3, "north"), (2, "south")}
+    # a route to every swarm: each channel holds one, together two that would meet: refused
+    with pytest.raises(CommandRefused) as refused:
+        f.submit(parse_command({"target": "swarm", "kind": "follow", "heading": 90}))
+    assert refused.value.status == 409 and "led by 1, 2" in str(refused.value)
+    status, body = f.submit(
+        parse_command({"target": "swarm", "swarm": 2, "kind": "follow", "heading": 90})
+    ).result(20)
+    assert status == 200 and [(r["agent"], r["net"]) for r in body["results"]] == [(2, "south")]
     wait_until(
         lambda: {e.get("net") for e in seen} >= {"north", "south"}, "events tagged by channel", DEADLINE
     )

@@ -343,9 +343,8 @@ def spec_body(spec: CommandSpec) -> dict[str, Any]:
     """The API's command object for ``spec`` (what the carrying station parses again)."""
     body: dict[str, Any] = {"target": "swarm" if spec.target is None else spec.target}
     body["kind"] = spec.kind.name.lower()
-    leader = getattr(spec, "swarm", None)  # one swarm, by its leader (issue 16's groups)
-    if leader is not None:
-        body["swarm"] = leader
+    if spec.swarm is not None:  # one swarm, by its leader
+        body["swarm"] = spec.swarm
     if spec.kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
         body.update(lat=spec.lat, lon=spec.lon, alt=spec.alt)
     elif spec.kind == CommandKind.TAKEOFF:

@@ -25,9 +25,10 @@ alerts):
 * commands: to an agent, the channel that holds it, or the station that does (checked
   here against this station's geofence, :func:`swarm.core.federation.check_remote`,
   and there again when carried out); to one swarm (a ``swarm`` leader id on the
-  command, when the command parser gives one), the channel or station holding its
-  leader; to the swarm, every channel and every station that is alive, their results
-  gathered in one (status: the worst one's). A command
+  command), the channel or station holding its leader; to every swarm, every channel
+  and every station that is alive, their results gathered in one (status: the worst
+  one's), but a FOLLOW to every swarm is refused while the channels and stations hold
+  several swarms between them (each channel's core refuses it only for its own). A command
   from another station (:meth:`run_local`) is only ever carried out on this station's
   own channels, never passed on.
 """
@@ -44,6 +45,7 @@ from typing import Any
 
 from swarm.core.federation import check_remote, spec_body
 from swarm.core.geofence import Geofence
+from swarm.core.messages import CommandKind
 from swarm.core.station import CommandRefused, CommandSpec, Event, parse_command
 from swarm.runtime.federation import Federation, Result
 from swarm.runtime.station import Station
@@ -278,18 +280,20 @@ class Fleet:
                 :func:`~swarm.core.federation.check_remote` refuses, 409 nothing to
                 command.
         """
-        leader = getattr(spec, "swarm", None)  # a swarm by its leader's id (issue 16's groups)
+        leader = spec.swarm  # a swarm by its leader's id
+        if spec.target is None and leader is None and spec.kind == CommandKind.FOLLOW:
+            self._one_swarm_to_follow(remote)
         if spec.target is None and leader is not None:
             here = self._holder(leader)
             if here is not None:
-                return here[1].submit(spec)
+                return tagged(here[1].submit(spec), {"net": here[0], "station": self.name})
             if remote:
                 return self._submit_remote(spec, leader)
             raise CommandRefused(404, f"no swarm led by {leader} at station {self.name}")
         if spec.target is not None:
             here = self._holder(spec.target)
             if here is not None:
-                return here[1].submit(spec)
+                return tagged(here[1].submit(spec), {"net": here[0], "station": self.name})
             if remote:
                 return self._submit_remote(spec, spec.target)
             raise CommandRefused(404, f"unknown agent {spec.target} at station {self.name}")
@@ -312,6 +316,27 @@ class Fleet:
             raise refusals[0] if refusals else CommandRefused(409, "no connected agents")
         return gather(parts)
 
+    def _one_swarm_to_follow(self, remote: bool) -> None:
+        """A FOLLOW to every swarm is refused while this station's channels and the live
+        stations (``remote``) hold several swarms, as one channel's core refuses it
+        (:func:`swarm.core.station_swarms.swarm_plan`): each channel alone holding one
+        swarm must not send them all one way from near each other.
+
+        Raises:
+            CommandRefused: 409 several swarms, none named.
+        """
+        leaders = [s["leader"] for _net, st in self.channels for s in st.snapshot().get("swarms") or []]
+        if remote and self.federation is not None:
+            leaders += [
+                s["leader"] for r, alive in self.federation.remotes() if alive for s in r.state["swarms"]
+            ]
+        if len(leaders) > 1:
+            raise CommandRefused(
+                409,
+                f"follow goes to one swarm (led by {', '.join(map(str, sorted(leaders)))}): name it with"
+                ' "swarm": <leader id>; several swarms sent one way would meet',
+            )
+
     def _submit_remote(self, spec: CommandSpec, agent_id: int) -> Future[Result]:
         """To the station that holds agent ``agent_id`` (the target, or a swarm's leader)."""
         if self.federation is not None:
@@ -322,7 +347,7 @@ class Fleet:
                     if not alive:
                         raise CommandRefused(409, f"station {r.name} is gone: {a['name']} cannot be reached")
                     checked = check_remote(spec, self.fence, a if spec.target is not None else None)
-                    return self.federation.request(r.name, spec_body(checked))
+                    return tagged(self.federation.request(r.name, spec_body(checked)), {"station": r.name})
         raise CommandRefused(404, f"unknown agent {agent_id}")
 
     def run_local(self, body: Any) -> Future[Result]:
@@ -333,6 +358,19 @@ class Fleet:
                 agent not on this station's channels.
         """
         return self.send(parse_command(body), remote=False)  # never passed on to a third station
+
+
+def tagged(f: Future[Result], where: dict[str, Any]) -> Future[Result]:
+    """``f``'s result with each of its results saying where it was carried out."""
+    out: Future[Result] = Future()
+
+    def done(_f: Future[Result]) -> None:
+        status, body = f.result()
+        results = [{**r, **where} if isinstance(r, dict) else r for r in body.get("results", [])]
+        out.set_result((status, {**body, "results": results} if "results" in body else body))
+
+    f.add_done_callback(done)
+    return out
 
 
 def gather(parts: list[tuple[dict[str, Any], Future[Result]]]) -> Future[Result]:

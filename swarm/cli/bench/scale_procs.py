@@ -10,9 +10,9 @@ process printed its ready line:
 
 * ``listing_s``: until station A's ``/api/state`` lists all C*N agents connected, in
   C swarms (each with a leader);
-* ``command``: a swarm FOLLOW sent as station A's page sends it (its WebSocket), whose
-  results must include an ACCEPTED from the leader on the last channel (carried there
-  by its station);
+* ``command``: a FOLLOW to the swarm of the last channel (by its leader's id) sent as
+  station A's page sends it (its WebSocket), whose results must include an ACCEPTED
+  from that leader (carried there by its station);
 * ``survivors``: station B (the second) killed with SIGKILL, until A shows B's agents
   disconnected and the other channels' swarms still led and connected.
 
@@ -172,7 +172,7 @@ def measure(dep: Deployment) -> dict[str, Any]:
     last = f"c{c - 1}"
     leader = next(a["leader"] for a in dep.state()["agents"] if a["net"] == last)
     t1 = time.monotonic()
-    body = ws_command(dep.urls[0], {"target": "swarm", "kind": "follow", "heading": 90})
+    body = ws_command(dep.urls[0], {"target": "swarm", "swarm": leader, "kind": "follow", "heading": 90})
     status = body["status"]
     acked = any(r.get("agent") == leader and r.get("result") == "ACCEPTED" for r in body.get("results", []))
     command = {

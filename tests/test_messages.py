@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from swarm.core.messages import (
+    ADV_SIZE,
     AckResult,
     Advertize,
     AgentNotice,
@@ -112,7 +113,8 @@ commands = st.one_of(
     ),
 )
 messages = st.one_of(
-    st.builds(Advertize, ids, names, st.integers(0, 255)),
+    st.builds(Advertize, ids, names, st.integers(0, 255).map(lambda f: f & ~ADV_SIZE)),
+    st.builds(Advertize, ids, names, st.integers(0, 255).map(lambda f: f | ADV_SIZE), ids),  # capped
     st.builds(GSAdvertize, st.integers(1, 255), names),
     st.builds(Heartbeat, ids, st.integers(0, 65535), st.integers(0, 255), pools, tasks),
     st.builds(HeartbeatAck, ids, st.integers(0, 255), poses),

@@ -34,6 +34,8 @@ MAX_NAME = 16
 NAME_RE = re.compile(r"^[A-Za-z0-9_-]{1,16}$")
 REASON_MAX = 96  # a CommandAck's reason, bytes of UTF-8 (the frame holds 128)
 NOTICE_MAX = 64  # an AgentNotice's text, bytes of UTF-8 (an autopilot's STATUSTEXT holds 50)
+#: Advertize flag: a size byte follows (only agents with a size cap send it)
+ADV_SIZE = 0x04
 
 _crc32 = crcmod.predefined.mkCrcFun("crc-32")
 
@@ -184,6 +186,7 @@ class NoticeSource(IntEnum):
 class PoolStatus(IntEnum):
     SUCCESS = 0
     ALREADY_IN_POOL = 1
+    FULL = 2  # a capped pool or swarm refuses the asker (never sent without a cap)
 
 
 # -- messages -------------------------------------------------------------------
@@ -202,6 +205,15 @@ class Advertize(Message):
     sender: int
     name: str
     flags: int = 0  # bit 0: has a flight controller
+    #: a capped agent's pool or swarm size (1..250), sent only by agents with a size cap
+    #: (:mod:`swarm.core.caps`); flag ADV_SIZE says it follows. 0: not sent
+    size: int = 0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.size, int) and 0 <= self.size <= 250):
+            raise MessageError(f"advertised size {self.size!r} outside 0..250")
+        if bool(self.flags & ADV_SIZE) != bool(self.size):
+            raise MessageError("an Advertize carries a size exactly when its flag ADV_SIZE is set")
 
 
 @dataclass(frozen=True)
@@ -408,6 +420,7 @@ class AgentNotice(Message):
 
 
 __all__ = [
+    "ADV_SIZE",
     "GCS_ID",
     "LEGACY_KINDS",
     "MAX_NAME",

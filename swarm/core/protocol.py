@@ -92,9 +92,9 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass, field
 
+from swarm.core import caps
 from swarm.core.formation import reconcile
 from swarm.core.messages import (
-    Advertize,
     AgentState,
     Heartbeat,
     Message,
@@ -155,6 +155,7 @@ class Counters:
     elections: int = 0
     merges: int = 0
     step_downs: int = 0  # leaderships handed over for a lost vehicle link
+    refused: int = 0  # joins and merges a size cap refused (swarm.core.caps)
 
 
 @dataclass
@@ -192,6 +193,12 @@ class Core:
     asked: dict[int, float] = field(default_factory=dict)  # StartPool sent at
     synced_digest: dict[int, int] = field(default_factory=dict)
     state_dirty: bool = True
+    cap: int = 0  # the most agents in a pool or swarm; 0: no cap (swarm.core.caps)
+    refused: dict[int, int] = field(default_factory=dict)  # refused us (FULL) at this size
+    other_leaders: caps.LeaderTable = field(default_factory=caps.LeaderTable)
+
+    def __post_init__(self) -> None:
+        self.cap = caps.check_cap(self.cap or 0)
 
     # -- driver API --------------------------------------------------------------
     def start(self, now: float) -> list[Out]:
@@ -223,7 +230,7 @@ class Core:
         if ph in _TIMER_PHASES["advertize"] and self._due("advertize", now, self.profile.advertize_interval):
             fc = self.has_fc and self.vehicle_ok
             flags = (FLAG_HAS_FC if fc else 0) | (FLAG_LEADER if ph == Phase.LEADER else 0)
-            out.append(Out(ADVERTIZE, Advertize(self.me, self.name or f"agent{self.me}", flags)))
+            out.append(Out(ADVERTIZE, caps.advert(self, flags, self.name or f"agent{self.me}")))
         if ph == Phase.IDLE and _elapsed(now, self.idle_since, self.profile.alone_timeout) and self.can_lead:
             self._become_leader(now, set())  # a swarm of one
             ph = self.phase
@@ -342,6 +349,9 @@ class Core:
     def change_pool(self, add: set[int] | frozenset[int], now: float) -> bool:
         new = set(add) - self.pool
         if not new:
+            return False
+        if self.cap and not caps.fits(len(self.pool) + len(new), self.cap):
+            self.counters.refused += 1  # pools that would exceed the cap stay apart
             return False
         self.pool |= new
         self.changed_at = now

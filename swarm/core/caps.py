@@ -1,0 +1,207 @@
+"""Sub-swarms with a size cap: the cap's decisions for the protocol core, and the table of leaders.
+
+Theory of operation
+-------------------
+An agent given a cap (``Core(..., cap=N)``, the agent's ``--swarm-cap N``) never lets
+its pool or its swarm hold more than N agents; the agents beyond it form further
+swarms, each electing its own leader with the paper's protocol. ``cap`` 0 is no cap:
+every function here then answers as the paper does, and the core sends the same
+bytes as without this module. The rules, each decided here and called from one hook
+in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
+
+* **A capped agent says how big it is**: its Advertize (sent while free, pooling or
+  leading) carries its pool's or swarm's size (:func:`advert`).
+* **Nobody asks a full pool or swarm** (:func:`skip_advert`): a free agent asks an
+  advertiser only if it would fit (size + 1 <= cap), a pooling agent only if both
+  pools would fit, and a leader sends its Heartbeat to another leader (the merge
+  rule's first step) only if both swarms would fit. A full leader's Advertize does
+  not keep a free agent from being alone (the "Alone" rule), so it pools with the
+  other free agents or leads a swarm of one.
+* **Admission is refused when full** (:func:`refuses`): a pool or swarm at the cap
+  answers StartPool with StartPoolAck FULL and its members; the asker remembers the
+  size it was refused at and asks again only when an Advertize shows that pool or
+  swarm smaller (:func:`note_refusal`). An asker never asks a full leader forever.
+* **Pools merge only when the union fits** (:func:`fits`, in
+  :meth:`Core.change_pool`): the union of two pools is the same set on both sides,
+  so both decide the same; pools that would exceed the cap stay apart. Two agents
+  of one pool that admitted different newcomers at once can disagree on the pool;
+  their elections then have different epochs (the pool digest), so each pool elects
+  its own leader, and a leader's silent extra member is expelled by the ack timeout.
+* **Swarms merge only when the sum fits** (:func:`may_absorb`): today's rule (the
+  larger (size, id) absorbs the smaller) applies only when the union of both swarms
+  fits; otherwise both swarms stay as they are.
+* **A member stays with its leader** (:func:`may_switch`): with a cap, a member
+  listed by another leader's Heartbeat follows it only when that Heartbeat also
+  lists its own leader (the two swarms merged); otherwise it stays and acknowledges
+  only its own leader, and the other leader expels it for silence. Without the cap
+  a member follows whichever leader lists it (the paper's merge).
+* **Leaders know of each other**: :class:`LeaderTable` keeps every other leader
+  heard (id, size, last heard) from Advertizes (FLAG_LEADER) and Heartbeats, kept
+  with or without a cap; entries not heard for ``forget_s`` are dropped. A command
+  for every swarm is sent by a station to each leader it sees (docs/DESIGN.md
+  section 5), not through a leader of leaders.
+
+Pure: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from swarm.core.messages import ADV_SIZE, Advertize, Heartbeat, Phase
+
+if TYPE_CHECKING:
+    from swarm.core.protocol import Core
+
+FLAG_LEADER = 0x02  # as swarm.core.protocol_rules.FLAG_LEADER (that module imports this one)
+MAX_CAP = 250
+
+
+def check_cap(cap: object) -> int:
+    """``cap`` as a size cap: 0 (none) or 2..250 agents.
+
+    Raises:
+        ValueError: anything else (the caller's misuse or a bad setting).
+    """
+    if not isinstance(cap, int) or isinstance(cap, bool) or not (cap == 0 or 2 <= cap <= MAX_CAP):
+        raise ValueError(f"swarm cap {cap!r}: 0 (no cap) or 2..{MAX_CAP} agents")
+    return cap
+
+
+def fits(total: int, cap: int) -> bool:
+    """Whether ``total`` agents fit under ``cap`` (0: no cap)."""
+    return cap <= 0 or total <= cap
+
+
+def size_of(core: Core) -> int:
+    """The agent's pool or swarm size as it advertises it (a free agent: 1)."""
+    if core.phase == Phase.LEADER:
+        return len(core.members) + 1
+    if core.phase == Phase.MEMBER:
+        return 1
+    return max(len(core.pool), 1)
+
+
+def advert(core: Core, flags: int, name: str) -> Advertize:
+    """The Advertize the core sends: with a cap, its size while pooling or leading."""
+    if core.cap and core.phase in (Phase.POOLING, Phase.LEADER):
+        return Advertize(core.me, name, flags | ADV_SIZE, size_of(core))
+    return Advertize(core.me, name, flags)
+
+
+def skip_advert(core: Core, msg: Advertize) -> bool:
+    """Whether a capped core ignores this Advertize: joining or merging could not fit, or
+    the advertiser refused us at a size it still has."""
+    if not core.cap:
+        return False
+    refused_at = core.refused.get(msg.sender)
+    if refused_at is not None:
+        if msg.size and msg.size < refused_at:
+            del core.refused[msg.sender]  # it has room again
+        else:
+            return True
+    if not msg.size:
+        return False  # free, or an agent without a cap: nothing to judge by
+    return not fits(size_of(core) + msg.size, core.cap)
+
+
+def refuses(core: Core, asker: int) -> bool:
+    """Whether the core answers a StartPool from ``asker`` with FULL: a capped pool or
+    swarm at its cap (an agent already in it is never refused)."""
+    if not core.cap or asker in core.pool or core.phase not in (Phase.POOLING, Phase.LEADER):
+        return False
+    return not fits(size_of(core) + 1, core.cap)
+
+
+def note_refusal(core: Core, sender: int, members: frozenset[int]) -> None:
+    """A StartPoolAck FULL: stop asking ``sender`` until it advertises a smaller size."""
+    core.asked.pop(sender, None)
+    core.refused[sender] = max(len(members), 1)
+
+
+def may_absorb(core: Core, msg: Heartbeat) -> bool:
+    """Whether a leader may absorb the swarm of the leader of ``msg`` (the larger absorbs
+    the smaller: the caller decides who is larger): the union of both swarms fits."""
+    if not core.cap:
+        return True
+    union = {core.me, msg.sender} | set(core.members) | set(msg.members)
+    return fits(len(union), core.cap)
+
+
+def may_switch(core: Core, msg: Heartbeat) -> bool:
+    """Whether a member listed by another leader's Heartbeat follows it (see "A member
+    stays with its leader")."""
+    return not core.cap or core.leader in msg.members
+
+
+@dataclass(frozen=True)
+class LeaderInfo:
+    """Another leader as last heard: its swarm's size (0: not said) and when."""
+
+    size: int
+    heard: float
+
+
+#: a leader not heard for this many leader timeouts is forgotten
+FORGET_TIMEOUTS = 3.0
+
+
+@dataclass
+class LeaderTable:
+    """The other leaders on the channel (id -> :class:`LeaderInfo`); an entry not heard
+    for ``forget_s`` seconds is dropped."""
+
+    leaders: dict[int, LeaderInfo] = field(default_factory=dict)
+
+    def note(self, leader: int, size: int, now: float, forget_s: float) -> None:
+        """``leader`` heard at ``now`` leading ``size`` agents (0: size unknown: the last
+        known size is kept)."""
+        old = self.leaders.get(leader)
+        if size == 0 and old is not None:
+            size = old.size
+        self.leaders[leader] = LeaderInfo(size, now)
+        if len(self.leaders) > 1:
+            self.leaders = {k: v for k, v in self.leaders.items() if now - v.heard <= forget_s}
+
+    def drop(self, leader: int) -> None:
+        self.leaders.pop(leader, None)
+
+    def current(self, now: float, forget_s: float) -> dict[int, LeaderInfo]:
+        """The leaders heard within ``forget_s`` of ``now``, by id."""
+        return {k: v for k, v in sorted(self.leaders.items()) if now - v.heard <= forget_s}
+
+
+def forget_s(core: Core) -> float:
+    return FORGET_TIMEOUTS * core.profile.leader_timeout
+
+
+def note_leader_advert(core: Core, msg: Advertize, now: float) -> None:
+    if msg.flags & FLAG_LEADER:
+        core.other_leaders.note(msg.sender, msg.size, now, forget_s(core))
+    else:
+        core.other_leaders.drop(msg.sender)  # no longer leads
+
+
+def note_leader_heartbeat(core: Core, msg: Heartbeat, now: float) -> None:
+    core.other_leaders.note(msg.sender, len(msg.members) + 1, now, forget_s(core))
+
+
+__all__ = [
+    "FORGET_TIMEOUTS",
+    "MAX_CAP",
+    "LeaderInfo",
+    "LeaderTable",
+    "advert",
+    "check_cap",
+    "fits",
+    "forget_s",
+    "may_absorb",
+    "may_switch",
+    "note_leader_advert",
+    "note_leader_heartbeat",
+    "note_refusal",
+    "refuses",
+    "size_of",
+    "skip_advert",
+]

@@ -83,41 +83,83 @@ def size_of(core: Core) -> int:
     return max(len(core.pool), 1)
 
 
-def advert(core: Core, flags: int, name: str) -> Advertize:
-    """The Advertize the core sends: with a cap, its size while pooling or leading."""
-    if core.cap and core.phase in (Phase.POOLING, Phase.LEADER):
-        return Advertize(core.me, name, flags | ADV_SIZE, size_of(core))
-    return Advertize(core.me, name, flags)
+def advert(core: Core, flags: int, name: str) -> Advertize | None:
+    """The Advertize the core sends (None: none): with a cap, its size while pooling or
+    leading, and none from a pooling agent that does not admit (not its pool's founder)."""
+    if not core.cap or core.phase == Phase.IDLE:
+        return Advertize(core.me, name, flags)
+    if core.phase == Phase.POOLING and not core.capped.founder:
+        return None
+    return Advertize(core.me, name, flags | ADV_SIZE, size_of(core))
 
 
-def skip_advert(core: Core, msg: Advertize) -> bool:
-    """Whether a capped core ignores this Advertize: joining or merging could not fit, or
-    the advertiser refused us at a size it still has."""
-    if not core.cap:
+def skip_advert(core: Core, msg: Advertize, now: float) -> bool:
+    """Whether a capped core ignores this Advertize (see "Nobody asks a full pool" and
+    "Free agents pool by blocks of ids")."""
+    if not core.cap or core.phase not in (Phase.IDLE, Phase.POOLING, Phase.LEADER):
         return False
-    refused_at = core.refused.get(msg.sender)
-    if refused_at is not None:
-        if msg.size and msg.size < refused_at:
-            del core.refused[msg.sender]  # it has room again
+    if core.phase == Phase.POOLING:
+        return True  # capped pools grow by free agents only; swarms merge later
+    a, refused = msg.sender, core.capped.refused.get(msg.sender)
+    if refused is not None:
+        size, when = refused
+        if (msg.size and msg.size < size) or now - when >= core.profile.alone_timeout:
+            del core.capped.refused[a]  # it has room again, or it is long ago
         else:
             return True
-    if not msg.size:
-        return False  # free, or an agent without a cap: nothing to judge by
-    return not fits(size_of(core) + msg.size, core.cap)
+    if msg.size and not fits(size_of(core) + msg.size, core.cap):
+        return True
+    if core.phase == Phase.LEADER or msg.flags & FLAG_LEADER or late(core, now):
+        return False  # a leader admits alone; a free agent late in finding a pool asks anyone
+    return block(a, core.cap) != block(core.me, core.cap) or a > core.me
+
+
+def block(agent: int, cap: int) -> int:
+    """The block of ids ``agent`` pools with first: ids 1..cap, cap+1..2*cap, ..."""
+    return (agent - 1) // cap
+
+
+def late(core: Core, now: float) -> bool:
+    """Whether a capped free agent has been free for FALLBACK_INTERVALS advertise
+    intervals: it then asks anyone with room, as the paper's agents do (within the cap)."""
+    return now - core.capped.free_since >= FALLBACK_INTERVALS * core.profile.advertize_interval
 
 
 def refuses(core: Core, asker: int) -> bool:
     """Whether the core answers a StartPool from ``asker`` with FULL: a capped pool or
-    swarm at its cap (an agent already in it is never refused)."""
+    swarm at its cap, or a pooling agent that is not its pool's founder (one admitter
+    per pool: two admitting at once would overfill it). An agent already in it is
+    never refused."""
     if not core.cap or asker in core.pool or core.phase not in (Phase.POOLING, Phase.LEADER):
         return False
+    if core.phase == Phase.POOLING and not core.capped.founder:
+        return True
     return not fits(size_of(core) + 1, core.cap)
 
 
-def note_refusal(core: Core, sender: int, members: frozenset[int]) -> None:
-    """A StartPoolAck FULL: stop asking ``sender`` until it advertises a smaller size."""
+def note_refusal(core: Core, sender: int, members: frozenset[int], now: float) -> None:
+    """A StartPoolAck FULL: stop asking ``sender`` until it advertises a smaller size or
+    an alone timeout has passed."""
     core.asked.pop(sender, None)
-    core.refused[sender] = max(len(members), 1)
+    core.capped.refused[sender] = (max(len(members), 1), now)
+
+
+def trim(core: Core, new: set[int], now: float) -> bool:
+    """Merge ``new`` into a capped pool that cannot hold them all: the pool keeps the
+    ``cap`` lowest ids of the union (every agent that sees the same union keeps the
+    same pool); an agent left out goes back to IDLE, free to join another. Returns
+    whether the pool changed."""
+    core.counters.refused += 1
+    keep = set(sorted(core.pool | new)[: core.cap])
+    if core.me not in keep:
+        core.go_idle(now)
+        return True
+    if keep == core.pool:
+        return False
+    core.pool = keep
+    core.changed_at = now
+    core.counters.merges += 1
+    return True
 
 
 def may_absorb(core: Core, msg: Heartbeat) -> bool:
@@ -141,6 +183,20 @@ class LeaderInfo:
 
     size: int
     heard: float
+
+
+#: a free agent asks anyone with room (not only its chunk's seed) after this many
+#: advertise intervals without a pool of its own
+FALLBACK_INTERVALS = 4.0
+
+
+@dataclass
+class CapState:
+    """What a capped core keeps for the cap's rules (unused without a cap)."""
+
+    founder: bool = False  # opened its pool (answered Success): the pool's admitter
+    refused: dict[int, tuple[int, float]] = field(default_factory=dict)  # FULL: (size, when)
+    free_since: float = 0.0  # free (IDLE) since
 
 
 #: a leader not heard for this many leader timeouts is forgotten
@@ -188,14 +244,18 @@ def note_leader_heartbeat(core: Core, msg: Heartbeat, now: float) -> None:
 
 
 __all__ = [
+    "FALLBACK_INTERVALS",
     "FORGET_TIMEOUTS",
     "MAX_CAP",
+    "CapState",
     "LeaderInfo",
     "LeaderTable",
     "advert",
+    "block",
     "check_cap",
     "fits",
     "forget_s",
+    "late",
     "may_absorb",
     "may_switch",
     "note_leader_advert",
@@ -204,4 +264,5 @@ __all__ = [
     "refuses",
     "size_of",
     "skip_advert",
+    "trim",
 ]

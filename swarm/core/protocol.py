@@ -194,7 +194,7 @@ class Core:
     synced_digest: dict[int, int] = field(default_factory=dict)
     state_dirty: bool = True
     cap: int = 0  # the most agents in a pool or swarm; 0: no cap (swarm.core.caps)
-    refused: dict[int, int] = field(default_factory=dict)  # refused us (FULL) at this size
+    capped: caps.CapState = field(default_factory=caps.CapState)  # the cap's own state
     other_leaders: caps.LeaderTable = field(default_factory=caps.LeaderTable)
 
     def __post_init__(self) -> None:
@@ -203,7 +203,7 @@ class Core:
     # -- driver API --------------------------------------------------------------
     def start(self, now: float) -> list[Out]:
         self._started = True
-        self.idle_since = now
+        self.idle_since = self.capped.free_since = now
         self._next = {"advertize": now}
         return self.tick(now)
 
@@ -230,7 +230,8 @@ class Core:
         if ph in _TIMER_PHASES["advertize"] and self._due("advertize", now, self.profile.advertize_interval):
             fc = self.has_fc and self.vehicle_ok
             flags = (FLAG_HAS_FC if fc else 0) | (FLAG_LEADER if ph == Phase.LEADER else 0)
-            out.append(Out(ADVERTIZE, caps.advert(self, flags, self.name or f"agent{self.me}")))
+            ad = caps.advert(self, flags, self.name or f"agent{self.me}")
+            out += [Out(ADVERTIZE, ad)] if ad is not None else []
         if ph == Phase.IDLE and _elapsed(now, self.idle_since, self.profile.alone_timeout) and self.can_lead:
             self._become_leader(now, set())  # a swarm of one
             ph = self.phase
@@ -351,8 +352,7 @@ class Core:
         if not new:
             return False
         if self.cap and not caps.fits(len(self.pool) + len(new), self.cap):
-            self.counters.refused += 1  # pools that would exceed the cap stay apart
-            return False
+            return caps.trim(self, new, now)  # the cap's lowest ids stay (or we leave)
         self.pool |= new
         self.changed_at = now
         self.counters.merges += 1
@@ -360,6 +360,7 @@ class Core:
 
     def open_pool(self, other: set[int] | frozenset[int], now: float) -> None:
         self.pool = {self.me}
+        self.capped.founder = False
         self.change_pool(other, now)
         self.locked = False
         self._set_phase(Phase.POOLING)
@@ -372,7 +373,7 @@ class Core:
         self.leader = 0
         self.members = {}
         self.vote = (0, 0)
-        self.idle_since = now
+        self.idle_since = self.capped.free_since = now
         self.asked.clear()
         self.synced_digest.clear()
         self._next = {"advertize": now}

@@ -58,7 +58,7 @@ class Out:
 def on_advertize(core: Core, msg: Advertize, now: float, out: list[Out]) -> None:
     a = msg.sender
     caps.note_leader_advert(core, msg, now)
-    if caps.skip_advert(core, msg):
+    if caps.skip_advert(core, msg, now):
         core.counters.refused += 1  # it could not take us, or we could not merge
         return
     if core.phase == Phase.LEADER and msg.flags & FLAG_LEADER and a not in core.members:
@@ -87,6 +87,7 @@ def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> Non
         return
     if core.phase == Phase.IDLE:
         core.open_pool({a}, now)
+        core.capped.founder = True
         out.append(Out(a, StartPoolAck(core.me, PoolStatus.SUCCESS, False, frozenset(core.pool))))
     elif core.phase == Phase.POOLING:
         core.change_pool({a}, now)
@@ -106,7 +107,7 @@ def on_start_pool_ack(core: Core, msg: StartPoolAck, now: float, out: list[Out])
     a = msg.sender
     core.asked.pop(a, None)
     if msg.status == PoolStatus.FULL:
-        caps.note_refusal(core, a, msg.members)
+        caps.note_refusal(core, a, msg.members, now)
         return
     if msg.locked:
         return  # a leader adopted us: its Heartbeat will tell
@@ -139,6 +140,8 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
         return
     if msg.members is not None:
         core.change_pool(msg.members, now)
+        if core.phase == Phase.IDLE:
+            return  # the cap left us out of the merged pool (swarm.core.caps.trim)
     mine = pool_digest(core.pool)
     if msg.digest == mine:
         if msg.locked and not core.locked:

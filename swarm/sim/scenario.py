@@ -155,6 +155,7 @@ class Scenario:
     pauses: list[str] = field(default_factory=list)
     drift: list[str] = field(default_factory=list)
     strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
+    cap: int = 0  # the agents' swarm size cap (swarm.core.caps); 0: none, one swarm
 
     def last_fault_s(self) -> float:
         """When the last fault with an end ends (a partition heals, a link, a restart or
@@ -198,6 +199,8 @@ class Scenario:
             parts.append(f"--duration {self.duration}")
         if self.strict:
             parts.append("--strict")
+        if self.cap:
+            parts.append(f"--cap {self.cap}")
         return " ".join(parts)
 
 

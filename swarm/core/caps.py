@@ -33,8 +33,9 @@ in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
 * **A member stays with its leader** (:func:`may_switch`): with a cap, a member
   listed by another leader's Heartbeat follows it only when that Heartbeat also
   lists its own leader (the two swarms merged); otherwise it stays and acknowledges
-  only its own leader, and the other leader expels it for silence. Without the cap
-  a member follows whichever leader lists it (the paper's merge).
+  only its own leader, and answers the other one with a SyncPoolAck naming its own
+  swarm, on which that leader lets it go (:func:`release`). Without the cap a member
+  follows whichever leader lists it (the paper's merge).
 * **Leaders know of each other**: :class:`LeaderTable` keeps every other leader
   heard (id, size, last heard) from Advertizes (FLAG_LEADER) and Heartbeats, kept
   with or without a cap; entries not heard for ``forget_s`` are dropped. A command
@@ -49,7 +50,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from swarm.core.messages import ADV_SIZE, Advertize, Heartbeat, Phase
+from swarm.core.messages import ADV_SIZE, Advertize, Heartbeat, Phase, SyncPoolAck
 
 if TYPE_CHECKING:
     from swarm.core.protocol import Core
@@ -103,12 +104,16 @@ def skip_advert(core: Core, msg: Advertize, now: float) -> bool:
     a, refused = msg.sender, core.capped.refused.get(msg.sender)
     if refused is not None:
         size, when = refused
-        if (msg.size and msg.size < size) or now - when >= core.profile.alone_timeout:
+        if (msg.size and msg.size < size) or now - when >= REFUSAL_RETRIES * core.profile.startpool_retry:
             del core.capped.refused[a]  # it has room again, or it is long ago
         else:
             return True
     if msg.size and not fits(size_of(core) + msg.size, core.cap):
         return True
+    if core.phase == Phase.IDLE and msg.flags & FLAG_LEADER:
+        asked = core.asked.get(a)
+        if asked is not None and now - asked >= RETRY_SLACK * core.profile.startpool_retry:
+            del core.asked[a]  # Advertizes come once a round, give or take: ask at each
     if core.phase == Phase.LEADER or msg.flags & FLAG_LEADER or late(core, now):
         return False  # a leader admits alone; a free agent late in finding a pool asks anyone
     return block(a, core.cap) != block(core.me, core.cap) or a > core.me
@@ -162,6 +167,43 @@ def trim(core: Core, new: set[int], now: float) -> bool:
     return True
 
 
+def unconfirmed_deadline(core: Core) -> float:
+    """When a capped member that no Heartbeat has listed since its election leaves (see
+    "A member by its vote"); infinity otherwise."""
+    if not core.capped.unconfirmed:
+        return float("inf")
+    return core.last_hb + CONFIRM_INTERVALS * core.profile.heartbeat_interval
+
+
+def rejoin(core: Core, now: float) -> int | None:
+    """The leader a capped member asks at once when it leaves unconfirmed: one heard
+    within two advertise intervals with room for it, its own block's first, then the
+    largest; None if none (or no cap, or the member was confirmed)."""
+    if not core.cap or not core.capped.unconfirmed:
+        return None
+    fresh = 2 * core.profile.advertize_interval
+    known = core.other_leaders.current(now, fresh)
+    mine = block(core.me, core.cap)
+    room = [(block(k, core.cap) == mine, v.size, k) for k, v in known.items() if v.size and v.size < core.cap]
+    return max(room)[2] if room else None
+
+
+def release(core: Core, msg: SyncPoolAck) -> bool:
+    """A capped leader told by one of its members that it follows another leader (a
+    SyncPoolAck naming a swarm without us, see "A member stays with its leader") lets
+    it go at once instead of after the ack timeout. Returns whether it did."""
+    if not core.cap or core.phase != Phase.LEADER or msg.sender not in core.members:
+        return False
+    if core.me in msg.members:
+        return False
+    del core.members[msg.sender]
+    core.pool.discard(msg.sender)
+    core.poses.pop(msg.sender, None)
+    core.counters.expelled += 1
+    core.state_dirty = True
+    return True
+
+
 def may_absorb(core: Core, msg: Heartbeat) -> bool:
     """Whether a leader may absorb the swarm of the leader of ``msg`` (the larger absorbs
     the smaller: the caller decides who is larger): the union of both swarms fits."""
@@ -197,7 +239,20 @@ class CapState:
     founder: bool = False  # opened its pool (answered Success): the pool's admitter
     refused: dict[int, tuple[int, float]] = field(default_factory=dict)  # FULL: (size, when)
     free_since: float = 0.0  # free (IDLE) since
+    unconfirmed: bool = False  # a member by its vote, not yet listed by a Heartbeat
 
+
+#: a refusal (StartPoolAck FULL) keeps an agent from asking again for this many
+#: StartPool retry intervals, unless the refuser advertises a smaller size first
+REFUSAL_RETRIES = 3.0
+
+#: a capped member by its vote that no Heartbeat has listed within this many heartbeat
+#: intervals leaves (its candidate does not lead, or leads without it)
+CONFIRM_INTERVALS = 2.0
+#: a capped free agent asks a leader again at its next Advertize heard this share of a
+#: StartPool retry interval after the last question (Advertizes come once a TDM round,
+#: give or take a little: "a full interval" skipped every other one)
+RETRY_SLACK = 0.75
 
 #: a leader not heard for this many leader timeouts is forgotten
 FORGET_TIMEOUTS = 3.0
@@ -244,9 +299,12 @@ def note_leader_heartbeat(core: Core, msg: Heartbeat, now: float) -> None:
 
 
 __all__ = [
+    "CONFIRM_INTERVALS",
     "FALLBACK_INTERVALS",
     "FORGET_TIMEOUTS",
     "MAX_CAP",
+    "REFUSAL_RETRIES",
+    "RETRY_SLACK",
     "CapState",
     "LeaderInfo",
     "LeaderTable",
@@ -262,7 +320,10 @@ __all__ = [
     "note_leader_heartbeat",
     "note_refusal",
     "refuses",
+    "rejoin",
+    "release",
     "size_of",
     "skip_advert",
     "trim",
+    "unconfirmed_deadline",
 ]

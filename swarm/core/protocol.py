@@ -248,8 +248,12 @@ class Core:
             self._leader_timers(now, out)
         elif ph == Phase.MEMBER and _elapsed(now, self._member_deadline(), 0.0):
             self.counters.left += 1
+            rejoin = caps.rejoin(self, now)  # None without a cap
             self.go_idle(now)
             out += self.tick(now)
+            if rejoin is not None:
+                self.asked[rejoin] = now
+                out.append(Out(rejoin, StartPool(self.me)))
         return out
 
     def next_deadline(self) -> float | None:
@@ -280,6 +284,7 @@ class Core:
         return min(
             max(self.last_hb, self.leader_seen) + p.leader_timeout,
             self.last_hb + HB_SILENCE_FACTOR * p.leader_timeout,
+            caps.unconfirmed_deadline(self),
         )
 
     def set_pose(self, pose: Pose) -> None:
@@ -449,6 +454,9 @@ class Core:
                 self._become_leader(now, self.pool - {self.me})
             else:
                 self.become_member(self.vote[1], now)
+                if self.cap:  # not listed if our pools differed: a StartPool gets us adopted
+                    self.capped.unconfirmed = True
+                    out.append(Out(self.vote[1], StartPool(self.me)))
 
     def _leader_timers(self, now: float, out: list[Out]) -> None:
         p = self.profile

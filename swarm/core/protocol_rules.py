@@ -155,6 +155,8 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
 
 
 def on_sync_pool_ack(core: Core, msg: SyncPoolAck, now: float, out: list[Out]) -> None:
+    if caps.release(core, msg):
+        return
     if core.phase not in (Phase.POOLING, Phase.LOCKED):
         core.counters.ignored_phase += 1
         return
@@ -224,13 +226,15 @@ def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None
             core.counters.ignored_foreign += 1
         return
     if core.phase == Phase.MEMBER and core.leader != lead and not caps.may_switch(core, msg):
-        core.counters.ignored_foreign += 1  # with a cap, a member stays with its leader
-        return
+        core.counters.ignored_foreign += 1  # with a cap, a member stays with its leader...
+        out.append(Out(lead, SyncPoolAck(core.me, False, True, frozenset({core.me, core.leader}))))
+        return  # ...and tells the other one so (swarm.core.caps.release)
     if core.phase != Phase.MEMBER or core.leader != lead:
         core.become_member(lead, now)
     if core.task != msg.task:
         core.task = msg.task
     core.last_hb = now
+    core.capped.unconfirmed = False
     core.epoch = msg.epoch
     out.append(Out(lead, HeartbeatAck(core.me, msg.seq, core.pose or NO_POSE)))
 

@@ -66,7 +66,7 @@ def check_cap(cap: object) -> int:
         ValueError: anything else (the caller's misuse or a bad setting).
     """
     if not isinstance(cap, int) or isinstance(cap, bool) or not (cap == 0 or 2 <= cap <= MAX_CAP):
-        raise ValueError(f"swarm cap {cap!r}: 0 (no cap) or 2..{MAX_CAP} agents")
+        raise ValueError(f"a swarm cap is 0 (no cap) or 2..{MAX_CAP} agents, not {cap!r}")
     return cap
 
 

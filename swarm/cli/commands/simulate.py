@@ -16,7 +16,7 @@ from typing import Any
 
 from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
-from swarm.core.caps import check_cap
+from swarm.core.caps import MAX_CAP, check_cap
 from swarm.sim.campaign import run_campaign
 from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
@@ -198,8 +198,8 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--loss: a probability between 0 and 1")
     try:
         check_cap(a.cap)
-    except ValueError as exc:
-        raise UsageError(f"--cap: {exc}") from None
+    except ValueError:
+        raise UsageError(f"--cap {a.cap}: 0 (no cap) or 2..{MAX_CAP} agents per swarm") from None
     _check_specs(a)
     faults: dict[str, Any] = {field: getattr(a, flag[2:]) for flag, field, _, _ in _FAULT_FLAGS}
     sc = Scenario(

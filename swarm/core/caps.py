@@ -181,6 +181,7 @@ def rejoin(core: Core, now: float) -> int | None:
     largest; None if none (or no cap, or the member was confirmed)."""
     if not core.cap or not core.capped.unconfirmed:
         return None
+    core.capped.unconfirmed = False
     fresh = 2 * core.profile.advertize_interval
     known = core.other_leaders.current(now, fresh)
     mine = block(core.me, core.cap)

@@ -85,6 +85,10 @@ Beyond the paper (each rule stated once, here):
   a swarm of one, and advertises without FLAG_HAS_FC. A member whose vehicle is
   lost stays a member (it holds; the station marks it). A shorter loss changes
   nothing: the driver already waits 2 s before it calls a link lost.
+* **Sub-swarms** (``cap``, the agent's ``--swarm-cap``): no pool or swarm grows past
+  ``cap`` agents. The cap's rules (who asks whom, FULL answers, merges only when they
+  fit, a member listed by two leaders) are :mod:`swarm.core.caps`'s, called from small
+  hooks here and in :mod:`swarm.core.protocol_rules`; with ``cap`` 0 they change nothing.
 """
 
 from __future__ import annotations

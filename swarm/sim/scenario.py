@@ -7,7 +7,7 @@ depends on besides its seed: the number of agents, the loss models (uniform, bur
 Gilbert-Elliott), partitions (:class:`Partition`, ``T0-T1:1,2|3,4``: agents of
 different groups cannot hear each other from T0 to T1, applied to the air as
 :class:`PartitionLoss`), crashes and late starts (``ID@T``, :func:`parse_at`), the
-profile, the radio speeds and the run's length. :meth:`Scenario.command` is the
+profile, the agents' swarm size cap, the radio speeds and the run's length. :meth:`Scenario.command` is the
 ``swarm simulate`` command line that replays a seed. A run lasts ``duration``
 virtual seconds at most; by default :func:`run_length`: 60 s, or 20 TDM rounds when
 that is longer. :class:`RunResult` is what a run reports. Plain data: pickled as is

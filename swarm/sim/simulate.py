@@ -29,7 +29,8 @@ starts; restarts, pauses, drift and the campaign's continuous invariants are
 
 * converged: at some point every live agent was in one agreed swarm per
   connected group (one leader, every other agent its member and listed by it)
-  and that held for ``settle`` seconds; a run that never gets there violates;
+  and that held for ``settle`` seconds; a run that never gets there violates
+  (with a size cap, sub-swarms of at most the cap: :mod:`swarm.sim.subswarms`);
 * after convergence, two leaders in one connected group never coexist for more
   than SPLIT_LIMIT_S (the merge rule's time);
 * no member follows a dead leader for longer than its leader timeout (+ a round);

@@ -15,6 +15,7 @@ from swarm.cli.commands import simulate as simulate_cmd
 from swarm.core import caps
 from swarm.core.messages import (
     ADV_SIZE,
+    ADV_SWARM,
     Advertize,
     DecodeError,
     Heartbeat,
@@ -27,6 +28,7 @@ from swarm.core.messages import (
     SyncPoolAck,
     decode,
     encode,
+    swarm_tag,
 )
 from swarm.core.protocol import ADVERTIZE, FLAG_LEADER, PAPER, Core
 from swarm.runtime.options import AgentConfig
@@ -396,3 +398,95 @@ def test_the_agent_config_carries_the_cap_to_its_core() -> None:
     node = AgentNode(3, "a3", PAPER, rng=random.Random(1), cap=6)
     assert node.core.cap == 6
     assert AgentConfig(swarm_cap=6).swarm_cap == 6
+
+
+# -- an explicit swarm name ----------------------------------------------------------------
+
+
+def _named(me: int, name: str, cap: int = 0) -> Core:
+    c = Core(me, swarm_name=name, cap=cap)
+    c.start(0.0)
+    return c
+
+
+def test_a_named_agent_advertises_its_names_tag_and_an_unnamed_one_does_not() -> None:
+    ad = _adverts(_named(3, "red").tick(1.0))[0]
+    assert ad.flags & ADV_SWARM and ad.swarm == swarm_tag("red") != swarm_tag("blue")
+    assert decode(encode(ad)) == ad
+    assert not _adverts(Core(3).start(0.0))[0].flags & ADV_SWARM
+
+
+def test_agents_of_different_names_never_pool() -> None:
+    red, blue = _named(3, "red"), _named(4, "blue")
+    red_ad, blue_ad = _adverts(red.tick(1.0))[0], _adverts(blue.tick(1.0))[0]
+    assert red.handle(blue_ad, 0.1) == [] and blue.handle(red_ad, 0.1) == []
+    assert red.handle(StartPool(4), 0.2) == [] and red.phase == Phase.IDLE, "a StartPool across names"
+    unheard = _named(5, "red")
+    assert unheard.handle(StartPool(9), 0.2) == [], "one not heard yet is not taken in"
+    other_red = _named(6, "red")
+    assert [o.msg for o in other_red.handle(red_ad, 0.3)] == [StartPool(6)]
+    red.handle(_adverts(other_red.tick(1.0))[0], 0.3)
+    out = red.handle(StartPool(6), 0.4)
+    assert red.pool == {3, 6} and out[0].msg.status == PoolStatus.SUCCESS
+    assert Core(7).handle(red_ad, 0.5) == [], "an unnamed agent does not ask a named one"
+
+
+def test_leaders_of_different_names_never_merge_and_members_never_switch() -> None:
+    red = _leader(1, {2}, cap=0)
+    red.capped.tag = swarm_tag("red")
+    red.handle(Advertize(9, "agent9", FLAG_LEADER | ADV_SWARM, 0, swarm_tag("blue")), 0.5)
+    red.handle(Heartbeat(9, 0, 1, frozenset()), 1.0)
+    assert set(red.members) == {2}, "a blue leader's swarm is not absorbed"
+    m = _named(5, "red")
+    m.handle(Advertize(1, "agent1", FLAG_LEADER | ADV_SWARM, 0, swarm_tag("red")), 0.1)
+    m.handle(Advertize(9, "agent9", FLAG_LEADER | ADV_SWARM, 0, swarm_tag("blue")), 0.1)
+    m.handle(Heartbeat(1, 0, 1, frozenset({5})), 1.0)
+    m.handle(Heartbeat(9, 0, 1, frozenset({1, 5})), 1.5)
+    assert m.leader == 1
+
+
+def test_two_names_on_one_channel_form_two_swarms() -> None:
+    sim = Sim(Scenario(agents=10, loss=0.05, cap=10), 2)
+    for c in sim.cores:
+        c.capped.tag = swarm_tag("red" if c.me % 2 else "blue")
+    res = sim.run()
+    assert res.violations == [] and res.elect_s is not None
+    leaders = [c for c in sim.cores if c.phase == Phase.LEADER]
+    assert len(leaders) == 2
+    for lead in leaders:
+        assert {m % 2 for m in lead.members} <= {lead.me % 2}, "one name per swarm"
+        assert len(lead.members) == 4
+
+
+@pytest.mark.parametrize(
+    "what,raw",
+    [
+        ("flag without the tag", lambda p: p[:-1] + bytes([p[-1] | ADV_SWARM])),
+        ("half a tag", lambda p: p[:-1] + bytes([p[-1] | ADV_SWARM, 7])),
+        ("tag 0", lambda p: p[:-1] + bytes([p[-1] | ADV_SWARM, 0, 0])),
+        ("a tag without the flag", lambda p: p + b"\x07\x00"),
+        ("a tag and a byte more", lambda p: p[:-1] + bytes([p[-1] | ADV_SWARM, 7, 0, 1])),
+    ],
+)
+def test_hostile_swarm_tags_are_one_decode_error(what: str, raw: object) -> None:
+    plain = encode(Advertize(3, "agent3", FLAG_LEADER))
+    with pytest.raises(DecodeError):
+        decode(raw(plain))  # type: ignore[operator]
+
+
+@pytest.mark.parametrize("name", ["a b", "x" * 17, "", "é"])
+def test_a_bad_swarm_name_is_refused(name: str, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["--name", "a1", "--id", "3", "--zenoh-listen", "tcp/127.0.0.1:0", "--swarm-name", name]
+    assert agent_cmd.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--swarm-name" in err[0]
+    with pytest.raises((ValueError, MessageError)):
+        Core(3, swarm_name=name) if name else AgentConfig(swarm_name="a b")
+
+
+def test_a_hostile_swarm_name_in_the_config_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "agent.toml"
+    cfg.write_text('name = "a1"\nid = 3\nzenoh_listen = ["tcp/127.0.0.1:0"]\nswarm_name = "no/slash"\n')
+    assert agent_cmd.main(["--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and 'swarm_name = "no/slash"' in err[0], err

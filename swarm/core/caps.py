@@ -1,4 +1,4 @@
-"""Sub-swarms with a size cap: the cap's decisions for the protocol core, and the table of leaders.
+"""Sub-swarms with a size cap or a swarm name: their decisions for the protocol core, and the leaders' table.
 
 Theory of operation
 -------------------
@@ -41,6 +41,12 @@ in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
   with or without a cap; entries not heard for ``forget_s`` are dropped. A command
   for every swarm is sent by a station to each leader it sees (docs/DESIGN.md
   section 5), not through a leader of leaders.
+* **Names** (``Core(..., swarm_name=NAME)``, the agent's ``--swarm-name``): a named
+  agent's Advertize carries its name's 16-bit tag (:func:`swarm.core.messages.swarm_tag`,
+  flag ADV_SWARM); an agent asks, courts, absorbs or follows only agents that advertised
+  its own tag (none for an agent without a name), and a named agent takes into its pool
+  only agents it heard advertise its tag (:func:`foreign`). Agents of different names
+  never pool or merge, with or without a cap.
 
 Pure: no I/O, no clock.
 """
@@ -50,7 +56,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from swarm.core.messages import ADV_SIZE, Advertize, Heartbeat, Phase, SyncPoolAck
+from swarm.core.messages import ADV_SIZE, ADV_SWARM, Advertize, Heartbeat, Phase, SyncPoolAck, swarm_tag
 
 if TYPE_CHECKING:
     from swarm.core.protocol import Core
@@ -70,6 +76,15 @@ def check_cap(cap: object) -> int:
     return cap
 
 
+def tag_of(swarm_name: str) -> int:
+    """The tag a swarm name travels as (0: no name).
+
+    Raises:
+        MessageError: not a valid name (1-16 of A-Z a-z 0-9 _ -).
+    """
+    return swarm_tag(swarm_name) if swarm_name else 0
+
+
 def fits(total: int, cap: int) -> bool:
     """Whether ``total`` agents fit under ``cap`` (0: no cap)."""
     return cap <= 0 or total <= cap
@@ -87,16 +102,22 @@ def size_of(core: Core) -> int:
 def advert(core: Core, flags: int, name: str) -> Advertize | None:
     """The Advertize the core sends (None: none): with a cap, its size while pooling or
     leading, and none from a pooling agent that does not admit (not its pool's founder)."""
+    tag = core.capped.tag
+    flags |= ADV_SWARM if tag else 0
     if not core.cap or core.phase == Phase.IDLE:
-        return Advertize(core.me, name, flags)
+        return Advertize(core.me, name, flags, 0, tag)
     if core.phase == Phase.POOLING and not core.capped.founder:
         return None
-    return Advertize(core.me, name, flags | ADV_SIZE, size_of(core))
+    return Advertize(core.me, name, flags | ADV_SIZE, size_of(core), tag)
 
 
 def skip_advert(core: Core, msg: Advertize, now: float) -> bool:
     """Whether a capped core ignores this Advertize (see "Nobody asks a full pool" and
-    "Free agents pool by blocks of ids")."""
+    "Free agents pool by blocks of ids"), or one of another swarm name ("Names")."""
+    if core.capped.tag:
+        core.capped.tags[msg.sender] = msg.swarm
+    if msg.swarm != core.capped.tag:
+        return True  # another swarm's (or a named agent heard by one without a name)
     if not core.cap or core.phase not in (Phase.IDLE, Phase.POOLING, Phase.LEADER):
         return False
     if core.phase == Phase.POOLING:
@@ -205,9 +226,21 @@ def release(core: Core, msg: SyncPoolAck) -> bool:
     return True
 
 
+def foreign(core: Core, agent: int, *, unknown: bool) -> bool:
+    """Whether a named core keeps ``agent`` out: it advertised another name (or, when it
+    has not been heard yet, ``unknown``). An agent without a name keeps nobody out."""
+    if not core.capped.tag:
+        return False
+    theirs = core.capped.tags.get(agent)
+    return unknown if theirs is None else theirs != core.capped.tag
+
+
 def may_absorb(core: Core, msg: Heartbeat) -> bool:
     """Whether a leader may absorb the swarm of the leader of ``msg`` (the larger absorbs
-    the smaller: the caller decides who is larger): the union of both swarms fits."""
+    the smaller: the caller decides who is larger): the union of both swarms fits, and
+    a named leader absorbs only a leader it heard advertise its name."""
+    if foreign(core, msg.sender, unknown=True):
+        return False
     if not core.cap:
         return True
     union = {core.me, msg.sender} | set(core.members) | set(msg.members)
@@ -216,7 +249,9 @@ def may_absorb(core: Core, msg: Heartbeat) -> bool:
 
 def may_switch(core: Core, msg: Heartbeat) -> bool:
     """Whether a member listed by another leader's Heartbeat follows it (see "A member
-    stays with its leader")."""
+    stays with its leader"; a named member never follows a leader of another name)."""
+    if foreign(core, msg.sender, unknown=False):
+        return False
     return not core.cap or core.leader in msg.members
 
 
@@ -240,6 +275,8 @@ class CapState:
     founder: bool = False  # opened its pool (answered Success): the pool's admitter
     refused: dict[int, tuple[int, float]] = field(default_factory=dict)  # FULL: (size, when)
     free_since: float = 0.0  # free (IDLE) since
+    tag: int = 0  # our swarm name's tag (swarm_tag); 0: no name
+    tags: dict[int, int] = field(default_factory=dict)  # named: the tags other agents advertise
     unconfirmed: bool = False  # a member by its vote, not yet listed by a Heartbeat
 
 
@@ -313,6 +350,7 @@ __all__ = [
     "block",
     "check_cap",
     "fits",
+    "foreign",
     "forget_s",
     "late",
     "may_absorb",
@@ -325,6 +363,7 @@ __all__ = [
     "release",
     "size_of",
     "skip_advert",
+    "tag_of",
     "trim",
     "unconfirmed_deadline",
 ]

@@ -238,6 +238,7 @@ class AgentNode:
         pilot: PilotConfig | None = None,
         stats: dict[str, int] | None = None,
         cap: int = 0,
+        swarm_name: str = "",
     ) -> None:
         self.id = agent_id
         self.name = name
@@ -251,6 +252,7 @@ class AgentNode:
             rng=rng or random.Random(),
             has_fc=has_fc,
             cap=cap,
+            swarm_name=swarm_name,
         )
         self.pilot = Pilot(agent_id, pilot or PilotConfig())
         self.gs = GsLink(agent_id, name)

@@ -198,11 +198,13 @@ class Core:
     synced_digest: dict[int, int] = field(default_factory=dict)
     state_dirty: bool = True
     cap: int = 0  # the most agents in a pool or swarm; 0: no cap (swarm.core.caps)
+    swarm_name: str = ""  # pools and swarms only with agents of this name; "": any unnamed
     capped: caps.CapState = field(default_factory=caps.CapState)  # the cap's own state
     other_leaders: caps.LeaderTable = field(default_factory=caps.LeaderTable)
 
     def __post_init__(self) -> None:
         self.cap = caps.check_cap(self.cap or 0)
+        self.capped.tag = caps.tag_of(self.swarm_name)
 
     # -- driver API --------------------------------------------------------------
     def start(self, now: float) -> list[Out]:

@@ -80,6 +80,9 @@ def on_advertize(core: Core, msg: Advertize, now: float, out: list[Out]) -> None
 
 def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> None:
     a = msg.sender
+    if caps.foreign(core, a, unknown=True):
+        core.counters.ignored_foreign += 1  # another swarm name's (or one not heard yet)
+        return
     if caps.refuses(core, a):
         core.counters.refused += 1  # full: the asker pools with others
         lead = core.phase == Phase.LEADER
@@ -127,7 +130,8 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
         core.counters.ignored_phase += 1
         return
     if a not in core.pool:
-        if core.phase == Phase.POOLING or (msg.members is not None and core.me in msg.members):
+        pooling = core.phase == Phase.POOLING or (msg.members is not None and core.me in msg.members)
+        if pooling and not caps.foreign(core, a, unknown=True):
             core.change_pool({a}, now)
         if a not in core.pool:  # not ours, or a full pool (swarm.core.caps)
             core.counters.ignored_foreign += 1

@@ -76,7 +76,7 @@ from swarm.cli.util import (
 )
 from swarm.core.caps import MAX_CAP, check_cap
 from swarm.core.formation import FormationConfig
-from swarm.core.messages import AgentState
+from swarm.core.messages import NAME_RE, AgentState
 from swarm.core.pilot import PilotConfig
 from swarm.errors import MessageError
 from swarm.runtime.agent import (
@@ -124,6 +124,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="the most agents in this agent's swarm (2..250): agents beyond it form further swarms, "
         "each with its own leader; 0: no cap, one swarm (default)",
+    )
+    p.add_argument(
+        "--swarm-name",
+        metavar="NAME",
+        help="pool and merge only with agents given this swarm name (1-16 of A-Z a-z 0-9 _ -); "
+        "default: none (only with agents without a name)",
     )
     _add_flight_arguments(p)
     add_fence_arguments(p, "the agent's pilot")
@@ -372,6 +378,8 @@ def _check_arguments(a: argparse.Namespace) -> None:
         check_cap(a.swarm_cap)
     except ValueError:
         raise UsageError(f"--swarm-cap {a.swarm_cap}: 0 (no cap) or 2..{MAX_CAP} agents") from None
+    if a.swarm_name is not None and not NAME_RE.match(a.swarm_name):
+        raise UsageError(f"--swarm-name {a.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
     a.node = node_options(a, "an agent")
     a.fence = fence_from(a)
     if a.round_s is None:
@@ -407,6 +415,7 @@ def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
             pose_hz=a.pose_hz,
             pilot=pilot,
             swarm_cap=a.swarm_cap,
+            swarm_name=a.swarm_name or "",
         )
         return Agent(
             a.name,

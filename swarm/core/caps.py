@@ -206,15 +206,20 @@ def rejoin(core: Core, now: float) -> int | None:
     fresh = 2 * core.profile.advertize_interval
     known = core.other_leaders.current(now, fresh)
     mine = block(core.me, core.cap)
-    room = [(block(k, core.cap) == mine, v.size, k) for k, v in known.items() if v.size and v.size < core.cap]
+    room = [
+        (block(k, core.cap) == mine, v.size, k)
+        for k, v in known.items()
+        if v.size and v.size < core.cap and not foreign(core, k, unknown=True)
+    ]
     return max(room)[2] if room else None
 
 
 def release(core: Core, msg: SyncPoolAck) -> bool:
-    """A capped leader told by one of its members that it follows another leader (a
+    """A capped or named leader told by one of its members that it follows another leader (a
     SyncPoolAck naming a swarm without us, see "A member stays with its leader") lets
     it go at once instead of after the ack timeout. Returns whether it did."""
-    if not core.cap or core.phase != Phase.LEADER or msg.sender not in core.members:
+    named_or_capped = core.cap or core.capped.tag
+    if not named_or_capped or core.phase != Phase.LEADER or msg.sender not in core.members:
         return False
     if core.me in msg.members:
         return False

@@ -9,24 +9,28 @@ every function here then answers as the paper does, and the core sends the same
 bytes as without this module. The rules, each decided here and called from one hook
 in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
 
-* **A capped agent says how big it is**: its Advertize (sent while free, pooling or
-  leading) carries its pool's or swarm's size (:func:`advert`).
-* **Nobody asks a full pool or swarm** (:func:`skip_advert`): a free agent asks an
-  advertiser only if it would fit (size + 1 <= cap), a pooling agent only if both
-  pools would fit, and a leader sends its Heartbeat to another leader (the merge
-  rule's first step) only if both swarms would fit. A full leader's Advertize does
-  not keep a free agent from being alone (the "Alone" rule), so it pools with the
-  other free agents or leads a swarm of one.
-* **Admission is refused when full** (:func:`refuses`): a pool or swarm at the cap
-  answers StartPool with StartPoolAck FULL and its members; the asker remembers the
-  size it was refused at and asks again only when an Advertize shows that pool or
-  swarm smaller (:func:`note_refusal`). An asker never asks a full leader forever.
-* **Pools merge only when the union fits** (:func:`fits`, in
-  :meth:`Core.change_pool`): the union of two pools is the same set on both sides,
-  so both decide the same; pools that would exceed the cap stay apart. Two agents
-  of one pool that admitted different newcomers at once can disagree on the pool;
-  their elections then have different epochs (the pool digest), so each pool elects
-  its own leader, and a leader's silent extra member is expelled by the ack timeout.
+* **A capped agent says how big it is**: its Advertize carries its pool's or swarm's
+  size while it pools (as the pool's founder) or leads (:func:`advert`).
+* **Free agents pool by blocks of ids** (:func:`skip_advert`, :func:`block`): a free
+  agent asks (StartPool) only the lower ids of its block (1..cap, cap+1..2*cap, ...)
+  and leaders with room, so blocks pool side by side and any mixing within a block
+  fits; one free for FALLBACK_INTERVALS advertise intervals (:func:`late`) asks anyone
+  with room. Capped pooling agents ask nobody (pools do not merge; swarms may later).
+* **One admitter per pool** (:func:`refuses`): only the pool's founder (the agent that
+  answered Success) admits; the other members answer FULL and do not advertise.
+* **Nobody asks a full pool or swarm**: an advertiser it would not fit in is not
+  asked, and a leader sends its Heartbeat to another leader (the merge rule's first
+  step) only if both swarms would fit. A full leader's Advertize does not count against
+  the "Alone" rule, so an agent hearing only full swarms pools with the other free
+  agents or leads a swarm of one.
+* **Admission is refused when full**: a pool or swarm at the cap answers StartPool
+  with StartPoolAck FULL and its members; the asker does not ask it again until an
+  Advertize shows it smaller or REFUSAL_RETRIES retry intervals pass
+  (:func:`note_refusal`): it never asks a full leader forever.
+* **Pools merge only when the union fits** (:meth:`Core.change_pool`); a union that
+  would not fit (two admissions at once, a late agent) keeps the cap's lowest ids
+  (:func:`trim`), a function of the union alone, so every agent that sees it decides
+  the same; an agent left out goes back to IDLE.
 * **Swarms merge only when the sum fits** (:func:`may_absorb`): today's rule (the
   larger (size, id) absorbs the smaller) applies only when the union of both swarms
   fits; otherwise both swarms stay as they are.
@@ -36,6 +40,10 @@ in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
   only its own leader, and answers the other one with a SyncPoolAck naming its own
   swarm, on which that leader lets it go (:func:`release`). Without the cap a member
   follows whichever leader lists it (the paper's merge).
+* **A member by its vote** asks its candidate (StartPool) to be listed; if no
+  Heartbeat lists it within CONFIRM_INTERVALS heartbeat intervals
+  (:func:`unconfirmed_deadline`: the candidate does not lead, or leads another pool)
+  it leaves and asks at once a leader with room it heard (:func:`rejoin`).
 * **Leaders know of each other**: :class:`LeaderTable` keeps every other leader
   heard (id, size, last heard) from Advertizes (FLAG_LEADER) and Heartbeats, kept
   with or without a cap; entries not heard for ``forget_s`` are dropped. A command

@@ -230,6 +230,25 @@ def test_a_member_by_vote_that_no_heartbeat_lists_leaves_and_asks_a_leader_with_
     assert c.phase == Phase.IDLE and (2, StartPool(3)) in [(o.to, o.msg) for o in out]
 
 
+def test_a_member_by_vote_also_asks_its_blocks_leader_and_follows_the_first_that_lists_it() -> None:
+    c = _pool(Core(3, cap=10), 2)
+    c.locked, c.phase = True, Phase.LOCKED
+    out: list = []
+    c.start_election(1.0, out)
+    c.vote = (2**31, 9)
+    c.handle(Advertize(4, "agent4", FLAG_LEADER | ADV_SIZE, 6), 2.0)  # block 1..10, room
+    c.handle(Advertize(14, "agent14", FLAG_LEADER | ADV_SIZE, 2), 2.0)  # another block
+    out = c.tick(1.0 + PAPER.vote_window)
+    assert sorted((o.to, o.msg) for o in out if isinstance(o.msg, StartPool)) == [
+        (4, StartPool(3)),
+        (9, StartPool(3)),
+    ]
+    c.handle(Heartbeat(4, 0, 1, frozenset({3, 5})), 3.5)
+    assert c.leader == 4 and not c.capped.unconfirmed, "the first leader to list it"
+    out = c.handle(Heartbeat(9, 0, 1, frozenset({3})), 4.0)
+    assert c.leader == 4 and [o.to for o in out] == [9], "the candidate is told it follows another"
+
+
 def test_the_leader_table_keeps_sizes_and_forgets_the_silent() -> None:
     c = Core(1, cap=10)
     c.start(0.0)

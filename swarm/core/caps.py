@@ -40,7 +40,9 @@ in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
   only its own leader, and answers the other one with a SyncPoolAck naming its own
   swarm, on which that leader lets it go (:func:`release`). Without the cap a member
   follows whichever leader lists it (the paper's merge).
-* **A member by its vote** asks its candidate (StartPool) to be listed; if no
+* **A member by its vote** asks its candidate (StartPool) to be listed, and a leader
+  of its block with room it heard if that is another (:func:`ask_after_vote`); it
+  follows the first leader whose Heartbeat lists it; if no
   Heartbeat lists it within CONFIRM_INTERVALS heartbeat intervals
   (:func:`unconfirmed_deadline`: the candidate does not lead, or leads another pool)
   it leaves and asks at once a leader with room it heard (:func:`rejoin`).
@@ -211,14 +213,31 @@ def rejoin(core: Core, now: float) -> int | None:
     if not core.cap or not core.capped.unconfirmed:
         return None
     core.capped.unconfirmed = False
-    fresh = 2 * core.profile.advertize_interval
-    known = core.other_leaders.current(now, fresh)
+    return _leader_with_room(core, now, own_block=False)
+
+
+def ask_after_vote(core: Core, now: float) -> list[int]:
+    """Whom a capped agent that ends its election as a member asks to list it (StartPool):
+    its candidate, and a leader of its block with room heard lately if that is another
+    (the candidate may lead nothing: its pool elected differently). The first to list
+    it is its leader (see "A member by its vote")."""
+    core.capped.unconfirmed = True
+    other = _leader_with_room(core, now, own_block=True)
+    return [core.leader] + ([other] if other is not None and other != core.leader else [])
+
+
+def _leader_with_room(core: Core, now: float, *, own_block: bool) -> int | None:
+    """A leader heard within two advertise intervals with room for one more, of our
+    name: of our block first, then the largest (only of our block if ``own_block``)."""
+    known = core.other_leaders.current(now, 2 * core.profile.advertize_interval)
     mine = block(core.me, core.cap)
     room = [
         (block(k, core.cap) == mine, v.size, k)
         for k, v in known.items()
         if v.size and v.size < core.cap and not foreign(core, k, unknown=True)
     ]
+    if own_block:
+        room = [r for r in room if r[0]]
     return max(room)[2] if room else None
 
 
@@ -265,7 +284,7 @@ def may_switch(core: Core, msg: Heartbeat) -> bool:
     stays with its leader"; a named member never follows a leader of another name)."""
     if foreign(core, msg.sender, unknown=False):
         return False
-    return not core.cap or core.leader in msg.members
+    return not core.cap or core.capped.unconfirmed or core.leader in msg.members
 
 
 @dataclass(frozen=True)
@@ -360,6 +379,7 @@ __all__ = [
     "LeaderInfo",
     "LeaderTable",
     "advert",
+    "ask_after_vote",
     "block",
     "check_cap",
     "fits",

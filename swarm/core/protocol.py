@@ -461,8 +461,7 @@ class Core:
             else:
                 self.become_member(self.vote[1], now)
                 if self.cap:  # not listed if our pools differed: a StartPool gets us adopted
-                    self.capped.unconfirmed = True
-                    out.append(Out(self.vote[1], StartPool(self.me)))
+                    out += [Out(to, StartPool(self.me)) for to in caps.ask_after_vote(self, now)]
 
     def _leader_timers(self, now: float, out: list[Out]) -> None:
         p = self.profile

@@ -51,6 +51,7 @@ LIGHT = frozenset(
         "test_sim_campaign.py",  # the same
         "test_station_swarms.py",
         "test_swarms_page.py",
+        "test_caps.py",  # the size cap: virtual time and in-process commands only
     }
 )
 

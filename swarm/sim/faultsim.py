@@ -110,7 +110,7 @@ class FaultSim(Sim):
 
     def _new_core(self, i: int, rng: random.Random) -> Core:
         prof = profile_by_name(self.sc.profile, self.round_s)
-        core = DriftCore(i + 1, f"agent{i + 1}", prof, rng=rng, rate=self.rates[i])
+        core = DriftCore(i + 1, f"agent{i + 1}", prof, rng=rng, rate=self.rates[i], cap=self.sc.cap)
         core.set_pose(POSE)
         return core
 

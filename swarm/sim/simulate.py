@@ -29,7 +29,8 @@ starts; restarts, pauses, drift and the campaign's continuous invariants are
 
 * converged: at some point every live agent was in one agreed swarm per
   connected group (one leader, every other agent its member and listed by it)
-  and that held for ``settle`` seconds; a run that never gets there violates;
+  and that held for ``settle`` seconds; a run that never gets there violates
+  (with a size cap, sub-swarms of at most the cap: :mod:`swarm.sim.subswarms`);
 * after convergence, two leaders in one connected group never coexist for more
   than SPLIT_LIMIT_S (the merge rule's time);
 * no member follows a dead leader for longer than its leader timeout (+ a round);
@@ -67,6 +68,7 @@ from swarm.sim.scenario import (
     parse_at,
     run_length,
 )
+from swarm.sim.subswarms import capped_agreement, mergeable_leaders
 
 POSE = Pose(47.397742, 8.545594, 500.0)
 _Tunnel = tuple[Kind, int, bytes, Message]
@@ -118,7 +120,8 @@ class Sim:
         self.duration = sc.duration if sc.duration is not None else run_length(round_s)
         profile = profile_by_name(sc.profile, round_s)
         self.cores = [
-            Core(i + 1, f"agent{i + 1}", profile, rng=random.Random(rng.getrandbits(64))) for i in range(n)
+            Core(i + 1, f"agent{i + 1}", profile, rng=random.Random(rng.getrandbits(64)), cap=sc.cap)
+            for i in range(n)
         ]
         for c in self.cores:
             c.set_pose(POSE)
@@ -258,8 +261,10 @@ class Sim:
         live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
         if not live:
             return True, 0
-        groups: dict[int, list[Core]] = defaultdict(list)
         t = self.air.now
+        if self.sc.cap:  # sub-swarms: every live agent in a led swarm of at most cap
+            return capped_agreement(live, self.sc.cap, lambda a: self._group_key(a, t))
+        groups: dict[int, list[Core]] = defaultdict(list)
         for c in live:
             groups[self._group_key(c.me, t)].append(c)
         leader_id = 0
@@ -381,10 +386,15 @@ class Sim:
         for i, c in enumerate(self.cores):
             if self.alive[i] and self.started[i] and c.phase == Phase.LEADER:
                 groups[self._group_key(c.me, t)] += 1
-        if any(n > 1 for n in groups.values()):
+        split = any(n > 1 for n in groups.values())
+        if self.sc.cap:  # with a cap, only leaders whose swarms fit together must merge
+            live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
+            split = mergeable_leaders(live, self.sc.cap, lambda a: self._group_key(a, t))
+        if split:
             self._split_since = t if self._split_since is None else self._split_since
             if t - self._split_since > SPLIT_LIMIT_S:
                 msg = f"two leaders in one connected group for over {SPLIT_LIMIT_S:.0f} s"
+                msg += " (their swarms fit under the cap)" if self.sc.cap else ""
                 if msg not in self.violations:
                     self.violations.append(msg)
         else:

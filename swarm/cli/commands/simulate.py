@@ -16,6 +16,7 @@ from typing import Any
 
 from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
+from swarm.core.caps import MAX_CAP, check_cap
 from swarm.sim.campaign import run_campaign
 from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
@@ -73,6 +74,13 @@ def _build_parser() -> argparse.ArgumentParser:
         p.add_argument(flag, action="append", default=[], metavar=metavar, help=text)
     p.add_argument(
         "--strict", action="store_true", help="check the fault campaign's continuous invariants too"
+    )
+    p.add_argument(
+        "--cap",
+        type=int,
+        default=0,
+        metavar="N",
+        help="each agent's swarm size cap (sub-swarms of at most N; 0: none, one swarm; default 0)",
     )
     p.add_argument(
         "--campaign",
@@ -188,6 +196,10 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--jobs: 1..256")
     if not 0 <= a.loss <= 1:
         raise UsageError("--loss: a probability between 0 and 1")
+    try:
+        check_cap(a.cap)
+    except ValueError:
+        raise UsageError(f"--cap {a.cap}: 0 (no cap) or 2..{MAX_CAP} agents per swarm") from None
     _check_specs(a)
     faults: dict[str, Any] = {field: getattr(a, flag[2:]) for flag, field, _, _ in _FAULT_FLAGS}
     sc = Scenario(
@@ -198,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
         air_kbps=a.air_speed,
         duration=a.duration,
         strict=a.strict,
+        cap=a.cap,
         **faults,
     )
     if a.campaign is not None:

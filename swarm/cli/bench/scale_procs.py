@@ -82,9 +82,18 @@ def poll(check: Callable[[], Any], what: str, timeout: float = DEADLINE) -> Any:
 class Deployment:
     """``channels`` emulators x ``agents`` agents, one station per channel, one router."""
 
-    def __init__(self, directory: Path, channels: int, agents: int, *, key: bool = True) -> None:
+    def __init__(
+        self,
+        directory: Path,
+        channels: int,
+        agents: int,
+        *,
+        key: bool = True,
+        agent_args: tuple[str, ...] = (),
+    ) -> None:
         self.dir = directory
         self.channels, self.agents = channels, agents
+        self.agent_args = list(agent_args)  # more flags for every agent (e.g. --swarm-cap N)
         self.children: list[Child] = []
         self.stations: list[Child] = []
         self.urls: list[str] = []
@@ -114,7 +123,15 @@ class Deployment:
             for i in range(self.agents):
                 aid = c * 20 + i + 1
                 argv = ["agent", "--name", f"a{aid}", "--id", str(aid), "--radio", links[i + 1]]
-                argv += ["--profile", "fast", "--slots", str(self.agents + 1), "--json", *keyed]
+                argv += [
+                    "--profile",
+                    "fast",
+                    "--slots",
+                    str(self.agents + 1),
+                    "--json",
+                    *keyed,
+                    *self.agent_args,
+                ]
                 waiting.append(self._child(argv, f"a{aid}"))
             st = self._child(self.station_argv(c, links[0]), f"st{c}")
             self.stations.append(st)

@@ -155,6 +155,8 @@ class Scenario:
     pauses: list[str] = field(default_factory=list)
     drift: list[str] = field(default_factory=list)
     strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
+    #: agents per swarm at most (0: no cap); each channel's run takes it (swarm.sim.channels)
+    cap: int = 0
 
     def last_fault_s(self) -> float:
         """When the last fault with an end ends (a partition heals, a link, a restart or

@@ -17,6 +17,7 @@ from typing import Any
 from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
 from swarm.sim.campaign import run_campaign
+from swarm.sim.channels import MAX_CHANNELS, ChannelScenario, run_channels
 from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 
@@ -99,6 +100,19 @@ def _build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="worker processes for the seeds (default: all cores; 1 runs them here); "
         "the results are the same for any N",
+    )
+    p.add_argument(
+        "--channels",
+        type=int,
+        default=1,
+        metavar="K",
+        help=f"radio channels (NETIDs, 1..{MAX_CHANNELS}): the agents are dealt over them round robin, "
+        "each channel its own TDM ring; figures per channel and for the whole run (default 1)",
+    )
+    p.add_argument(
+        "--place",
+        metavar="A-B:C,...",
+        help="which agents are on which channel, e.g. 1-50:1,51-100:2 (with --channels)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     return p
@@ -202,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     if a.campaign is not None:
         return _campaign(a)
+    if a.channels != 1 or a.place is not None:
+        return _channels(a, sc)
 
     def seeded() -> dict[str, Any]:
         with Progress(PROG, a.seeds, "seeds", as_json=a.json) as bar:
@@ -217,6 +233,51 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(text_report(result), flush=True)
     return 0 if not result["failing"] else 1
+
+
+def _channels(a: argparse.Namespace, sc: Scenario) -> int:
+    """``--channels K``: the deployment's seeds, each channel a run (:mod:`swarm.sim.channels`)."""
+    if a.campaign is not None or any(getattr(a, flag[2:]) for flag, _, _, _ in _FAULT_FLAGS):
+        raise UsageError("--channels: the faults that name agents and --campaign are one-channel only")
+    try:
+        cs = ChannelScenario.make(sc, a.channels, a.place)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+    def seeded() -> dict[str, Any]:
+        with Progress(PROG, a.seeds * cs.channels, "channel runs", as_json=a.json) as bar:
+            return run_channels(cs, a.seeds, a.seed, jobs=a.jobs, on_done=bar.advance)
+
+    result = _interruptible(seeded)
+    if result is None:
+        return EXIT_INTERRUPTED
+    if a.json:
+        print_json(result)
+    else:
+        print(channels_report(result), flush=True)
+    for f in result["failing"]:
+        print(f"replay failing seed {f['seed']} (channel {f['channel']}): {f['replay']}", file=sys.stderr)
+        print(f"  that channel alone: {f['replay_channel']}", file=sys.stderr)
+    return 0 if not result["failing"] else 1
+
+
+def channels_report(r: dict[str, Any]) -> str:
+    """The figures of a run over several channels (:func:`swarm.sim.channels.run_channels`)."""
+    n, e = r["runs"], r["all_led_s"]
+    lines = [
+        f"{r['agents']} agents on {r['channels']} channels, {r['profile']} profile, loss {r['loss']:g}: {n} runs",
+        f"  every agent led       {r['all_led']} of {n} runs (every channel agreed and held)",
+        f"  time until then       p50 {_fig(e['p50'])}, p95 {_fig(e['p95'])}, max {_fig(e['max'])}",
+        f"  violations            {r['violations']} in all channel runs",
+    ]
+    for c in r["per_channel"]:
+        ce, air = c["elect_s"], c["air_utilisation"]
+        lines.append(
+            f"  channel {c['channel']:<2} {c['agents']:>3} agents (round {c['round_s']:g} s): converged "
+            f"{c['converged']} of {n}, p50 {_fig(ce['p50'])}, p95 {_fig(ce['p95'])}, "
+            f"air max {_fig(_pct(air['max']), ' %')}"
+        )
+    return "\n".join(lines)
 
 
 def _fig(v: float | None, unit: str = " s") -> str:

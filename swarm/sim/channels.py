@@ -52,7 +52,7 @@ MAX_CHANNELS = 16
 #: channel C of seed S runs seed S + (C - 1) * SEED_STRIDE
 SEED_STRIDE = 1_000_003
 _PLACE_MAX_CHARS = 2000
-_RANGE = re.compile(r"^\s*(\d{1,3})\s*(?:-\s*(\d{1,3}))?\s*:\s*(\d{1,2})\s*$")
+_RANGE = re.compile(r"^\s*([0-9]{1,3})\s*(?:-\s*([0-9]{1,3}))?\s*:\s*([0-9]{1,2})\s*$")
 
 
 def round_robin(agents: int, channels: int) -> tuple[int, ...]:

@@ -214,10 +214,10 @@ def main(argv: list[str] | None = None) -> int:
         strict=a.strict,
         **faults,
     )
-    if a.campaign is not None:
-        return _campaign(a)
     if a.channels != 1 or a.place is not None:
         return _channels(a, sc)
+    if a.campaign is not None:
+        return _campaign(a)
 
     def seeded() -> dict[str, Any]:
         with Progress(PROG, a.seeds, "seeds", as_json=a.json) as bar:
@@ -265,7 +265,8 @@ def channels_report(r: dict[str, Any]) -> str:
     """The figures of a run over several channels (:func:`swarm.sim.channels.run_channels`)."""
     n, e = r["runs"], r["all_led_s"]
     lines = [
-        f"{r['agents']} agents on {r['channels']} channels, {r['profile']} profile, loss {r['loss']:g}: {n} runs",
+        f"{r['agents']} agents on {r['channels']} channels, {r['profile']} profile, "
+        f"loss {r['loss']:g}: {n} runs",
         f"  every agent led       {r['all_led']} of {n} runs (every channel agreed and held)",
         f"  time until then       p50 {_fig(e['p50'])}, p95 {_fig(e['p95'])}, max {_fig(e['max'])}",
         f"  violations            {r['violations']} in all channel runs",

@@ -44,6 +44,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from swarm.sim.parallel import run_jobs
+from swarm.sim.relay import RelayResult, RelaySim
 from swarm.sim.scenario import RunResult, Scenario
 from swarm.sim.simulate import Sim
 
@@ -51,6 +52,9 @@ from swarm.sim.simulate import Sim
 MAX_CHANNELS = 16
 #: channel C of seed S runs seed S + (C - 1) * SEED_STRIDE
 SEED_STRIDE = 1_000_003
+#: seconds a command takes from one station to another over the routers (``--relay-latency``)
+DEFAULT_LATENCY_S = 0.05
+MAX_LATENCY_S = 60.0
 _PLACE_MAX_CHARS = 2000
 _RANGE = re.compile(r"^\s*([0-9]{1,3})\s*(?:-\s*([0-9]{1,3}))?\s*:\s*([0-9]{1,2})\s*$")
 
@@ -117,22 +121,34 @@ class ChannelScenario:
     channels: int
     place: tuple[int, ...]
     place_spec: str | None = None
+    #: seconds a command takes from one station to another (``base.command_at``)
+    latency: float = DEFAULT_LATENCY_S
 
     @classmethod
-    def make(cls, base: Scenario, channels: int, place_spec: str | None = None) -> ChannelScenario:
-        """Raises ValueError (one line) for a channel count or a placement that does not fit."""
+    def make(
+        cls, base: Scenario, channels: int, place_spec: str | None = None, latency: float = DEFAULT_LATENCY_S
+    ) -> ChannelScenario:
+        """Raises ValueError (one line) for a channel count, a placement or a latency
+        that does not fit."""
         if not 1 <= channels <= min(MAX_CHANNELS, base.agents):
             raise ValueError(f"--channels: 1..{min(MAX_CHANNELS, base.agents)} (at most one per agent)")
+        if not 0 <= latency <= MAX_LATENCY_S:
+            raise ValueError(f"--relay-latency: 0..{MAX_LATENCY_S:g} seconds")
         if place_spec is None:
-            return cls(base, channels, round_robin(base.agents, channels))
-        return cls(base, channels, parse_place(place_spec, base.agents, channels), place_spec)
+            return cls(base, channels, round_robin(base.agents, channels), None, latency)
+        return cls(base, channels, parse_place(place_spec, base.agents, channels), place_spec, latency)
 
     def members(self, channel: int) -> list[int]:
         """The deployment ids of the agents on ``channel``, in order."""
         return [k + 1 for k, c in enumerate(self.place) if c == channel]
 
     def channel_scenario(self, channel: int) -> Scenario:
-        return replace(self.base, agents=len(self.members(channel)))
+        """Channel ``channel``'s run: its agents; its station's command (if any) when it
+        reaches that station (channel 1's at once, the others ``latency`` later)."""
+        at = self.base.command_at
+        if at is not None and channel > 1:
+            at += self.latency
+        return replace(self.base, agents=len(self.members(channel)), command_at=at)
 
     @staticmethod
     def channel_seed(seed: int, channel: int) -> int:
@@ -141,6 +157,8 @@ class ChannelScenario:
     def command(self, seed: int) -> str:
         """The ``swarm simulate`` command that replays ``seed`` of the whole deployment."""
         cmd = self.base.command(seed) + f" --channels {self.channels}"
+        if self.base.command_at is not None and self.latency != DEFAULT_LATENCY_S:
+            cmd += f" --relay-latency {self.latency!r}"
         return cmd + (f" --place {self.place_spec.replace(' ', '')}" if self.place_spec else "")
 
 
@@ -176,8 +194,43 @@ def run_channels(
         "violations": sum(len(r.violations) for r in results),
         "per_channel": [_channel_summary(cs, c, [rs[c - 1] for rs in by_seed]) for c in range(1, k + 1)],
     }
+    if cs.base.command_at is not None:
+        out["relay"] = relay_summary(cs, by_seed)
     out["failing"] = _failing(cs, seed0, by_seed)[:10]
     return out
+
+
+def relay_summary(cs: ChannelScenario, by_seed: list[list[RunResult]]) -> dict[str, Any]:
+    """The swarm command of the station of channel 1 at ``command_at``, relayed to every
+    channel's station: per run, how many channels' swarms answered it and how long after
+    ``command_at`` the last answer came (None unless every swarm answered)."""
+    at = cs.base.command_at or 0.0
+    answered: list[int] = []
+    accepted: list[int] = []
+    last: list[float | None] = []
+    refusals: dict[str, int] = {}
+    for rs in by_seed:
+        acks = [r.ack_s for r in rs if isinstance(r, RelayResult) and r.ack_s is not None]
+        answered.append(len(acks))
+        accepted.append(sum(isinstance(r, RelayResult) and r.ack_result == "ACCEPTED" for r in rs))
+        last.append(max(acks) - at if len(acks) == len(rs) else None)
+        for r in rs:
+            if isinstance(r, RelayResult) and r.refused:
+                refusals[r.refused] = refusals.get(r.refused, 0) + 1
+    return {
+        "command_at": at,
+        "latency_s": cs.latency,
+        "swarms": cs.channels,
+        "answered": {"min": min(answered), "max": max(answered)},
+        "accepted": {"min": min(accepted), "max": max(accepted)},
+        "all_answered": sum(n == cs.channels for n in answered),
+        "all_answered_s": {
+            "p50": pct_none(last, 0.5),
+            "p95": pct_none(last, 0.95),
+            "max": pct_none(last, 1.0),
+        },
+        "refused_at_once": refusals,
+    }
 
 
 def _all_led_s(rs: list[RunResult]) -> float | None:
@@ -202,6 +255,11 @@ def _round(v: float | None) -> float | None:
     return None if v is None else round(v, 4)
 
 
+def _round_s(sc: Scenario) -> float:
+    """The channel's TDM round (a station's radio counts in it)."""
+    return (RelaySim(sc, 0) if sc.command_at is not None else Sim(sc, 0)).round_s
+
+
 def _channel_summary(cs: ChannelScenario, c: int, rs: list[RunResult]) -> dict[str, Any]:
     ids = cs.members(c)
     elect = [r.elect_s for r in rs]
@@ -211,7 +269,7 @@ def _channel_summary(cs: ChannelScenario, c: int, rs: list[RunResult]) -> dict[s
         "channel": c,
         "agents": len(ids),
         "ids": id_ranges(ids),
-        "round_s": round(Sim(cs.channel_scenario(c), 0).round_s, 4),
+        "round_s": round(_round_s(cs.channel_scenario(c)), 4),
         "converged": sum(x is not None for x in elect),
         "elect_s": {"p50": pct_none(elect, 0.5), "p95": pct_none(elect, 0.95), "max": pct_none(elect, 1.0)},
         "air_utilisation": {"p50": _round(air[len(air) // 2]), "max": _round(air[-1])},
@@ -240,12 +298,14 @@ def _failing(cs: ChannelScenario, seed0: int, by_seed: list[list[RunResult]]) ->
 
 
 __all__ = [
+    "DEFAULT_LATENCY_S",
     "MAX_CHANNELS",
     "SEED_STRIDE",
     "ChannelScenario",
     "id_ranges",
     "parse_place",
     "pct_none",
+    "relay_summary",
     "round_robin",
     "run_channels",
 ]

@@ -157,6 +157,9 @@ class Scenario:
     strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
     #: agents per swarm at most (0: no cap); each channel's run takes it (swarm.sim.channels)
     cap: int = 0
+    #: a station on the channel sends one swarm command at this virtual time (None: no
+    #: station; swarm.sim.relay)
+    command_at: float | None = None
 
     def last_fault_s(self) -> float:
         """When the last fault with an end ends (a partition heals, a link, a restart or
@@ -200,6 +203,8 @@ class Scenario:
             parts.append(f"--duration {self.duration}")
         if self.strict:
             parts.append("--strict")
+        if self.command_at is not None:
+            parts.append(f"--command-at {self.command_at!r}")
         return " ".join(parts)
 
 

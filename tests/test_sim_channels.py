@@ -12,6 +12,7 @@ from swarm.cli.commands.bench import main as bench_main
 from swarm.cli.commands.simulate import main as simulate_main
 from swarm.core.messages import Phase
 from swarm.sim.channels import ChannelScenario, id_ranges, parse_place, pct_none, round_robin, run_channels
+from swarm.sim.relay import RelaySim
 from swarm.sim.simulate import Scenario, Sim, campaign
 
 
@@ -77,7 +78,21 @@ def test_a_run_that_never_gets_there_counts_as_slower_than_any() -> None:
 def test_an_unconverged_channel_is_failing_with_both_replays(capsys: pytest.CaptureFixture[str]) -> None:
     """A run too short to elect: each channel fails, named with the deployment's replay
     command and the channel's own one-channel replay, which give the same outcome."""
-    argv = ["--agents", "6", "--channels", "2", "--seeds", "1", "--seed", "7", "--duration", "1", "--json"]
+    argv = [
+        "--agents",
+        "6",
+        "--channels",
+        "2",
+        "--seeds",
+        "1",
+        "--seed",
+        "7",
+        "--duration",
+        "1",
+        "--json",
+        "--jobs",
+        "1",
+    ]
     assert simulate_main(argv) == 1
     out = capsys.readouterr()
     r = json.loads(out.out)
@@ -86,10 +101,39 @@ def test_an_unconverged_channel_is_failing_with_both_replays(capsys: pytest.Capt
     assert f["channel"] == 2 and f["seed"] == 7
     assert "--channels 2" in f["replay"] and "--channels" not in f["replay_channel"]
     assert "replay failing seed 7 (channel 2)" in out.err
-    assert simulate_main([*shlex.split(f["replay"])[2:], "--json"]) == 1
+    assert simulate_main([*shlex.split(f["replay"])[2:], "--json", "--jobs", "1"]) == 1
     assert json.loads(capsys.readouterr().out) == r
-    assert simulate_main([*shlex.split(f["replay_channel"])[2:], "--json"]) == 1
+    assert simulate_main([*shlex.split(f["replay_channel"])[2:], "--json", "--jobs", "1"]) == 1
     assert json.loads(capsys.readouterr().out)["converged"] == 0
+
+
+def test_a_swarm_command_relayed_between_stations_reaches_every_channels_leader() -> None:
+    """The operator gives channel 1's station a swarm FOLLOW at 20 s; channel 2's station
+    gets it 0.5 s later over the stations' network: each channel's station (the real
+    StationCore, its radio in the channel's ring) connects its agents, sends it to the
+    leader it sees, and that leader accepts it."""
+    cs = ChannelScenario.make(Scenario(agents=8, profile="fast", command_at=20.0), 2, latency=0.5)
+    for c in (1, 2):
+        sim = RelaySim(cs.channel_scenario(c), cs.channel_seed(4, c))
+        assert sim.round_s == Sim(Scenario(agents=5), 0).round_s  # 4 agents and a station
+        res = sim.run()
+        assert res.elect_s is not None and not res.violations
+        assert res.command_s == pytest.approx(20.0 + (0.5 if c == 2 else 0.0), abs=0.1)
+        assert res.ack_result == "ACCEPTED" and res.ack_s is not None and res.ack_s > res.command_s
+        assert res.ack_by == res.leader
+        assert sim.station.station.leader == res.leader
+        assert all(a.connected for a in sim.station.station.agents.values())
+    r = run_channels(cs, 2, 4)["relay"]
+    assert r["answered"] == r["accepted"] == {"min": 2, "max": 2} and r["all_answered"] == 2
+    assert 0.5 < r["all_answered_s"]["max"] < 10
+    assert "--command-at 20.0" in cs.command(4) and "--relay-latency 0.5" in cs.command(4)
+
+
+def test_a_swarm_command_before_any_leader_is_refused_by_the_station() -> None:
+    r = run_channels(ChannelScenario.make(Scenario(agents=6, command_at=1.0), 2), 1, 0)
+    assert r["relay"]["answered"] == {"min": 0, "max": 0}
+    assert r["relay"]["refused_at_once"] == {"no leader elected yet": 2}
+    assert r["all_led"] == 1  # the elections go on
 
 
 @pytest.mark.parametrize(
@@ -112,6 +156,13 @@ def test_an_unconverged_channel_is_failing_with_both_replays(capsys: pytest.Capt
         (["--channels", "2", "--place", "1:1," * 3000], "at most 2000 characters"),
         (["--channels", "2", "--crash", "1@5"], "one-channel only"),
         (["--channels", "2", "--campaign", "3"], "one-channel only"),
+        (["--command-at", "-1"], "--command-at: virtual seconds"),
+        (["--command-at", "nan"], "--command-at: virtual seconds"),
+        (["--command-at", "1e400"], "--command-at: virtual seconds"),
+        (["--command-at", "5", "--strict"], "not with --strict"),
+        (["--command-at", "5", "--relay-latency", "-0.1"], "--relay-latency: 0..60"),
+        (["--command-at", "5", "--relay-latency", "nan"], "--relay-latency: 0..60"),
+        (["--relay-latency", "1"], "only with --command-at"),
     ],
 )
 def test_bad_channel_input_is_one_line_and_exit_2(
@@ -149,3 +200,7 @@ def test_bench_scale_quick_json_has_its_figures(capsys: pytest.CaptureFixture[st
         assert set(part["met"]) >= {"all_led_p95_s", "all_led_share"}
         assert len(part["per_channel"]) == part["channels"]
     assert set(one["met"]) == {"all_led_p95_s", "all_led_share", "air_utilisation"}
+    relay = r["relay_four_channels"]["relay"]
+    assert (
+        relay["swarms"] == 4 and relay["answered"]["max"] == 4 and relay["all_answered_s"]["p50"] is not None
+    )

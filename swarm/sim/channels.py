@@ -31,6 +31,13 @@ channel's run its agents carry the ids 1..n in the order of their deployment ids
 (the protocol compares ids only with each other, so the order is what matters), and
 the report maps them back (a leader is named by its deployment id).
 
+A station relaying between channels (``Scenario.command_at``, :mod:`swarm.sim.relay`):
+each channel's run then has a station on it; the operator's swarm command reaches the
+station of channel 1 at ``command_at`` and every other channel's station ``latency``
+seconds later (stations joined over IP; nothing comes back before the figures are
+taken, so the channels stay independent). :func:`relay_summary` counts the swarms
+that answered and when the last answer came.
+
 Faults that name agents (partitions, crashes, late starts, links, restarts, pauses,
 drift) are not placed on channels yet: the command line refuses them with
 ``--channels``.

@@ -10,6 +10,10 @@ core with the same figures as one):
   99 % of 100 seeds, with the channel's air at most half used while they elect.
 * ``four_channels_n200``: 200 agents dealt over 4 channels: every agent in a led
   swarm within 30 s at the 95th percentile.
+* ``relay_four_channels`` (no target, the issue's station relaying between channels):
+  40 agents on 4 channels with a station on each (:mod:`swarm.sim.relay`); the
+  operator gives channel 1's station a swarm command at 40 s; ``relay`` says how many
+  of the 4 swarms answered it and how soon.
 
 "Every agent in a led swarm" is the simulator's agreement: every agent of a channel
 is the leader or a member its leader lists, held for the settle time (with a cap,
@@ -43,6 +47,8 @@ CAP = 12
 TARGET_ALL_LED_P95_S = 30.0
 TARGET_ALL_LED_SHARE = 0.99
 TARGET_AIR_UTILISATION = 0.5
+#: when the operator gives the relayed swarm command (after the elections)
+RELAY_AT_S = 40.0
 
 
 def _cpu_s() -> float:
@@ -88,12 +94,16 @@ def run(quick: bool = False) -> dict[str, Any]:
             "air_utilisation": TARGET_AIR_UTILISATION,
         },
     }
-    r1 = _measure(ChannelScenario.make(one, 1), 3 if quick else 100, jobs)
+    r1 = _measure(ChannelScenario.make(one, 1), 2 if quick else 100, jobs)
     r1["met"] = _judge(r1, air=True)
     out["one_channel_n50"] = r1
     r4 = _measure(ChannelScenario.make(four, 4), 2 if quick else 20, jobs)
     r4["met"] = _judge(r4, air=False)
     out["four_channels_n200"] = r4
+    relay = Scenario(
+        agents=16 if quick else 40, loss=LOSS, profile=PROFILE, command_at=15.0 if quick else RELAY_AT_S
+    )
+    out["relay_four_channels"] = _measure(ChannelScenario.make(relay, 4), 2 if quick else 20, jobs)
     # the real-process part (swarm.cli.bench.scale_procs) goes here:
     # out["processes"] = scale_procs.run(quick)
     out["quick"] = quick

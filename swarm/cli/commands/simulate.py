@@ -2,6 +2,8 @@
 
 Seeds run over ``--jobs`` processes (:mod:`swarm.sim.parallel`; the figures do not
 depend on it). Ctrl-C or SIGTERM stops the workers, prints one line and exits 130.
+``--channels``, ``--place`` and ``--command-at`` run a deployment over several
+channels, with a station on each relaying one swarm command (:mod:`swarm.sim.channels`).
 """
 
 from __future__ import annotations
@@ -101,6 +103,13 @@ def _build_parser() -> argparse.ArgumentParser:
         help="worker processes for the seeds (default: all cores; 1 runs them here); "
         "the results are the same for any N",
     )
+    _add_channel_flags(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    return p
+
+
+def _add_channel_flags(p: argparse.ArgumentParser) -> None:
+    """Several channels and the station relaying between them (:mod:`swarm.sim.channels`)."""
     p.add_argument(
         "--channels",
         type=int,
@@ -128,8 +137,6 @@ def _build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help=f"seconds a command takes from one station to another (default {DEFAULT_LATENCY_S:g})",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    return p
 
 
 def _raise_interrupt(_signum: int, _frame: Any) -> None:

@@ -17,6 +17,10 @@ What the run adds to its :class:`~swarm.sim.scenario.RunResult` is a
 (no leader, nothing connected), and the first answer from an agent (its virtual time,
 result and the agent).
 
+Without a cap a channel holds one swarm. With several swarms on a channel (a cap), the
+station core sends a swarm command to the one leader it sees (most agents follow it)
+until the station learns to address each swarm: the figure is then per channel.
+
 Stations join each other over IP (Zenoh routers) with a fixed latency: the command
 the operator gives the station of channel 1 at T reaches channel C's station at
 T + latency (:meth:`swarm.sim.channels.ChannelScenario.channel_scenario` sets each

@@ -53,6 +53,7 @@ LIGHT = frozenset(
         "test_swarms_page.py",
         "test_caps.py",  # the size cap: virtual time and in-process commands only
         "test_subswarm_processes.py",  # six agents, one channel: what the station shows
+        "test_sim_channels.py",  # virtual time: channels, the relay, the scale bench's quick shape
     }
 )
 

@@ -155,7 +155,11 @@ class Scenario:
     pauses: list[str] = field(default_factory=list)
     drift: list[str] = field(default_factory=list)
     strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
-    cap: int = 0  # the agents' swarm size cap (swarm.core.caps); 0: none, one swarm
+    #: agents per swarm at most (swarm.core.caps; 0: no cap, one swarm); each channel's run takes it
+    cap: int = 0
+    #: a station on the channel sends one swarm command at this virtual time (None: no
+    #: station; swarm.sim.relay)
+    command_at: float | None = None
 
     def last_fault_s(self) -> float:
         """When the last fault with an end ends (a partition heals, a link, a restart or
@@ -201,6 +205,8 @@ class Scenario:
             parts.append("--strict")
         if self.cap:
             parts.append(f"--cap {self.cap}")
+        if self.command_at is not None:
+            parts.append(f"--command-at {self.command_at!r}")
         return " ".join(parts)
 
 

@@ -21,6 +21,10 @@ AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
     "sim": ("sim", "vehicle simulator real-time factor and CPU, driver setpoint timing"),
     "messages": ("messages", "message and frame sizes, bridge latency, JSON ratio"),
     "simulate": ("simulate", "simulator campaigns for the election targets (virtual time)"),
+    "scale": (
+        "scale",
+        "many swarms: N=50 on one channel with a cap, 200 agents on 4 channels (virtual time)",
+    ),
     "campaign": ("campaign", "the seeded fault campaign: violations, scenarios per CPU second, by kind"),
     "election": ("election", "real agent processes vs the simulator: election times"),
     "gcs": ("gcs", "ground station: 50 agents at 5 Hz, WebSocket rate, server CPU, page frames"),

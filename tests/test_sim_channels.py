@@ -187,7 +187,7 @@ def test_the_same_seed_gives_the_same_json_serial_and_over_two_jobs(
     assert json.loads(serial)["channels"] == 3
 
 
-@pytest.mark.processes  # the bench spreads its seeds over worker processes
+@pytest.mark.processes  # worker processes for the seeds; emulators, agents, stations, a router
 def test_bench_scale_quick_json_has_its_figures(capsys: pytest.CaptureFixture[str]) -> None:
     assert bench_main(["scale", "--quick", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
@@ -204,3 +204,7 @@ def test_bench_scale_quick_json_has_its_figures(capsys: pytest.CaptureFixture[st
     assert (
         relay["swarms"] == 4 and relay["answered"]["max"] == 4 and relay["all_answered_s"]["p50"] is not None
     )
+    # the real-process part: 2 emulators x 2 agents, 2 stations, a router
+    procs = r["processes"]
+    assert procs["agents"] == 4 and procs["command"]["acked_by_leader_on"] == "c1"
+    assert procs["survivors"] == {"swarms": 1, "agents": 2}

@@ -8,8 +8,8 @@ core with the same figures as one):
 * ``one_channel_n50``: 50 agents on one channel with a swarm cap of 12 (``CAP``):
   every agent in a swarm with a leader within 30 s at the 95th percentile, in at least
   99 % of 100 seeds, with the channel's air at most half used while they elect.
-* ``four_channels_n200``: 200 agents dealt over 4 channels: every agent in a led
-  swarm within 30 s at the 95th percentile.
+* ``four_channels_n200``: 200 agents dealt over 4 channels (50 each, the same cap):
+  every agent in a led swarm within 30 s at the 95th percentile.
 * ``relay_four_channels`` (no target, the issue's station relaying between channels):
   40 agents on 4 channels with a station on each (:mod:`swarm.sim.relay`); the
   operator gives channel 1's station a swarm command at 40 s; ``relay`` says how many
@@ -26,7 +26,7 @@ targets.
 
 The real-process part of the same area (emulators on several NETIDs, stations and a
 Zenoh router) is :mod:`swarm.cli.bench.scale_procs`'s; :func:`run` adds its figures
-under ``processes`` where it says so.
+under ``processes`` (``swarm bench scale-procs`` runs that part alone).
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ import resource
 import time
 from typing import Any
 
+from swarm.cli.bench import scale_procs
 from swarm.sim.channels import ChannelScenario, run_channels
 from swarm.sim.scenario import Scenario
 
@@ -86,7 +87,7 @@ def _judge(r: dict[str, Any], air: bool) -> dict[str, Any]:
 def run(quick: bool = False) -> dict[str, Any]:
     jobs = os.cpu_count() or 1
     one = Scenario(agents=12 if quick else 50, loss=LOSS, profile=PROFILE, cap=4 if quick else CAP)
-    four = Scenario(agents=16 if quick else 200, loss=LOSS, profile=PROFILE)
+    four = Scenario(agents=16 if quick else 200, loss=LOSS, profile=PROFILE, cap=4 if quick else CAP)
     out: dict[str, Any] = {
         "targets": {
             "all_led_p95_s": TARGET_ALL_LED_P95_S,
@@ -104,7 +105,6 @@ def run(quick: bool = False) -> dict[str, Any]:
         agents=16 if quick else 40, loss=LOSS, profile=PROFILE, command_at=15.0 if quick else RELAY_AT_S
     )
     out["relay_four_channels"] = _measure(ChannelScenario.make(relay, 4), 2 if quick else 20, jobs)
-    # the real-process part (swarm.cli.bench.scale_procs) goes here:
-    # out["processes"] = scale_procs.run(quick)
+    out["processes"] = scale_procs.run(quick)
     out["quick"] = quick
     return out

@@ -46,6 +46,7 @@ LIGHT = frozenset(
         "test_plan_page.py",
         "test_sim_parallel.py",  # virtual time: the figures do not depend on the machine
         "test_sim_campaign.py",  # the same
+        "test_sim_events.py",  # in-process, virtual time
     }
 )
 

@@ -88,6 +88,8 @@ class AirModel:
         self._airing: list[Packet] = []  # packets on air or recently ended
         self.busy_s = 0.0  # total time the channel carried at least one packet
         self._busy_until = start
+        # radios whose output grew, for a driver that asks (it sets a list and clears it)
+        self.touched: list[int] | None = None
         for r in self.radios:
             self._schedule_state_end(r)
             self._push(start + 0.5 * self.rng.random(), _LINK_UPDATE, r.index, None)
@@ -127,11 +129,8 @@ class AirModel:
             self.now = max(self.now, t)
             _HANDLERS[kind](self, self.radios[node], t, data)
         self.now = max(self.now, now)
-        for r in self.radios:
-            # serial output keeps flowing whether or not the host reads it (the test
-            # is serial.drain's own, spared a call when not a byte has left yet)
-            if r.outbuf and int((now - r.drain_clock) / r.byte_s + 1e-9) > 0:
-                serial.drain(r, now)
+        # serial output flows whether or not the host reads it: serial.drain is in
+        # closed form, so it runs when the output is read (or added to), not here
 
     def take_output(self, node: int, now: float) -> bytes:
         """Bytes the radio has written to its serial output by ``now``."""
@@ -149,6 +148,8 @@ class AirModel:
         """When :meth:`advance` next has work (output draining included)."""
         t = self._events[0][0] if self._events else None
         for r in self.radios:
+            if r.outbuf:
+                serial.drain(r, self.now)  # closed form: draining now changes no time
             if r.outbuf:
                 # wake when the buffer is drained, or after 5 ms of output at most
                 d = r.drain_clock + min(len(r.outbuf) * r.byte_s, 0.005)
@@ -234,7 +235,7 @@ class AirModel:
         if out.to_air:
             serial.inbuf_add(r, out.to_air)
         if out.to_host:
-            serial.output(r, out.to_host, t)
+            self._output(r, out.to_host, t)
         if out.remote_command:
             r.remote_cmd = out.remote_command
         if out.reboot and self.on_reboot is not None:
@@ -242,6 +243,13 @@ class AirModel:
         dl = r.at.next_deadline() if r.at is not None else None
         if dl is not None:
             self._push(max(dl, t), _AT_POLL, r.index, None)
+
+    def _output(self, r: RadioState, data: bytes, t: float) -> None:
+        """Data for ``r``'s host (:func:`radios.air.serial.output`); ``touched`` lists
+        the radios whose output grew, for a driver that wakes only for them."""
+        serial.output(r, data, t)
+        if self.touched is not None:
+            self.touched.append(r.index)
 
     def _packet_get_next(self, r: RadioState, mx: int, t: float) -> tuple[bytes, bool]:
         payload, command, heartbeat = packet_get_next(r, mx, t)
@@ -446,14 +454,14 @@ class AirModel:
             if r.at is None or not r.at.in_command_mode:
                 r.stats.rx_packets += 1
                 r.stats.rx_bytes += len(pkt.payload)
-                serial.output(r, pkt.payload, t)
+                self._output(r, pkt.payload, t)
         if not mp:
             self._try_tx(r, t)
 
     def _remote_at(self, r: RadioState, pkt: Packet, t: float) -> None:
         text = pkt.payload.decode("ascii", "replace")
         if not text.startswith("RT") or r.at is None:
-            serial.output(r, pkt.payload, t)  # a reply: print it
+            self._output(r, pkt.payload, t)  # a reply: print it
             return
         if r.cfg.firmware == "multipoint" and "," in text:
             cmd, _, target = text.partition(",")
@@ -547,7 +555,7 @@ class AirModel:
             return  # no room: the firmware skips the report
         r.rs_seq = (r.rs_seq + 1) & 0xFF
         r.stats.radio_status += 1
-        serial.output(r, frame, t)
+        self._output(r, frame, t)
 
     def _on_link_update(self, r: RadioState, t: float, _data: Any) -> None:
         """link_update() of tdm.c, every 0.5 s."""

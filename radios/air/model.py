@@ -375,17 +375,15 @@ class AirModel:
             self.on_air(r.index, payload, t, t + flight, kind)
         self._push(t + flight, _TX_END, r.index, pkt)
 
-    def _heard(self, r: RadioState, pkt: Packet, t: float) -> bool:
-        """Whether ``r`` hears ``pkt``: same settings, not transmitting itself, no
-        collision, on the packet's channel (locked, or by chance), not lost. Hearing
+    def _heard(self, r: RadioState, pkt: Packet, t: float, overlapping: list[Packet]) -> bool:
+        """Whether ``r`` hears ``pkt`` (``overlapping``: the other packets on the air
+        meanwhile): same settings, not transmitting itself, no collision, on the packet's channel (locked, or by chance), not lost. Hearing
         a sender on its own hopping sequence locks both."""
         sender = self.radios[pkt.sender]
         if not r.cfg.compatible(sender.cfg):
             return False
         seed = r.cfg.hop_seed()
-        for other in self._airing:
-            if other is pkt or not (other.t_start < pkt.t_end and pkt.t_start < other.t_end):
-                continue
+        for other in overlapping:
             if other.sender == r.index:
                 return False  # half duplex: it was transmitting and heard nothing
             ocfg = self.radios[other.sender].cfg
@@ -412,10 +410,10 @@ class AirModel:
                 return False
         return True
 
-    def _receive(self, r: RadioState, pkt: Packet, t: float) -> None:
+    def _receive(self, r: RadioState, pkt: Packet, t: float, overlapping: list[Packet]) -> None:
         """``pkt`` ended: if ``r`` heard it, take its statistics or follow its TDM
         trailer, and hand its data, command or reply on."""
-        if not self._heard(r, pkt, t):
+        if not self._heard(r, pkt, t, overlapping):
             return
         sender = self.radios[pkt.sender]
         r.last_rx = t
@@ -499,9 +497,12 @@ class AirModel:
         self._try_tx(r, t)
 
     def _on_tx_end(self, r: RadioState, t: float, pkt: Any) -> None:
+        # the packets on the air while it was: the same for every receiver
+        t0, t1 = pkt.t_start, pkt.t_end
+        overlapping = [p for p in self._airing if p is not pkt and p.t_start < t1 and t0 < p.t_end]
         for other in self.radios:
             if other is not r:
-                self._receive(other, pkt, t)
+                self._receive(other, pkt, t, overlapping)
         # forget packets that can no longer overlap anything
         horizon = t - 0.5
         self._airing = [p for p in self._airing if p.t_end > horizon]

@@ -377,8 +377,9 @@ class AirModel:
 
     def _heard(self, r: RadioState, pkt: Packet, t: float, overlapping: list[Packet]) -> bool:
         """Whether ``r`` hears ``pkt`` (``overlapping``: the other packets on the air
-        meanwhile): same settings, not transmitting itself, no collision, on the packet's channel (locked, or by chance), not lost. Hearing
-        a sender on its own hopping sequence locks both."""
+        meanwhile): same settings, not transmitting itself, no collision, on the
+        packet's channel (locked, or by chance), not lost. Hearing a sender on its own
+        hopping sequence locks both."""
         sender = self.radios[pkt.sender]
         if not r.cfg.compatible(sender.cfg):
             return False

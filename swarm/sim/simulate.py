@@ -8,14 +8,14 @@ sends is encoded exactly as the radio bridge does it: compact message in a
 MAVLink 2 TUNNEL frame, payload type by key kind, identical P2P payloads to several
 peers merged into one multicast frame. Frames go through the model's serial
 pacing, TDM and loss; what a radio outputs is parsed, filtered by target and
-decoded back into the core. There is no wall clock: the loop jumps from one
-deadline (a core's or the air's) to the next, so a run is exactly repeatable for
-its seed.
+decoded back into the core. There is no wall clock, so a run is exactly repeatable
+for its seed (``tests/test_sim_golden.py`` pins its bytes and times).
 
-The loop is the simulator's cost, so each step does the least that gives the same
-bytes at the same times (``tests/test_sim_golden.py`` pins them): one pass over the
-radios (:meth:`Sim._serial_pass`) feeds a parser only when a frame can complete and
-finds when the next frame will have left a radio; a frame every receiver of a
+The loop is event-driven: it steps only for what can change a core (a core's
+deadline, a start or crash, the invariants' 100 ms sample, and the arrival at a
+host of the first frame its agent handles, computed from the air model's
+closed-form serial clock by :class:`swarm.sim.hoststream.HostStreams`); the air's
+own events run between steps at their own times. A frame every receiver of a
 broadcast gets is CRC-checked and decoded once (:meth:`Sim._tunnel_of`); one
 message to many peers is encoded once. What a run is (:class:`Scenario`, its faults,
 its length, :class:`RunResult`) lives in :mod:`swarm.sim.scenario`; seeds over

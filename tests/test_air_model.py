@@ -886,3 +886,17 @@ def test_a_multipoint_node_with_queued_bytes_speaks_at_its_slot_boundary() -> No
             assert dl is not None and dl < 10.0
             m.advance(dl)
         assert starts[0] == pytest.approx(k * slot, abs=1e-9)
+
+
+def test_a_new_serial_rate_applies_from_the_reboot_on() -> None:
+    """Output waiting when a radio is reconfigured leaves at the old rate until the
+    reboot and at the new one after it, also when nobody read it before (the drain
+    is lazy: the model drains at the reboot)."""
+    m = AirModel(cfgs(2, num_channels=1), seed=0)
+    r = m.radios[1]
+    serial.output(r, b"z" * 600, 0.0)
+    old_byte = r.byte_s
+    m.reconfigure(1, RadioConfig(num_channels=1, serial_baud=115200), 0.05)
+    left = int(0.05 / old_byte + 1e-9)
+    assert len(r.host_ready) == left
+    assert serial.drain_time(r, 1) == pytest.approx(left * old_byte + r.byte_s, abs=1e-12)

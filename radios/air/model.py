@@ -181,6 +181,7 @@ class AirModel:
 
     def reconfigure(self, node: int, cfg: RadioConfig, now: float) -> None:
         r = self.radios[node]
+        serial.drain(r, now)  # what left at the old serial rate, before the new one
         r.configure(cfg, self.rng, now)
         self._schedule_state_end(r)
 

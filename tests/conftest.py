@@ -54,6 +54,7 @@ LIGHT = frozenset(
         "test_caps.py",  # the size cap: virtual time and in-process commands only
         "test_subswarm_processes.py",  # six agents, one channel: what the station shows
         "test_sim_channels.py",  # virtual time: channels, the relay, the scale bench's quick shape
+        "test_sim_events.py",  # in-process, virtual time
     }
 )
 

@@ -33,6 +33,9 @@ LIGHT = frozenset(
         "test_readme_driver.py",  # one simulated vehicle, mostly waiting out its boot
         "test_readme_examples.py",  # small emulators, agents and simulators for seconds each; no rates judged
         "test_cold_start.py",  # the same, with an agent and a station
+        "test_federation.py",  # stations' Zenoh sessions in one process: what crosses, not how fast
+        "test_fleet_view.py",  # two stations' sessions in one process: the merged view
+        "test_fleet_processes.py",  # 2 channels, 2 stations, a router: what the API shows and answers
         # pages and stations checked for what they show and answer, not for how fast
         "test_fleet_page.py",
         "test_altitude_page.py",
@@ -47,6 +50,12 @@ LIGHT = frozenset(
         "test_sim_parallel.py",  # virtual time: the figures do not depend on the machine
         "test_sim_campaign.py",  # the same
         "test_tdm_election.py",  # virtual time, in-process
+        "test_station_swarms.py",
+        "test_swarms_page.py",
+        "test_caps.py",  # the size cap: virtual time and in-process commands only
+        "test_subswarm_processes.py",  # six agents, one channel: what the station shows
+        "test_sim_channels.py",  # virtual time: channels, the relay, the scale bench's quick shape
+        "test_sim_events.py",  # in-process, virtual time
     }
 )
 

@@ -23,7 +23,7 @@ import pytest
 from air_helpers import AirBench, AirPacket, saturate, sent_by, tunnel_of_length
 from pymavlink.dialects.v10 import ardupilotmega as mav1
 
-from radios.air import AirModel, RadioConfig
+from radios.air import AirModel, RadioConfig, serial
 from radios.loss import GilbertElliott, RangeLoss, UniformLoss
 from radios.mavlink import (
     MSG_HEARTBEAT,
@@ -781,3 +781,122 @@ def test_utilisation_idle_and_saturated() -> None:
     # the channel cannot be busier than the packets put on it
     airtime = sum(busy.status(i)["tx_airtime_s"] for i in range(2))
     assert busy.model.utilisation() * 20.0 <= airtime + 1e-9
+
+
+# -- closed-form timing (the event-driven simulator skips steps) ---------------------------
+
+
+def test_a_long_drain_in_one_step_equals_many_small_steps() -> None:
+    """The serial output's clock is closed form (byte n of a busy spell leaves at
+    drain_base + n * byte_s): draining once, or at thousands of uneven steps, or
+    while more output arrives, hands the host the same bytes at the same instants,
+    to the last bit."""
+    rng = random.Random(15)
+    chunks = [(0.01 * k + rng.random() * 0.004, rng.randbytes(rng.randrange(1, 90))) for k in range(40)]
+    chunks.sort()
+    one, many = (AirModel(cfgs(2, num_channels=1), seed=0).radios[1] for _ in range(2))
+    times = sorted(rng.uniform(0.0, 1.2) for _ in range(5000))
+    steps = iter(times)
+    for when, data in chunks:
+        for t in steps:  # many: drain at every step before the next chunk arrives
+            if t >= when:
+                break
+            serial.drain(many, t)
+        serial.output(one, data, when)
+        serial.output(many, data, when)
+    for t in steps:
+        serial.drain(many, t)
+    serial.drain(many, 1.2)
+    serial.drain(one, 1.2)
+    assert bytes(one.host_ready) == bytes(many.host_ready)
+    assert one.drain_clock == many.drain_clock and one.stats.stx == many.stats.stx
+    assert (one.drain_base, one.drained) == (many.drain_base, many.drained)
+
+
+def test_drain_time_is_when_the_byte_has_left() -> None:
+    """serial.drain_time(r, n) is the instant the n-th byte waiting leaves: a hair
+    before it n-1 bytes have reached the host, at it all n."""
+    r = AirModel(cfgs(2, num_channels=1), seed=0).radios[1]
+    serial.output(r, bytes(range(100)), 0.25)
+    for n in (1, 2, 37, 100):
+        at = serial.drain_time(r, n)
+        assert at == pytest.approx(0.25 + n * r.byte_s, abs=1e-12)
+        probe = AirModel(cfgs(2, num_channels=1), seed=0).radios[1]
+        serial.output(probe, bytes(range(100)), 0.25)
+        serial.drain(probe, at - 1e-7)
+        assert len(probe.host_ready) == n - 1
+        serial.drain(probe, at)
+        assert len(probe.host_ready) == n
+
+
+def test_an_idle_line_starts_where_new_output_arrives() -> None:
+    """Output that finds the line idle (drained, even if nobody asked until now)
+    starts leaving when it arrives, not where the last spell ended."""
+    r = AirModel(cfgs(2, num_channels=1), seed=0).radios[1]
+    serial.output(r, b"x" * 10, 0.0)
+    serial.output(r, b"y" * 10, 1.0)  # the first ten left by 1.7 ms: an idle line
+    assert serial.drain_time(r, 1) == pytest.approx(1.0 + r.byte_s, abs=1e-12)
+    serial.drain(r, 2.0)
+    assert bytes(r.host_ready) == b"x" * 10 + b"y" * 10
+
+
+def test_a_frames_delivery_time() -> None:
+    """A frame a host writes reaches the other host whole at the end of its packet on
+    the air plus its length at the serial rate (the receiver's line was idle)."""
+    m = AirModel(cfgs(2, num_channels=1), seed=3)
+    packets: list[tuple[int, bytes, float, float, str]] = []
+    m.on_air = lambda *p: packets.append(p)
+    frame = numbered(FrameBuilder(1, 1), 7, 60)
+    m.host_write(0, frame, 0.5)
+    while not any(k == "data" for *_, k in packets):
+        dl = m.next_deadline()
+        assert dl is not None and dl < 5.0
+        m.advance(dl)
+    _, payload, _, t_end, _ = next(p for p in packets if p[4] == "data")
+    assert payload == frame
+    m.advance(t_end)
+    r = m.radios[1]
+    due = serial.drain_time(r, len(frame))
+    assert due == pytest.approx(t_end + len(frame) * r.byte_s, abs=1e-12)
+    assert m.take_output(1, due - 1e-7) == frame[:-1]
+    assert m.take_output(1, due) == frame[-1:]
+
+
+def test_a_multipoint_node_with_queued_bytes_speaks_at_its_slot_boundary() -> None:
+    """Bytes waiting in node k's radio go on the air at the first instant of node k's
+    window (rounds counted from the model's start, on whole ticks)."""
+    n = 3
+    conf = mp_cfgs(n, num_channels=1)
+    t = conf[0].timing()
+    slot = (t.tx_window_width + t.silence_period) * TICK_S
+    for k in range(1, n):
+        m = AirModel(conf, seed=1)
+        starts: list[float] = []
+
+        def on_air(
+            s: int, p: bytes, t0: float, t1: float, kind: str, k: int = k, out: list[float] = starts
+        ) -> None:
+            if s == k and kind == "data":
+                out.append(t0)
+
+        m.on_air = on_air
+        m.host_write(k, numbered(FrameBuilder(k + 1, 1), 0, 40), 0.0)
+        while not starts:
+            dl = m.next_deadline()
+            assert dl is not None and dl < 10.0
+            m.advance(dl)
+        assert starts[0] == pytest.approx(k * slot, abs=1e-9)
+
+
+def test_a_new_serial_rate_applies_from_the_reboot_on() -> None:
+    """Output waiting when a radio is reconfigured leaves at the old rate until the
+    reboot and at the new one after it, also when nobody read it before (the drain
+    is lazy: the model drains at the reboot)."""
+    m = AirModel(cfgs(2, num_channels=1), seed=0)
+    r = m.radios[1]
+    serial.output(r, b"z" * 600, 0.0)
+    old_byte = r.byte_s
+    m.reconfigure(1, RadioConfig(num_channels=1, serial_baud=115200), 0.05)
+    left = int(0.05 / old_byte + 1e-9)
+    assert len(r.host_ready) == left
+    assert serial.drain_time(r, 1) == pytest.approx(left * old_byte + r.byte_s, abs=1e-12)

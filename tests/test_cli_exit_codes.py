@@ -34,6 +34,7 @@ BAD_INPUT: dict[str, list[str]] = {
     "agent": ["--name", "a1", "--id", "1"],  # no way in
     "simulate": ["--agents", "0"],
     "gcs": ["--replay", "{text}"],
+    "router": ["--listen", "tcp/127.0.0.1:notaport"],
     "demo": ["--agents", "0"],
     "bench": ["no-such-area"],
     "config": ["example", "no-such-command"],

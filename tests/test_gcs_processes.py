@@ -204,7 +204,8 @@ def test_over_the_radio_with_a_capture_then_replayed(tmp_path: Path) -> None:
     [
         ([], "give one of --radio URL"),
         (["--radio", "/dev/no-such-radio"], "/dev/no-such-radio"),
-        (["--zenoh-listen", "tcp/127.0.0.1:1", "--radio", "x"], "give one of"),
+        # a radio and Zenoh together: the radio's channel and other stations (issue 16)
+        (["--zenoh-listen", "tcp/127.0.0.1:1", "--radio", "x"], "x: no such device"),
         (
             ["--zenoh-listen", "tcp/127.0.0.1:1", "--tiles-dir", "/no/such/dir"],
             "/no/such/dir: not a directory",

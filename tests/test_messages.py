@@ -10,6 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from swarm.core.messages import (
+    ADV_SIZE,
+    ADV_SWARM,
     AckResult,
     Advertize,
     AgentNotice,
@@ -112,7 +114,16 @@ commands = st.one_of(
     ),
 )
 messages = st.one_of(
-    st.builds(Advertize, ids, names, st.integers(0, 255)),
+    st.builds(Advertize, ids, names, st.integers(0, 255).map(lambda f: f & ~(ADV_SIZE | ADV_SWARM))),
+    st.builds(Advertize, ids, names, st.integers(0, 255).map(lambda f: f & ~ADV_SWARM | ADV_SIZE), ids),
+    st.builds(  # capped and named
+        Advertize,
+        ids,
+        names,
+        st.integers(0, 255).map(lambda f: f | ADV_SIZE | ADV_SWARM),
+        ids,
+        st.integers(1, 65535),
+    ),
     st.builds(GSAdvertize, st.integers(1, 255), names),
     st.builds(Heartbeat, ids, st.integers(0, 65535), st.integers(0, 255), pools, tasks),
     st.builds(HeartbeatAck, ids, st.integers(0, 255), poses),

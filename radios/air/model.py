@@ -88,6 +88,8 @@ class AirModel:
         self._airing: list[Packet] = []  # packets on air or recently ended
         self.busy_s = 0.0  # total time the channel carried at least one packet
         self._busy_until = start
+        # radios whose output grew, for a driver that asks (it sets a list and clears it)
+        self.touched: list[int] | None = None
         for r in self.radios:
             self._schedule_state_end(r)
             self._push(start + 0.5 * self.rng.random(), _LINK_UPDATE, r.index, None)
@@ -127,11 +129,8 @@ class AirModel:
             self.now = max(self.now, t)
             _HANDLERS[kind](self, self.radios[node], t, data)
         self.now = max(self.now, now)
-        for r in self.radios:
-            # serial output keeps flowing whether or not the host reads it (the test
-            # is serial.drain's own, spared a call when not a byte has left yet)
-            if r.outbuf and int((now - r.drain_clock) / r.byte_s + 1e-9) > 0:
-                serial.drain(r, now)
+        # serial output flows whether or not the host reads it: serial.drain is in
+        # closed form, so it runs when the output is read (or added to), not here
 
     def take_output(self, node: int, now: float) -> bytes:
         """Bytes the radio has written to its serial output by ``now``."""
@@ -149,6 +148,8 @@ class AirModel:
         """When :meth:`advance` next has work (output draining included)."""
         t = self._events[0][0] if self._events else None
         for r in self.radios:
+            if r.outbuf:
+                serial.drain(r, self.now)  # closed form: draining now changes no time
             if r.outbuf:
                 # wake when the buffer is drained, or after 5 ms of output at most
                 d = r.drain_clock + min(len(r.outbuf) * r.byte_s, 0.005)
@@ -180,6 +181,7 @@ class AirModel:
 
     def reconfigure(self, node: int, cfg: RadioConfig, now: float) -> None:
         r = self.radios[node]
+        serial.drain(r, now)  # what left at the old serial rate, before the new one
         r.configure(cfg, self.rng, now)
         self._schedule_state_end(r)
 
@@ -234,7 +236,7 @@ class AirModel:
         if out.to_air:
             serial.inbuf_add(r, out.to_air)
         if out.to_host:
-            serial.output(r, out.to_host, t)
+            self._output(r, out.to_host, t)
         if out.remote_command:
             r.remote_cmd = out.remote_command
         if out.reboot and self.on_reboot is not None:
@@ -242,6 +244,13 @@ class AirModel:
         dl = r.at.next_deadline() if r.at is not None else None
         if dl is not None:
             self._push(max(dl, t), _AT_POLL, r.index, None)
+
+    def _output(self, r: RadioState, data: bytes, t: float) -> None:
+        """Data for ``r``'s host (:func:`radios.air.serial.output`); ``touched`` lists
+        the radios whose output grew, for a driver that wakes only for them."""
+        serial.output(r, data, t)
+        if self.touched is not None:
+            self.touched.append(r.index)
 
     def _packet_get_next(self, r: RadioState, mx: int, t: float) -> tuple[bytes, bool]:
         payload, command, heartbeat = packet_get_next(r, mx, t)
@@ -367,17 +376,16 @@ class AirModel:
             self.on_air(r.index, payload, t, t + flight, kind)
         self._push(t + flight, _TX_END, r.index, pkt)
 
-    def _heard(self, r: RadioState, pkt: Packet, t: float) -> bool:
-        """Whether ``r`` hears ``pkt``: same settings, not transmitting itself, no
-        collision, on the packet's channel (locked, or by chance), not lost. Hearing
-        a sender on its own hopping sequence locks both."""
+    def _heard(self, r: RadioState, pkt: Packet, t: float, overlapping: list[Packet]) -> bool:
+        """Whether ``r`` hears ``pkt`` (``overlapping``: the other packets on the air
+        meanwhile): same settings, not transmitting itself, no collision, on the
+        packet's channel (locked, or by chance), not lost. Hearing a sender on its own
+        hopping sequence locks both."""
         sender = self.radios[pkt.sender]
         if not r.cfg.compatible(sender.cfg):
             return False
         seed = r.cfg.hop_seed()
-        for other in self._airing:
-            if other is pkt or not (other.t_start < pkt.t_end and pkt.t_start < other.t_end):
-                continue
+        for other in overlapping:
             if other.sender == r.index:
                 return False  # half duplex: it was transmitting and heard nothing
             ocfg = self.radios[other.sender].cfg
@@ -404,10 +412,10 @@ class AirModel:
                 return False
         return True
 
-    def _receive(self, r: RadioState, pkt: Packet, t: float) -> None:
+    def _receive(self, r: RadioState, pkt: Packet, t: float, overlapping: list[Packet]) -> None:
         """``pkt`` ended: if ``r`` heard it, take its statistics or follow its TDM
         trailer, and hand its data, command or reply on."""
-        if not self._heard(r, pkt, t):
+        if not self._heard(r, pkt, t, overlapping):
             return
         sender = self.radios[pkt.sender]
         r.last_rx = t
@@ -446,14 +454,14 @@ class AirModel:
             if r.at is None or not r.at.in_command_mode:
                 r.stats.rx_packets += 1
                 r.stats.rx_bytes += len(pkt.payload)
-                serial.output(r, pkt.payload, t)
+                self._output(r, pkt.payload, t)
         if not mp:
             self._try_tx(r, t)
 
     def _remote_at(self, r: RadioState, pkt: Packet, t: float) -> None:
         text = pkt.payload.decode("ascii", "replace")
         if not text.startswith("RT") or r.at is None:
-            serial.output(r, pkt.payload, t)  # a reply: print it
+            self._output(r, pkt.payload, t)  # a reply: print it
             return
         if r.cfg.firmware == "multipoint" and "," in text:
             cmd, _, target = text.partition(",")
@@ -491,9 +499,12 @@ class AirModel:
         self._try_tx(r, t)
 
     def _on_tx_end(self, r: RadioState, t: float, pkt: Any) -> None:
+        # the packets on the air while it was: the same for every receiver
+        t0, t1 = pkt.t_start, pkt.t_end
+        overlapping = [p for p in self._airing if p is not pkt and p.t_start < t1 and t0 < p.t_end]
         for other in self.radios:
             if other is not r:
-                self._receive(other, pkt, t)
+                self._receive(other, pkt, t, overlapping)
         # forget packets that can no longer overlap anything
         horizon = t - 0.5
         self._airing = [p for p in self._airing if p.t_end > horizon]
@@ -547,7 +558,7 @@ class AirModel:
             return  # no room: the firmware skips the report
         r.rs_seq = (r.rs_seq + 1) & 0xFF
         r.stats.radio_status += 1
-        serial.output(r, frame, t)
+        self._output(r, frame, t)
 
     def _on_link_update(self, r: RadioState, t: float, _data: Any) -> None:
         """link_update() of tdm.c, every 0.5 s."""

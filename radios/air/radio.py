@@ -146,7 +146,9 @@ class RadioState:
         self.inbuf = bytearray()
         # serial output: bytes in the radio's buffer, then bytes handed to the host
         self.outbuf = bytearray()
-        self.drain_clock = now
+        self.drain_clock = now  # when the last byte handed to the host left
+        self.drain_base = now  # the output line's busy spell began here...
+        self.drained = 0  # ...and has carried this many bytes since
         self.host_ready = bytearray()
         # packetiser
         self.mav_pending = 0  # 0 none, 1 waiting for the header, else frame length
@@ -173,6 +175,9 @@ class RadioState:
         self.cfg = cfg
         self.t = cfg.timing()
         self.byte_s = 10.0 / cfg.serial_baud
+        # a new serial rate starts a new busy spell where the old one stands
+        self.drain_base = self.drain_clock
+        self.drained = 0
         self.tx_until = now
         self.wait_until = now
         self.bonus = False

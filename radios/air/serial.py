@@ -12,7 +12,9 @@ more than 34 bytes are free.
 
 Received data goes through the 645-byte output buffer (:func:`output`, truncated
 when full: ``stx``) and leaves at the serial rate: :func:`drain` moves what the
-line has carried by ``t`` to ``host_ready``. :func:`txbuf_percent` is the free
+line has carried by ``t`` to ``host_ready``, in closed form (byte ``n`` of a busy
+spell leaves at ``drain_base + n * byte_s``), so draining once or at every step
+gives the same bytes at the same times. :func:`txbuf_percent` is the free
 input buffer as RADIO_STATUS reports it. Pure functions of one
 :class:`~radios.air.radio.RadioState`; the model decides when to call them.
 """
@@ -97,18 +99,35 @@ def output(r: RadioState, data: bytes, t: float) -> None:
 
 def drain(r: RadioState, t: float) -> None:
     """Move the bytes the serial line has carried by ``t`` to the host side.
-    ``drain_clock`` is when the last byte moved finished."""
+
+    Closed form: the line has been busy since ``drain_base`` and byte ``n`` of that
+    busy spell has left at ``drain_base + n * byte_s``, so one call at ``t`` moves
+    exactly what many calls up to ``t`` would (a simulator may skip steps).
+    ``drain_clock`` is when the last byte moved finished; a line found idle (or
+    emptied before ``t``) starts its next spell at ``t``, where new bytes begin."""
     if not r.outbuf:
         if r.drain_clock < t:
-            r.drain_clock = t
+            r.drain_base = r.drain_clock = t
+            r.drained = 0
         return
-    k = int((t - r.drain_clock) / r.byte_s + 1e-9)
+    k = int((t - r.drain_base) / r.byte_s + 1e-9) - r.drained
     if k <= 0:
         return
-    k = min(k, len(r.outbuf))
+    if k > len(r.outbuf):
+        k = len(r.outbuf)
     r.host_ready += r.outbuf[:k]
     del r.outbuf[:k]
-    r.drain_clock += k * r.byte_s
+    r.drained += k
+    r.drain_clock = r.drain_base + r.drained * r.byte_s
+    if not r.outbuf and r.drain_clock < t:
+        r.drain_base = r.drain_clock = t  # the line went idle: a new spell starts at t
+        r.drained = 0
+
+
+def drain_time(r: RadioState, n: int) -> float:
+    """When the ``n``-th byte still in the output buffer (1 = the first) has left
+    for the host (the same closed form as :func:`drain`)."""
+    return r.drain_base + (r.drained + n) * r.byte_s
 
 
 def txbuf_percent(r: RadioState) -> int:
@@ -117,4 +136,13 @@ def txbuf_percent(r: RadioState) -> int:
     return (100 * (free // 8)) // (r.cfg.in_buf // 8)
 
 
-__all__ = ["CTS_RELEASE", "arrivals", "drain", "inbuf_add", "output", "txbuf_percent", "unstall"]
+__all__ = [
+    "CTS_RELEASE",
+    "arrivals",
+    "drain",
+    "drain_time",
+    "inbuf_add",
+    "output",
+    "txbuf_percent",
+    "unstall",
+]

@@ -207,6 +207,8 @@ def _value(key: Key, value: Any) -> Any:
     """``value`` checked (and converted) for ``key``. Raises ValueError (the reason)."""
     if not key.array:
         return _scalar(key, value)
+    if isinstance(key.action, argparse._AppendAction) and isinstance(value, str):
+        value = [value]  # a flag given once (``radio = "URL"``, as before it could be repeated)
     if not isinstance(value, list):
         raise ValueError(f"an array of {_TOML_KINDS[key.kind].split(' ', 1)[-1]}s: [..]")
     if len(value) > MAX_ARRAY:

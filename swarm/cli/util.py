@@ -105,21 +105,32 @@ def parser(prog: str, description: str) -> argparse.ArgumentParser:
 # -- the node options every node command shares (agent, gcs) ----------------------
 
 
-def add_node_arguments(p: argparse.ArgumentParser, *, title: str | None = None) -> Any:
+def add_node_arguments(p: argparse.ArgumentParser, *, title: str | None = None, radios: bool = False) -> Any:
     """Where a node meets the others (``--radio``, ``--zenoh-listen``, ``--zenoh-connect``
     in a group ``title`` if given, which is returned), its signing key (``--key``) and
-    ``--exit-on-radio-loss``. :func:`node_options` reads them back."""
+    ``--exit-on-radio-loss``. :func:`node_options` reads them back. ``radios``:
+    ``--radio [NAME=]URL`` may be repeated (a list; the station's channels)."""
     where = p.add_argument_group(title) if title else p
-    where.add_argument(
-        "--radio", metavar="URL", help="radio link: serial device or emulator pty (DIR/radioK)"
-    )
+    if radios:
+        where.add_argument(
+            "--radio",
+            action="append",
+            metavar="[NAME=]URL",
+            help="radio link: serial device or emulator pty (DIR/radioK); repeat it for one "
+            "radio per channel (NETID), named NAME (default net1, net2, ...)",
+        )
+    else:
+        where.add_argument(
+            "--radio", metavar="URL", help="radio link: serial device or emulator pty (DIR/radioK)"
+        )
     for flag, what in (
         ("--zenoh-listen", "listen on (tcp/127.0.0.1:7447)"),
         ("--zenoh-connect", "connect to"),
     ):
-        where.add_argument(
-            flag, nargs="+", default=[], metavar="EP", help=f"Zenoh endpoints to {what}, instead of a radio"
+        also = (
+            ": the agents' (no --radio), other stations' (with --radio)" if radios else ", instead of a radio"
         )
+        where.add_argument(flag, nargs="+", default=[], metavar="EP", help=f"Zenoh endpoints to {what}{also}")
     p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
     p.add_argument(
         "--exit-on-radio-loss",

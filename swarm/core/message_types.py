@@ -34,6 +34,10 @@ MAX_NAME = 16
 NAME_RE = re.compile(r"^[A-Za-z0-9_-]{1,16}$")
 REASON_MAX = 96  # a CommandAck's reason, bytes of UTF-8 (the frame holds 128)
 NOTICE_MAX = 64  # an AgentNotice's text, bytes of UTF-8 (an autopilot's STATUSTEXT holds 50)
+#: Advertize flag: a size byte follows (only agents with a size cap send it)
+ADV_SIZE = 0x04
+#: Advertize flag: the 16-bit tag of a swarm name follows (only named agents send it)
+ADV_SWARM = 0x08
 
 _crc32 = crcmod.predefined.mkCrcFun("crc-32")
 
@@ -184,6 +188,7 @@ class NoticeSource(IntEnum):
 class PoolStatus(IntEnum):
     SUCCESS = 0
     ALREADY_IN_POOL = 1
+    FULL = 2  # a capped pool or swarm refuses the asker (never sent without a cap)
 
 
 # -- messages -------------------------------------------------------------------
@@ -202,6 +207,29 @@ class Advertize(Message):
     sender: int
     name: str
     flags: int = 0  # bit 0: has a flight controller
+    #: a capped agent's pool or swarm size (1..250), sent only by agents with a size cap
+    #: (:mod:`swarm.core.caps`); flag ADV_SIZE says it follows. 0: not sent
+    size: int = 0
+    #: the tag of the agent's swarm name (1..65535, :func:`swarm_tag`), sent only by agents
+    #: given a swarm name; flag ADV_SWARM says it follows. 0: not sent
+    swarm: int = 0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.size, int) and 0 <= self.size <= 250):
+            raise MessageError(f"advertised size {self.size!r} outside 0..250")
+        if bool(self.flags & ADV_SIZE) != bool(self.size):
+            raise MessageError("an Advertize carries a size exactly when its flag ADV_SIZE is set")
+        if not (isinstance(self.swarm, int) and 0 <= self.swarm <= 0xFFFF):
+            raise MessageError(f"swarm tag {self.swarm!r} outside 0..65535")
+        if bool(self.flags & ADV_SWARM) != bool(self.swarm):
+            raise MessageError("an Advertize carries a swarm tag exactly when its flag ADV_SWARM is set")
+
+
+def swarm_tag(name: str) -> int:
+    """A swarm name's 16-bit tag (1..65535): the low bits of its CRC-32, 0 taken as 1.
+    Two names share a tag once in 65,535: agents of different names then pool together."""
+    check_name(name)
+    return (int(_crc32(name.encode("ascii"))) & 0xFFFF) or 1
 
 
 @dataclass(frozen=True)
@@ -408,6 +436,8 @@ class AgentNotice(Message):
 
 
 __all__ = [
+    "ADV_SIZE",
+    "ADV_SWARM",
     "GCS_ID",
     "LEGACY_KINDS",
     "MAX_NAME",
@@ -449,4 +479,5 @@ __all__ = [
     "check_name",
     "fit_reason",
     "pool_digest",
+    "swarm_tag",
 ]

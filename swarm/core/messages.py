@@ -19,7 +19,11 @@ kilobytes per second, so the encoding is tight:
   int8 in 0.25 m/s, sample time uint8 in 10 ms (wraps every 2.56 s);
 * pools are sorted id sets, sent as a list (1 + n bytes) or, above 32 members,
   a 256-bit bitmap (1 + 32 bytes); an unchanged pool travels as its CRC-32
-  digest (crcmod) only: SyncPool of an unchanged pool is 8 bytes.
+  digest (crcmod) only: SyncPool of an unchanged pool is 8 bytes;
+* optional fields are announced by a flag and absent otherwise, so that what an
+  agent without the feature sends keeps its bytes: an Advertize's size byte (only
+  an agent with a size cap sends it) follows when its flag ADV_SIZE is set, then its
+  swarm name's 16-bit tag (only a named agent sends it) when ADV_SWARM is set.
 
 The field layout of each type is declared once (``_LAYOUT``), and encoder and
 decoder are driven by it, so they cannot disagree.
@@ -404,6 +408,10 @@ def encode(msg: mt.Message) -> bytes:
     if isinstance(msg, mt.Command):
         for name, (wr, _) in _CMD_ARGS.get(msg.kind, []):
             wr(w, getattr(msg, name))
+    if isinstance(msg, mt.Advertize) and msg.size:
+        w.u8(msg.size)  # a capped agent's size (flag ADV_SIZE, checked by Advertize)
+    if isinstance(msg, mt.Advertize) and msg.swarm:
+        w.pack("H", msg.swarm)  # a named agent's swarm tag (flag ADV_SWARM)
     return bytes(w.b)
 
 
@@ -429,6 +437,10 @@ def decode(data: bytes) -> mt.Message:
         if cls is mt.Command:
             for name, (_, rd) in _CMD_ARGS.get(values["kind"], []):
                 values[name] = rd(r)
+        if cls is mt.Advertize and values["flags"] & mt.ADV_SIZE:
+            values["size"] = r.u8()
+        if cls is mt.Advertize and values["flags"] & mt.ADV_SWARM:
+            values["swarm"] = r.unpack("H")[0]
         if r.i != len(r.d):
             raise DecodeError(f"{len(r.d) - r.i} trailing bytes after {cls.__name__}")
         return cls(**values)

@@ -237,13 +237,22 @@ class AgentNode:
         has_fc: bool = False,
         pilot: PilotConfig | None = None,
         stats: dict[str, int] | None = None,
+        cap: int = 0,
+        swarm_name: str = "",
     ) -> None:
         self.id = agent_id
         self.name = name
         self.profile = profile
         self.has_fc = has_fc
         self.core = Core(
-            agent_id, name, profile, policy or RandomVote(), rng=rng or random.Random(), has_fc=has_fc
+            agent_id,
+            name,
+            profile,
+            policy or RandomVote(),
+            rng=rng or random.Random(),
+            has_fc=has_fc,
+            cap=cap,
+            swarm_name=swarm_name,
         )
         self.pilot = Pilot(agent_id, pilot or PilotConfig())
         self.gs = GsLink(agent_id, name)

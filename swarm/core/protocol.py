@@ -87,6 +87,10 @@ Beyond the paper (each rule stated once, here):
   a swarm of one, and advertises without FLAG_HAS_FC. A member whose vehicle is
   lost stays a member (it holds; the station marks it). A shorter loss changes
   nothing: the driver already waits 2 s before it calls a link lost.
+* **Sub-swarms** (``cap``, the agent's ``--swarm-cap``): no pool or swarm grows past
+  ``cap`` agents. The cap's rules (who asks whom, FULL answers, merges only when they
+  fit, a member listed by two leaders) are :mod:`swarm.core.caps`'s, called from small
+  hooks here and in :mod:`swarm.core.protocol_rules`; with ``cap`` 0 they change nothing.
 """
 
 from __future__ import annotations
@@ -94,9 +98,9 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass, field
 
+from swarm.core import caps
 from swarm.core.formation import reconcile
 from swarm.core.messages import (
-    Advertize,
     AgentState,
     Heartbeat,
     Message,
@@ -160,6 +164,7 @@ class Counters:
     elections: int = 0
     merges: int = 0
     step_downs: int = 0  # leaderships handed over for a lost vehicle link
+    refused: int = 0  # joins and merges a size cap refused (swarm.core.caps)
 
 
 @dataclass
@@ -198,11 +203,19 @@ class Core:
     synced_digest: dict[int, int] = field(default_factory=dict)
     heard: set[int] = field(default_factory=set)  # tdm: pool members whose vote was heard
     state_dirty: bool = True
+    cap: int = 0  # the most agents in a pool or swarm; 0: no cap (swarm.core.caps)
+    swarm_name: str = ""  # pools and swarms only with agents of this name; "": any unnamed
+    capped: caps.CapState = field(default_factory=caps.CapState)  # the cap's own state
+    other_leaders: caps.LeaderTable = field(default_factory=caps.LeaderTable)
+
+    def __post_init__(self) -> None:
+        self.cap = caps.check_cap(self.cap or 0)
+        self.capped.tag = caps.tag_of(self.swarm_name)
 
     # -- driver API --------------------------------------------------------------
     def start(self, now: float) -> list[Out]:
         self._started = True
-        self.idle_since = now
+        self.idle_since = self.capped.free_since = now
         self._next = {"advertize": now}
         return self.tick(now)
 
@@ -215,7 +228,7 @@ class Core:
             self.counters.impossible += 1  # our own id from elsewhere: ignore
             return out
         self.counters.handled += 1
-        h = (TDM_HANDLERS.get(type(msg)) if self.profile.tdm else None) or HANDLERS.get(type(msg))
+        h = (TDM_HANDLERS.get(type(msg)) if self.tdm else None) or HANDLERS.get(type(msg))
         if h is None:
             self.counters.ignored_phase += 1
             return out
@@ -229,7 +242,8 @@ class Core:
         if ph in _TIMER_PHASES["advertize"] and self._due("advertize", now, self.profile.advertize_interval):
             fc = self.has_fc and self.vehicle_ok
             flags = (FLAG_HAS_FC if fc else 0) | (FLAG_LEADER if ph == Phase.LEADER else 0)
-            out.append(Out(ADVERTIZE, Advertize(self.me, self.name or f"agent{self.me}", flags)))
+            ad = caps.advert(self, flags, self.name or f"agent{self.me}")
+            out += [Out(ADVERTIZE, ad)] if ad is not None else []
         if ph == Phase.IDLE and _elapsed(now, self.idle_since, self.profile.alone_timeout) and self.can_lead:
             self._become_leader(now, set())  # a swarm of one
             ph = self.phase
@@ -246,8 +260,12 @@ class Core:
             self._leader_timers(now, out)
         elif ph == Phase.MEMBER and _elapsed(now, self._member_deadline(), 0.0):
             self.counters.left += 1
+            rejoin = caps.rejoin(self, now)  # None without a cap
             self.go_idle(now)
             out += self.tick(now)
+            if rejoin is not None:
+                self.asked[rejoin] = now
+                out.append(Out(rejoin, StartPool(self.me)))
         return out
 
     def next_deadline(self) -> float | None:
@@ -269,7 +287,7 @@ class Core:
         elif self.phase == Phase.MEMBER:
             times.append(self._member_deadline())
         times += [t + p.startpool_retry for t in self.asked.values()]
-        if p.tdm and (news := tdm_news_at(self)) is not None:
+        if self.tdm and (news := tdm_news_at(self)) is not None:
             times.append(news)
         return min(times) if times else None
 
@@ -280,6 +298,7 @@ class Core:
         return min(
             max(self.last_hb, self.leader_seen) + p.leader_timeout,
             self.last_hb + HB_SILENCE_FACTOR * p.leader_timeout,
+            caps.unconfirmed_deadline(self),
         )
 
     def set_pose(self, pose: Pose) -> None:
@@ -299,6 +318,12 @@ class Core:
             self.members[agent] = max(self.members[agent], now)
         elif self.phase == Phase.MEMBER and agent == self.leader:
             self.leader_seen = max(self.leader_seen, now)
+
+    @property
+    def tdm(self) -> bool:
+        """The tdm profile's rules (swarm.core.tdm_election); with a size cap the cap's
+        rules, written for the paper's exchanges, run instead (tdm's windows kept)."""
+        return self.profile.tdm and not self.cap
 
     @property
     def can_lead(self) -> bool:
@@ -351,6 +376,8 @@ class Core:
         new = set(add) - self.pool
         if not new:
             return False
+        if self.cap and not caps.fits(len(self.pool) + len(new), self.cap):
+            return caps.trim(self, new, now)  # the cap's lowest ids stay (or we leave)
         self.pool |= new
         self.changed_at = now
         self.counters.merges += 1
@@ -358,6 +385,7 @@ class Core:
 
     def open_pool(self, other: set[int] | frozenset[int], now: float) -> None:
         self.pool = {self.me}
+        self.capped.founder = False
         self.change_pool(other, now)
         self.locked = False
         self._set_phase(Phase.POOLING)
@@ -370,7 +398,7 @@ class Core:
         self.leader = 0
         self.members = {}
         self.vote = (0, 0)
-        self.idle_since = now
+        self.idle_since = self.capped.free_since = now
         self.asked.clear()
         self.synced_digest.clear()
         self._next = {"advertize": now}
@@ -408,7 +436,7 @@ class Core:
         return SyncPool(self.me, d, self.locked, members)
 
     def _pool_timers(self, now: float, out: list[Out]) -> None:
-        if self.profile.tdm:
+        if self.tdm:
             return tdm_pool_timers(self, now, out)
         p = self.profile
         if self._due("sync", now, p.sync_interval):
@@ -448,6 +476,8 @@ class Core:
                 self._become_leader(now, self.pool - {self.me})
             else:
                 self.become_member(self.vote[1], now)
+                if self.cap:  # not listed if our pools differed: a StartPool gets us adopted
+                    out += [Out(to, StartPool(self.me)) for to in caps.ask_after_vote(self, now)]
 
     def _leader_timers(self, now: float, out: list[Out]) -> None:
         p = self.profile

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
+from swarm.core import caps
 from swarm.core.messages import (
     Advertize,
     Heartbeat,
@@ -56,6 +57,10 @@ class Out:
 
 def on_advertize(core: Core, msg: Advertize, now: float, out: list[Out]) -> None:
     a = msg.sender
+    caps.note_leader_advert(core, msg, now)
+    if caps.skip_advert(core, msg, now):
+        core.counters.refused += 1  # it could not take us, or we could not merge
+        return
     if core.phase == Phase.LEADER and msg.flags & FLAG_LEADER and a not in core.members:
         # another swarm's leader: show it our swarm so the merge rule can apply
         # (Heartbeats go only to members, so leaders would never hear each other)
@@ -75,8 +80,17 @@ def on_advertize(core: Core, msg: Advertize, now: float, out: list[Out]) -> None
 
 def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> None:
     a = msg.sender
+    if caps.foreign(core, a, unknown=True):
+        core.counters.ignored_foreign += 1  # another swarm name's (or one not heard yet)
+        return
+    if caps.refuses(core, a):
+        core.counters.refused += 1  # full: the asker pools with others
+        lead = core.phase == Phase.LEADER
+        out.append(Out(a, StartPoolAck(core.me, PoolStatus.FULL, lead, frozenset(core.pool))))
+        return
     if core.phase == Phase.IDLE:
         core.open_pool({a}, now)
+        core.capped.founder = True
         out.append(Out(a, StartPoolAck(core.me, PoolStatus.SUCCESS, False, frozenset(core.pool))))
     elif core.phase == Phase.POOLING:
         core.change_pool({a}, now)
@@ -95,9 +109,14 @@ def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> Non
 def on_start_pool_ack(core: Core, msg: StartPoolAck, now: float, out: list[Out]) -> None:
     a = msg.sender
     core.asked.pop(a, None)
+    if msg.status == PoolStatus.FULL:
+        caps.note_refusal(core, a, msg.members, now)
+        return
     if msg.locked:
         return  # a leader adopted us: its Heartbeat will tell
-    if core.phase == Phase.IDLE:
+    if core.phase == Phase.IDLE and not caps.fits(len(msg.members | {a, core.me}), core.cap):
+        core.counters.refused += 1
+    elif core.phase == Phase.IDLE:
         core.open_pool(set(msg.members) | {a}, now)
     elif core.phase == Phase.POOLING:
         core.change_pool(set(msg.members) | {a}, now)
@@ -111,9 +130,10 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
         core.counters.ignored_phase += 1
         return
     if a not in core.pool:
-        if core.phase == Phase.POOLING or (msg.members is not None and core.me in msg.members):
+        pooling = core.phase == Phase.POOLING or (msg.members is not None and core.me in msg.members)
+        if pooling and not caps.foreign(core, a, unknown=True):
             core.change_pool({a}, now)
-        else:
+        if a not in core.pool:  # not ours, or a full pool (swarm.core.caps)
             core.counters.ignored_foreign += 1
             return
     if core.phase == Phase.ELECTING:
@@ -124,6 +144,8 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
         return
     if msg.members is not None:
         core.change_pool(msg.members, now)
+        if core.phase == Phase.IDLE:
+            return  # the cap left us out of the merged pool (swarm.core.caps.trim)
     mine = pool_digest(core.pool)
     if msg.digest == mine:
         if msg.locked and not core.locked:
@@ -137,6 +159,8 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
 
 
 def on_sync_pool_ack(core: Core, msg: SyncPoolAck, now: float, out: list[Out]) -> None:
+    if caps.release(core, msg):
+        return
     if core.phase not in (Phase.POOLING, Phase.LOCKED):
         core.counters.ignored_phase += 1
         return
@@ -177,12 +201,16 @@ def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None
 
 def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None:
     lead = msg.sender
+    caps.note_leader_heartbeat(core, msg, now)
     if core.phase == Phase.LEADER:
         mine, theirs = (len(core.members) + 1, core.me), (len(msg.members) + 1, lead)
         if theirs > mine and core.me in msg.members:
             core.become_member(lead, now)  # absorbed by the larger swarm
         elif theirs > mine:
             core.counters.merges += 1  # it will absorb us when it hears our heartbeat
+        elif not caps.may_absorb(core, msg):
+            core.counters.refused += 1  # both swarms would not fit under the cap: stay apart
+            return
         else:
             # absorb the other swarm: its leader and members
             for m in {lead} | set(msg.members):
@@ -201,11 +229,16 @@ def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None
         else:
             core.counters.ignored_foreign += 1
         return
+    if core.phase == Phase.MEMBER and core.leader != lead and not caps.may_switch(core, msg):
+        core.counters.ignored_foreign += 1  # with a cap, a member stays with its leader...
+        out.append(Out(lead, SyncPoolAck(core.me, False, True, frozenset({core.me, core.leader}))))
+        return  # ...and tells the other one so (swarm.core.caps.release)
     if core.phase != Phase.MEMBER or core.leader != lead:
         core.become_member(lead, now)
     if core.task != msg.task:
         core.task = msg.task
     core.last_hb = now
+    core.capped.unconfirmed = False
     core.epoch = msg.epoch
     out.append(Out(lead, HeartbeatAck(core.me, msg.seq, core.pose or NO_POSE)))
 

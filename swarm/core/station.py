@@ -23,7 +23,8 @@ station's part:
 4. Telemetry, ``swarm/<name>/state`` (AgentState) and ``swarm/<name>/pose``
    (PoseReport) fill each agent's view: position, a trail (the last ``trail_s``,
    at most ``trail_points`` points), mode, flags, battery, radio, election state.
-   The swarm's leader is the one most connected agents follow. An agent whose
+   The leaders and their swarms are :mod:`swarm.core.station_swarms`'s (``swarms``;
+   ``leader``: the one most connected agents follow). An agent whose
    Telemetry had FLAG_FC_OK and loses it has lost its flight controller: a
    ``vehicle`` event ("vehicle link lost"), ``vehicle_link: false`` and its mode,
    arming and airborne state unknown until the flag is back ("vehicle link back").
@@ -63,7 +64,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
-from collections import Counter, deque
+from collections import deque
 from typing import Any
 
 from swarm.core.gslink import (
@@ -113,6 +114,7 @@ from swarm.core.station_commands import (
 )
 from swarm.core.station_delivery import CommandDelivery
 from swarm.core.station_plan import PlanBook
+from swarm.core.station_swarms import SwarmBook
 from swarm.core.station_view import AgentView, Event, StationConfig, StationCounters, StOut, has_position
 from swarm.core.station_watch import AlertWatch
 from swarm.errors import SwarmError
@@ -153,8 +155,9 @@ class StationCore:
         self._hb_seq = 0
         self._connect_seq = itertools.count(1)
         # the runtime starts commands at a random seq (see CommandDelivery)
+        self.swarms = SwarmBook()  # every leader and its members (swarm.core.station_swarms)
         self.commands = CommandDelivery(
-            self.id, self.cfg, self.counters, self.agents, self._label, self._event, first_seq
+            self.id, self.cfg, self.counters, self.agents, self._label, self._event, first_seq, self.swarms
         )
         self._leader_dirty = False  # a connection, phase or leader changed
         # alerts and link health (swarm.core.station_alerts, station_watch)
@@ -195,6 +198,7 @@ class StationCore:
             self._notice(msg, now)
         elif isinstance(msg, Heartbeat):
             self.plan.heartbeat(msg)
+            self._leader_dirty |= self.swarms.heartbeat(msg)  # its member list
         elif isinstance(msg, Command) and is_station(msg.sender) and (self.passive or msg.sender != self.id):
             self._plan_command(msg)
             if self.passive:
@@ -396,6 +400,7 @@ class StationCore:
             "radio": self.radio_dict(now),
             "task": self.plan.task_dict(self.leader),
             "slots": self.plan.slots_list(self.leader),
+            **self.swarms.state(self.plan),  # swarms, swarm_tasks, swarm_slots
         }
 
     def snapshot_json(self, now: float, station: dict[str, Any]) -> str:
@@ -417,6 +422,8 @@ class StationCore:
             + json.dumps(self.plan.task_dict(self.leader))
             + ', "slots": '
             + json.dumps(self.plan.slots_list(self.leader))
+            + ", "
+            + json.dumps(self.swarms.state(self.plan))[1:-1]
             + ', "station": '
             + json.dumps(station)
             + "}"
@@ -558,22 +565,14 @@ class StationCore:
         if not self._leader_dirty:
             return
         self._leader_dirty = False
-        votes: Counter[int] = Counter()
-        for a in self.agents.values():
-            if a.connected and a.phase in (Phase.LEADER, Phase.MEMBER) and a.leader:
-                votes[a.leader] += 1
-        leader = 0
-        if votes:
-            best = max(votes.values())
-            top = [i for i, n in votes.items() if n == best and i in self.agents and self.agents[i].connected]
-            leader = max(top) if top else 0
+        if self.swarms.update(self.agents):  # a swarm command in flight follows its members' leader
+            self.commands.leader_changed(self.swarms.leader, now)
+        leader = self.swarms.leader
         if leader != self.leader:
             self.leader = leader
-            self.commands.leader_changed(leader, now)
-            if leader:
-                self._event(now, "leader", f"{self._label(leader)} is the leader")
-            else:
-                self._event(now, "leader", "no leader")
+            self._event(now, "leader", f"{self._label(leader)} is the leader" if leader else "no leader")
+        for text in self.swarms.take_news(self._label):  # several swarms: each change of their leaders
+            self._event(now, "leader", text)
 
 
 __all__ = [

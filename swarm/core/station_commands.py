@@ -2,13 +2,16 @@
 
 Theory of operation
 -------------------
-The API's command object (``{"target": id | "swarm", "kind": ..., args}``) becomes a
-:class:`CommandSpec` in :func:`parse_command`, or is refused with a
+The API's command object (``{"target": id | "swarm", "kind": ..., args}``, and with
+target ``"swarm"`` an optional ``"swarm"``: the leader id of one swarm, or ``"all"``)
+becomes a :class:`CommandSpec` in :func:`parse_command`, or is refused with a
 :class:`CommandRefused` holding a short reason and an HTTP-like status; nothing about
 the swarm is known here (that check is
 :meth:`swarm.core.station_delivery.CommandDelivery.submit`'s, and so is the
-geofence). Altitudes are metres above the vehicle's home (``alt``); a go-to may give
-``alt_amsl`` instead, which submit converts with the home the station knows.
+geofence; which swarms a swarm command reaches is
+:func:`swarm.core.station_swarms.swarm_plan`'s). Altitudes are metres above the
+vehicle's home (``alt``); a go-to may give ``alt_amsl`` instead, which submit
+converts with the home the station knows.
 
 A submitted command is a :class:`Request` holding one :class:`Pending` per addressee:
 its :class:`~swarm.core.messages.Command` (one seq each), the tries made, the agents
@@ -33,7 +36,7 @@ no I/O, no clock.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from swarm.core.messages import LEGACY_KINDS, AckResult, Command, CommandKind
@@ -94,6 +97,16 @@ class CommandSpec:
     #: GOTO/WAYPOINT given as ``alt_amsl`` (metres above sea level): submit converts it
     #: to ``alt`` with the home the station knows for the agent, or refuses it
     alt_amsl: float | None = None
+    #: a swarm command (``target`` None) for the one swarm led by this agent; None: every
+    #: swarm. Set with :meth:`for_swarm` (not an argument: callers that pass ``**floats``
+    #: for the position and heading keep their types; ``dataclasses.replace`` drops it)
+    swarm: int | None = field(default=None, init=False)
+
+    def for_swarm(self, leader: int | None) -> CommandSpec:
+        """This command for the swarm led by ``leader`` (None: every swarm)."""
+        spec = replace(self)
+        object.__setattr__(spec, "swarm", leader)
+        return spec
 
 
 def _number(body: dict[str, Any], key: str, lo: float, hi: float, what: str) -> float:
@@ -165,6 +178,11 @@ def parse_command(body: Any) -> CommandSpec:
             else repr(t)
         )
         raise CommandRefused(400, f'target {shown}: an agent id (1..250) or "swarm"')
+    spec = _args(body, target, kind)
+    return spec.for_swarm(_swarm(body, target)) if "swarm" in body else spec
+
+
+def _args(body: dict[str, Any], target: int | None, kind: CommandKind) -> CommandSpec:
     what = kind.name.lower()
     if kind == CommandKind.TAKEOFF:  # metres above home; the geofence is submit's (and the pilot's)
         return CommandSpec(target, kind, alt=_number(body, "alt", 0.0, ALT_RANGE[1], what))
@@ -173,6 +191,31 @@ def parse_command(body: Any) -> CommandSpec:
     if kind == CommandKind.FOLLOW:
         return CommandSpec(target, kind, heading=_number(body, "heading", 0.0, 360.0, what) % 360.0)
     return CommandSpec(target, kind)
+
+
+def _swarm(body: dict[str, Any], target: int | None) -> int | None:
+    """A swarm command's ``"swarm"``: its leader's id (1..250), or ``"all"`` (None: every swarm).
+
+    Raises:
+        CommandRefused: (400) on an agent's command, or not a leader's id nor "all".
+    """
+    v = body["swarm"]
+    if target is not None:
+        raise CommandRefused(400, "'swarm' goes with target \"swarm\", not with one agent")
+    if v == "all":
+        return None
+    if isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 250:
+        return v
+    shown = (
+        (str(v) if abs(v) < 10**15 else "a number of more than 15 digits")
+        if isinstance(v, int) and not isinstance(v, bool)
+        else repr(v[:24]) + ("..." if len(v) > 24 else "")
+        if isinstance(v, str)
+        else f"of type {type(v).__name__}"
+        if isinstance(v, (list, dict, float))
+        else repr(v)
+    )
+    raise CommandRefused(400, f'swarm {shown}: its leader\'s agent id (1..250) or "all"')
 
 
 def _position(body: dict[str, Any], target: int | None, kind: CommandKind) -> CommandSpec:
@@ -245,11 +288,17 @@ class Pending:
     progress_at: float = 0.0  # when it was heard
     result: str | None = None  # IN_PROGRESS while followed past the retry window, then the final one
     reason: str = ""
+    #: a swarm command: the members of the swarm it goes to (whose leader it follows;
+    #: empty: the station's one leader), and that swarm's leader when sent (0: none)
+    group: frozenset[int] = frozenset()
+    of_swarm: int | None = None
 
     def as_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"agent": self.agent, "result": self.result, "reason": self.reason}
         if self.swarm:
             d["swarm"] = True
+        if self.of_swarm is not None:
+            d["of_swarm"] = self.of_swarm
         return d
 
 
@@ -276,6 +325,18 @@ class Request:
     def body(self) -> dict[str, Any]:
         ok = bool(self.pending) and all(p.result in DONE_RESULTS for p in self.pending)
         out: dict[str, Any] = {"ok": ok, "results": [p.as_dict() for p in self.pending]}
+        if any(p.of_swarm is not None for p in self.pending):  # several swarms: one line per swarm
+            by: dict[int, list[Pending]] = {}
+            for p in self.pending:
+                by.setdefault(p.of_swarm or 0, []).append(p)
+            out["swarms"] = [
+                {
+                    "swarm": k,
+                    "ok": all(p.result in DONE_RESULTS for p in v),
+                    "agents": sorted({p.agent for p in v}),
+                }
+                for k, v in sorted(by.items())
+            ]
         if self.status == 504:
             out["error"] = "no answer after retries"
         return out

@@ -20,8 +20,11 @@ the leader as Command(target=0), and every retry goes to the leader the station 
 leader" answer to a swarm command is not final while time remains (the agent does
 not remember it, so the new leader answers for itself). Swarm STOP also goes to
 every connected agent; swarm ARM/DISARM/TAKEOFF/LAND/RETURN go to every connected
-agent. At give-up, evidence seen in Telemetry (:meth:`CommandDelivery.look_for_evidence`)
-makes the result ``CARRIED_OUT``, a swarm refusal is final, else ``NO_ANSWER``.
+agent. With several swarms (:func:`swarm.core.station_swarms.swarm_plan`) a command
+goes to one swarm or to each: a swarm FOLLOW or STOP keeps its swarm's members and
+every retry goes to the leader most of them follow *then*. At give-up, evidence seen
+in Telemetry (:meth:`CommandDelivery.look_for_evidence`) makes the result
+``CARRIED_OUT``, a swarm refusal is final, else ``NO_ANSWER``.
 
 An IN_PROGRESS answer (the agent's vehicle is still carrying the command out: a
 take-off climbs for ten seconds and more) is not a result: it is logged once, and the
@@ -56,6 +59,7 @@ from swarm.core.station_commands import (
     Seen,
     evidence,
 )
+from swarm.core.station_swarms import Addressee, SwarmBook, swarm_plan
 from swarm.core.station_view import AgentView, StationConfig, StationCounters, StOut
 
 
@@ -71,6 +75,7 @@ class CommandDelivery:
         label: Callable[[int], str],
         event: Callable[[float, str, str], None],
         first_seq: int = 1,
+        swarms: SwarmBook | None = None,
     ) -> None:
         self.id = station_id
         self.cfg = cfg
@@ -78,6 +83,7 @@ class CommandDelivery:
         self.agents = agents  # the station's own dict, shared
         self._label = label
         self._event = event
+        self.swarms = swarms  # the station's, shared: each swarm's leader and members
         # the runtime starts commands at a random seq: an agent remembers answers by
         # (station, seq), and a restarted station must not reuse the seqs it just used
         self._seq = itertools.count(first_seq)
@@ -99,7 +105,7 @@ class CommandDelivery:
                 (FOLLOW), nothing connected (a swarm fan-out).
         """
         kind = spec.kind
-        plan: list[tuple[int, int]] = []  # (agent, Command.target)
+        plan: list[Addressee] = []
         if spec.target is not None:
             a = self.agents.get(spec.target)
             if a is None:
@@ -107,25 +113,19 @@ class CommandDelivery:
             if not a.connected:
                 raise CommandRefused(409, f"{self._label(a.id)} is not connected")
             spec = self._fenced(spec, a)
-            plan.append((a.id, a.id))
+            plan.append(Addressee(a.id, a.id))
         else:
-            connected = sorted(i for i, a in self.agents.items() if a.connected)
-            if kind in (CommandKind.FOLLOW, CommandKind.STOP):
-                if leader:
-                    plan.append((leader, 0))
-                elif kind == CommandKind.FOLLOW:
-                    raise CommandRefused(409, "no leader elected yet")
-            if kind != CommandKind.FOLLOW:
-                plan += [(i, i) for i in connected]
-            if not plan:
-                raise CommandRefused(409, "no connected agents")
+            plan = swarm_plan(spec, leader, self.agents, self.swarms)
             spec = self._fenced(spec, None)
         args = {"lat": spec.lat, "lon": spec.lon, "alt": spec.alt, "heading": spec.heading}
         req = Request(next(self._request_ids), spec)
         out: list[StOut] = []
-        for agent, target in plan:
+        for ad in plan:
             seq = self._next_seq()
-            p = Pending(req, agent, target == 0, Command(self.id, seq, target, kind, **args), first_sent=now)
+            msg = Command(self.id, seq, ad.target, kind, **args)
+            p = Pending(
+                req, ad.agent, ad.target == 0, msg, first_sent=now, group=ad.group, of_swarm=ad.of_swarm
+            )
             req.pending.append(p)
             self._pending[seq] = p
             out += self._send(p, now, leader)
@@ -173,6 +173,7 @@ class CommandDelivery:
             # leader (the agent keeps no record of it, so it will answer again)
             p.refusal = (msg.sender, msg.result.name, msg.reason)
             if now - p.first_sent < self.cfg.command_give_up:
+                leader = self._lead(p, leader)
                 if leader and msg.sender != leader:
                     p.next_try = min(p.next_try, now)  # it already sees another leader: go now
                 return
@@ -215,7 +216,8 @@ class CommandDelivery:
 
     def leader_changed(self, leader: int, now: float) -> None:
         for p in self._pending.values():
-            if p.swarm and leader and p.agent != leader:
+            lead = self._lead(p, leader) if p.swarm else 0
+            if lead and p.agent != lead:
                 p.next_try = min(p.next_try, now)  # to the new leader at the next tick
 
     def look_for_evidence(self, a: AgentView) -> None:
@@ -241,9 +243,17 @@ class CommandDelivery:
             if seq and seq not in self._pending:
                 return seq
 
+    def _lead(self, p: Pending, leader: int) -> int:
+        """The leader a swarm command goes to now: the one its swarm's members follow
+        (the station's leader for the one swarm of old); 0: none seen."""
+        if p.group and self.swarms is not None:
+            return self.swarms.leader_for(p.group)
+        return leader
+
     def _send(self, p: Pending, now: float, leader: int) -> list[StOut]:
-        if p.swarm and leader and leader in self.agents:
-            p.agent = leader  # re-resolved at every try: elections happen
+        lead = self._lead(p, leader) if p.swarm else 0
+        if lead and lead in self.agents:
+            p.agent = lead  # re-resolved at every try: elections happen
         if p.agent not in p.before:
             p.before[p.agent] = self._seen(self.agents[p.agent])
         p.sent_to.add(p.agent)

@@ -308,6 +308,8 @@ class Agent(StartOnce):
             has_fc=self.vehicle is not None,
             pilot=self.config.pilot,
             stats=self.stats,
+            cap=self.config.swarm_cap,
+            swarm_name=self.config.swarm_name,
         )
         self.transport.on_inbox(self.loop.put)
         self.transport.on_advertize(self.loop.put)

@@ -23,6 +23,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from swarm.core.caps import check_cap
+from swarm.core.messages import NAME_RE
 from swarm.core.pilot import PilotConfig
 from swarm.core.profiles import PROFILE_NAMES
 
@@ -92,10 +94,12 @@ class AgentConfig:
     SiK pair at 64 kbit/s), ``vote`` ``random``, ``battery`` or ``link``, ``pose_hz``
     with a flight controller, ``fc_timeout`` to hear it first, ``seed`` for the random
     draws (None: unseeded), ``pilot`` the formation and flight settings and the
-    geofence (:class:`~swarm.core.geofence.Geofence`, ``pilot.fence``).
+    geofence (:class:`~swarm.core.geofence.Geofence`, ``pilot.fence``), ``swarm_cap``
+    the most agents in its swarm (0: no cap; :mod:`swarm.core.caps`), ``swarm_name``
+    the only swarm name it pools with ("": agents without one).
 
     Raises:
-        ValueError: an unknown profile or vote, a round or pose rate out of range.
+        ValueError: an unknown profile or vote, a round, pose rate or cap out of range.
     """
 
     profile: str = "paper"
@@ -105,6 +109,8 @@ class AgentConfig:
     fc_timeout: float = 10.0
     seed: int | None = None
     pilot: PilotConfig = field(default_factory=PilotConfig)
+    swarm_cap: int = 0  # the most agents in its swarm (swarm.core.caps); 0: no cap
+    swarm_name: str = ""  # pools only with agents of this swarm name; "": with unnamed ones
 
     def __post_init__(self) -> None:
         if self.vote not in VOTES:
@@ -116,6 +122,9 @@ class AgentConfig:
             raise ValueError(f"round_s {r!r} must be a positive number of seconds")
         if not (math.isfinite(self.pose_hz) and 0 < self.pose_hz <= 50):
             raise ValueError(f"pose_hz {self.pose_hz!r} must be in (0, 50]")
+        check_cap(self.swarm_cap)
+        if self.swarm_name and not NAME_RE.match(self.swarm_name):
+            raise ValueError(f"swarm_name {self.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
 
 
 __all__ = ["PROFILES", "VOTES", "AgentConfig", "NodeOptions"]

@@ -110,7 +110,7 @@ class FaultSim(Sim):
 
     def _new_core(self, i: int, rng: random.Random) -> Core:
         prof = profile_by_name(self.sc.profile, self.round_s)
-        core = DriftCore(i + 1, f"agent{i + 1}", prof, rng=rng, rate=self.rates[i])
+        core = DriftCore(i + 1, f"agent{i + 1}", prof, rng=rng, rate=self.rates[i], cap=self.sc.cap)
         core.set_pose(POSE)
         return core
 
@@ -145,10 +145,10 @@ class FaultSim(Sim):
                     self._due[i] = t
         super()._start_and_crash(t, w)
 
-    def _next_time(self, t: float, out_dl: float | None) -> float:
-        nxt = super()._next_time(t, out_dl)
+    def _deadline(self, t: float, out_dl: float | None) -> float:
+        nxt = super()._deadline(t, out_dl)
         if self.spans and t + 1e-9 < self.spans[0][0] < nxt:
-            nxt = max(self.spans[0][0], t + 1e-4)
+            nxt = self.spans[0][0]
         return nxt
 
     # -- connected groups -------------------------------------------------------------

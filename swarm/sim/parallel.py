@@ -32,6 +32,7 @@ from multiprocessing.process import BaseProcess
 
 from swarm.errors import SwarmError
 from swarm.sim.faultsim import make_sim
+from swarm.sim.relay import RelaySim
 from swarm.sim.simulate import RunResult, Scenario
 
 STOP_GRACE_S = 5.0  # after SIGTERM, before SIGKILL
@@ -43,6 +44,8 @@ class WorkerDied(SwarmError):
 
 def _run_one(job: tuple[Scenario, int]) -> RunResult:
     sc, seed = job
+    if sc.command_at is not None:  # a station on the channel (swarm.sim.relay)
+        return RelaySim(sc, seed).run()
     return make_sim(sc, seed).run()
 
 

@@ -7,7 +7,7 @@ depends on besides its seed: the number of agents, the loss models (uniform, bur
 Gilbert-Elliott), partitions (:class:`Partition`, ``T0-T1:1,2|3,4``: agents of
 different groups cannot hear each other from T0 to T1, applied to the air as
 :class:`PartitionLoss`), crashes and late starts (``ID@T``, :func:`parse_at`), the
-profile, the radio speeds and the run's length. :meth:`Scenario.command` is the
+profile, the agents' swarm size cap, the radio speeds and the run's length. :meth:`Scenario.command` is the
 ``swarm simulate`` command line that replays a seed. A run lasts ``duration``
 virtual seconds at most; by default :func:`run_length`: 60 s, or 20 TDM rounds when
 that is longer. :class:`RunResult` is what a run reports. Plain data: pickled as is
@@ -155,6 +155,11 @@ class Scenario:
     pauses: list[str] = field(default_factory=list)
     drift: list[str] = field(default_factory=list)
     strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
+    #: agents per swarm at most (swarm.core.caps; 0: no cap, one swarm); each channel's run takes it
+    cap: int = 0
+    #: a station on the channel sends one swarm command at this virtual time (None: no
+    #: station; swarm.sim.relay)
+    command_at: float | None = None
 
     def last_fault_s(self) -> float:
         """When the last fault with an end ends (a partition heals, a link, a restart or
@@ -198,6 +203,10 @@ class Scenario:
             parts.append(f"--duration {self.duration}")
         if self.strict:
             parts.append("--strict")
+        if self.cap:
+            parts.append(f"--cap {self.cap}")
+        if self.command_at is not None:
+            parts.append(f"--command-at {self.command_at!r}")
         return " ".join(parts)
 
 

@@ -8,14 +8,14 @@ sends is encoded exactly as the radio bridge does it: compact message in a
 MAVLink 2 TUNNEL frame, payload type by key kind, identical P2P payloads to several
 peers merged into one multicast frame. Frames go through the model's serial
 pacing, TDM and loss; what a radio outputs is parsed, filtered by target and
-decoded back into the core. There is no wall clock: the loop jumps from one
-deadline (a core's or the air's) to the next, so a run is exactly repeatable for
-its seed.
+decoded back into the core. There is no wall clock, so a run is exactly repeatable
+for its seed (``tests/test_sim_golden.py`` pins its bytes and times).
 
-The loop is the simulator's cost, so each step does the least that gives the same
-bytes at the same times (``tests/test_sim_golden.py`` pins them): one pass over the
-radios (:meth:`Sim._serial_pass`) feeds a parser only when a frame can complete and
-finds when the next frame will have left a radio; a frame every receiver of a
+The loop is event-driven: it steps only for what can change a core (a core's
+deadline, a start or crash, the invariants' 100 ms sample, and the arrival at a
+host of the first frame its agent handles, computed from the air model's
+closed-form serial clock by :class:`swarm.sim.hoststream.HostStreams`); the air's
+own events run between steps at their own times. A frame every receiver of a
 broadcast gets is CRC-checked and decoded once (:meth:`Sim._tunnel_of`); one
 message to many peers is encoded once. What a run is (:class:`Scenario`, its faults,
 its length, :class:`RunResult`) lives in :mod:`swarm.sim.scenario`; seeds over
@@ -29,7 +29,8 @@ starts; restarts, pauses, drift and the campaign's continuous invariants are
 
 * converged: at some point every live agent was in one agreed swarm per
   connected group (one leader, every other agent its member and listed by it)
-  and that held for ``settle`` seconds; a run that never gets there violates;
+  and that held for ``settle`` seconds; a run that never gets there violates
+  (with a size cap, sub-swarms of at most the cap: :mod:`swarm.sim.subswarms`);
 * after convergence, two leaders in one connected group never coexist for more
   than SPLIT_LIMIT_S (the merge rule's time);
 * no member follows a dead leader for longer than its leader timeout (+ a round);
@@ -51,12 +52,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
+from radios.air.serial import drain
 from radios.loss import GilbertElliott, UniformLoss
 from radios.mavlink import HEADER_V2, MSG_TUNNEL, STX_V2, FrameBuilder, FrameParser, frame_length
 from swarm.core.messages import Advertize, Message, Phase, Pose, decode, encode
 from swarm.core.protocol import ADVERTIZE, Core, Out, profile_by_name
 from swarm.core.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
 from swarm.errors import DecodeError
+from swarm.sim.hoststream import HostStreams
 from swarm.sim.scenario import (
     Link,
     LinkLoss,
@@ -67,6 +70,7 @@ from swarm.sim.scenario import (
     parse_at,
     run_length,
 )
+from swarm.sim.subswarms import capped_agreement, mergeable_leaders
 
 POSE = Pose(47.397742, 8.545594, 500.0)
 _Tunnel = tuple[Kind, int, bytes, Message]
@@ -118,7 +122,8 @@ class Sim:
         self.duration = sc.duration if sc.duration is not None else run_length(round_s)
         profile = profile_by_name(sc.profile, round_s)
         self.cores = [
-            Core(i + 1, f"agent{i + 1}", profile, rng=random.Random(rng.getrandbits(64))) for i in range(n)
+            Core(i + 1, f"agent{i + 1}", profile, rng=random.Random(rng.getrandbits(64)), cap=sc.cap)
+            for i in range(n)
         ]
         for c in self.cores:
             c.set_pose(POSE)
@@ -126,6 +131,7 @@ class Sim:
         self._trusted: set[bytes] = set()  # frames whose CRC one receiver has checked
         self._decoded: dict[bytes, _Tunnel | None] = {}
         self.parsers = [FrameParser(trusted=self._trusted) for _ in range(n)]
+        self.hosts = HostStreams(self)  # when each host next gets a frame it handles
         self.start_at = [0.0] * n
         for spec in sc.late:
             who, t = parse_at(spec)
@@ -138,6 +144,7 @@ class Sim:
         self.violations: list[str] = []
         self.following_dead_since: dict[int, float] = {}
         self._due = [0.0] * n  # each core's next deadline (cached)
+        self._check_at = 0.0  # the invariants' next sample
         self._split_since: float | None = None
         # a run goes on at least until its last partition heals and its last agent starts
         ends = [p.t1 for p in self.partitions] + [k.t1 for k in self.links if k.t1 != float("inf")]
@@ -172,6 +179,7 @@ class Sim:
         radio = self.air.radios[i]
         if not radio.host_ready and not radio.outbuf:
             return
+        drain(radio, t)
         if not self._frame_ready(i, radio.host_ready):
             return  # the bytes wait in the radio's output: the parser could not finish a frame
         self._deliver(i, t)
@@ -258,8 +266,10 @@ class Sim:
         live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
         if not live:
             return True, 0
-        groups: dict[int, list[Core]] = defaultdict(list)
         t = self.air.now
+        if self.sc.cap:  # sub-swarms: every live agent in a led swarm of at most cap
+            return capped_agreement(live, self.sc.cap, lambda a: self._group_key(a, t))
+        groups: dict[int, list[Core]] = defaultdict(list)
         for c in live:
             groups[self._group_key(c.me, t)].append(c)
         leader_id = 0
@@ -279,27 +289,25 @@ class Sim:
     def run(self) -> RunResult:
         t = 0.0
         w = _Watch()
-        next_check = 0.0
+        self.hosts.start()
         while t <= self.duration:
             self._start_and_crash(t, w)
             self.air.advance(t)
-            out_dl = self._serial_pass(t)
+            self.hosts.serve_due(t)
             self._tick_cores(t)
-            if t < next_check:
-                t = self._next_time(t, out_dl)
-                continue
-            next_check = t + 0.1
-            if self._judge(t, w):
-                break
-            self._check_dead_leaders(t)
-            self._check_split(t, w.elect_s is not None or w.failover_s is not None)
-            t = self._next_time(t, out_dl)
+            if t + 1e-9 >= self._check_at:
+                self._check_at = t + 0.1
+                if self._judge(t, w):
+                    break
+                self._check_dead_leaders(t)
+                self._check_split(t, w.elect_s is not None or w.failover_s is not None)
+            t = self._next_time(t, self.hosts.next_due())
         return self._run_result(t, w)
 
     def _start_and_crash(self, t: float, w: _Watch) -> None:
         """The starts and the crash due at ``t`` (one crash per step)."""
         n = self.sc.agents
-        for i in range(n):
+        for i in range(n) if not all(self.started) else ():
             if not self.started[i] and t >= self.start_at[i]:
                 self.started[i] = True
                 self._send(i, self.cores[i].start(t), t)
@@ -320,10 +328,12 @@ class Sim:
                 break
 
     def _tick_cores(self, t: float) -> None:
-        if min(self._due) > t + 1e-9:
+        thr = t + 1e-9
+        due = self._due
+        if min(due) > thr:
             return  # no core is due (most steps are the air's)
-        for i in range(self.sc.agents):
-            if self.alive[i] and self.started[i] and self._due[i] <= t + 1e-9:
+        for i in [i for i, d in enumerate(due) if d <= thr]:
+            if self.alive[i] and self.started[i]:
                 core = self.cores[i]
                 self._send(i, core.tick(t), t)
                 d = core.next_deadline()
@@ -381,10 +391,15 @@ class Sim:
         for i, c in enumerate(self.cores):
             if self.alive[i] and self.started[i] and c.phase == Phase.LEADER:
                 groups[self._group_key(c.me, t)] += 1
-        if any(n > 1 for n in groups.values()):
+        split = any(n > 1 for n in groups.values())
+        if self.sc.cap:  # with a cap, only leaders whose swarms fit together must merge
+            live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
+            split = mergeable_leaders(live, self.sc.cap, lambda a: self._group_key(a, t))
+        if split:
             self._split_since = t if self._split_since is None else self._split_since
             if t - self._split_since > SPLIT_LIMIT_S:
                 msg = f"two leaders in one connected group for over {SPLIT_LIMIT_S:.0f} s"
+                msg += " (their swarms fit under the cap)" if self.sc.cap else ""
                 if msg not in self.violations:
                     self.violations.append(msg)
         else:
@@ -403,88 +418,29 @@ class Sim:
                     if msg not in self.violations:
                         self.violations.append(msg)
 
-    def _serial_pass(self, t: float) -> float | None:
-        """Each radio's output to its host at ``t``: the frames it completes go to the
-        core (:meth:`_deliver`); returns when the next frame leaves a radio (nothing can
-        be decoded before), or 5 ms of output at most when the stream is not at a frame
-        (the air model's own wake-up): the same bytes at the same times as waking every
-        5 ms. Nothing changes a radio's output between this pass and the next step.
-        (:meth:`_frame_ready` and :meth:`_frame_need`, inlined: this runs every step.)"""
-        dl: float | None = None
-        parsers = self.parsers
-        for i, r in enumerate(self.air.radios):
-            ob = r.outbuf
-            hr = r.host_ready
-            if not ob and not hr:
-                continue
-            pend = parsers[i]._buf
-            # the stream's head: the parser's bytes, then those not yet fed, then the
-            # radio's output; flen is its frame's length (None: not at a frame or under
-            # 3 bytes). -1: a split head under 3 bytes, left to the helpers.
-            if len(pend) >= 3:
-                flen = frame_length(pend, 0)
-            elif pend:
-                flen = -1
-            elif hr:
-                flen = frame_length(hr, 0) if len(hr) >= 3 else -1
-            else:
-                flen = frame_length(ob, 0)
-            if hr:
-                if flen == -1:
-                    ready = self._frame_ready(i, hr)
-                else:
-                    ready = flen is None or len(pend) + len(hr) >= flen
-                if ready:
-                    self._deliver(i, t)
-                    if not ob:
-                        continue
-                    flen = -1
-            if not ob:
-                continue
-            if flen == -1:
-                need = self._frame_need(i, r.host_ready, ob)
-            else:
-                need = None if flen is None else max(1, min(flen - len(pend) - len(hr), len(ob)))
-            if need is None:
-                d = r.drain_clock + min(len(ob) * r.byte_s, 0.005)
-            else:
-                d = r.drain_clock + need * r.byte_s + 1e-9
-            if dl is None or d < dl:
-                dl = d
-        return dl
-
-    def _frame_need(self, i: int, ready: bytearray, outbuf: bytearray) -> int | None:
-        """Bytes of ``outbuf`` that complete the frame the parser is waiting for (all
-        of it if the frame is cut short), or None if the stream is not at a frame. What
-        waits for the parser is what it holds and what the radio has output but the
-        parser was not yet fed (:meth:`_frame_ready`)."""
-        pend = self.parsers[i]._buf
-        if ready:
-            pend = pend + ready
-        head: bytes | bytearray = pend if pend else outbuf
-        if len(head) < 3 and pend:
-            head = bytes(pend) + bytes(outbuf[:3])
-        flen = frame_length(head, 0)
-        if flen is None:
-            return None
-        return max(1, min(flen - len(pend), len(outbuf)))
-
     def _next_time(self, t: float, out_dl: float | None) -> float:
-        """The next step: the earliest deadline after ``t`` (a core's, the air's, a
-        radio's output (``out_dl``, :meth:`_serial_pass`), a start, a crash), at most
-        100 ms on (invariants are sampled every 100 ms)."""
+        """The next step: the earliest of a core's deadline, a host's next frame
+        (``out_dl``, :class:`~swarm.sim.hoststream.HostStreams`), a start, a crash and
+        the next sample of the invariants (every 100 ms). The air's own events before it
+        run at their own times meanwhile (``HostStreams.run_air``): only one that gives
+        a host output can bring the step forward."""
+        return max(self.hosts.run_air(t, self._deadline(t, out_dl)), t + 1e-4)
+
+    def _deadline(self, t: float, out_dl: float | None) -> float:
+        """The earliest deadline after ``t`` other than the air's (a subclass adds its own)."""
         thr = t + 1e-9
-        nxt = t + 0.1
-        ev = self.air._events
-        dl = ev[0][0] if ev else None
-        if out_dl is not None and (dl is None or out_dl < dl):
-            dl = out_dl
-        if dl is not None and thr < dl < nxt:  # the air's earliest deadline, or none
-            nxt = dl
+        nxt = self._check_at
+        if out_dl is not None and thr < out_dl < nxt:
+            nxt = out_dl
         due, alive, started, start_at = self._due, self.alive, self.started, self.start_at
+        m = min(due)
+        if thr < m and all(started):  # the common case: every core started (a dead one: inf)
+            return min(m, nxt, *[x for _, x in self.crash_at if thr < x])
         for i in range(len(due)):
             if started[i]:
-                x = due[i] if alive[i] else nxt
+                if not alive[i]:
+                    continue
+                x = due[i]
             else:
                 x = start_at[i]
             if thr < x < nxt:
@@ -492,7 +448,7 @@ class Sim:
         for _, x in self.crash_at:
             if thr < x < nxt:
                 nxt = x
-        return max(nxt, t + 1e-4)
+        return nxt
 
 
 def pct(values: list[float], q: float) -> float | None:

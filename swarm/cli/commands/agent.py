@@ -74,8 +74,9 @@ from swarm.cli.util import (
     peer_watch,
     print_json,
 )
+from swarm.core.caps import MAX_CAP, check_cap
 from swarm.core.formation import FormationConfig
-from swarm.core.messages import AgentState
+from swarm.core.messages import NAME_RE, AgentState
 from swarm.core.pilot import PilotConfig
 from swarm.errors import MessageError
 from swarm.runtime.agent import (
@@ -116,6 +117,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="vote weight: random (the paper), battery, or link (RSSI)",
     )
     p.add_argument("--pose-hz", type=float, default=4.0, help="pose rate with a flight controller")
+    p.add_argument(
+        "--swarm-cap",
+        type=int,
+        default=0,
+        metavar="N",
+        help="the most agents in this agent's swarm (2..250): agents beyond it form further swarms, "
+        "each with its own leader; 0: no cap, one swarm (default)",
+    )
+    p.add_argument(
+        "--swarm-name",
+        metavar="NAME",
+        help="pool and merge only with agents given this swarm name (1-16 of A-Z a-z 0-9 _ -); "
+        "default: none (only with agents without a name)",
+    )
     _add_flight_arguments(p)
     add_fence_arguments(p, "the agent's pilot")
     _add_capture_arguments(p)
@@ -360,6 +375,12 @@ def _check_arguments(a: argparse.Namespace) -> None:
     """What argparse cannot check. Raises UsageError; sets ``a.round_s``."""
     if not 1 <= a.id <= 250:
         raise UsageError(f"--id {a.id}: agent ids are 1..250 (255 is the ground station)")
+    try:
+        check_cap(a.swarm_cap)
+    except ValueError:
+        raise UsageError(f"--swarm-cap {a.swarm_cap}: 0 (no cap) or 2..{MAX_CAP} agents") from None
+    if a.swarm_name is not None and not NAME_RE.match(a.swarm_name):
+        raise UsageError(f"--swarm-name {a.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
     a.node = node_options(a, "an agent")
     a.fence = fence_from(a)
     if a.round_s is None:
@@ -389,7 +410,13 @@ def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
             speed_mps=a.speed, turn_radius_m=a.turn_radius, formation=formation, fence=a.fence
         )
         config = AgentConfig(
-            profile=a.profile, round_s=a.round_s, vote=a.vote, pose_hz=a.pose_hz, pilot=pilot
+            profile=a.profile,
+            round_s=a.round_s,
+            vote=a.vote,
+            pose_hz=a.pose_hz,
+            pilot=pilot,
+            swarm_cap=a.swarm_cap,
+            swarm_name=a.swarm_name or "",
         )
         return Agent(
             a.name,

@@ -21,12 +21,20 @@ AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
     "sim": ("sim", "vehicle simulator real-time factor and CPU, driver setpoint timing"),
     "messages": ("messages", "message and frame sizes, bridge latency, JSON ratio"),
     "simulate": ("simulate", "simulator campaigns for the election targets (virtual time)"),
+    "scale": (
+        "scale",
+        "many swarms: N=50 on one channel with a cap, 200 agents on 4 channels (virtual time)",
+    ),
     "campaign": ("campaign", "the seeded fault campaign: violations, scenarios per CPU second, by kind"),
     "election": ("election", "real agent processes vs the simulator: election times"),
     "gcs": ("gcs", "ground station: 50 agents at 5 Hz, WebSocket rate, server CPU, page frames"),
     "formation": ("formation", "V formation slot error and air use vs pose rate and loss"),
     "faults": ("faults", "a signed swarm in flight: crashes, restarts, unplugs, a rogue radio"),
     "agent": ("agent", "one agent: start-up to first Advertize, imports, CPU, memory, flight-log loss"),
+    "scale-procs": (
+        "scale_procs",
+        "channels x agents, a station each and a Zenoh router: listing, command, kill",
+    ),
     "conformance": ("conformance", "simulated ArduCopter vs recorded SITL traces: milestones, acks, timings"),
 }
 

@@ -3,6 +3,11 @@
 Live: ``swarm gcs --radio URL`` (a SiK radio or an emulator pty) or
 ``--zenoh-listen/--zenoh-connect EP...`` (Zenoh over IP). Replay:
 ``swarm gcs --replay CAPTURE [--speed X]`` plays a ``.tlog`` on the same page.
+Several channels: ``--radio NAME=URL`` repeated (one radio per NETID); with radios,
+``--zenoh-connect/--zenoh-listen`` join other stations over Zenoh (routers:
+``swarm router``), their agents shown and commanded on this page too
+(:class:`swarm.runtime.stations.Fleet`, :mod:`swarm.runtime.federation`; remote
+commands need the swarm key, or ``--allow-unsigned-remote``).
 
 The page and the API answer only their own page, under this machine's names
 (``--allow-host NAME`` adds one) and, beyond loopback, only with the station's token
@@ -50,6 +55,7 @@ from swarm.cli.util import (
     print_json,
 )
 from swarm.core.gslink import STATION_IDS
+from swarm.core.message_types import NAME_RE
 from swarm.core.messages import check_name
 from swarm.errors import MessageError
 from swarm.runtime.notify import Service
@@ -75,7 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
         "Ground control station: connects the agents that announce themselves, shows "
         "them on a map in the browser and sends them commands (JSON API at /api).",
     )
-    src = add_node_arguments(p, title="where the swarm is (one of)")
+    src = add_node_arguments(
+        p, title="where the swarm is: radios (and other stations), Zenoh or a capture", radios=True
+    )
     src.add_argument("--replay", metavar="CAPTURE", help="play a captured flight (.tlog) instead")
     p.add_argument(
         "--http",
@@ -104,6 +112,13 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"state pushes per second on the WebSocket (default 5, at most {MAX_WS_HZ:g})",
     )
     _add_security_arguments(p)
+    fed = p.add_argument_group("stations joined over Zenoh (with --radio: --zenoh-connect/--zenoh-listen)")
+    fed.add_argument(
+        "--allow-unsigned-remote",
+        action="store_true",
+        help="without --key, carry out other stations' commands unsigned (anyone who reaches the "
+        "Zenoh network could then command this station's agents)",
+    )
     add_fence_arguments(p, "the station")
     _add_alert_arguments(p)
     p.add_argument("--capture", metavar="FILE", help="record the radio's traffic to a .tlog (with --radio)")
@@ -273,11 +288,43 @@ def _server_config(a: argparse.Namespace) -> ServerConfig:
     )
 
 
+def parse_radios(texts: list[str]) -> list[tuple[str, str]]:
+    """``--radio [NAME=]URL`` values as (channel name, URL); unnamed ones are
+    ``net<position>``. Raises UsageError (a bad or repeated name, a repeated URL)."""
+    out: list[tuple[str, str]] = []
+    for i, text in enumerate(texts, 1):
+        name, sep, url = text.partition("=")
+        if not sep or not NAME_RE.match(name) or not url:
+            name, url = f"net{i}", text
+        if any(n == name for n, _u in out) or any(u == url for _n, u in out):
+            raise UsageError(f"--radio {text}: each channel needs its own name and radio")
+        out.append((name, url))
+    return out
+
+
+def _check_fleet(a: argparse.Namespace) -> None:
+    """Several radios, or radios and other stations over Zenoh: a.channels, no a.node."""
+    a.channels, a.node = None, None
+    radios = a.radio or []
+    a.radio = parse_radios(radios)[0][1] if len(radios) == 1 else None
+    if len(radios) > 1 or (radios and (a.zenoh_listen or a.zenoh_connect)):
+        a.channels = parse_radios(radios)
+        if a.capture is not None:
+            raise UsageError("--capture records one radio: give one --radio (and no --zenoh-*)")
+        a.radio = a.channels[0][1]
+    if a.allow_unsigned_remote and a.channels is None:
+        raise UsageError("--allow-unsigned-remote is for a station on radios joined over Zenoh")
+
+
 def _check(a: argparse.Namespace) -> None:
     ways = ", --replay CAPTURE"
-    if a.replay is None:
+    has_radio = bool(a.radio)
+    _check_fleet(a)
+    if a.replay is None and a.channels is None:
         a.node = node_options(a, "a station", others=ways)
-    elif a.radio is not None or a.zenoh_listen or a.zenoh_connect:
+    elif a.replay is None:
+        pass
+    elif has_radio or a.zenoh_listen or a.zenoh_connect:
         raise UsageError(f"give one of --radio URL, --zenoh-listen/--zenoh-connect EP...{ways}")
     elif a.exit_on_radio_loss:
         raise UsageError("--exit-on-radio-loss is for a station on a radio (--radio)")
@@ -333,12 +380,43 @@ def _open_station(a: argparse.Namespace) -> Any:
         ).start()
     from swarm.runtime.station import Station
 
+    if a.channels is not None:
+        return _open_fleet(a)
     n = a.node
     st = Station(a.name, a.id, node=n, capture=a.capture, config=a.station_config)
     try:
         return st.start()
     except CaptureError as exc:  # the capture file is the user's input too
         raise UsageError(str(exc)) from None
+
+
+def _open_fleet(a: argparse.Namespace) -> Any:
+    """One station per channel, merged, joined to the other stations over Zenoh."""
+    from radios.signing import load_key
+    from swarm.core.federation import fed_key
+    from swarm.runtime.federation import Federation
+    from swarm.runtime.options import NodeOptions
+    from swarm.runtime.station import Station
+    from swarm.runtime.stations import Fleet
+
+    key = fed_key(load_key(a.key)) if a.key is not None else None
+    channels = [
+        (net, Station(a.name, a.id, node=NodeOptions(radio=url, key_file=a.key), config=a.station_config))
+        for net, url in a.channels
+    ]
+    fleet = Fleet(a.name, a.id, channels, a.fence)
+    if a.zenoh_listen or a.zenoh_connect:
+        fleet.federation = Federation(
+            a.name,
+            connect=a.zenoh_connect,
+            listen=a.zenoh_listen,
+            key=key,
+            accept_unsigned_commands=a.allow_unsigned_remote,
+            local=fleet.local_state,
+            run_local=fleet.run_local,
+            on_event=fleet.note,
+        )
+    return fleet.start()
 
 
 def _ready_line(a: argparse.Namespace, cfg: ServerConfig, station: Any, server: GcsServer) -> None:
@@ -406,15 +484,17 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
         except ServerError as exc:
             raise UsageError(str(exc)) from None
         bridge = getattr(station, "bridge", None)
-        if bridge is not None and a.exit_on_radio_loss:
-            bridge.cfg.reopen_radio = False  # before "ready": a radio pulled at once ends it too
+        for b in [st.bridge for _n, st in getattr(station, "channels", [])] or [bridge]:
+            if b is not None and a.exit_on_radio_loss:
+                b.cfg.reopen_radio = False  # before "ready": a radio pulled at once ends it too
         with lock:
             _ready_line(a, cfg, station, server)
         service = Service(functools.partial(_beats, station, server))
         service.ready(f"gcs {station.name} {station.describe()} {server.url} ready")
         station.add_listener(on_event)
-        if bridge is not None:
-            bridge.add_listener(on_radio)
+        for b in [st.bridge for _n, st in getattr(station, "channels", [])] or [bridge]:
+            if b is not None:
+                b.add_listener(on_radio)
         check_peer = peer_watch(PROG, a, station)
         while not stop.wait(0.5):
             check_peer()

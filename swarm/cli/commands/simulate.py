@@ -2,6 +2,8 @@
 
 Seeds run over ``--jobs`` processes (:mod:`swarm.sim.parallel`; the figures do not
 depend on it). Ctrl-C or SIGTERM stops the workers, prints one line and exits 130.
+``--channels``, ``--place`` and ``--command-at`` run a deployment over several
+channels, with a station on each relaying one swarm command (:mod:`swarm.sim.channels`).
 """
 
 from __future__ import annotations
@@ -16,8 +18,10 @@ from typing import Any
 
 from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
+from swarm.core.caps import MAX_CAP, check_cap
 from swarm.core.profiles import PROFILE_NAMES
 from swarm.sim.campaign import run_campaign
+from swarm.sim.channels import DEFAULT_LATENCY_S, MAX_CHANNELS, ChannelScenario, run_channels
 from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
 
@@ -76,6 +80,13 @@ def _build_parser() -> argparse.ArgumentParser:
         "--strict", action="store_true", help="check the fault campaign's continuous invariants too"
     )
     p.add_argument(
+        "--cap",
+        type=int,
+        default=0,
+        metavar="N",
+        help="each agent's swarm size cap (sub-swarms of at most N; 0: none, one swarm; default 0)",
+    )
+    p.add_argument(
         "--campaign",
         type=int,
         metavar="K",
@@ -105,8 +116,40 @@ def _build_parser() -> argparse.ArgumentParser:
         help="worker processes for the seeds (default: all cores; 1 runs them here); "
         "the results are the same for any N",
     )
+    _add_channel_flags(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     return p
+
+
+def _add_channel_flags(p: argparse.ArgumentParser) -> None:
+    """Several channels and the station relaying between them (:mod:`swarm.sim.channels`)."""
+    p.add_argument(
+        "--channels",
+        type=int,
+        default=1,
+        metavar="K",
+        help=f"radio channels (NETIDs, 1..{MAX_CHANNELS}): the agents are dealt over them round robin, "
+        "each channel its own TDM ring; figures per channel and for the whole run (default 1)",
+    )
+    p.add_argument(
+        "--place",
+        metavar="A-B:C,...",
+        help="which agents are on which channel, e.g. 1-50:1,51-100:2 (with --channels)",
+    )
+    p.add_argument(
+        "--command-at",
+        type=float,
+        metavar="T",
+        help="a station on each channel; the operator gives the station of channel 1 one swarm "
+        "command (FOLLOW) at T s, the stations pass it on to every channel; counts the swarms that answer",
+    )
+    p.add_argument(
+        "--relay-latency",
+        type=float,
+        default=DEFAULT_LATENCY_S,
+        metavar="S",
+        help=f"seconds a command takes from one station to another (default {DEFAULT_LATENCY_S:g})",
+    )
 
 
 def _raise_interrupt(_signum: int, _frame: Any) -> None:
@@ -193,6 +236,10 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError("--jobs: 1..256")
     if not 0 <= a.loss <= 1:
         raise UsageError("--loss: a probability between 0 and 1")
+    try:
+        check_cap(a.cap)
+    except ValueError:
+        raise UsageError(f"--cap {a.cap}: 0 (no cap) or 2..{MAX_CAP} agents per swarm") from None
     _check_specs(a)
     faults: dict[str, Any] = {field: getattr(a, flag[2:]) for flag, field, _, _ in _FAULT_FLAGS}
     sc = Scenario(
@@ -203,8 +250,14 @@ def main(argv: list[str] | None = None) -> int:
         air_kbps=a.air_speed,
         duration=a.duration,
         strict=a.strict,
+        cap=a.cap,
+        command_at=a.command_at,
         **faults,
     )
+    if a.command_at is None and a.relay_latency != DEFAULT_LATENCY_S:
+        raise UsageError("--relay-latency: only with --command-at")
+    if a.channels != 1 or a.place is not None or a.command_at is not None:
+        return _channels(a, sc)
     if a.campaign is not None:
         return _campaign(a)
 
@@ -222,6 +275,68 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(text_report(result), flush=True)
     return 0 if not result["failing"] else 1
+
+
+def _channels(a: argparse.Namespace, sc: Scenario) -> int:
+    """``--channels K``: the deployment's seeds, each channel a run (:mod:`swarm.sim.channels`)."""
+    if a.campaign is not None or any(getattr(a, flag[2:]) for flag, _, _, _ in _FAULT_FLAGS):
+        raise UsageError("--channels: the faults that name agents and --campaign are one-channel only")
+    if a.command_at is not None and (a.strict or not 0 <= a.command_at <= 86400):
+        raise UsageError("--command-at: virtual seconds 0..86400, not with --strict")
+
+    try:
+        cs = ChannelScenario.make(sc, a.channels, a.place, a.relay_latency)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+    def seeded() -> dict[str, Any]:
+        with Progress(PROG, a.seeds * cs.channels, "channel runs", as_json=a.json) as bar:
+            return run_channels(cs, a.seeds, a.seed, jobs=a.jobs, on_done=bar.advance)
+
+    result = _interruptible(seeded)
+    if result is None:
+        return EXIT_INTERRUPTED
+    if a.json:
+        print_json(result)
+    else:
+        print(channels_report(result), flush=True)
+    for f in result["failing"]:
+        print(f"replay failing seed {f['seed']} (channel {f['channel']}): {f['replay']}", file=sys.stderr)
+        print(f"  that channel alone: {f['replay_channel']}", file=sys.stderr)
+    return 0 if not result["failing"] else 1
+
+
+def channels_report(r: dict[str, Any]) -> str:
+    """The figures of a run over several channels (:func:`swarm.sim.channels.run_channels`)."""
+    n, e = r["runs"], r["all_led_s"]
+    lines = [
+        f"{r['agents']} agents on {r['channels']} channel{'s' if r['channels'] > 1 else ''}, "
+        f"{r['profile']} profile, "
+        f"loss {r['loss']:g}: {n} runs",
+        f"  every agent led       {r['all_led']} of {n} runs (every channel agreed and held)",
+        f"  time until then       p50 {_fig(e['p50'])}, p95 {_fig(e['p95'])}, max {_fig(e['max'])}",
+        f"  violations            {r['violations']} in all channel runs",
+    ]
+    for c in r["per_channel"]:
+        ce, air = c["elect_s"], c["air_utilisation"]
+        lines.append(
+            f"  channel {c['channel']:<2} {c['agents']:>3} agents (round {c['round_s']:g} s): converged "
+            f"{c['converged']} of {n}, p50 {_fig(ce['p50'])}, p95 {_fig(ce['p95'])}, "
+            f"air max {_fig(_pct(air['max']), ' %')}"
+        )
+    if "relay" in r:
+        x = r["relay"]
+        e = x["all_answered_s"]
+        lines += [
+            f"  swarm command at {x['command_at']:g} s from the station of channel 1 "
+            f"(stations {x['latency_s']:g} s apart):",
+            f"    every swarm answered  {x['all_answered']} of {n} runs; swarms answering "
+            f"{x['answered']['min']}..{x['answered']['max']} of {x['swarms']}, accepting "
+            f"{x['accepted']['min']}..{x['accepted']['max']}",
+            f"    last answer after     p50 {_fig(e['p50'])}, p95 {_fig(e['p95'])}, max {_fig(e['max'])}",
+        ]
+        lines += [f"    refused at once       {k}: {v} channel runs" for k, v in x["refused_at_once"].items()]
+    return "\n".join(lines)
 
 
 def _fig(v: float | None, unit: str = " s") -> str:

@@ -33,6 +33,11 @@
  * addressees; "Hold all" (the swarm STOP: every connected agent holds where it is)
  * is one click.
  *
+ * Several swarms (swarms.js, window.gcsSwarms): each agent's colour is its swarm's,
+ * every swarm's leader is marked, the table sorts by swarm by default (by id with one
+ * swarm), and the "to" selector may hold "swarm:<leader id>"; window.gcsDrawHooks are
+ * called after each drawn state.
+ *
  * Stable hooks for tests: #agents [data-agent-id] (rows, .lead, .stale,
  * [data-field]), .agent-marker[data-agent-id][data-colour], #telemetry [data-field],
  * #election [data-field], #log, #cmd-status, #stale-banner, #confirm, #hold-all,
@@ -88,7 +93,7 @@
     tokenWarned: false,
     lostAt: -Infinity,    // performance.now() when the socket last went away
     stale: false,         // the page's data is too old to trust
-    sort: { key: "id", dir: 1 },
+    sort: { key: "swarm", dir: 1 },  // by swarm when several (swarms.js), else by id
     order: "",            // the fleet table's row order last drawn
     confirming: false,    // the confirmation dialog is open
   };
@@ -270,11 +275,16 @@
     rec.tag = rec.el.querySelector(".tag");
     rec.view = {};  // draw everything on the new marker
   }
+  // an agent without a position now (a replay sought back before its first fix) has no marker
+  function dropMarker(rec) {
+    if (rec.marker) rec.marker.remove();
+    if (rec.trail) rec.trail.remove();
+    rec.marker = rec.trail = rec.el = rec.arrow = rec.tag = null;
+  }
   function dropAgent(id) {
     const rec = S.agents.get(id);
     if (!rec) return;
-    if (rec.marker) rec.marker.remove();
-    if (rec.trail) rec.trail.remove();
+    dropMarker(rec);
     rec.row.remove();
     S.agents.delete(id);
     if (S.selected === id) select(null, false);
@@ -310,6 +320,7 @@
     S.drawn = st;
     const agents = Array.isArray(st.agents) ? st.agents : [];
     const leader = st.leader || 0;
+    const leads = window.gcsSwarms ? window.gcsSwarms.leaders(st) : new Set();  // every swarm's leader
     const seen = new Set();
     const list = $("#agents tbody");
     const empty = list.querySelector(".empty");
@@ -323,7 +334,7 @@
         list.append(rec.row);
       }
       rec.data = a;
-      drawAgent(rec, id === leader);
+      drawAgent(rec, id === leader || leads.has(id));
     }
     for (const id of Array.from(S.agents.keys())) if (!seen.has(id)) dropAgent(id);
     if (!agents.length && !list.children.length) {
@@ -335,6 +346,19 @@
     drawHeader(st, agents, leader);
     drawElection(agents, leader);
     drawTelemetry();
+    (window.gcsDrawHooks || []).forEach((f) => { try { f(st); } catch (err) { console.error(err); } });
+  }
+
+  // a swarm's colour (swarms.js): the row, the marker and the trail take it
+  function recolour(rec, colour, off) {
+    rec.colour = colour;
+    rec.row.dataset.colour = colour;
+    rec.row.querySelector(".swatch").style.background = colour;
+    if (rec.el) {
+      rec.el.dataset.colour = colour;
+      rec.el.style.setProperty("--agent", colour);
+    }
+    if (rec.trail) rec.trail.setStyle({ color: off ? OFF_COLOUR : colour });
   }
 
   // Each agent's last drawn values: only what changed touches the DOM or the map
@@ -344,6 +368,8 @@
     const off = !a.connected;
     const selected = S.selected === a.id;
     const v = rec.view;
+    const colour = (window.gcsSwarms && window.gcsSwarms.colour(a.id)) || agentColour(a.id);
+    if (colour !== rec.colour) recolour(rec, colour, off);
     // a delta leaves an unchanged agent's object as it was: nothing to draw
     if (v.src === a && v.leader === isLeader && v.selected === selected && (rec.marker || !hasPosition(a))) return;
     v.src = a;
@@ -377,6 +403,8 @@
         rec.trail.setLatLngs(trail);
         v.trail = key;
       }
+    } else if (rec.marker) {
+      dropMarker(rec);
     }
     if (isLeader !== v.leader || off !== v.off || selected !== v.selected || a.name !== v.name) {
       const row = rec.row;
@@ -436,6 +464,7 @@
   function sortValue(rec, key) {
     const a = rec.data;
     if (key === "id") return a.id;
+    if (key === "swarm") return window.gcsSwarms ? window.gcsSwarms.sortKey(a.id) : null;
     if (key === "name") return String(a.name || "");
     if (key === "role") return a.id === (S.drawn && S.drawn.leader) ? "" : String(a.phase || "~");
     if (key === "armed") return a.armed === true ? 1 : a.armed === false ? 0 : null;
@@ -756,7 +785,8 @@
   }
 
   function describe(cmd) {
-    const who = cmd.target === "swarm" ? "swarm" : agentName(cmd.target);
+    const who = cmd.target !== "swarm" ? agentName(cmd.target)
+      : window.gcsSwarms ? window.gcsSwarms.name(cmd) : "swarm";
     let what = cmd.kind;
     if (cmd.kind === "goto" || cmd.kind === "waypoint") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m above home";
     if (cmd.kind === "takeoff") what += " to " + cmd.alt + " m above home";
@@ -840,11 +870,13 @@
       btn.addEventListener("click", () => {
         const kind = btn.dataset.kind;
         let target = "swarm";
-        if ($("#cmd-target").value !== "swarm") {
+        const to = $("#cmd-target").value;  // "selected", "swarm" (all), "swarm:<leader id>" (swarms.js)
+        if (!to.startsWith("swarm")) {
           if (S.selected === null) return localRefusal(kind + ": select an agent first");
           target = S.selected;
         }
         const cmd = { target, kind };
+        if (to.startsWith("swarm:")) cmd.swarm = Number(to.slice(6));
         if (kind === "takeoff") {
           cmd.alt = parseFloat($("#takeoff-alt").value);
           if (!Number.isFinite(cmd.alt)) return localRefusal("take off: altitude must be a number");
@@ -853,6 +885,8 @@
           cmd.heading = parseFloat($("#follow-heading").value);
           if (!Number.isFinite(cmd.heading)) return localRefusal("follow: heading must be a number");
         }
+        const why = window.gcsSwarms ? window.gcsSwarms.refusal(cmd) : null;  // follow to several swarms
+        if (why) return localRefusal(why);
         confirmed(cmd);
       });
     }
@@ -863,6 +897,7 @@
   // the addressees, as the dialog names them: "5 agents", "agent2 (2)"
   function addressees(cmd) {
     if (cmd.target !== "swarm") return agentName(cmd.target);
+    if (window.gcsSwarms && window.gcsSwarms.addressees(cmd)) return window.gcsSwarms.addressees(cmd);
     const n = S.drawn && Array.isArray(S.drawn.agents) ? S.drawn.agents.filter((a) => a.connected).length : 0;
     if (cmd.kind === "follow") return "the swarm (through its leader)";
     return n === 1 ? "1 agent" : n + " agents";
@@ -888,7 +923,7 @@
     return new Promise((resolve) => {
       dlg.addEventListener("close", () => {
         S.confirming = false;
-        if (swarm) $("#cmd-target").value = "selected";  // the whole swarm is never left chosen
+        if (swarm) $("#cmd-target").value = "selected";  // a swarm (or every one) is never left chosen
         drawTarget();
         if (dlg.returnValue === "ok") resolve(command(cmd));
         else {
@@ -902,10 +937,11 @@
   }
   // the command buttons say whom they address, and wait for a selected agent
   function drawTarget() {
-    const swarm = $("#cmd-target").value === "swarm";
+    const swarm = $("#cmd-target").value.startsWith("swarm");
     const none = !swarm && S.selected === null;
     const rec = S.selected !== null ? S.agents.get(S.selected) : null;
-    setText($("#cmd-to"), swarm ? "every agent" : none ? "select an agent" : rec ? "→ " + agentName(S.selected) : "");
+    const who = window.gcsSwarms && swarm ? window.gcsSwarms.toText($("#cmd-target").value) : "every agent";
+    setText($("#cmd-to"), swarm ? who : none ? "select an agent" : rec ? "→ " + agentName(S.selected) : "");
     $("#cmd-to").classList.toggle("missing", none);
     if (S.config && S.config.replay) return;
     for (const b of document.querySelectorAll("#commands button[data-kind]")) {
@@ -1018,6 +1054,9 @@
     get agents() { return Array.from(S.agents.keys()); },
     get selected() { return S.selected; },
     get leader() { return S.drawn ? S.drawn.leader || 0 : 0; },
+    get state() { return S.drawn; },  // the newest state drawn (swarms.js)
+    drawTarget() { drawTarget(); },
+    agentName(id) { return agentName(id); },
     get stateCount() { return S.stateCount; },
     get lastStateTime() { return S.lastStateTime; },
     get wsStatus() { return S.wsStatus; },

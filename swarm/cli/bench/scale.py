@@ -5,7 +5,7 @@ Theory of operation
 Two simulated targets, in virtual time (:mod:`swarm.sim.channels`, seeds over every
 core with the same figures as one):
 
-* ``one_channel_n50``: 50 agents on one channel with a swarm cap of 12 (``CAP``):
+* ``one_channel_n50``: 50 agents on one channel with a swarm cap of 10 (``CAP``):
   every agent in a swarm with a leader within 30 s at the 95th percentile, in at least
   99 % of 100 seeds, with the channel's air at most half used while they elect.
 * ``four_channels_n200``: 200 agents dealt over 4 channels (50 each, the same cap):
@@ -32,11 +32,10 @@ under ``processes`` (``swarm bench scale-procs`` runs that part alone).
 from __future__ import annotations
 
 import os
-import resource
-import time
 from typing import Any
 
 from swarm.cli.bench import scale_procs
+from swarm.cli.bench.simulate import cpu_s
 from swarm.sim.channels import ChannelScenario, run_channels
 from swarm.sim.scenario import Scenario
 
@@ -44,7 +43,7 @@ from swarm.sim.scenario import Scenario
 PROFILE = "fast"
 LOSS = 0.1
 #: agents per swarm at most on the one-channel target (the issue: 10 to 12)
-CAP = 12
+CAP = 10
 TARGET_ALL_LED_P95_S = 30.0
 TARGET_ALL_LED_SHARE = 0.99
 TARGET_AIR_UTILISATION = 0.5
@@ -52,18 +51,12 @@ TARGET_AIR_UTILISATION = 0.5
 RELAY_AT_S = 40.0
 
 
-def _cpu_s() -> float:
-    """CPU of this process and of its finished children (the workers)."""
-    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + ch.ru_utime + ch.ru_stime
-
-
 def _measure(cs: ChannelScenario, seeds: int, jobs: int) -> dict[str, Any]:
     """The deployment's figures for a person or a program: per channel as a group
     each, the failing runs counted with the first one's replay."""
-    t0 = _cpu_s()
+    t0 = cpu_s()
     r = run_channels(cs, seeds, 0, jobs=jobs)
-    r["cpu_s"] = round(_cpu_s() - t0, 1)
+    r["cpu_s"] = round(cpu_s() - t0, 1)
     per = r.pop("per_channel")
     r["per_channel"] = {f"channel_{c['channel']}": c for c in per}
     failing = r.pop("failing")

@@ -1,8 +1,8 @@
 """Figures of the deterministic simulator for the election targets (virtual time; the
 tdm profile's election in TDM rounds, issue 16's target), and
 its own speed: CPU seconds per 1,000 N=10 runs and per N=50 run (issue 15's targets).
-With a size cap (issue 16): N=50 on one channel in swarms of at most 10
-(``paper_n50_cap10``, ``fast_n50_cap10``), beside the issue's target.
+The sub-swarm targets (a size cap, several channels) are ``swarm bench scale``'s
+(:mod:`swarm.cli.bench.scale`).
 
 Speed is measured on serial runs in this process (``time.process_time``); the N=50
 campaign runs over all cores (``--jobs``: identical figures) and its CPU is this
@@ -18,13 +18,6 @@ from typing import Any
 
 from swarm.sim.simulate import Scenario, campaign
 
-#: issue 16's target for sub-swarms: N=50 on one channel, a cap of 10, 10 % loss: every
-#: agent in a led swarm within this many seconds (p95) in this share of the seeds, with
-#: the air at most this busy
-TARGET_CAPPED_P95_S = 30.0
-TARGET_CAPPED_CONVERGED = 0.99
-TARGET_CAPPED_AIR = 0.5
-
 #: issue 15's targets, CPU seconds
 TARGET_CPU_S_PER_1000_RUNS = 10.0
 TARGET_CPU_S_PER_RUN_N50 = 2.5
@@ -32,31 +25,16 @@ TARGET_CPU_S_PER_RUN_N50 = 2.5
 TARGET_TDM_P95_ROUNDS = 3.5
 
 
-def _cpu_s() -> float:
+def cpu_s() -> float:
     """CPU of this process and of its finished children (the pool's workers)."""
     ch = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + ch.ru_utime + ch.ru_stime
 
 
 def _timed(sc: Scenario, runs: int, jobs: int = 1) -> tuple[dict[str, Any], float]:
-    t0 = _cpu_s()
+    t0 = cpu_s()
     res = campaign(sc, runs, 0, jobs=jobs)
-    return res, _cpu_s() - t0
-
-
-def capped(quick: bool, jobs: int) -> dict[str, Any]:
-    """N=50 agents, a cap of 10, 10 % loss: both profiles over 100 seeds (1 if quick), each
-    with the issue's target beside it."""
-    out: dict[str, Any] = {}
-    for profile in ("paper", "fast"):
-        res = campaign(Scenario(agents=50, loss=0.1, profile=profile, cap=10), 1 if quick else 100, jobs=jobs)
-        res["target"] = {
-            "elect_s_p95": TARGET_CAPPED_P95_S,
-            "converged_share": TARGET_CAPPED_CONVERGED,
-            "air_utilisation": TARGET_CAPPED_AIR,
-        }
-        out[f"{profile}_n50_cap10"] = res
-    return out
+    return res, cpu_s() - t0
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -84,7 +62,6 @@ def run(quick: bool = False) -> dict[str, Any]:
     out["paper_n50_loss10"], cpu_n50 = _timed(Scenario(agents=50, loss=0.1), n50, jobs=jobs)
     out["cpu_s_per_run_n50"] = round(cpu_n50 / n50, 2)
     out["cpu_s_per_run_n50_target"] = TARGET_CPU_S_PER_RUN_N50
-    out.update(capped(quick, jobs))
     for v in out.values():
         if isinstance(v, dict) and "failing" in v and not v["failing"]:
             v.pop("failing")

@@ -270,7 +270,7 @@ class FaultBench:
 
     def start(self) -> None:
         from swarm.cli.demo import _free_base_port
-        from swarm.core.protocol import fast_profile, paper_profile
+        from swarm.core.profiles import profile_by_name
 
         with open(self.key_file, "w", encoding="utf-8") as fh:
             fh.write(KEY_PASSPHRASE + "\n")
@@ -296,7 +296,7 @@ class FaultBench:
         t0 = time.monotonic()
         self.start_station()
         round_s = float(self.agents[1].ready.get("round_s", 0.5))
-        prof = fast_profile(round_s) if self.profile == "fast" else paper_profile(round_s)
+        prof = profile_by_name(self.profile, round_s)
         self.leader_timeout_s = prof.leader_timeout
         self._monitor = threading.Thread(target=self._watch, name="fault-bench-monitor", daemon=True)
         self._monitor.start()

@@ -240,6 +240,7 @@ def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None
     core.last_hb = now
     core.capped.unconfirmed = False
     core.epoch = msg.epoch
+    core.acked_at, core.heard_seq = now, msg.seq  # the own-ack timer restarts (swarm.core.liveness)
     out.append(Out(lead, HeartbeatAck(core.me, msg.seq, core.pose or NO_POSE)))
 
 

@@ -71,7 +71,9 @@ Beyond the paper (each rule stated once, here):
   whose leader's Heartbeat is overdue by a quarter interval sends its HeartbeatAck
   anyway, then every ``heartbeat_interval`` until one comes. An answered ack needs two
   frames through, an own ack one: at 29 % loss a 17-agent swarm lost a member to
-  ``ack_timeout`` every few seconds and never settled. Without loss it never fires.
+  ``ack_timeout`` every few seconds and never settled. Without loss it never fires. A
+  leader that hears an ack from an agent it does not list (expelled by bad luck, it
+  still follows this leader) takes it back as a late joiner, the cap permitting.
 * **Alone**: an agent that found nobody for ``alone_timeout`` forms a swarm of one
   (and absorbs others later by the rules above). An agent that hears a leader
   advertise is not alone: it keeps asking that leader (StartPool) instead. One that
@@ -197,6 +199,7 @@ class Core:
     hb_seq: int = 0
     acked_at: float = 0.0  # a member's last HeartbeatAck sent (swarm.core.liveness)
     heard_seq: int = 0  # the sequence number of the last Heartbeat heard
+    told_at: dict[int, float] = field(default_factory=dict)  # stray acks answered (swarm.core.liveness)
     counters: Counters = field(default_factory=Counters)
     idle_since: float = 0.0
     _started: bool = False

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
-from swarm.core import caps
+from swarm.core import caps, liveness
 from swarm.core.messages import (
     Advertize,
     Heartbeat,
@@ -250,6 +250,7 @@ def on_heartbeat_ack(core: Core, msg: HeartbeatAck, now: float, out: list[Out]) 
         return
     if msg.sender not in core.members:
         core.counters.ignored_foreign += 1
+        liveness.answer_stray_ack(core, msg, now, out)  # it takes us for its leader
         return
     core.members[msg.sender] = now
     core.poses[msg.sender] = replace(msg.pose)

@@ -15,10 +15,9 @@ then needs one frame through, not two (five missed rounds: 0.29^5 = 0.2 %).
 
 What it does not change: a member still answers every Heartbeat (the paper's
 step), and one that hears none for ``leader_timeout`` still leaves; the leader
-still expels a member silent for ``ack_timeout``, and ignores acks from agents it
-does not list (an expelled member is not re-admitted by its own acks: it re-joins
-by StartPool). On a link that loses nothing every Heartbeat arrives within the
-slack, the timer never fires, and the bytes on the air are the paper's.
+still expels a member silent for ``ack_timeout``. On a link that loses nothing every
+Heartbeat arrives within the slack, the timer never fires, and the bytes on the air
+are the paper's.
 
 An ack can now come from an agent its leader no longer lists: one expelled by a run
 of lost frames, or while cut off, that then heard a Heartbeat sent before the
@@ -27,8 +26,8 @@ follows this leader, so the leader takes it back at once, as it takes a late joi
 (the caps permitting): an unlucky expulsion heals within a round instead of the agent
 acknowledging for a whole ``leader_timeout`` a leader that ignores it, then leaving
 and re-joining. One the leader may not take is told (its Heartbeat, which does not
-list it) and leaves at once. Pure: the functions read and change the
-core and append what to send.
+list it) and leaves at once. Pure: the functions read and change the core and append
+what to send.
 """
 
 from __future__ import annotations

@@ -56,6 +56,7 @@ LIGHT = frozenset(
         "test_subswarm_processes.py",  # six agents, one channel: what the station shows
         "test_sim_channels.py",  # virtual time: channels, the relay, the scale bench's quick shape
         "test_sim_events.py",  # in-process, virtual time
+        "test_own_ack.py",  # the core alone and three replays, virtual time
     }
 )
 

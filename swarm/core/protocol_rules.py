@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
-from swarm.core import caps
+from swarm.core import caps, liveness
 from swarm.core.messages import (
     Advertize,
     Heartbeat,
@@ -240,6 +240,7 @@ def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None
     core.last_hb = now
     core.capped.unconfirmed = False
     core.epoch = msg.epoch
+    core.acked_at, core.heard_seq = now, msg.seq  # the own-ack timer restarts (swarm.core.liveness)
     out.append(Out(lead, HeartbeatAck(core.me, msg.seq, core.pose or NO_POSE)))
 
 
@@ -249,6 +250,7 @@ def on_heartbeat_ack(core: Core, msg: HeartbeatAck, now: float, out: list[Out]) 
         return
     if msg.sender not in core.members:
         core.counters.ignored_foreign += 1
+        liveness.answer_stray_ack(core, msg, now, out)  # it takes us for its leader
         return
     core.members[msg.sender] = now
     core.poses[msg.sender] = replace(msg.pose)

@@ -55,11 +55,15 @@ def test_bad_input_exits_2_with_one_line(
     text = tmp_path / "notes.tlog"
     text.write_text(TEXT)
     argv = [x.format(text=text, dir=tmp_path) for x in BAD_INPUT[command]]
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         code = swarm_main([command, *argv])
     except SystemExit as exc:  # argparse's own usage errors leave as the process would
         code = exc.code
     assert code == 2
+    # run in-process, a command leaves Ctrl-C as it found it (the router's stop flag
+    # once kept SIGINT, and a later command in the same process could not be stopped)
+    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers
     err = capsys.readouterr().err
     assert "Traceback" not in err and "error" in err
     assert err.strip().splitlines()[-1].startswith(("swarm", "usage")), err

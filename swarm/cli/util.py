@@ -232,11 +232,19 @@ class StopFlag:
     def __init__(self) -> None:
         self.event = threading.Event()
         self.signal: int | None = None
+        self._previous: dict[int, Any] = {}
 
     def install(self) -> StopFlag:
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self._handler)
+            self._previous[sig] = signal.signal(sig, self._handler)
         return self
+
+    def restore(self) -> None:
+        """The handlers from before :meth:`install` (a command run in-process, e.g. by a
+        test, leaves Ctrl-C as it found it)."""
+        for sig, old in self._previous.items():
+            signal.signal(sig, old)
+        self._previous.clear()
 
     def _handler(self, signum: int, _frame: Any) -> None:
         self.signal = signum

@@ -68,6 +68,14 @@ def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     stop = StopFlag().install()
     try:
+        return _serve(a, stop)
+    finally:
+        stop.restore()
+
+
+def _serve(a: argparse.Namespace, stop: StopFlag) -> int:
+    """The router until ``stop`` (one line and exit 2 if its endpoints will not open)."""
+    try:
         session = open_router(a.listen, a.connect)
     except TransportError as exc:
         raise UsageError(str(exc)) from None

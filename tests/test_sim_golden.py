@@ -39,7 +39,7 @@ GOLDEN: dict[str, str] = {
     "paper_n2_s1": "c6bdb14c79273317eb60c021bcc44b2d6064539c3bc7e53c380b2136157bd125",
     "paper_n6_faults_s2": "46f3ea7921b1712e04315fe82fcb3d7862f050316b411184c8420ae08882e85c",
     "fast_n20_loss10_s4": "2d9ab37254790cc8230bc590fecb7788dcaae633afbd7e039a53cf334d5c0124",
-    "flight_n3_loss10_s2": "f3fe58d41d6f45f3a25758df4f9b65d915323aeb15a0bcf8d27c675f8b913c66",
+    "flight_n3_loss10_s2": "c4f7c90e4f040ffe08c3f3acfe7ebbb313349a28acdab84b38406288c8b96eda",
 }
 
 CASES: list[tuple[str, Scenario | FlightScenario, int]] = [

@@ -222,3 +222,35 @@ def test_commands_may_cross_on_the_way_but_each_is_taken_once() -> None:
         loose.open(seal(KIND_COMMAND, "x", 1, T + 61_000_000, b"{}", None), NOW + 61, KIND_COMMAND)
         is not None
     )
+
+
+def test_a_hostile_stations_alerts_are_rebuilt_bounded_and_plain() -> None:
+    """Alerts cross in the state (issue 16): a hostile station's are cut to a bounded
+    count of known fields and types, text printable and short; junk is dropped, never
+    the whole state."""
+    from swarm.core.federation import MAX_ALERTS
+
+    evil = "<img src=x onerror=alert(1)>\x1b[2J\u202e" + "x" * 5000
+    good = {"id": 7, "kind": "battery", "agent": 41, "level": "critical", "text": "a41 battery 9 %",
+            "raised": 1.8e9, "cleared": None, "acked": False, "count": 1, "net": "c1"}  # fmt: skip
+    hostile = [
+        {**good, "id": 8, "text": evil, "kind": evil, "level": "<b>", "agent": 999, "count": 10**30,
+         "acked": "yes", "cleared": "never", "net": "../x", "script": evil, "raised": 1.8e9 + 1},
+        {**good, "id": True}, {**good, "id": -1}, {**good, "id": 2**60}, {**good, "id": 9, "raised": "now"},
+        {**good, "id": 10, "text": ["x"]}, "junk", None, [good], 5,
+    ]  # fmt: skip
+    s = clean_state(json.loads(json.dumps({"agents": [], "alerts": [good, *hostile]})))
+    assert s["alerts"][0] == good
+    bad = s["alerts"][1]
+    assert set(bad) == set(good) and bad["id"] == 8
+    assert (bad["kind"], bad["level"], bad["agent"], bad["count"]) == ("other", "warning", 0, 1)
+    assert (bad["acked"], bad["cleared"], bad["net"]) == (False, None, None)
+    assert len(bad["text"]) <= 200 and "\x1b" not in bad["text"] and "\u202e" not in bad["text"]
+    assert len(s["alerts"]) == 2  # the rest dropped, the state kept
+    # a flood: the newest MAX_ALERTS kept, one per id
+    flood = [{**good, "id": i % 500, "raised": 1.8e9 + i} for i in range(20_000)]
+    s = clean_state({"agents": [], "alerts": flood})
+    assert len(s["alerts"]) <= MAX_ALERTS and len({a["id"] for a in s["alerts"]}) == len(s["alerts"])
+    assert max(a["raised"] for a in s["alerts"]) == 1.8e9 + 19_999
+    for junk in ("alerts", {"id": 1}, 7, None):
+        assert clean_state({"agents": [], "alerts": junk})["alerts"] == []

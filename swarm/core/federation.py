@@ -7,7 +7,7 @@ routers) under a key space of their own, beside the agents' ``swarm/...``:
 
 =============================  =================================================
 ``gcs/<station>/state``        the station's agents (each with ``net``), events,
-                               swarms: whole, about twice a second
+                               swarms, alerts: whole, about twice a second
 ``gcs/<station>/command``      a queryable: a command for one of its agents; the
                                reply is the result
 =============================  =================================================
@@ -30,8 +30,10 @@ A result names the request it answers (its sender and time), so an old result
 cannot answer a new request.
 
 What crosses is checked as hostile input: a state is JSON of at most
-:data:`MAX_ENVELOPE` bytes, its agents are re-built from known fields with their
-types (:func:`clean_state`); anything else is dropped. A command for another
+:data:`MAX_ENVELOPE` bytes, its agents, events, swarms and alerts are re-built from
+known fields with their types, their counts and texts bounded (:func:`clean_state`;
+an alert's kind and level one of the known ones, at most :data:`MAX_ALERTS`);
+anything else is dropped. A command for another
 station's agent is checked here against this station's geofence
 (:func:`check_remote`) before it is sent, and again by the station that carries it
 out. Everything here is pure: times are given, nothing is read or sent.
@@ -49,6 +51,8 @@ from typing import Any
 
 from swarm.core.geofence import Geofence
 from swarm.core.message_types import NAME_RE, CommandKind
+from swarm.core.station_alerts import KINDS as ALERT_KINDS
+from swarm.core.station_alerts import LEVELS as ALERT_LEVELS
 from swarm.core.station_commands import CommandRefused, CommandSpec
 from swarm.errors import SwarmError
 
@@ -63,6 +67,7 @@ MAX_ENVELOPE = 1024 * 1024  # a state of 250 agents with trails is well under th
 WINDOW_S = 30.0  # a signed envelope this far from our clock is refused
 MAX_AGENTS = 250
 MAX_EVENTS = 50
+MAX_ALERTS = 100  # a station keeps 100 (AlertBook) and shows the open ones and 10 acknowledged
 MAX_TRAIL = 600
 MAX_TEXT = 200
 MAX_SENDERS = 256  # senders a gate remembers (beyond: the one heard longest ago is forgotten)
@@ -311,9 +316,50 @@ def clean_swarms(v: Any) -> list[dict[str, Any]]:
     return out
 
 
+def _int(v: Any, lo: int, hi: int) -> int | None:
+    return v if isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi else None
+
+
+def clean_alert(a: Any) -> dict[str, Any] | None:
+    """One remote alert re-built from the fields a station's alerts have
+    (:meth:`swarm.core.station_alerts.Alert.as_dict`, with ``net``), each of its type;
+    None (dropped) without an ``id`` (0..2**53), a ``raised`` time or a ``text``."""
+    if not isinstance(a, dict):
+        return None
+    aid, raised, words = _int(a.get("id"), 0, 2**53), _num(a.get("raised")), text(a.get("text"))
+    if aid is None or raised is None or words is None:
+        return None
+    kind, level, net = a.get("kind"), a.get("level"), a.get("net")
+    return {
+        "id": aid,
+        "kind": kind if kind in ALERT_KINDS else "other",
+        "agent": _int(a.get("agent"), 0, 250) or 0,
+        "level": level if level in ALERT_LEVELS else "warning",
+        "text": words,
+        "raised": raised,
+        "cleared": _num(a.get("cleared")),
+        "acked": a.get("acked") is True,
+        "count": _int(a.get("count"), 1, 1_000_000) or 1,
+        "net": net if isinstance(net, str) and NAME_RE.match(net) else None,
+    }
+
+
+def clean_alerts(v: Any) -> list[dict[str, Any]]:
+    """The ``alerts`` list: the last :data:`MAX_ALERTS` of those :func:`clean_alert`
+    keeps, one per id (the last)."""
+    out: dict[int, dict[str, Any]] = {}
+    for a in v[-MAX_ALERTS:] if isinstance(v, list) else []:
+        c = clean_alert(a)
+        if c is not None:
+            out.pop(c["id"], None)
+            out[c["id"]] = c
+    return list(out.values())
+
+
 def clean_state(body: Any) -> dict[str, Any]:
     """A remote station's state: ``agents`` (each :func:`clean_agent`, ids unique),
-    ``events``, ``swarms``. Raises FederationRefused (the whole state is dropped)."""
+    ``events``, ``swarms``, ``alerts``. Raises FederationRefused (the whole state is
+    dropped)."""
     if not isinstance(body, dict) or not isinstance(body.get("agents"), list):
         raise FederationRefused("malformed: a state is an object with 'agents'")
     if len(body["agents"]) > MAX_AGENTS:
@@ -326,6 +372,7 @@ def clean_state(body: Any) -> dict[str, Any]:
         "agents": [agents[i] for i in sorted(agents)],
         "events": clean_events(body.get("events")),
         "swarms": clean_swarms(body.get("swarms")),
+        "alerts": clean_alerts(body.get("alerts")),
     }
 
 
@@ -411,6 +458,7 @@ __all__ = [
     "KIND_COMMAND",
     "KIND_RESULT",
     "KIND_STATE",
+    "MAX_ALERTS",
     "MAX_ENVELOPE",
     "MAX_ONCE",
     "MAX_SENDERS",
@@ -422,6 +470,8 @@ __all__ = [
     "Stamp",
     "check_remote",
     "clean_agent",
+    "clean_alert",
+    "clean_alerts",
     "clean_result",
     "clean_state",
     "command_key",

@@ -35,6 +35,7 @@ LIGHT = frozenset(
         "test_cold_start.py",  # the same, with an agent and a station
         "test_federation.py",  # stations' Zenoh sessions in one process: what crosses, not how fast
         "test_fleet_view.py",  # two stations' sessions in one process: the merged view
+        "test_fleet_stations_page.py",  # 3 stations, a router, a browser: what they show
         "test_fleet_processes.py",  # 2 channels, 2 stations, a router: what the API shows and answers
         # pages and stations checked for what they show and answer, not for how fast
         "test_fleet_page.py",

@@ -72,6 +72,10 @@ BAD_BODIES = [
     (b'{"id": ' + b"9" * 900 + b"}", 404),
     (b'{"id": ' + b"9" * 5000 + b"}", 400),
     (b'{"id": 1, "x": "' + b"a" * 70_000 + b'"}', 413),
+    # another station's alert, at a station joined to none: one line, nothing acknowledged
+    (b'{"id": 1, "station": "gcsB"}', 404),
+    (b'{"id": 1, "station": ["gcsB"]}', 404),
+    (b'{"id": 1, "station": "<b>\\u202e' + b"x" * 900 + b'"}', 404),
 ]
 
 

@@ -10,6 +10,8 @@ import json
 from typing import Any
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from swarm.core.gslink import FLAG_FC_OK, mode_code
 from swarm.core.messages import (
@@ -264,3 +266,61 @@ def test_the_log_names_the_swarms_when_their_leaders_change() -> None:
     assert news() == ["2 swarms: agent3 (3) with 3, agent6 (6) with 3"]
     core.handle(tm(6, 3), 1.0)
     assert news()[-1] == "1 swarm: agent3 (3) with 6"
+
+
+# -- one colour per swarm across stations (fleet_colours) ----------------------------------
+
+
+def _swarms(spec: dict[str, list[int]]) -> list[dict[str, Any]]:
+    """Each station's swarms with its own colours 0, 1, ... (leader ids made up)."""
+    out = []
+    for k, (station, colours) in enumerate(sorted(spec.items())):
+        out += [{"station": station, "leader": 10 * k + c + 1, "colour": c} for c in colours]
+    return out
+
+
+def test_two_stations_own_colour_0_swarms_get_distinct_colours_the_same_on_every_page() -> None:
+    from swarm.core.station_swarms import fleet_colours
+
+    merged = _swarms({"gcsA": [0, 1], "gcsB": [0], "gcsC": [0, 1, 2]})
+    got = {(s["station"], s["leader"]): s["colour"] for s in fleet_colours(merged)}
+    assert len(set(got.values())) == len(merged)
+    # every page: the same swarms in another order, the same colours
+    for order in (merged[::-1], merged[2:] + merged[:2], sorted(merged, key=lambda s: -s["leader"])):
+        assert {(s["station"], s["leader"]): s["colour"] for s in fleet_colours(order)} == got
+    # a re-election (a new leader, the station's own colour kept): the same colour everywhere
+    again = [{**s, "leader": 99} if s["leader"] == 1 else s for s in merged]
+    assert {s["leader"]: s["colour"] for s in fleet_colours(again)}[99] == got[("gcsA", 1)]
+    # the station's own colour stays beside the merged one; the input is not changed
+    assert {s["station_colour"] for s in fleet_colours(merged)} == {0, 1, 2}
+    assert "station_colour" not in merged[0]
+
+
+def test_a_stations_swarm_keeps_its_colour_when_another_stations_swarm_appears() -> None:
+    from swarm.core.station_swarms import PALETTE, fleet_colours
+
+    alone = fleet_colours(_swarms({"gcsA": [0, 1]}))
+    both = fleet_colours(_swarms({"gcsA": [0, 1], "gcsB": [0]}))
+    # the first swarms choose first: A's colour-0 swarm keeps its colour beside B's
+    assert alone[0]["colour"] == both[0]["colour"]
+    assert all(0 <= s["colour"] < PALETTE for s in both)
+
+
+@given(
+    st.dictionaries(
+        st.text("abcdefgh", min_size=1, max_size=6),
+        st.lists(st.integers(0, 40), max_size=12, unique=True),
+        max_size=6,
+    )
+)
+def test_colours_are_always_distinct_beyond_the_palette_too(spec: dict[str, list[int]]) -> None:
+    from swarm.core.station_swarms import PALETTE, fleet_colours
+
+    merged = _swarms(spec)
+    colours = [s["colour"] for s in fleet_colours(merged)]
+    assert len(set(colours)) == len(colours) and all(c >= 0 for c in colours)
+    assert all(c < PALETTE for c in colours) or len(colours) > PALETTE  # beyond only when full
+    # swarms without a station colour (an older core: none) are numbered too
+    bare = [{"station": s["station"], "leader": s["leader"]} for s in merged]
+    colours = [s["colour"] for s in fleet_colours(bare)]
+    assert len(set(colours)) == len(colours)

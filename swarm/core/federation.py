@@ -430,6 +430,23 @@ def check_remote(spec: CommandSpec, fence: Geofence, agent: dict[str, Any] | Non
     return spec
 
 
+def ack_any(view: Any, alert_id: Any, station: Any) -> dict[str, Any]:
+    """An acknowledgement from the page or the API: alert ``alert_id`` of ``station``
+    (None or this station's name: one of its own) at ``view`` (a station or a fleet).
+
+    Raises:
+        CommandRefused: what the station refuses; 404 another station where there is
+            no federation.
+    """
+    if station is None or station == getattr(view, "name", None):
+        return dict(view.ack_alert(alert_id))
+    remote = getattr(view, "ack_remote_alert", None)
+    if remote is None or not isinstance(station, str):
+        shown = text(station, 32) if isinstance(station, str) else type(station).__name__
+        raise CommandRefused(404, f"no station {shown!r} here")
+    return dict(remote(alert_id, station))
+
+
 def clean_result(body: Any, request_sender: str, request_t: int) -> tuple[int, dict[str, Any]]:
     """(status, body) of a command result, if it answers the request (``sender``,
     ``t``) this station made. Raises FederationRefused."""
@@ -468,6 +485,7 @@ __all__ = [
     "FederationRefused",
     "Gate",
     "Stamp",
+    "ack_any",
     "check_remote",
     "clean_agent",
     "clean_alert",

@@ -22,6 +22,17 @@ AgentState wins over another agent's list, so no agent is in two swarms.
   colour is a small integer, stable while the swarm lives: a new swarm takes the
   colour of a swarm that just vanished and shared most of its members (a re-election
   keeps the colour), else the lowest free one. The page maps it to its palette.
+* :func:`fleet_colours`: one colour per swarm across stations. Each station numbers
+  its swarms' colours from 0 (above), so on a page that merges several stations' swarms
+  two of them could share a colour, and one swarm could show different colours on two
+  pages. The merged view's colour is a pure function of what every page is given, the
+  swarms' ``(station, colour)`` (the station's own, stable through re-elections): each
+  swarm prefers ``(h(station) + colour) % PALETTE`` (``h``: the first byte of the name's
+  SHA-256, the same in every process); in the order ``(colour, station, leader)`` (a
+  station's first swarms choose first, so a new swarm rarely moves an old one), each
+  takes its preferred colour if it is free, else the next free one around the
+  :data:`PALETTE` colours, else the lowest free one beyond (the page makes more). Every
+  page that shows the same swarms shows them in the same colours, all distinct.
 * :meth:`SwarmBook.leader_for` names the leader a group of agents follows now (the swarm
   holding most of them): a swarm command in flight follows its members' new leader.
 * :func:`swarm_plan`: the Commands a swarm command becomes, to one swarm (its leader
@@ -36,6 +47,7 @@ Heartbeat list keeps ids 1..250 only. Pure: no I/O, no clock.
 
 from __future__ import annotations
 
+import hashlib
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -63,6 +75,8 @@ class _Plan(Protocol):
 
 
 _LED = (Phase.LEADER, Phase.MEMBER)
+#: the page's palette of swarm colours (static/swarms.js: the same count; beyond, it makes more)
+PALETTE = 8
 
 
 class SwarmBook:
@@ -189,6 +203,33 @@ def _colours(
         if lead not in out:
             used = set(out.values())
             out[lead] = next(c for c in range(len(new) + 1) if c not in used)
+    return out
+
+
+def _station_hue(station: str) -> int:
+    return hashlib.sha256(station.encode()).digest()[0] % PALETTE
+
+
+def fleet_colours(swarms: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``swarms`` (each with ``station``, ``leader`` and the station's own ``colour``,
+    or none) with ``colour`` made one per swarm on the merged view (module docstring);
+    the station's own is kept as ``station_colour``. Pure: the same list, the same
+    colours, on every page."""
+
+    def own(s: dict[str, Any]) -> int:
+        c = s.get("colour")
+        return c if isinstance(c, int) and not isinstance(c, bool) and c >= 0 else int(s["leader"])
+
+    out = [{**s, "station_colour": s.get("colour")} for s in swarms]
+    taken: set[int] = set()
+    for s in sorted(out, key=lambda s: (own(s), str(s.get("station", "")), s["leader"])):
+        pref = (_station_hue(str(s.get("station", ""))) + own(s)) % PALETTE
+        ring = [(pref + k) % PALETTE for k in range(PALETTE)]
+        free = next((c for c in ring if c not in taken), None)
+        if free is None:
+            free = next(c for c in range(PALETTE, PALETTE + len(out) + 1) if c not in taken)
+        s["colour"] = free
+        taken.add(free)
     return out
 
 

@@ -18,7 +18,8 @@ Routes (README, "Ground station", documents the bodies):
   on a worker thread; a tile that is missing or bad is a 404). The page and Leaflet are
   package data: found beside this module, in a checkout as in an installed wheel;
 * ``GET /api/config``, ``/api/state``, ``/api/agents/<id>``; ``POST /api/command``;
-  ``POST /api/alerts/ack`` (``{"id": N}``: an alert acknowledged);
+  ``POST /api/alerts/ack`` (``{"id": N}``: an alert acknowledged; ``"station"``: one of
+  another station's, acknowledged there, :func:`swarm.core.federation.ack_any`);
   ``GET|POST /api/replay`` (replay mode);
 * ``GET /ws``: the whole state once, then what changed (deltas with sequence
   numbers, :mod:`swarm.runtime.websocket`) at ``ws_hz``, events as they happen,
@@ -60,6 +61,7 @@ from typing import Any, Protocol
 
 from aiohttp import web
 
+from swarm.core.federation import ack_any
 from swarm.core.station import CommandRefused, CommandSpec, parse_command
 from swarm.errors import SwarmError
 from swarm.runtime.security import (
@@ -462,12 +464,14 @@ class GcsServer:
         return web.json_response(out, status=status)
 
     async def _ack_alert_http(self, request: web.Request) -> web.Response:
-        """``{"id": N}``: acknowledge alert N (the alert back; 400/404 one line)."""
+        """``{"id": N}``: acknowledge alert N (the alert back; 400/404 one line);
+        ``"station"``: another station's alert N, acknowledged there."""
         try:
             body = await read_json(request, self.cfg.body_timeout)
             if not isinstance(body, dict):
                 raise CommandRefused(400, 'an acknowledgement is a JSON object {"id": N}')
-            return web.json_response({"ok": True, "alert": self.station.ack_alert(body.get("id"))})
+            alert = ack_any(self.station, body.get("id"), body.get("station"))
+            return web.json_response({"ok": True, "alert": alert})
         except CommandRefused as exc:
             return error_response(exc.status, exc.reason)
 

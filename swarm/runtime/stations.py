@@ -17,11 +17,20 @@ alerts):
   Another station's agents are shown disconnected once it has been silent for the
   federation's timeout, and go when it is forgotten;
 * ``swarms``: the channels' own lists when their cores give one (issue 16's groups),
-  otherwise one per channel leader: ``{leader, members, net, station}``;
+  otherwise one per channel leader: ``{leader, members, net, station}``, then every
+  live station's; each ``colour`` is the merged view's
+  (:func:`swarm.core.station_swarms.fleet_colours`: the same swarm in the same colour
+  on every page, all distinct), the station's own beside it (``station_colour``), and
+  the state published to the others carries the station's own;
 * ``leader``, ``radio``, ``task``, ``slots``: the first channel's, as before;
 * ``events``: every channel's and station's, by time; ``alerts``: this station's
   channels', each id made unique (``id * channels + channel index``) so an
-  acknowledgement reaches the channel that raised it;
+  acknowledgement reaches the channel that raised it, then every other station's
+  (as it published them, cleaned: :func:`swarm.core.federation.clean_alerts`), each
+  with the ``station`` that raised it (and whether it is alive). One of those is
+  acknowledged at its station (:meth:`Fleet.ack_remote_alert`: a signed
+  ``{"kind": "ack_alert", "id": N}`` over the federation, not awaited; the station's
+  next state shows it acknowledged, a refusal is an event here);
 * commands: to an agent, the channel that holds it, or the station that does (checked
   here against this station's geofence, :func:`swarm.core.federation.check_remote`,
   and there again when carried out); to one swarm (a ``swarm`` leader id on the
@@ -30,7 +39,7 @@ alerts):
   one's), but a FOLLOW to every swarm is refused while the channels and stations hold
   several swarms between them (each channel's core refuses it only for its own). A command
   from another station (:meth:`run_local`) is only ever carried out on this station's
-  own channels, never passed on.
+  own channels, never passed on (an ``ack_alert`` too).
 """
 
 from __future__ import annotations
@@ -43,10 +52,11 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from typing import Any
 
-from swarm.core.federation import check_remote, spec_body
+from swarm.core.federation import check_remote, spec_body, text
 from swarm.core.geofence import Geofence
 from swarm.core.messages import CommandKind
 from swarm.core.station import CommandRefused, CommandSpec, Event, parse_command
+from swarm.core.station_swarms import fleet_colours
 from swarm.runtime.federation import Federation, Result
 from swarm.runtime.station import Station
 
@@ -155,6 +165,7 @@ class Fleet:
         agents: dict[int, dict[str, Any]] = {}
         events: list[dict[str, Any]] = []
         swarms: list[dict[str, Any]] = []
+        alerts: list[dict[str, Any]] = []
         if snaps is None:
             snaps = [st.snapshot() for _net, st in self.channels]
         for i, ((net, _st), snap) in enumerate(zip(self.channels, snaps, strict=True)):
@@ -165,7 +176,8 @@ class Fleet:
                 agents[a["id"]] = {**a, "net": net, "station": self.name}
             events += [{**e, "net": net} for e in snap["events"]]
             swarms += self._swarms(snap, net, self.name, (i, len(self.channels)))
-        return {"agents": list(agents.values()), "events": events, "swarms": swarms}
+            alerts += [{**al, "id": al["id"] * len(self.channels) + i, "net": net} for al in snap["alerts"]]
+        return {"agents": list(agents.values()), "events": events, "swarms": swarms, "alerts": alerts}
 
     @staticmethod
     def _swarms(snap: dict[str, Any], net: str, station: str, index: tuple[int, int]) -> list[dict[str, Any]]:
@@ -185,12 +197,16 @@ class Fleet:
             out.append({"leader": leader, "members": members, "net": net, "station": station})
         return out
 
-    def _remote_agents(self, held: set[int]) -> tuple[list[dict[str, Any]], list[Any], list[Any]]:
+    def _remote_agents(self, held: set[int]) -> dict[str, list[dict[str, Any]]]:
+        """The other stations' ``agents``, ``events``, ``swarms`` (live stations') and
+        ``alerts``, each tagged with its ``station``."""
         agents: list[dict[str, Any]] = []
         events: list[dict[str, Any]] = []
         swarms: list[dict[str, Any]] = []
+        alerts: list[dict[str, Any]] = []
+        out = {"agents": agents, "events": events, "swarms": swarms, "alerts": alerts}
         if self.federation is None:
-            return agents, events, swarms
+            return out
         for r, alive in self.federation.remotes():
             for a in r.state["agents"]:
                 if a["id"] in held:
@@ -206,26 +222,23 @@ class Fleet:
             events += [{**e, "station": r.name} for e in r.state["events"]]
             if alive:
                 swarms += [{**s, "station": r.name} for s in r.state["swarms"]]
-        return agents, events, swarms
+            alerts += [{**al, "station": r.name, "station_alive": alive} for al in r.state.get("alerts", [])]
+        return out
 
     def snapshot(self) -> dict[str, Any]:
         snaps = [st.snapshot() for _net, st in self.channels]
         first = snaps[0]
         mine = self.local_state(snaps)
         held = {a["id"] for a in mine["agents"]}
-        agents, events, swarms = self._remote_agents(held)
+        other = self._remote_agents(held)
         with self._lock:
             own = list(self._own_events)
-        all_events = sorted(mine["events"] + events + own, key=lambda e: e["t"])[-MAX_EVENTS:]
-        n = len(self.channels)
-        alerts = []
-        for i, ((net, _st), snap) in enumerate(zip(self.channels, snaps, strict=True)):
-            alerts += [{**al, "id": al["id"] * n + i, "net": net} for al in snap["alerts"]]
+        all_events = sorted(mine["events"] + other["events"] + own, key=lambda e: e["t"])[-MAX_EVENTS:]
         first.update(
-            agents=sorted(mine["agents"] + agents, key=lambda a: a["id"]),
+            agents=sorted(mine["agents"] + other["agents"], key=lambda a: a["id"]),
             events=all_events,
-            alerts=alerts,
-            swarms=mine["swarms"] + swarms,
+            alerts=[{**al, "station": self.name} for al in mine["alerts"]] + other["alerts"],
+            swarms=fleet_colours(mine["swarms"] + other["swarms"]),
             nets=[{"name": net, "station": self.name, "link": st.describe()} for net, st in self.channels],
             stations=self._stations(),
             station={"name": self.name, "id": self.id, "link": self.describe()},
@@ -260,6 +273,36 @@ class Fleet:
         net, st = self.channels[alert_id % n]
         out = st.ack_alert(alert_id // n)
         return {**out, "id": alert_id, "net": net}
+
+    def ack_remote_alert(self, alert_id: Any, station: str) -> dict[str, Any]:
+        """Acknowledge alert ``alert_id`` of another ``station`` there (not awaited).
+
+        Raises:
+            CommandRefused: 400 not an integer id; 404 no such station or alert; 409 the
+                station is gone.
+        """
+        if isinstance(alert_id, bool) or not isinstance(alert_id, int) or alert_id < 0:
+            raise CommandRefused(400, "an alert id is an integer")
+        fed = self.federation
+        for r, alive in fed.remotes() if fed is not None else []:
+            if r.name != station:
+                continue
+            alert = next((a for a in r.state.get("alerts", []) if a["id"] == alert_id), None)
+            if alert is None:
+                raise CommandRefused(404, f"no alert {alert_id} of station {station}")
+            if not alive:
+                raise CommandRefused(409, f"station {station} is gone: acknowledge it there")
+            assert fed is not None
+
+            def said(f: Future[Result]) -> None:
+                status, body = f.result()
+                if status != 200:
+                    why = body.get("error", status)
+                    self.note("federation", f"station {station} refused the ack of alert {alert_id}: {why}")
+
+            fed.request(station, {"kind": "ack_alert", "id": alert_id}).add_done_callback(said)
+            return {**alert, "station": station, "acked": True, "forwarded": True}
+        raise CommandRefused(404, f"no station {text(station, 32)!r} heard here")
 
     # -- commands -------------------------------------------------------------------------
     def _holder(self, agent_id: int) -> tuple[str, Station] | None:
@@ -355,8 +398,12 @@ class Fleet:
 
         Raises:
             CommandRefused: what :func:`parse_command` and the channel refuse; 404 an
-                agent not on this station's channels.
+                agent not on this station's channels (or no such alert).
         """
+        if isinstance(body, dict) and body.get("kind") == "ack_alert":  # from a page that shows ours
+            done: Future[Result] = Future()
+            done.set_result((200, {"ok": True, "alert": self.ack_alert(body.get("id"))}))
+            return done
         return self.send(parse_command(body), remote=False)  # never passed on to a third station
 
 

@@ -25,7 +25,7 @@ Messages from a client are JSON objects with a ``type``: ``command`` (answered b
 a ``command_result`` with the request's ``id``, the command awaited on its own
 task), ``replay`` (a replay control; 409 when not in replay mode), ``state`` and
 ``ack_alert`` (``{"type": "ack_alert", "id": N}``, answered ``alert_acked`` with the
-alert).
+alert; with ``"station"``, another station's alert, acknowledged there).
 A bad message (binary, too large, malformed, an unknown type, a bad id) gets
 ``{"type": "error", "status", "reason", "id"?}`` and the connection stays open; a
 message that fails unexpectedly answers 500 and logs the traceback.
@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING, Any
 
 from aiohttp import WSMsgType, web
 
+from swarm.core.federation import ack_any
 from swarm.core.station import CommandRefused
 from swarm.core.station_delta import build
 from swarm.runtime.security import MAX_BODY, MAX_WS_FRAME, parse_json, replay_args, ws_id
@@ -191,7 +192,7 @@ class WsHub:
             else:
                 self._send_full(c)
         elif mtype == "ack_alert":
-            self._ack_alert(c, mid)
+            self._ack_alert(c, mid, obj.get("station"))
         else:
             shown = (
                 repr(mtype[:24])
@@ -204,9 +205,9 @@ class WsHub:
                 c, self._error(400, f"unknown message type {shown}: command, replay, state or ack_alert", mid)
             )
 
-    def _ack_alert(self, c: _Client, mid: Any) -> None:
+    def _ack_alert(self, c: _Client, mid: Any, station: Any) -> None:
         try:
-            alert = self.station.ack_alert(mid)  # the request's id is the alert's
+            alert = ack_any(self.station, mid, station)  # the request's id is the alert's
         except CommandRefused as exc:
             self._enqueue(c, self._error(exc.status, exc.reason, mid))
             return

@@ -12,17 +12,25 @@
  * acknowledgement lands in the banner's own status line. The alerts' lines in the
  * event log are the station's events (app.js draws them).
  *
+ * Other stations' alerts (a station joined to others over Zenoh, issue 16) come in
+ * the same list with the "station" that raised it: shown marked with that station's
+ * name, keyed by station and id (ids are per station), and acknowledged there
+ * (POST {"id": N, "station": name}: this station passes it on; the other station's
+ * next state shows it acknowledged). An alert without a station, or with this one's
+ * name, is this station's own.
+ *
  * It hooks into app.js through window.gcsStateHooks (called with each snapshot) and
  * loads its own stylesheet (/static/alerts.css). Text is only ever set as text.
  *
  * Stable hooks for tests: #alerts-banner[data-count], #alerts-banner .alert[data-alert-id]
- * [data-level][data-kind], button.alert-ack, #alerts-ack-all, window.gcsAlerts.
+ * [data-level][data-kind][data-station], .alert-station, button.alert-ack,
+ * #alerts-ack-all, window.gcsAlerts.
  */
 (function () {
   "use strict";
 
   const SHOWN_MAX = 6;  // more are summarised as "and N more"
-  const A = { alerts: [], hidden: new Set(), banner: null, list: null, more: null, note: null };
+  const A = { alerts: [], hidden: new Set(), banner: null, list: null, more: null, note: null, here: "" };
 
   const css = document.createElement("link");
   css.rel = "stylesheet";
@@ -48,7 +56,7 @@
     const all = el("button", "alert-ack-all", "Acknowledge all");
     all.type = "button";
     all.id = "alerts-ack-all";
-    all.addEventListener("click", () => visible().forEach((a) => ack(a.id)));
+    all.addEventListener("click", () => visible().forEach((a) => ack(a.id, a.station)));
     A.note = el("span", "alerts-note");
     head.append(A.note, all);
     A.list = el("ul", "alerts-list");
@@ -64,8 +72,16 @@
     return a && typeof a === "object" && Number.isInteger(a.id) && typeof a.text === "string";
   }
 
+  // another station's alert: its name; this station's own: null
+  function remote(a) {
+    return typeof a.station === "string" && a.station && a.station !== A.here ? a.station : null;
+  }
+  function key(id, station) {
+    return (station || "") + ":" + id;
+  }
+
   function visible() {
-    return A.alerts.filter((a) => !a.acked && !A.hidden.has(a.id));
+    return A.alerts.filter((a) => !a.acked && !A.hidden.has(key(a.id, a.station)));
   }
 
   function when(t) {
@@ -88,7 +104,9 @@
     li.dataset.alertId = String(a.id);
     li.dataset.level = a.level === "critical" ? "critical" : "warning";
     li.dataset.kind = String(a.kind || "");
+    li.dataset.station = a.station || "";
     li.append(el("span", "alert-level", li.dataset.level === "critical" ? "CRITICAL" : "WARNING"));
+    if (a.station) li.append(el("span", "alert-station", "station " + a.station));
     li.append(el("span", "alert-time", when(a.raised)));
     const count = Number.isInteger(a.count) && a.count > 1 ? " (×" + a.count + ")" : "";
     const over = a.cleared !== null && a.cleared !== undefined && a.kind !== "statustext" && a.kind !== "command"
@@ -96,18 +114,19 @@
     li.append(el("span", "alert-text", a.text + count + over));
     const b = el("button", "alert-ack", "Acknowledge");
     b.type = "button";
-    b.addEventListener("click", () => ack(a.id));
+    b.addEventListener("click", () => ack(a.id, a.station));
     li.append(b);
     return li;
   }
 
-  async function ack(id) {
-    A.hidden.add(id);
+  async function ack(id, station) {
+    A.hidden.add(key(id, station));
     draw();
     let r;
+    const body = station ? { id, station } : { id };
     try {
       r = await fetch("/api/alerts/ack", {
-        method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ id }),
+        method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
       });
     } catch (err) {
       r = null;
@@ -120,16 +139,18 @@
     try {
       if (r) why = (await r.json()).error || why;
     } catch (err) { /* not JSON */ }
-    A.hidden.delete(id);
+    A.hidden.delete(key(id, station));
     A.note.textContent = "acknowledgement refused: " + why;
     draw();
   }
 
   function onState(st) {
     if (!st || !Array.isArray(st.alerts)) return;  // a push without alerts keeps the last ones
-    A.alerts = st.alerts.filter(valid);
-    const ids = new Set(A.alerts.map((a) => a.id));
-    for (const id of A.hidden) if (!ids.has(id)) A.hidden.delete(id);
+    if (st.station && typeof st.station.name === "string") A.here = st.station.name;
+    // each alert's station: another station's name, or "" (this station's own)
+    A.alerts = st.alerts.filter(valid).map((a) => ({ ...a, station: remote(a) || "" }));
+    const ids = new Set(A.alerts.map((a) => key(a.id, a.station)));
+    for (const k of A.hidden) if (!ids.has(k)) A.hidden.delete(k);
     draw();
   }
 
@@ -137,6 +158,7 @@
   window.gcsStateHooks.push(onState);
   window.gcsAlerts = Object.freeze({
     get open() { return visible().map((a) => a.id); },
+    get openByStation() { return visible().map((a) => ({ id: a.id, station: a.station })); },
     ack,
   });
   if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", draw);

@@ -152,18 +152,24 @@
     ol.prepend(li);
     while (ol.children.length > LOG_MAX) ol.lastElementChild.remove();
   }
+  // another station's event (joined over Zenoh): its name; this station's own: ""
+  function otherStation(e) {
+    const here = S.state && S.state.station ? S.state.station.name : null;
+    return typeof e.station === "string" && e.station && e.station !== here ? e.station : "";
+  }
   function stationEvent(e) {
     if (!e || typeof e !== "object") return;
-    const key = e.t + "|" + e.kind + "|" + e.text;
+    const from = otherStation(e);
+    const key = from + "|" + e.t + "|" + e.kind + "|" + e.text;
     if (S.seenEvents.has(key)) return;
     S.seenEvents.add(key);
     if (S.seenEvents.size > 2000) S.seenEvents = new Set(Array.from(S.seenEvents).slice(-1000));
     const kind = String(e.kind || "event");
     const text = String(e.text || "");
     const bad = /refus|reject|fail|denied|timeout|error|lost|disconnect|no_answer/i.test(kind + " " + text);
-    log(kind, text, bad ? "refused" : "", e.t);
+    log(from ? from + " · " + kind : kind, text, bad ? "refused" : "", e.t);
     // the result of a command the page showed as in progress (its vehicle was still at it)
-    const m = kind === "command" && S.awaiting ? /^([A-Z_]+) -> [^:]*: ([A-Z_]+)/.exec(text) : null;
+    const m = kind === "command" && !from && S.awaiting ? /^([A-Z_]+) -> [^:]*: ([A-Z_]+)/.exec(text) : null;
     if (m && m[1] === S.awaiting.kind && m[2] !== "IN_PROGRESS") {
       const result = text.slice(text.indexOf(": ") + 2).replace(/ \[seq \d+\]$/, "");
       if (m[2] === "ACCEPTED") status(S.awaiting.what + ": accepted", true);

@@ -4,7 +4,11 @@
  * -------------------
  * The station's state names its swarms: "swarms" is a list of {leader, members,
  * colour} (a swarm is a leader and the agents that follow it; its colour a small
- * integer the station keeps while the swarm lives). This file reads that list at
+ * integer the station keeps while the swarm lives; with stations joined over Zenoh,
+ * each also has its "station" and the colour is the merged view's, the same on every
+ * station's page and one per swarm: swarm.core.station_swarms.fleet_colours). The
+ * first 8 colours are PALETTE's (the station's rule knows its size), beyond it the
+ * page makes one per index. This file reads that list at
  * every state (window.gcsStateHooks) and, once app.js has drawn it
  * (window.gcsDrawHooks), shows the swarms as groups:
  *
@@ -47,9 +51,14 @@
     }
   }
   const several = () => M.swarms.length > 1;
+  // the station's colour index: the palette's, beyond it one made for it (a hue turned by the
+  // golden angle, kept out of red and yellow), so every swarm shown has its own
   function paletteColour(s) {
     const i = Number.isInteger(s.colour) && s.colour >= 0 ? s.colour : 0;
-    return PALETTE[i % PALETTE.length];
+    if (i < PALETTE.length) return PALETTE[i];
+    const hue = 70 + ((i - PALETTE.length) * 137.508) % 260;  // 70..330: no red, no yellow
+    const light = [62, 74, 52][(i - PALETTE.length) % 3];
+    return "hsl(" + hue.toFixed(1) + ", 75%, " + light + "%)";
   }
   function agentName(id) {
     return window.gcs ? window.gcs.agentName(id) : "agent " + id;
@@ -127,7 +136,9 @@
       const id = Number(row.dataset.agentId);
       const s = M.of.get(id);
       const a = byId.get(id);
-      const net = a && a.net !== undefined && a.net !== null ? " · net " + String(a.net).slice(0, 24) : "";
+      let net = a && a.net !== undefined && a.net !== null ? " · net " + String(a.net).slice(0, 24) : "";
+      const here = st.station ? st.station.name : null;
+      if (a && typeof a.station === "string" && a.station !== here) net += " · station " + a.station.slice(0, 32);
       const text = (s ? (s.leader === id ? "leads" : agentName(s.leader)) : "—") + net;
       const td = swarmCell(row);
       if (td.textContent !== text) td.textContent = text;

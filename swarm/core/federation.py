@@ -19,7 +19,11 @@ Anyone who can reach a router can publish there, so every payload is an
            | sender length (1) | sender | body | HMAC-SHA256 (32, when signed)
 
 The MAC (with a key derived from the swarm key for this use only, :func:`fed_key`)
-covers everything before it. A :class:`Gate` keeps, per sender, the newest state's
+covers everything before it. A state's body is deflated (flag :data:`FLAG_DEFLATE`,
+zlib: a state of 200 agents in flight is 0.28 MB of JSON, twice a second); the MAC
+covers the deflated bytes, so a signed envelope is checked before anything is
+inflated, and inflating stops at :data:`MAX_ENVELOPE` (a bomb is refused as too large).
+ A :class:`Gate` keeps, per sender, the newest state's
 time it accepted (a state not strictly newer is a replay) and the times of the
 commands and results it took in the last :data:`WINDOW_S` (one seen again is a
 replay; these may arrive out of order); a signed envelope, and any command or
@@ -46,6 +50,7 @@ import hmac
 import json
 import math
 import struct
+import zlib
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -61,6 +66,8 @@ MAGIC = b"SWG1"
 KIND_STATE, KIND_COMMAND, KIND_RESULT = b"S", b"C", b"R"
 KINDS = (KIND_STATE, KIND_COMMAND, KIND_RESULT)
 FLAG_SIGNED = 1
+FLAG_DEFLATE = 2  # the body is zlib-deflated (states)
+FLAGS = FLAG_SIGNED | FLAG_DEFLATE
 MAC_LEN = 32
 HEADER = struct.Struct(">4scBQIB")
 MAX_ENVELOPE = 1024 * 1024  # a state of 250 agents with trails is well under this
@@ -69,6 +76,9 @@ MAX_AGENTS = 250
 MAX_EVENTS = 50
 MAX_ALERTS = 100  # a station keeps 100 (AlertBook) and shows the open ones and 10 acknowledged
 MAX_TRAIL = 600
+#: the trail points a station sends of each agent: the newest, as many as a page draws
+#: (static/app.js's TRAIL_POINTS); a station keeps 120, and they were 80 % of the bytes
+TRAIL_SENT = 40
 MAX_TEXT = 200
 MAX_SENDERS = 256  # senders a gate remembers (beyond: the one heard longest ago is forgotten)
 MAX_ONCE = 4096  # command or result times a gate remembers within the window
@@ -102,10 +112,23 @@ class Envelope:
     body: bytes
 
 
-def seal(kind: bytes, sender: str, instance: int, t_us: int, body: bytes, key: bytes | None) -> bytes:
-    """The envelope of ``body`` (signed with ``key``, a :func:`fed_key`, when given)."""
+def seal(
+    kind: bytes,
+    sender: str,
+    instance: int,
+    t_us: int,
+    body: bytes,
+    key: bytes | None,
+    *,
+    deflate: bool = False,
+) -> bytes:
+    """The envelope of ``body`` (signed with ``key``, a :func:`fed_key`, when given;
+    deflated when told: states)."""
     name = sender.encode()
-    head = HEADER.pack(MAGIC, kind, FLAG_SIGNED if key else 0, t_us, instance, len(name)) + name
+    flags = (FLAG_SIGNED if key else 0) | (FLAG_DEFLATE if deflate else 0)
+    if deflate:
+        body = zlib.compress(body, 6)
+    head = HEADER.pack(MAGIC, kind, flags, t_us, instance, len(name)) + name
     data = head + body
     return data + hmac.new(key, data, hashlib.sha256).digest() if key else data
 
@@ -180,7 +203,7 @@ class Gate:
         magic, k, flags, t_us, instance, n = HEADER.unpack_from(data)
         end = HEADER.size + n
         sender = data[HEADER.size : end].decode("ascii", "replace")
-        if magic != MAGIC or k != kind or flags & ~FLAG_SIGNED or not NAME_RE.match(sender):
+        if magic != MAGIC or k != kind or flags & ~FLAGS or not NAME_RE.match(sender):
             raise FederationRefused("malformed: not a station envelope of this kind")
         signed = bool(flags & FLAG_SIGNED)
         body = data[end:]
@@ -200,7 +223,27 @@ class Gate:
             raise FederationRefused(f"unsigned command: from {sender} (give the swarm key, --key)")
         if kind == KIND_STATE and t_us <= self._newest.get((sender, kind), 0):
             raise FederationRefused(f"replayed: from {sender}")
+        if flags & FLAG_DEFLATE:
+            body = inflate(body)
         return Envelope(kind, signed, t_us, instance, sender, body)
+
+
+def inflate(data: bytes) -> bytes:
+    """A deflated body, at most :data:`MAX_ENVELOPE` bytes once inflated.
+
+    Raises:
+        FederationRefused: not zlib data (malformed), more than that (too large).
+    """
+    d = zlib.decompressobj()
+    try:
+        out = d.decompress(data, MAX_ENVELOPE)
+    except zlib.error:
+        raise FederationRefused("malformed: the body is not deflated data") from None
+    if d.unconsumed_tail:
+        raise FederationRefused(f"too large: more than {MAX_ENVELOPE} bytes inflated")
+    if not d.eof:
+        raise FederationRefused("malformed: the deflated body is cut short")
+    return out
 
 
 def load_body(body: bytes) -> Any:
@@ -378,7 +421,8 @@ def clean_state(body: Any) -> dict[str, Any]:
 
 def thin(body: dict[str, Any], points: int = 10) -> dict[str, Any]:
     """``body`` (a state to publish) with each agent's trail cut to its last ``points``:
-    a state too large for :data:`MAX_ENVELOPE` is sent so rather than refused."""
+    every state is sent with :data:`TRAIL_SENT`, and one still too large for
+    :data:`MAX_ENVELOPE` with 10 rather than refused."""
     agents = [{**a, "trail": a.get("trail", [])[-points:]} for a in body.get("agents", [])]
     return {**body, "agents": agents}
 
@@ -472,6 +516,7 @@ def tame(v: Any, depth: int = 0) -> Any:
 
 
 __all__ = [
+    "FLAG_DEFLATE",
     "KIND_COMMAND",
     "KIND_RESULT",
     "KIND_STATE",
@@ -480,6 +525,7 @@ __all__ = [
     "MAX_ONCE",
     "MAX_SENDERS",
     "PREFIX",
+    "TRAIL_SENT",
     "WINDOW_S",
     "Envelope",
     "FederationRefused",
@@ -494,6 +540,7 @@ __all__ = [
     "clean_state",
     "command_key",
     "fed_key",
+    "inflate",
     "load_body",
     "seal",
     "spec_body",

@@ -9,8 +9,9 @@ agents' key space never leaves its channel. On it, under ``gcs/`` (the key space
 the envelope and what may cross are :mod:`swarm.core.federation`'s):
 
 * a thread publishes ``local()`` (this station's agents, each with its ``net``,
-  its events and swarms) on ``gcs/<name>/state`` every ``period`` seconds (the
-  trails cut short if it would not fit an envelope);
+  its events, swarms and alerts) on ``gcs/<name>/state`` every ``period`` seconds,
+  each trail cut to the points a page draws (:data:`~swarm.core.federation.TRAIL_SENT`),
+  shorter still if its JSON would not fit an envelope, deflated;
 * a subscriber on ``gcs/*/state`` opens each envelope through a
   :class:`~swarm.core.federation.Gate` (signature, replay) and keeps each other
   station's cleaned state with the time it came (:meth:`remotes`): one silent for
@@ -51,6 +52,7 @@ from swarm.core.federation import (
     KIND_STATE,
     MAX_ENVELOPE,
     PREFIX,
+    TRAIL_SENT,
     Envelope,
     FederationRefused,
     Gate,
@@ -123,6 +125,7 @@ class Federation:
         self.result_gate = Gate(key)
         self.stamp = Stamp()
         self.stats = {"published": 0, "states": 0, "refused": 0, "commands_in": 0, "commands_out": 0}
+        self.stats["bytes"] = 0  # the states' bytes this station sent
         self._lock = threading.Lock()
         self._gates = threading.Lock()  # a gate's replay record: one envelope at a time
         self._remotes: dict[str, Remote] = {}
@@ -175,20 +178,24 @@ class Federation:
 
     # -- out ------------------------------------------------------------------------------
     def _seal(self, kind: bytes, body: Any) -> tuple[int, bytes]:
+        return self._seal_json(kind, json.dumps(body, separators=(",", ":")).encode())
+
+    def _seal_json(self, kind: bytes, data: bytes) -> tuple[int, bytes]:
         with self._lock:
             t = self.stamp.next(self.wall())
-        data = json.dumps(body, separators=(",", ":")).encode()
-        return t, seal(kind, self.name, self.instance, t, data, self.key)
+        return t, seal(kind, self.name, self.instance, t, data, self.key, deflate=kind == KIND_STATE)
 
     def _publish_loop(self) -> None:
         while not self._stop.wait(self.period):
             try:
-                body = self.local()
-                _t, data = self._seal(KIND_STATE, body)
-                if len(data) > MAX_ENVELOPE:  # hundreds of agents with long trails
-                    _t, data = self._seal(KIND_STATE, thin(body))
+                body = thin(self.local(), TRAIL_SENT)
+                text = json.dumps(body, separators=(",", ":")).encode()
+                if len(text) > MAX_ENVELOPE - 1024:  # hundreds of agents: inflated, it must fit
+                    text = json.dumps(thin(body), separators=(",", ":")).encode()
+                _t, data = self._seal_json(KIND_STATE, text)
                 self.session.put(state_key(self.name), data)
                 self.stats["published"] += 1
+                self.stats["bytes"] += len(data)
             except Exception:
                 log.debug("federation: publish failed", exc_info=True)
 

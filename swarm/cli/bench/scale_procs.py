@@ -15,6 +15,16 @@ process printed its ready line:
   from that leader (carried there by its station);
 * ``survivors``: station B (the second) killed with SIGKILL, until A shows B's agents
   disconnected and the other channels' swarms still led and connected.
+* ``federation`` (before the kill): what the stations' whole states cost on the
+  router. ``measured``: a Zenoh session of the bench's own on the router, subscribed
+  to ``gcs/*/state`` for :data:`TRAFFIC_S` seconds, counts each station's envelopes
+  and bytes (what one receiving station gets; the router sends every station's state
+  to each of the others; the agents here have no vehicle: no position, no trail);
+  ``model_5``, ``model_50``, ``model_200``: the envelope the same code seals for a
+  station of 5, 50 or 200 agents *in flight* (:func:`state_cost`: this deployment's
+  own agents copied, each with a position and a trail as long as a station keeps),
+  sent as the federation sends it, and its bytes a second at the same rate, with
+  what the same state cost before trails were cut and states deflated.
 
 :class:`Deployment` starts and stops the processes (the process tests use it too);
 ``run(quick)`` is the bench: 3 x 5 with 3 stations, or 2 x 2 with 2 when quick.
@@ -36,6 +46,9 @@ from typing import Any
 from swarm.cli.procs import Child, free_tcp_port, start_emulator
 
 DEADLINE = 60.0
+TRAFFIC_S = 10.0  # how long the stations' states are counted on the router
+TRAIL_POINTS = 120  # a station's trail at most (StationConfig.trail_points): the model's
+PUBLISH_HZ = 2.0  # the federation's period: 0.5 s
 
 
 def http(url: str, body: Any = None) -> tuple[int, Any]:
@@ -177,6 +190,100 @@ def led_swarms(state: dict[str, Any]) -> dict[str, list[int]]:
     return out
 
 
+def state_traffic(router: str, seconds: float = TRAFFIC_S) -> dict[str, Any]:
+    """Every station's ``gcs/<name>/state`` envelopes heard on ``router`` for ``seconds``:
+    per station the envelopes a second and bytes a second, and their sum."""
+    import threading
+
+    from swarm.core.federation import PREFIX
+    from swarm.runtime.transport import open_session
+
+    got: dict[str, list[int]] = {}
+    lock = threading.Lock()
+
+    def on(sample: Any) -> None:
+        name = str(sample.key_expr).split("/")[1]
+        with lock:
+            got.setdefault(name, []).append(len(sample.payload.to_bytes()))
+
+    session = open_session(connect=[router])
+    try:
+        sub = session.declare_subscriber(f"{PREFIX}/*/state", on)
+        time.sleep(1.0)  # the route to the subscriber
+        with lock:
+            got.clear()
+        time.sleep(seconds)
+        with lock:
+            counts = {k: list(v) for k, v in got.items()}
+        sub.undeclare()
+    finally:
+        session.close()
+    per = {
+        k: {"states_per_s": round(len(v) / seconds, 2), "bytes_per_s": round(sum(v) / seconds),
+            "state_bytes": round(sum(v) / len(v))}
+        for k, v in sorted(counts.items())
+    }  # fmt: skip
+    return {"stations": per, "bytes_per_s": sum(x["bytes_per_s"] for x in per.values())}
+
+
+def state_cost(agents: list[dict[str, Any]], n: int, key: bytes | None = b"k" * 32) -> dict[str, Any]:
+    """The sealed state envelope of a station of ``n`` agents in flight, made of
+    ``agents`` (a real station's, copied round-robin), each given a position, a home and
+    a trail of :data:`TRAIL_POINTS` points of a random walk (7 decimals, as a station
+    rounds them), one swarm per 10 agents: its bytes as sent (trails cut to
+    :data:`~swarm.core.federation.TRAIL_SENT`, deflated) and a second at
+    :data:`PUBLISH_HZ`; ``json_bytes``: its JSON once inflated; ``before_bytes_per_s``:
+    whole trails, not deflated (what was sent before); ``seal_ms``: the time to make it
+    (JSON, deflate, MAC), once a period.
+    """
+    import random
+
+    from swarm.core.federation import KIND_STATE, TRAIL_SENT, fed_key, seal, thin
+
+    rng = random.Random(16)
+    made = []
+    for i in range(n):
+        lat, lon = 47.3977419 + i * 1.3e-5, 8.5455938 + i * 1.7e-5
+        a = dict(agents[i % len(agents)])
+        a.update(id=i + 1, name=f"a{i + 1}", leader=i // 10 * 10 + 1, lat=lat, lon=lon, alt=512.3)
+        a.update(heading=271.4, groundspeed=4.87, home=[round(lat, 7), round(lon, 7)], home_alt=488.1)
+        trail = []
+        for _ in range(TRAIL_POINTS):
+            lat, lon = lat + rng.uniform(-4e-6, 4e-6), lon + rng.uniform(-6e-6, 6e-6)
+            trail.append([round(lat, 7), round(lon, 7)])
+        a["trail"] = trail
+        made.append(a)
+    swarms = [
+        {"leader": k + 1, "members": list(range(k + 1, min(n, k + 10) + 1)), "colour": k // 10, "net": "c0"}
+        for k in range(0, n, 10)
+    ]
+    body = {"agents": made, "events": [], "swarms": swarms, "alerts": []}
+    fkey = fed_key(key) if key else None
+    t0 = time.perf_counter()
+    text = json.dumps(thin(body, TRAIL_SENT), separators=(",", ":")).encode()
+    sent = seal(KIND_STATE, "st0", 1, 1, text, fkey, deflate=True)
+    cpu_ms = (time.perf_counter() - t0) * 1000  # JSON, deflate, MAC: once per period
+    before = seal(KIND_STATE, "st0", 1, 1, json.dumps(body, separators=(",", ":")).encode(), fkey)
+    return {
+        "agents": n,
+        "state_bytes": len(sent),
+        "bytes_per_s": round(len(sent) * PUBLISH_HZ),
+        "json_bytes": len(text),
+        "seal_ms": round(cpu_ms, 1),
+        "before_bytes_per_s": round(len(before) * PUBLISH_HZ),
+    }
+
+
+def federation_cost(dep: Deployment) -> dict[str, Any]:
+    """``federation``'s figures (module docstring) on a running deployment."""
+    traffic = state_traffic(dep.router_ep)
+    local = [a for a in dep.state()["agents"] if a.get("station") == "st0"]
+    trail = sum(len(a.get("trail") or []) for a in local) / max(1, len(local))
+    traffic["trail_points_mean"] = round(trail, 1)
+    flying = {"model_5": state_cost(local, 5), "model_50": state_cost(local, 50)}
+    return {"measured": traffic, **flying, "model_200": state_cost(local, 200)}
+
+
 def measure(dep: Deployment) -> dict[str, Any]:
     """The three figures (see the module docstring) on a started deployment."""
     n, c = dep.channels * dep.agents, dep.channels
@@ -197,6 +304,7 @@ def measure(dep: Deployment) -> dict[str, Any]:
         "acked_by_leader_on": last if acked else None,
         "s": round(time.monotonic() - t1, 2),
     }
+    federation = federation_cost(dep)
     dep.kill_station(1)
     t2 = time.monotonic()
 
@@ -216,6 +324,7 @@ def measure(dep: Deployment) -> dict[str, Any]:
         "command": command,
         "survivors": {"swarms": len(led), "agents": sum(len(v) for v in led.values())},
         "gone_after_kill_s": round(time.monotonic() - t2, 2),
+        "federation": federation,
     }
 
 
@@ -230,4 +339,4 @@ def run(quick: bool) -> dict[str, Any]:
             dep.stop()
 
 
-__all__ = ["Deployment", "http", "led_swarms", "measure", "poll", "run"]
+__all__ = ["Deployment", "http", "led_swarms", "measure", "poll", "run", "state_cost", "state_traffic"]

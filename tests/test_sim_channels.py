@@ -208,3 +208,10 @@ def test_bench_scale_quick_json_has_its_figures(capsys: pytest.CaptureFixture[st
     procs = r["processes"]
     assert procs["agents"] == 4 and procs["command"]["acked_by_leader_on"] == "c1"
     assert procs["survivors"] == {"swarms": 1, "agents": 2}
+    # what the stations' states cost on the router: counted there, and modelled in flight
+    fed = procs["federation"]
+    assert set(fed["measured"]["stations"]) == {"st0", "st1"}
+    assert all(s["states_per_s"] > 0 and s["bytes_per_s"] > 0 for s in fed["measured"]["stations"].values())
+    big = fed["model_200"]
+    assert big["agents"] == 200 and 0 < big["bytes_per_s"] < big["before_bytes_per_s"]
+    assert big["json_bytes"] > big["state_bytes"]  # deflated

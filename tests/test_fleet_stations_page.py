@@ -176,4 +176,29 @@ def test_three_stations_swarms_show_three_colours_the_same_on_every_view(live: L
         assert len({next(iter(c)) for c in got.values()}) == 3  # three swarms, three colours
         cell = page.locator('#agents tr[data-agent-id="22"] td[data-field="swarm"]').text_content()
         assert cell is not None and "station gcsB" in cell
+        options = "Array.from(document.querySelectorAll('#cmd-target option')).map((o) => o.text)"
+        labels = page.evaluate(options)
+        assert "swarm of agent21 (21) at station gcsB · 2 agents" in labels
+        assert "swarm of agent1 (1) · 2 agents" in labels  # this station's own: no station named
+        # other stations' events in the log, marked with their station
+        kinds = "Array.from(document.querySelectorAll('#log li .kind')).map((k) => k.textContent)"
+        poll(lambda: "gcsB · alert" in page.evaluate(kinds), "B's alert event marked in A's log", DEADLINE)
         assert page.errors == []
+
+
+def test_a_bad_acknowledgement_for_another_station_is_one_line(live: Live) -> None:
+    from swarm.core.federation import ack_any
+    from swarm.core.station import CommandRefused
+
+    b_alert = next(al for al in live.a.snapshot()["alerts"] if al["station"] == "gcsB")
+    for alert_id, station, status in (
+        ("1", "gcsB", 400),
+        (True, "gcsB", 400),
+        (10**9, "gcsB", 404),
+        (b_alert["id"], "nowhere", 404),
+        (b_alert["id"], "<b>" + "x" * 500, 404),
+        (b_alert["id"], ["gcsB"], 404),
+    ):
+        with pytest.raises(CommandRefused) as e:
+            ack_any(live.a, alert_id, station)
+        assert e.value.status == status and "\n" not in e.value.reason and len(e.value.reason) < 120

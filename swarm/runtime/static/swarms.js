@@ -20,6 +20,8 @@
  *   network "net" when the station reports one) and is sorted by swarm, leader first,
  *   by default (the column's header sorts by it again); "show" filters the table to
  *   one swarm;
+ * - another station's swarm (one joined over Zenoh) is named "at station NAME" in the
+ *   selectors and confirmations, and its agents' swarm cell says "station NAME";
  * - the commands' "to" selector offers "all swarms" and each swarm by its leader
  *   ({"target": "swarm", "swarm": <leader id>}); the confirmation names the swarm(s)
  *   and how many agents. A follow in V to every swarm is refused here, as the station
@@ -71,8 +73,13 @@
   function agents(n) {
     return n === 1 ? "1 agent" : n + " agents";
   }
+  // another station's swarm: " at station NAME" (its commands go through that station)
+  function where(s) {
+    const st = M.state && M.state.station ? M.state.station.name : null;
+    return s && typeof s.station === "string" && s.station !== st ? " at station " + s.station.slice(0, 32) : "";
+  }
   function swarmName(leader) {
-    return "the swarm of " + agentName(leader);
+    return "the swarm of " + agentName(leader) + where(M.byLeader.get(leader));
   }
 
   // ------------------------------------------------------------ app.js asks
@@ -148,7 +155,7 @@
     }
   }
   function drawChoices() {
-    const key = M.swarms.map((s) => s.leader + ":" + s.members.length).join(",") + "|" + several();
+    const key = M.swarms.map((s) => s.leader + ":" + s.members.length + where(s)).join(",") + "|" + several();
     if (key === M.options) return;
     M.options = key;
     const target = document.querySelector("#cmd-target");
@@ -160,7 +167,7 @@
     if (all) all.textContent = several() ? "all swarms" : "whole swarm";
     filter.replaceChildren(new Option("all swarms", "all"));
     for (const s of M.swarms) {
-      const label = "swarm of " + agentName(s.leader) + " · " + agents(s.members.length);
+      const label = "swarm of " + agentName(s.leader) + where(s) + " · " + agents(s.members.length);
       if (several()) target.add(new Option(label, "swarm:" + s.leader));
       filter.add(new Option(label, String(s.leader)));
     }

@@ -111,6 +111,24 @@ def test_the_draws_depend_only_on_seed_and_index() -> None:
     assert min(sizes) == 2 and max(sizes) > 20 and sum(n <= 8 for n in sizes) > 250
 
 
+def test_the_draws_cover_every_profile_and_capped_sub_swarms() -> None:
+    drawn = [draw(0, k)[0] for k in range(600)]
+    profiles = [sc.profile for sc in drawn]
+    assert {p: profiles.count(p) > 100 for p in ("paper", "fast", "tdm")} == dict.fromkeys(
+        ("paper", "fast", "tdm"), True
+    )
+    capped = [(sc.agents, sc.cap) for sc in drawn if sc.cap]
+    assert len(capped) > 50 and all(2 <= cap < n for n, cap in capped)
+    assert all("cap" in kinds for sc, _, kinds in map(lambda k: draw(0, k), range(200)) if sc.cap)
+    # a profile given for all replaces the drawn one, tdm included
+    assert {draw(0, k, profile="paper")[0].profile for k in range(60)} == {"paper"}
+
+
+def test_a_capped_scenario_replays_from_its_command() -> None:
+    sc = next(sc for sc, _, _ in (draw(0, k, max_agents=8) for k in range(200)) if sc.cap)
+    assert f"--cap {sc.cap}" in sc.command(1)
+
+
 @pytest.mark.parametrize(
     "argv",
     [

@@ -9,14 +9,18 @@ order, whatever the number of jobs (:func:`swarm.sim.parallel.run_jobs`).
 
 The distribution: N from 2 to 50, weighted to small swarms (three in four have 2-8
 agents, one in thirty more than 20: a swarm of 50 costs about as much CPU as two
-hundred of 5); the paper and fast profiles (or one profile for all, ``profile``);
-and, each with its own chance, uniform loss (0-30 %),
+hundred of 5); the paper and fast profiles, and one scenario in three the tdm
+profile (or one profile for all, ``profile``); one in five of four agents or more
+with a swarm size cap of 2 to N-1 (sub-swarms: kind ``cap``, the agreement is every
+agent in a led swarm of at most the cap); and, each with its own chance, uniform loss (0-30 %),
 bursty loss (bad 2-14 % of the time, over at most 15 % uniform loss), partitions
 that heal, crashes of the leader (several leader changes in one run), members
 leaving (they stop without a word: the protocol has no goodbye), restarts without
 state and pauses with it (:mod:`swarm.sim.faultsim`), late joiners, asymmetric
 links (more loss one way, up to 35 % with the uniform loss), one-way links for a
 while (an agent that hears the others but is not heard), and clock drift per agent.
+The tdm and cap draws come from a stream of their own (``campaign:S:k:swarm``), so
+a scenario's other draws are those it had before they were added.
 Faults fall in a horizon of 30 s to 30 virtual minutes (mostly short); a run's cost
 is bounded: the horizon is cut to COST_BUDGET agent-seconds, and the run lasts the
 horizon (or to the end of its last fault, if later) plus a tail long enough for the
@@ -56,7 +60,10 @@ KINDS = (
     "asymmetric",
     "one_way",
     "drift",
+    "cap",
 )
+#: the share of scenarios (of four agents or more) whose agents have a swarm size cap
+CAP_CHANCE = 0.2
 
 
 def _agents(rng: random.Random) -> int:
@@ -133,18 +140,32 @@ def _faults(rng: random.Random, sc: Scenario, h: float) -> list[str]:
     return kinds
 
 
+def _swarm_kind(rng: random.Random, sc: Scenario, profile: str | None) -> list[str]:
+    """The draws added with the ``tdm`` profile and sub-swarms, from a stream of their
+    own so that every other draw of a scenario is what it was before them: one
+    scenario in three runs ``tdm`` (unless ``profile`` is given), and one in
+    CAP_CHANCE of four agents or more gets a size cap of 2 to N-1 (kind ``cap``)."""
+    if profile is None and rng.random() < 1 / 3:
+        sc.profile = "tdm"
+    if sc.agents >= 4 and rng.random() < CAP_CHANCE:
+        sc.cap = rng.randint(2, sc.agents - 1)
+        return ["cap"]
+    return []
+
+
 def draw(
     seed: int, k: int, max_agents: int = 50, profile: str | None = None
 ) -> tuple[Scenario, int, list[str]]:
     """Scenario ``k`` of the campaign seeded ``seed``: (scenario, run seed, kinds);
-    ``max_agents`` caps N and ``profile`` replaces the drawn profile (paper or fast):
-    the draws are the same otherwise."""
+    ``max_agents`` caps N and ``profile`` replaces the drawn profile (paper, fast or
+    tdm): the draws are the same otherwise."""
     rng = random.Random(f"campaign:{seed}:{k}")
     n = max(2, min(_agents(rng), max_agents))
     drawn = rng.choice(("paper", "fast"))
     sc = Scenario(agents=n, profile=profile or drawn, strict=True)
     h = _horizon(rng, n)
     kinds = _faults(rng, sc, h)
+    kinds += _swarm_kind(random.Random(f"campaign:{seed}:{k}:swarm"), sc, profile)
     sc.duration = round(max(h, sc.last_fault_s()) + sc.settle_tail_s(), 1)
     return sc, rng.getrandbits(31), kinds
 
@@ -160,7 +181,7 @@ def run_campaign(
 ) -> dict[str, Any]:
     """Runs the campaign; the result is the same for any number of jobs. ``on_done`` is
     called as each scenario's run ends (a progress display); ``profile`` runs every
-    scenario with that profile (None: each draws paper or fast)."""
+    scenario with that profile (None: each draws paper, fast or tdm)."""
     drawn = [draw(seed, k, max_agents, profile) for k in range(scenarios)]
     results = run_jobs([(sc, s) for sc, s, _ in drawn], jobs, on_done)
     by_kind: dict[str, dict[str, int]] = defaultdict(lambda: {"scenarios": 0, "failing": 0})

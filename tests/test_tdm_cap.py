@@ -107,6 +107,15 @@ def test_a_full_pool_that_heard_every_vote_decides_before_its_lock_window() -> N
     assert (3, StartPool(2)) in _msgs(out, StartPool)
 
 
+def test_hostile_votes_cannot_settle_a_full_pool() -> None:
+    c = joined(2, {1, 2, 3}, 50, cap=3)
+    c.handle(Selection(1, 1, 10, 0), 0.2)
+    c.handle(Selection(9, 9, 2**32 - 1, 0), 0.3)  # a stranger
+    c.handle(Selection(3, 77, 2**32 - 1, 0), 0.3)  # a member naming a stranger
+    c.handle(Selection(2, 2, 2**32 - 1, 0), 0.3)  # our own id from elsewhere
+    assert c.phase == Phase.POOLING and c.heard == {1} and c.vote == (50, 2)
+
+
 def test_a_pool_below_its_cap_waits_for_the_lock_window_though_every_vote_is_heard() -> None:
     c = joined(2, {1, 2, 3}, 50, cap=5)
     c.handle(Selection(1, 1, 10, 0), 0.2)

@@ -194,6 +194,7 @@ def test_bench_scale_quick_json_has_its_figures(capsys: pytest.CaptureFixture[st
     assert r["quick"] is True and r["targets"]["all_led_p95_s"] == 30.0
     one, four = r["one_channel_n50"], r["four_channels_n200"]
     assert one["channels"] == 1 and one["cap"] > 0 and four["channels"] == 4
+    assert one["profile"] == four["profile"] == "tdm"
     for part in (one, four):
         assert part["all_led"] == part["runs"] > 0
         assert part["all_led_s"]["p95"] is not None and part["air_utilisation_max"] > 0

@@ -60,15 +60,6 @@ def test_tdm_is_chosen_by_name_and_derives_its_windows_from_the_round() -> None:
         profile_by_name("slow", 1.0)
 
 
-def test_with_a_size_cap_the_caps_rules_run_not_tdms() -> None:
-    # the cap's rules (swarm.core.caps) are written for the paper's exchanges
-    assert Core(1, profile=tdm_profile(ROUND)).tdm
-    capped = Core(1, profile=tdm_profile(ROUND), cap=5)
-    assert not capped.tdm
-    capped.start(0.0)
-    assert any(isinstance(o.msg, StartPoolAck) for o in capped.handle(StartPool(2), 0.1))
-
-
 # -- the core alone ------------------------------------------------------------------
 
 

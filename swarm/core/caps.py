@@ -58,6 +58,11 @@ in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
   only agents it heard advertise its tag (:func:`foreign`). Agents of different names
   never pool or merge, with or without a cap.
 
+* **Under the tdm profile** (:mod:`swarm.core.tdm_election`) the rules above apply
+  to tdm's exchanges (its "With a size cap"): admission by SyncPool within the cap and
+  the founder rule, and a full pool that heard every vote decides without its lock
+  window (:func:`full`).
+
 Pure: no I/O, no clock.
 """
 
@@ -200,10 +205,19 @@ def trim(core: Core, new: set[int], now: float) -> bool:
 
 def unconfirmed_deadline(core: Core) -> float:
     """When a capped member that no Heartbeat has listed since its election leaves (see
-    "A member by its vote"); infinity otherwise."""
+    "A member by its vote"); infinity otherwise. Under the ``tdm`` profile a member that
+    heard every vote decides at once while its candidate may still wait out its vote
+    window: the deadline counts that window too."""
     if not core.capped.unconfirmed:
         return float("inf")
-    return core.last_hb + CONFIRM_INTERVALS * core.profile.heartbeat_interval
+    p = core.profile
+    return core.last_hb + CONFIRM_INTERVALS * p.heartbeat_interval + (p.vote_window if p.tdm else 0.0)
+
+
+def full(core: Core) -> bool:
+    """Whether the core's pool is at its cap (never without a cap): no agent can join it
+    (see "With a size cap" in :mod:`swarm.core.tdm_election`)."""
+    return bool(core.cap) and len(core.pool) >= core.cap
 
 
 def rejoin(core: Core, now: float) -> int | None:
@@ -385,6 +399,7 @@ __all__ = [
     "fits",
     "foreign",
     "forget_s",
+    "full",
     "late",
     "may_absorb",
     "may_switch",

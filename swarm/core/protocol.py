@@ -14,7 +14,8 @@ its transitions; :mod:`swarm.core.protocol_rules` holds what each message does
 (one handler per message type, in one table); :mod:`swarm.core.profiles` holds
 the timing profiles and vote policies. This module re-exports the names of both.
 Under the ``tdm`` profile :mod:`swarm.core.tdm_election` replaces the pooling
-timers and three of the message rules (votes exchanged while pooling).
+timers and three of the message rules (votes exchanged while pooling), with or
+without a size cap.
 
 Phases and the paper's steps (section 2.3):
 
@@ -333,9 +334,9 @@ class Core:
 
     @property
     def tdm(self) -> bool:
-        """The tdm profile's rules (swarm.core.tdm_election); with a size cap the cap's
-        rules, written for the paper's exchanges, run instead (tdm's windows kept)."""
-        return self.profile.tdm and not self.cap
+        """The tdm profile's rules (swarm.core.tdm_election), with a size cap too (the
+        cap's rules apply within them: "With a size cap" in that module)."""
+        return self.profile.tdm
 
     @property
     def can_lead(self) -> bool:
@@ -484,12 +485,17 @@ class Core:
             sel = Selection(self.me, self.vote[1], self.vote[0], self.epoch)
             out += [Out(m, sel) for m in sorted(self.pool - {self.me})]
         if _elapsed(now, self.vote_changed_at, p.vote_window):
-            if self.vote[1] == self.me:
-                self._become_leader(now, self.pool - {self.me})
-            else:
-                self.become_member(self.vote[1], now)
-                if self.cap:  # not listed if our pools differed: a StartPool gets us adopted
-                    out += [Out(to, StartPool(self.me)) for to in caps.ask_after_vote(self, now)]
+            self.end_election(now, out)
+
+    def end_election(self, now: float, out: list[Out]) -> None:
+        """The vote's candidate leads, the others follow it (the window ran out, or under
+        the ``tdm`` profile every vote was heard)."""
+        if self.vote[1] == self.me:
+            self._become_leader(now, self.pool - {self.me})
+        else:
+            self.become_member(self.vote[1], now)
+            if self.cap:  # not listed if our pools differed: a StartPool gets us adopted
+                out += [Out(to, StartPool(self.me)) for to in caps.ask_after_vote(self, now)]
 
     def _leader_timers(self, now: float, out: list[Out]) -> None:
         p = self.profile

@@ -34,9 +34,25 @@ everything it knows:
   window decides, counted from the later of the vote's and the pool's last change
   (a member added late may hold a heavier vote): a member silent that long is
   presumed gone.
+* **A member that decides sends its vote once more**: it stops voting when it
+  follows, but a member that missed its vote would not hear everyone and would wait
+  out the windows: the vote goes to the pool once more, in the member's next slot.
 * **The leader's Heartbeat ends it for the others**: an agent that hears a Heartbeat
   listing it becomes a member at once (the paper's rule), so members need not wait
   out their own windows.
+
+With a size cap (``Core(..., cap=N)``) these rules run with the cap's
+(:mod:`swarm.core.caps`): a StartPool that a capped pool refuses (full, or we are not
+its founder) or that comes from another swarm name gets the paper's answer
+(StartPoolAck FULL, or none); a free agent that takes an asker in is its pool's
+founder; a leader adopts the agents a member's SyncPool names only while the cap
+leaves room (lowest ids first); a member by its vote asks its candidate to list it and
+leaves if no Heartbeat does (the cap's "A member by its vote", its deadline counting
+the candidate's vote window: the member may decide before it). And **a full pool that
+heard every vote decides at once** (:func:`settled`): nobody can join a pool at its
+cap, so the lock window has nothing to wait for. On one channel of 50 radios (a round
+of 5.92 s, cap 10) a block pooled in round 1 is led about a round later, where the
+lock and vote windows and a Heartbeat took the fast profile three rounds more.
 
 The guarantees are the paper's: votes are adopted only for pool members, ties break on
 the candidate id, and two leaders that a lost vote left in one connected pool hear each
@@ -49,6 +65,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from swarm.core import caps
 from swarm.core.messages import Phase, Selection, StartPool, SyncPool, pool_digest
 from swarm.core.protocol_rules import Out
 from swarm.core.protocol_rules import on_start_pool as on_start_pool_paper
@@ -99,8 +116,14 @@ def pool_timers(core: Core, now: float, out: list[Out]) -> None:
         elif _elapsed(now, t, p.startpool_retry) and not core.locked:
             core.asked[a] = now
             out.append(Out(a, StartPool(core.me)))
-    if core.locked or _elapsed(now, core.changed_at, p.lock_window):
-        start_election(core, now)
+    if core.locked or _elapsed(now, core.changed_at, p.lock_window) or settled(core):
+        start_election(core, now, out)
+
+
+def settled(core: Core) -> bool:
+    """A capped pool at its cap whose every vote is heard: nobody can join it, so the
+    lock window has nothing to wait for (see "With a size cap")."""
+    return caps.full(core) and complete(core)
 
 
 def news_at(core: Core) -> float | None:
@@ -115,7 +138,7 @@ def news_at(core: Core) -> float | None:
     return last + p.sync_interval * min(max(len(core.pool) / NEWS_PER_ROUND, 0.125), 1.0)
 
 
-def start_election(core: Core, now: float) -> None:
+def start_election(core: Core, now: float, out: list[Out]) -> None:
     """Locked: elect on this pool, keeping the vote gathered while pooling."""
     core.locked = True
     core.asked.clear()
@@ -127,7 +150,7 @@ def start_election(core: Core, now: float) -> None:
     core.vote_changed_at = max(core.vote_changed_at, core.changed_at)
     core._next["vote"] = now
     if complete(core):
-        decide(core, now)
+        decide(core, now, out)
 
 
 def complete(core: Core) -> bool:
@@ -136,12 +159,15 @@ def complete(core: Core) -> bool:
     return core.heard >= core.pool - {core.me}
 
 
-def decide(core: Core, now: float) -> None:
-    """The election's end: the vote's candidate leads, the others follow it."""
-    if core.vote[1] == core.me:
-        core._become_leader(now, core.pool - {core.me})
-    else:
-        core.become_member(core.vote[1], now)
+def decide(core: Core, now: float, out: list[Out]) -> None:
+    """The election's end: the vote's candidate leads, the others follow it (with a cap,
+    a member asks its candidate to list it: :meth:`swarm.core.protocol.Core.end_election`)."""
+    core.end_election(now, out)
+    if core.phase == Phase.MEMBER:
+        # we stop voting now, but members that missed our vote would wait for it:
+        # it goes once more, in our next slot
+        sel = Selection(core.me, core.vote[1], core.vote[0], core.epoch)
+        out += [Out(m, sel) for m in sorted(core.pool - {core.me})]
 
 
 def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None:
@@ -164,15 +190,22 @@ def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None
         core.vote_changed_at = now
         core.state_dirty = True
     if core.phase == Phase.ELECTING and complete(core):
-        decide(core, now)
+        decide(core, now, out)
+    elif core.phase in (Phase.POOLING, Phase.LOCKED) and settled(core):
+        start_election(core, now, out)  # decides at once: every vote is heard
 
 
 def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> None:
     """A free or pooling agent takes the asker into its pool without a StartPoolAck:
     its next SyncPool (news: at once) carries the pool to every member, the asker
-    included, in one frame, where the paper's acks were one frame per asker."""
-    if core.phase == Phase.IDLE:
+    included, in one frame, where the paper's acks were one frame per asker. An asker
+    of another swarm name, and one a capped pool refuses (full, or we do not admit),
+    get the paper's answer (none, or StartPoolAck FULL)."""
+    if caps.foreign(core, msg.sender, unknown=True) or caps.refuses(core, msg.sender):
+        on_start_pool_paper(core, msg, now, out)
+    elif core.phase == Phase.IDLE:
         core.open_pool({msg.sender}, now)
+        core.capped.founder = True  # the pool's admitter (swarm.core.caps)
     elif core.phase == Phase.POOLING:
         core.change_pool({msg.sender}, now)
     else:
@@ -186,8 +219,12 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
         core.open_pool(set(msg.members) | {msg.sender}, now)
     if core.phase == Phase.LEADER and msg.members is not None and msg.sender in core.members:
         # a member still electing knows agents our pool locked without: they are
-        # electing us too; adopt them as late joiners (our Heartbeats will list them)
+        # electing us too; adopt them as late joiners (our Heartbeats will list them),
+        # the lowest ids first while the cap leaves room
         for m in sorted(msg.members - set(core.members) - {core.me}):
+            if not caps.fits(len(core.members) + 2, core.cap):
+                core.counters.refused += 1
+                break
             core.members[m] = now
             core.pool.add(m)
             core.state_dirty = True
@@ -214,5 +251,6 @@ __all__ = [
     "on_start_pool",
     "on_sync_pool",
     "pool_timers",
+    "settled",
     "start_election",
 ]

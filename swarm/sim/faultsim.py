@@ -27,7 +27,8 @@ silent member (not while a link is cut one way: a leader that cannot hear the ot
 never lets go of the members they share, see docs/DESIGN.md); no live agent idle (in
 no swarm and not electing) for longer than its alone timeout without hearing a
 leader to join (the protocol's "Alone" rule); no election (pooling, locked,
-electing) longer than ELECT_BOUND_ROUNDS rounds plus its windows; every message an
+electing) longer than ELECT_BOUND_ROUNDS rounds plus its windows; with a size cap, no
+pool or swarm larger than the cap (:mod:`swarm.core.caps`); every message an
 agent sends decodes to itself; and at the end, that the swarm agreed and held after
 the last fault healed. A violation names its virtual time.
 """
@@ -207,6 +208,8 @@ class FaultSim(Sim):
                 self._violate(
                     f"agent {c.me} in no swarm and not electing for over {self.idle_bound:.1f} s", t
                 )
+            if self.sc.cap and max(len(c.pool), len(c.members) + 1) > self.sc.cap:
+                self._violate(f"agent {c.me}'s pool or swarm holds more than the cap of {self.sc.cap}", t)
             if self._held(("elect", i), c.phase in electing, t, self.elect_bound):
                 self._violate(f"agent {c.me}: election not over after {self.elect_bound:.0f} s", t)
 

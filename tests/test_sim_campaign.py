@@ -37,6 +37,28 @@ def test_a_restarted_leader_comes_back_without_state_and_rejoins() -> None:
     assert sum(c.phase == Phase.LEADER for c in sim.cores) == 1
 
 
+def test_a_multipoint_base_cut_off_for_long_still_hears_its_nodes_after_the_heal() -> None:
+    # found by the 10,000-scenario campaign: agent 1's radio (node 0, the multipoint base)
+    # heard nobody for 79 s, the air model unlocked it like any node, and after the heal
+    # it heard the others only by chance (1 packet in NUM_CHANNELS): its leader and
+    # leader 3 stayed apart for 30 s. The base is the network's clock: it never unlocks.
+    sc = Scenario(
+        agents=3,
+        profile="fast",
+        loss=0.18,
+        partitions=["33.2-84.6:1|2,3", "5.3-50.1:2,3|1"],
+        links=["2>3:0.07", "1>3:0.08"],
+        restarts=["1@47.7-61.3"],
+        pauses=["2@70.4-79.8"],
+        duration=121.9,
+        strict=True,
+    )
+    sim = make_sim(sc, 450402140)
+    res = sim.run()
+    assert res.violations == [] and res.stable_at_end
+    assert sim.air.radios[0].cfg.node_id == 0 and sim.air.radios[0].locked
+
+
 def test_a_paused_agent_resumes_with_its_state() -> None:
     sim = FaultSim(Scenario(agents=3, pauses=["2@15-16"], strict=True), 1)
     core = sim.cores[1]
@@ -172,8 +194,12 @@ def test_bounded_campaign_has_no_violation() -> None:
         "wall_s",
         "cpu_s",
         "scenarios_per_cpu_s",
+        "reference_cpu_s",
+        "cpu_in_reference_units",
         "by_kind",
     }
+    # 200 drawn scenarios cost more than the 40 plain runs of the reference
+    assert res["reference_cpu_s"] > 0 and res["cpu_in_reference_units"] > 1
     assert res["scenarios"] == 200 and res["agents_max"] <= bench_campaign.QUICK_AGENTS
     assert res["violations"] == 0, res["failing"]
     assert res["by_kind"]["restart"]["scenarios"] > 0 and res["by_kind"]["one_way"]["scenarios"] > 0

@@ -564,7 +564,10 @@ class AirModel:
         """link_update() of tdm.c, every 0.5 s."""
         if t - r.last_rx > 0.5:
             r.unlock_count += 1
-        if r.unlock_count > 40 and r.cfg.num_channels > 1:
+        base = r.cfg.firmware == "multipoint" and r.cfg.node_id == 0
+        if r.unlock_count > 40 and r.cfg.num_channels > 1 and not base:
+            # the multipoint base is the network's clock: it hops on its own sequence
+            # whether it hears anyone or not, so it never loses the sync it gives
             r.locked = False
             r.unlock_count = 5
         if r.unlock_count > 5:

@@ -7,6 +7,12 @@ scenarios per CPU second and the scenarios and failures by fault kind. The full
 campaign is FULL scenarios (issue 15's target: 0 violations within 1,800 s of wall
 time on a 2-core machine); ``--quick`` (CI) runs QUICK with at most QUICK_AGENTS
 agents (the same draws otherwise: about a minute of CPU).
+
+Machines differ and a shared one is slower on some days than on others, so the
+bench also times a fixed piece of work on this machine first (REFERENCE_RUNS N=10
+paper runs at 10 % loss, serial: ``reference_cpu_s``) and gives the campaign's CPU
+in units of it (``cpu_in_reference_units``): a figure that compares across days and
+machines where ``wall_s`` does not.
 """
 
 from __future__ import annotations
@@ -17,10 +23,13 @@ import time
 from typing import Any
 
 from swarm.sim.campaign import run_campaign
+from swarm.sim.simulate import Scenario, campaign
 
 FULL = 10_000
 QUICK = 300
 QUICK_AGENTS = 12
+#: the fixed work that measures this machine's speed (N=10 paper runs, serial)
+REFERENCE_RUNS = 40
 
 
 def _cpu_s() -> float:
@@ -28,8 +37,16 @@ def _cpu_s() -> float:
     return time.process_time() + ch.ru_utime + ch.ru_stime
 
 
+def reference_cpu_s() -> float:
+    """CPU seconds of the fixed reference work (:data:`REFERENCE_RUNS`) here, now."""
+    t0 = time.process_time()
+    campaign(Scenario(agents=10, loss=0.1), REFERENCE_RUNS, 0, jobs=1)
+    return time.process_time() - t0
+
+
 def run(quick: bool = False, scenarios: int | None = None, seed: int = 0) -> dict[str, Any]:
     k = scenarios if scenarios is not None else QUICK if quick else FULL
+    ref = reference_cpu_s()
     cpu0, wall0 = _cpu_s(), time.monotonic()
     res = run_campaign(k, seed, jobs=os.cpu_count() or 1, max_agents=QUICK_AGENTS if quick else 50)
     cpu, wall = _cpu_s() - cpu0, time.monotonic() - wall0
@@ -40,6 +57,8 @@ def run(quick: bool = False, scenarios: int | None = None, seed: int = 0) -> dic
         "wall_s": round(wall, 1),
         "cpu_s": round(cpu, 1),
         "scenarios_per_cpu_s": round(k / cpu, 2) if cpu > 0 else None,
+        "reference_cpu_s": round(ref, 2),
+        "cpu_in_reference_units": round(cpu / ref, 1) if ref > 0 else None,
         "virtual_s": res["virtual_s"],
         "agents_max": res["agents_max"],
         # the full campaign's wall time at this rate (the quick one's agents are capped)

@@ -32,7 +32,8 @@ starts; restarts, pauses, drift and the campaign's continuous invariants are
   and that held for ``settle`` seconds; a run that never gets there violates
   (with a size cap, sub-swarms of at most the cap: :mod:`swarm.sim.subswarms`);
 * after convergence, two leaders in one connected group never coexist for more
-  than SPLIT_LIMIT_S (the merge rule's time);
+  than SPLIT_LIMIT_S (the merge rule's time), each pair of leaders timed from when
+  they are first in one group;
 * no member follows a dead leader for longer than its leader timeout (+ a round);
 * whether every live agent is in the agreed swarm at the end is reported
   (``stable_at_end``): under heavy loss members are expelled and re-join, so
@@ -70,7 +71,7 @@ from swarm.sim.scenario import (
     parse_at,
     run_length,
 )
-from swarm.sim.subswarms import capped_agreement, mergeable_leaders
+from swarm.sim.subswarms import capped_agreement, split_pairs
 
 POSE = Pose(47.397742, 8.545594, 500.0)
 _Tunnel = tuple[Kind, int, bytes, Message]
@@ -145,7 +146,7 @@ class Sim:
         self.following_dead_since: dict[int, float] = {}
         self._due = [0.0] * n  # each core's next deadline (cached)
         self._check_at = 0.0  # the invariants' next sample
-        self._split_since: float | None = None
+        self._split_since: dict[tuple[int, int], float] = {}  # leader pairs split since
         # a run goes on at least until its last partition heals and its last agent starts
         ends = [p.t1 for p in self.partitions] + [k.t1 for k in self.links if k.t1 != float("inf")]
         self._last_event = max(ends + self.start_at + [0.0])
@@ -384,26 +385,19 @@ class Sim:
 
     def _check_split(self, t: float, converged_once: bool) -> None:
         """After convergence, two leaders in one connected group must not coexist for
-        longer than SPLIT_LIMIT_S (the merge rule needs an advertize and a heartbeat)."""
+        longer than SPLIT_LIMIT_S (the merge rule needs an advertize and a heartbeat).
+        Each pair of leaders is timed from when they are first in one group: a split
+        that partitions end and another that they start are two splits."""
         if not converged_once:
             return
-        groups: dict[int, int] = defaultdict(int)
-        for i, c in enumerate(self.cores):
-            if self.alive[i] and self.started[i] and c.phase == Phase.LEADER:
-                groups[self._group_key(c.me, t)] += 1
-        split = any(n > 1 for n in groups.values())
-        if self.sc.cap:  # with a cap, only leaders whose swarms fit together must merge
-            live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
-            split = mergeable_leaders(live, self.sc.cap, lambda a: self._group_key(a, t))
-        if split:
-            self._split_since = t if self._split_since is None else self._split_since
-            if t - self._split_since > SPLIT_LIMIT_S:
-                msg = f"two leaders in one connected group for over {SPLIT_LIMIT_S:.0f} s"
-                msg += " (their swarms fit under the cap)" if self.sc.cap else ""
-                if msg not in self.violations:
-                    self.violations.append(msg)
-        else:
-            self._split_since = None
+        live = [c for i, c in enumerate(self.cores) if self.alive[i] and self.started[i]]
+        pairs = split_pairs(live, self.sc.cap, lambda a: self._group_key(a, t))
+        self._split_since = {p: self._split_since.get(p, t) for p in pairs}
+        if any(t - since > SPLIT_LIMIT_S for since in self._split_since.values()):
+            msg = f"two leaders in one connected group for over {SPLIT_LIMIT_S:.0f} s"
+            msg += " (their swarms fit under the cap)" if self.sc.cap else ""
+            if msg not in self.violations:
+                self.violations.append(msg)
 
     def _check_dead_leaders(self, t: float) -> None:
         limit = self.cores[0].profile.leader_timeout + 2 * self.round_s

@@ -10,7 +10,8 @@ live agent is in a led swarm of at most ``cap`` agents: each leader lists at mos
 a member following that leader, and listed by no other leader; every other live
 agent is such a member. :func:`mergeable_leaders` names two leaders of one
 connected group whose swarms would fit together: the merge rule should join them,
-so the simulator's split check counts only those. Pure functions of the cores'
+so the simulator's split check counts only those (:func:`split_pairs` lists such
+pairs, every pair of one group without a cap: the check times each pair). Pure functions of the cores'
 states: the simulator calls them where it calls its own judge.
 """
 
@@ -44,13 +45,26 @@ def capped_agreement(live: Sequence[Core], cap: int, group: Callable[[int], int]
     return bool(leaders), min((c.me for c in leaders), default=0)
 
 
-def mergeable_leaders(live: Sequence[Core], cap: int, group: Callable[[int], int]) -> bool:
-    """Whether two leaders of one connected group lead swarms that would fit together."""
-    sizes: dict[int, list[int]] = {}
+def split_pairs(live: Sequence[Core], cap: int, group: Callable[[int], int]) -> set[tuple[int, int]]:
+    """The pairs of leaders (lower id first) in one connected group that the merge rule
+    should join: every such pair without a cap (``cap`` 0), those whose swarms would fit
+    together with one."""
+    by_group: dict[int, list[Core]] = {}
     for c in live:
         if c.phase == Phase.LEADER:
-            sizes.setdefault(group(c.me), []).append(len(c.members) + 1)
-    return any(len(s) > 1 and sum(sorted(s)[:2]) <= cap for s in sizes.values())
+            by_group.setdefault(group(c.me), []).append(c)
+    out: set[tuple[int, int]] = set()
+    for leads in by_group.values():
+        for k, a in enumerate(leads):
+            for b in leads[k + 1 :]:
+                if not cap or len(a.members) + len(b.members) + 2 <= cap:
+                    out.add((min(a.me, b.me), max(a.me, b.me)))
+    return out
 
 
-__all__ = ["capped_agreement", "mergeable_leaders"]
+def mergeable_leaders(live: Sequence[Core], cap: int, group: Callable[[int], int]) -> bool:
+    """Whether two leaders of one connected group lead swarms that would fit together."""
+    return bool(split_pairs(live, cap, group))
+
+
+__all__ = ["capped_agreement", "mergeable_leaders", "split_pairs"]

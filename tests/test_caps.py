@@ -33,7 +33,7 @@ from swarm.core.messages import (
 from swarm.core.protocol import ADVERTIZE, FLAG_LEADER, PAPER, Core
 from swarm.runtime.options import AgentConfig
 from swarm.sim.simulate import Scenario, Sim
-from swarm.sim.subswarms import capped_agreement, mergeable_leaders, split_pairs
+from swarm.sim.subswarms import capped_agreement, split_pairs
 
 
 def _pool(core: Core, *others: int, now: float = 0.0) -> Core:
@@ -355,8 +355,8 @@ def test_the_capped_judge() -> None:
     assert capped_agreement([lead, *members, idle], 3, one)[0] is False, "an agent in no swarm"
     two = _leader(4, set(), cap=3)
     assert capped_agreement([lead, *members, two], 3, one) == (True, 1)
-    assert not mergeable_leaders([lead, *members, two], 3, one)
-    assert mergeable_leaders([_leader(5, {6}, cap=3), two], 3, one), "2 + 1 fit under 3"
+    assert not split_pairs([lead, *members, two], 3, one)
+    assert split_pairs([_leader(5, {6}, cap=3), two], 3, one) == {(4, 5)}, "2 + 1 fit under 3"
     # the split check times each pair of leaders of one group (every pair without a cap)
     three = [_leader(7, set(), cap=0), _leader(8, {9}, cap=0), _leader(10, set(), cap=0)]
     assert split_pairs(three, 0, one) == {(7, 8), (7, 10), (8, 10)}

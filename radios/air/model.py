@@ -291,7 +291,7 @@ class AirModel:
                 kind = "stats"
             elif mp:
                 # multipoint: only the base speaks when idle, once per own window
-                if r.cfg.node_id != 0 or r.mp_synced_until >= end:
+                if not r.cfg.multipoint_base or r.mp_synced_until >= end:
                     self._wake_at(r, next_start)
                     return
                 r.mp_synced_until = end
@@ -399,8 +399,7 @@ class AirModel:
                 return False
         elif not r.locked:
             # the multipoint base sends its sync on a fixed channel: heard at once
-            base = r.cfg.firmware == "multipoint" and sender.cfg.node_id == 0
-            if not base and self.rng.random() >= 1.0 / max(r.cfg.num_channels, 1):
+            if not sender.cfg.multipoint_base and self.rng.random() >= 1.0 / max(r.cfg.num_channels, 1):
                 return False
             # r now follows the sender's TDM and hop sequence: they are in step
             r.locked = True
@@ -564,8 +563,7 @@ class AirModel:
         """link_update() of tdm.c, every 0.5 s."""
         if t - r.last_rx > 0.5:
             r.unlock_count += 1
-        base = r.cfg.firmware == "multipoint" and r.cfg.node_id == 0
-        if r.unlock_count > 40 and r.cfg.num_channels > 1 and not base:
+        if r.unlock_count > 40 and r.cfg.num_channels > 1 and not r.cfg.multipoint_base:
             # the multipoint base is the network's clock: it hops on its own sequence
             # whether it hears anyone or not, so it never loses the sync it gives
             r.locked = False

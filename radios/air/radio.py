@@ -60,6 +60,11 @@ class RadioConfig:
             return self.netid
         return binascii.crc_hqx((self.key + bytes(32))[:32], 0)
 
+    @property
+    def multipoint_base(self) -> bool:
+        """The multipoint network's base (node 0): it sends the sync every node follows."""
+        return self.firmware == "multipoint" and self.node_id == 0
+
     def compatible(self, other: RadioConfig) -> bool:
         """Both ends must match on these to hear each other (ArduPilot's SiK radio
         documentation: NETID, air speed, ECC, the band and its channels, and the

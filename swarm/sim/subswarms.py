@@ -8,10 +8,9 @@ connected group" cannot hold. :func:`capped_agreement` says instead whether ever
 live agent is in a led swarm of at most ``cap`` agents: each leader lists at most
 ``cap - 1`` members, every listed member is live, in the leader's connected group,
 a member following that leader, and listed by no other leader; every other live
-agent is such a member. :func:`mergeable_leaders` names two leaders of one
-connected group whose swarms would fit together: the merge rule should join them,
-so the simulator's split check counts only those (:func:`split_pairs` lists such
-pairs, every pair of one group without a cap: the check times each pair). Pure functions of the cores'
+agent is such a member. :func:`split_pairs` names the pairs of leaders of one
+connected group whose swarms would fit together (every pair without a cap): the
+merge rule should join them, so the simulator's split check times each such pair. Pure functions of the cores'
 states: the simulator calls them where it calls its own judge.
 """
 
@@ -62,9 +61,4 @@ def split_pairs(live: Sequence[Core], cap: int, group: Callable[[int], int]) -> 
     return out
 
 
-def mergeable_leaders(live: Sequence[Core], cap: int, group: Callable[[int], int]) -> bool:
-    """Whether two leaders of one connected group lead swarms that would fit together."""
-    return bool(split_pairs(live, cap, group))
-
-
-__all__ = ["capped_agreement", "mergeable_leaders", "split_pairs"]
+__all__ = ["capped_agreement", "split_pairs"]

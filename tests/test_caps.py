@@ -199,6 +199,48 @@ def test_a_leader_does_not_court_a_leader_whose_swarm_would_not_fit() -> None:
     assert [type(o.msg) for o in out] == [Heartbeat]
 
 
+def _periodic_heartbeat(core: Core, now: float) -> set[int]:
+    """Who the leader's next periodic Heartbeat goes to (one frame, these addressees)."""
+    out = core.tick(now)
+    return {o.to for o in out if isinstance(o.msg, Heartbeat)}
+
+
+def test_a_smaller_leader_courts_the_larger_with_every_heartbeat_until_listed() -> None:
+    # the attack-free fault: the larger leader's frames reach the smaller one rarely
+    # (one Advertize in ten s), so the merge may not wait for a reply to that one
+    small = _leader(6, {4, 11}, cap=0)
+    small.handle(Heartbeat(3, 0, 1, frozenset({1, 2, 5})), 1.0)  # larger: 4 > 3
+    assert small.phase == Phase.LEADER
+    hb = small.profile.heartbeat_interval
+    for k in (1, 2):  # each periodic Heartbeat, not only the one reply
+        assert _periodic_heartbeat(small, 1.0 + k * hb) == {3, 4, 11}
+    large = _leader(3, {1, 2, 5}, cap=0)
+    ours = next(o.msg for o in small.tick(1.0 + 3 * hb) if isinstance(o.msg, Heartbeat))
+    large.handle(ours, 1.0 + 3 * hb)
+    assert set(large.members) == {1, 2, 4, 5, 6, 11}, "the larger absorbs on any one of them"
+    assert caps.courted(large, 1.0 + 3 * hb) == [], "nobody courts a smaller leader"
+    small.handle(Heartbeat(3, 0, 2, frozenset(large.members)), 1.0 + 4 * hb)
+    assert small.phase == Phase.MEMBER and small.leader == 3
+
+
+def test_a_leader_courts_only_leaders_that_would_absorb_it_and_not_for_ever() -> None:
+    lead = _leader(6, {4, 11}, cap=0)
+    lead.handle(Heartbeat(9, 0, 1, frozenset({7, 8, 10, 12})), 1.0)  # larger: 5 > 3
+    lead.handle(Heartbeat(2, 0, 1, frozenset({1})), 1.0)  # smaller (2 < 3): it absorbs that one
+    hb = lead.profile.heartbeat_interval
+    assert _periodic_heartbeat(lead, 1.0 + hb) == {1, 2, 4, 11, 9}, "(5, 9) > (5, 6)"
+    quiet = 1.0 + lead.profile.leader_timeout + 2 * hb  # 9 not heard for a leader timeout
+    assert 9 not in _periodic_heartbeat(lead, quiet)
+    capped = _leader(6, {4, 11}, cap=5)
+    capped.handle(Heartbeat(9, 0, 1, frozenset({7, 8, 10})), 1.0)  # 3 + 4 > 5: no merge
+    assert 9 not in _periodic_heartbeat(capped, 1.0 + hb)
+    named = Core(6, swarm_name="red")
+    named.start(0.0)
+    named._become_leader(0.0, {4})
+    named.handle(Advertize(9, "agent9", FLAG_LEADER | ADV_SWARM, 0, swarm_tag("blue")), 1.0)
+    assert 9 not in _periodic_heartbeat(named, 1.0 + hb), "another name's leader is never courted"
+
+
 def test_a_member_stays_with_its_leader_and_the_other_lets_it_go() -> None:
     m = Core(5, cap=10)
     m.start(0.0)

@@ -159,8 +159,8 @@ def test_simulate_text_is_for_people() -> None:
 
 
 def test_simulate_lists_each_replay_command_once(capsys: pytest.CaptureFixture[str]) -> None:
-    argv = ["--agents", "3", "--seeds", "3", "--loss", "0.5", "--duration", "12", "--jobs", "1"]
-    assert simulate_main(argv) == 1  # seed 2 does not converge within 12 s at this loss
+    argv = ["--agents", "3", "--seeds", "3", "--loss", "0.5", "--duration", "11", "--jobs", "1"]
+    assert simulate_main(argv) == 1  # seed 2 does not converge within 11 s at this loss
     out, err = capsys.readouterr()
     replay = "swarm simulate --agents 3 --seeds 1 --seed 2"
     assert (out + err).count(replay) == 1 and "{" not in out

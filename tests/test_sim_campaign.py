@@ -78,6 +78,29 @@ def test_two_splits_one_after_the_other_are_timed_apart() -> None:
     assert res.violations == [] and res.stable_at_end
 
 
+def test_after_a_heal_under_loss_the_smaller_leader_is_absorbed_within_the_split_bound() -> None:
+    # found by the 10,000-scenario campaign: after the heal at 105.3 s the larger
+    # leader's frames reached the smaller one 3 times in 18 s, and each time the
+    # smaller one's single reply Heartbeat was lost: two leaders shared a group for 23 s.
+    # Now each of its periodic Heartbeats also goes to the larger one (caps.courted).
+    sc = Scenario(
+        agents=18,
+        profile="fast",
+        loss=0.25,
+        partitions=[
+            "72.6-105.3:1,2,3,5,7,8,9,10,12,13,17|4,6,11,14,15,16,18",
+            "62.0-74.1:1,5,6,10,12,15,18|2,3,4,7,8,9,11,13,14,16,17",
+        ],
+        crashes=["leader@26.6"],
+        duration=244.1,
+        strict=True,
+    )
+    sim = make_sim(sc, 1278781733)
+    res = sim.run()
+    assert res.violations == [] and res.stable_at_end
+    assert sum(c.phase == Phase.LEADER for c, up in zip(sim.cores, sim.alive, strict=True) if up) == 1
+
+
 def test_a_paused_agent_resumes_with_its_state() -> None:
     sim = FaultSim(Scenario(agents=3, pauses=["2@15-16"], strict=True), 1)
     core = sim.cores[1]

@@ -512,7 +512,8 @@ class Core:
             self.task = reconcile(self.task, self.me, self.members, self.poses, self.pose)
             self.hb_seq = (self.hb_seq + 1) & 0xFF
             hb = Heartbeat(self.me, self.epoch, self.hb_seq, frozenset(self.members), self.task)
-            out += [Out(m, hb) for m in sorted(self.members)]
+            # ...and to the leaders that would absorb us (caps.courted: the merge rule)
+            out += [Out(m, hb) for m in sorted(self.members) + caps.courted(self, now)]
 
     def lock_from_peer(self, now: float) -> None:
         self.locked = True

@@ -241,6 +241,18 @@ def test_a_leader_courts_only_leaders_that_would_absorb_it_and_not_for_ever() ->
     assert 9 not in _periodic_heartbeat(named, 1.0 + hb), "another name's leader is never courted"
 
 
+def test_forged_leader_adverts_cannot_make_a_leader_flood_the_air_with_heartbeats() -> None:
+    # a hostile radio (unsigned swarm) advertises 200 "leaders": courting each would
+    # add 200 addressees, more than a TUNNEL frame holds, and the heartbeat would go as
+    # one P2P frame per addressee every interval (an amplifier). It courts COURT_MAX.
+    lead = _leader(6, {4, 11}, cap=0)
+    for fake in range(20, 220):
+        lead.handle(Advertize(fake, f"agent{fake}", FLAG_LEADER), 1.0)
+    lead.handle(Heartbeat(3, 0, 1, frozenset({1, 2, 5, 7})), 1.0)  # the real, larger one
+    to = _periodic_heartbeat(lead, 1.0 + lead.profile.heartbeat_interval)
+    assert {3, 4, 11} <= to and len(to) <= 2 + caps.COURT_MAX, "known larger first, then few"
+
+
 def test_a_member_stays_with_its_leader_and_the_other_lets_it_go() -> None:
     m = Core(5, cap=10)
     m.start(0.0)

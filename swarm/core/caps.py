@@ -53,7 +53,8 @@ in :mod:`swarm.core.protocol_rules` or :class:`swarm.core.protocol.Core`:
   section 5), not through a leader of leaders.
 * **Leaders court the larger** (:func:`courted`): a leader's periodic Heartbeat also
   goes (one more addressee in the same frame) to every other leader it heard within
-  one leader timeout that would absorb it, until that leader's Heartbeat lists it. The
+  one leader timeout that would absorb it (at most COURT_MAX, the largest known first:
+  forged Advertizes cannot grow the frame), until that leader's Heartbeat lists it. The
   merge then needs one of those Heartbeats to reach the larger leader, not a reply
   timed to the one Advertize it happened to hear: over a lossy one-way leg a merge
   waited for the smaller leader to hear the larger twice (a campaign run at 25 % loss
@@ -85,6 +86,8 @@ if TYPE_CHECKING:
 
 FLAG_LEADER = 0x02  # as swarm.core.protocol_rules.FLAG_LEADER (that module imports this one)
 MAX_CAP = 250
+#: other leaders a leader's periodic Heartbeat courts at most (:func:`courted`)
+COURT_MAX = 3
 
 
 def check_cap(cap: object) -> int:
@@ -304,16 +307,18 @@ def courted(core: Core, now: float) -> list[int]:
     """The other leaders a leader's periodic Heartbeat also goes to (see "Leaders court
     the larger"): each heard within one leader timeout, not a member, not of another
     name, that would absorb us by the merge rule (a larger (size, id), or a size not
-    heard yet) and, with a cap, whose swarm and ours fit together."""
+    heard yet) and, with a cap, whose swarm and ours fit together; at most COURT_MAX,
+    the largest known first (forged leader Advertizes must not grow the frame: past
+    what one TUNNEL frame holds, a Heartbeat would go as one frame per addressee)."""
     mine = (size_of(core), core.me)
-    out = []
+    out: list[tuple[int, int]] = []
     for leader, info in core.other_leaders.current(now, core.profile.leader_timeout).items():
         if leader == core.me or leader in core.members or foreign(core, leader, unknown=True):
             continue
         if info.size and ((info.size, leader) < mine or not fits(info.size + mine[0], core.cap)):
             continue
-        out.append(leader)
-    return out
+        out.append((info.size, leader))
+    return [leader for _, leader in sorted(out, reverse=True)[:COURT_MAX]]
 
 
 def may_switch(core: Core, msg: Heartbeat) -> bool:
@@ -407,6 +412,7 @@ def note_leader_heartbeat(core: Core, msg: Heartbeat, now: float) -> None:
 
 __all__ = [
     "CONFIRM_INTERVALS",
+    "COURT_MAX",
     "FALLBACK_INTERVALS",
     "FORGET_TIMEOUTS",
     "MAX_CAP",

@@ -17,7 +17,7 @@ from swarm.core.tunnel import Kind
 from swarm.sim.campaign import draw, run_campaign
 from swarm.sim.faultsim import DriftCore, FaultSim, make_sim
 from swarm.sim.scenario import Link, Scenario
-from swarm.sim.shrink import fewer_agents, shrink
+from swarm.sim.shrink import fewer_agents, kinds, shrink
 from swarm.sim.simulate import Sim
 
 
@@ -153,6 +153,24 @@ def test_a_failing_scenario_shrinks_and_its_replay_fails_the_same_way(
     assert main([*argv, "--json", "--jobs", "1"]) == 1
     out = json.loads(capsys.readouterr().out)
     assert out["failing"][0]["violations"] == res.violations
+
+
+def test_a_shrink_keeps_only_variants_that_fail_the_same_way() -> None:
+    # the full campaign shrank a 48-agent split to 2 agents whose leaders all crashed:
+    # "membership did not converge", another kind, printed as the failure's replay
+    split = "two leaders in one connected group for over 34 s (their swarms fit under the cap)"
+    other = "membership did not converge after the last fault (t=0.0 s) by the end of the run (t=75.2 s)"
+    assert kinds([split]) == kinds([split.replace("34", "20")]) != kinds([other])
+    later = other.replace("0.0", "9.5").replace("75.2", "1.0")
+    assert kinds([other]) == kinds([later])
+
+
+def test_the_split_bound_is_20_s_or_six_tdm_rounds_whichever_is_longer() -> None:
+    # the merge rule is three one-way steps of at least a round each; 20 s was 3.5
+    # rounds on a channel of 48 radios, barely above the loss-free three
+    small, big = Sim(Scenario(agents=10), 0), Sim(Scenario(agents=48), 0)
+    assert small.split_limit_s == 20.0 and 6 * small.round_s < 20.0
+    assert big.split_limit_s == pytest.approx(6 * big.round_s) and big.split_limit_s > 30.0
 
 
 def test_fewer_agents_drops_faults_naming_agents_no_longer_there() -> None:

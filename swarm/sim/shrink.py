@@ -5,8 +5,10 @@ Theory of operation
 :func:`shrink` is greedy, as property-based testing tools shrink: it tries smaller
 variants of the scenario (:func:`candidates`: one fault fewer, no uniform or bursty
 loss, fewer agents, a shorter run), with the same run seed, and keeps the first that
-still violates an invariant; it starts again from that one until no variant fails
-or SHRINK_RUNS runs are spent. Fewer agents drop the faults that name an agent no
+still violates an invariant of a kind the original violated (:func:`kinds`: a
+variant that fails otherwise, say every agent crashed, shows another problem or
+none); it starts again from that one until no variant fails or SHRINK_RUNS runs are
+spent. Fewer agents drop the faults that name an agent no
 longer there and the agent from partition groups. The result is a scenario that
 fails (the original if nothing smaller does) and the result of its run; its
 :meth:`Scenario.command` replays it.
@@ -15,6 +17,7 @@ fails (the original if nothing smaller does) and the result of its run; its
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Iterator
 
 from swarm.sim.faultsim import make_sim
@@ -22,6 +25,7 @@ from swarm.sim.scenario import Link, RunResult, Scenario
 
 #: runs one shrink may spend
 SHRINK_RUNS = 60
+_NUMBER = re.compile(r"\d+(\.\d+)?")
 _LISTS = ("crashes", "restarts", "pauses", "partitions", "links", "late", "drift")
 
 
@@ -76,9 +80,16 @@ def candidates(sc: Scenario) -> Iterator[Scenario]:
         yield dataclasses.replace(sc, duration=round(sc.duration * 0.7, 1))
 
 
+def kinds(violations: list[str]) -> set[str]:
+    """The kinds of ``violations``: their texts without numbers (times, ids, bounds)."""
+    return {_NUMBER.sub("#", v) for v in violations}
+
+
 def shrink(sc: Scenario, seed: int, runs: int = SHRINK_RUNS) -> tuple[Scenario, RunResult]:
-    """The smallest variant of failing ``sc`` found that still fails, and its result."""
+    """The smallest variant of failing ``sc`` found that still fails the same way (a
+    violation of a kind the original had), and its result."""
     best = make_sim(sc, seed).run()
+    wanted = kinds(best.violations)
     spent = 1
     improved = True
     while improved and spent < runs:
@@ -88,10 +99,10 @@ def shrink(sc: Scenario, seed: int, runs: int = SHRINK_RUNS) -> tuple[Scenario, 
                 break
             spent += 1
             res = make_sim(cand, seed).run()
-            if res.violations:
+            if kinds(res.violations) & wanted:
                 sc, best, improved = cand, res, True
                 break
     return sc, best
 
 
-__all__ = ["SHRINK_RUNS", "candidates", "fewer_agents", "shrink"]
+__all__ = ["SHRINK_RUNS", "candidates", "fewer_agents", "kinds", "shrink"]

@@ -313,8 +313,8 @@ def courted(core: Core, now: float) -> list[int]:
     mine = (size_of(core), core.me)
     out: list[tuple[int, int]] = []
     for leader, info in core.other_leaders.current(now, core.profile.leader_timeout).items():
-        if leader == core.me or leader in core.members or foreign(core, leader, unknown=True):
-            continue
+        if leader in core.members or foreign(core, leader, unknown=True):
+            continue  # (never our own id: Core.handle drops what claims it)
         if info.size and ((info.size, leader) < mine or not fits(info.size + mine[0], core.cap)):
             continue
         out.append((info.size, leader))

@@ -37,6 +37,14 @@ def test_a_restarted_leader_comes_back_without_state_and_rejoins() -> None:
     assert sum(c.phase == Phase.LEADER for c in sim.cores) == 1
 
 
+def _settles(sc: Scenario, seed: int) -> Sim:
+    """A scenario the campaign once failed, run again: no violation, settled at the end."""
+    sim = make_sim(sc, seed)
+    res = sim.run()
+    assert res.violations == [] and res.stable_at_end
+    return sim
+
+
 def test_a_multipoint_base_cut_off_for_long_still_hears_its_nodes_after_the_heal() -> None:
     # found by the 10,000-scenario campaign: agent 1's radio (node 0, the multipoint base)
     # heard nobody for 79 s, the air model unlocked it like any node, and after the heal
@@ -53,9 +61,7 @@ def test_a_multipoint_base_cut_off_for_long_still_hears_its_nodes_after_the_heal
         duration=121.9,
         strict=True,
     )
-    sim = make_sim(sc, 450402140)
-    res = sim.run()
-    assert res.violations == [] and res.stable_at_end
+    sim = _settles(sc, 450402140)
     assert sim.air.radios[0].cfg.node_id == 0 and sim.air.radios[0].locked
 
 
@@ -74,8 +80,7 @@ def test_two_splits_one_after_the_other_are_timed_apart() -> None:
         duration=191.8,
         strict=True,
     )
-    res = make_sim(sc, 1532974364).run()
-    assert res.violations == [] and res.stable_at_end
+    _settles(sc, 1532974364)
 
 
 def test_after_a_heal_under_loss_the_smaller_leader_is_absorbed_within_the_split_bound() -> None:
@@ -95,9 +100,7 @@ def test_after_a_heal_under_loss_the_smaller_leader_is_absorbed_within_the_split
         duration=244.1,
         strict=True,
     )
-    sim = make_sim(sc, 1278781733)
-    res = sim.run()
-    assert res.violations == [] and res.stable_at_end
+    sim = _settles(sc, 1278781733)
     assert sum(c.phase == Phase.LEADER for c, up in zip(sim.cores, sim.alive, strict=True) if up) == 1
 
 

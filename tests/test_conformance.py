@@ -121,18 +121,21 @@ def test_sim_config_refuses_impossible_boot_times(bad: float) -> None:
 
 # ----------------------------------------------------------- real sockets, CLI
 @pytest.fixture
-def booting() -> Iterator[mavutil.mavfile]:
+def booting(request: pytest.FixtureRequest) -> Iterator[mavutil.mavfile]:
+    """A vehicle on a real TCP socket whose boot lasts ``request.param`` = (boot_time, speedup)."""
+    boot_time, speedup = request.param
     sim = VehicleSim(
         SimConfig(
             profile="ardupilot",
-            speedup=2.0,
+            speedup=speedup,
             home=(-35.363261, 149.165230, 584.0),
             base_port=free_port_range(1, "tcp", step=10),
-            boot_time=4.0,
+            boot_time=boot_time,
         )
     )
     sim.start()
     c = mavutil.mavlink_connection(sim.endpoints[0], source_system=255)
+    c.target_system = 1
     try:
         yield c
     finally:
@@ -141,21 +144,32 @@ def booting() -> Iterator[mavutil.mavfile]:
 
 
 @pytest.mark.processes
+@pytest.mark.parametrize("booting", [(600.0, 1.0)], indirect=True)
 def test_a_booting_vehicle_on_its_socket(booting: mavutil.mavfile) -> None:
-    """4 s of boot at speedup 2: BOOT, Null Island, refused arms with reasons, then armable."""
+    """A 600 s boot (BOOT for its first 34 s, no GPS for 140 s, so a loaded machine cannot
+    outrun it): BOOT heartbeats, Null Island positions, arms refused with their reasons."""
     c = booting
     hb = wait_msg(c, "HEARTBEAT", timeout=20)
     assert hb.system_status == 1 and hb.base_mode == 89  # type: ignore[attr-defined]
-    c.target_system = 1
     assert command(c, 511, 33, 100000) == 0
     pos = wait_msg(c, "GLOBAL_POSITION_INT", timeout=20)
     assert (pos.lat, pos.lon, pos.alt) == (0, 0, 0)  # type: ignore[attr-defined]
     texts: list[str] = []
     assert command(c, 400, 1, texts=texts) == 4
     assert texts and all(t.startswith("Arm: ") for t in texts), texts
-    wait_msg(c, "STATUSTEXT", lambda m: m.text == "EKF3 IMU0 is using GPS", timeout=20)  # type: ignore[attr-defined]
+
+
+@pytest.mark.processes
+@pytest.mark.parametrize("booting", [(4.0, 2.0)], indirect=True)
+def test_a_vehicle_arms_once_its_boot_is_over(booting: mavutil.mavfile) -> None:
+    """A 4 s boot at speedup 2: LOCAL_POSITION_NED flows only once the EKF uses GPS (the
+    boot's end, whenever this test got to ask), then GUIDED and the arm are accepted."""
+    c = booting
+    assert command(c, 511, 32, 100000) == 0
+    wait_msg(c, "LOCAL_POSITION_NED", timeout=20)
     assert command(c, 176, 1, 4) == 0  # GUIDED
     assert command(c, 400, 1) == 0
+    assert command(c, 511, 33, 100000) == 0
     assert wait_msg(c, "GLOBAL_POSITION_INT", lambda m: m.lat != 0, timeout=20)  # type: ignore[attr-defined]
 
 

@@ -382,18 +382,22 @@ class AirModel:
         packet's channel (locked, or by chance), not lost. Hearing a sender on its own
         hopping sequence locks both."""
         sender = self.radios[pkt.sender]
-        if not r.cfg.compatible(sender.cfg):
+        rcfg = r.cfg
+        key = rcfg.air_key
+        if sender.cfg.air_key != key:
             return False
-        seed = r.cfg.hop_seed()
+        seed = rcfg.hop
+        radios = self.radios
+        me = r.index
         for other in overlapping:
-            if other.sender == r.index:
+            if other.sender == me:
                 return False  # half duplex: it was transmitting and heard nothing
-            ocfg = self.radios[other.sender].cfg
-            if ocfg.compatible(r.cfg) and ocfg.hop_seed() == seed:
+            ocfg = radios[other.sender].cfg
+            if ocfg.air_key == key and ocfg.hop == seed:
                 r.stats.collisions += 1
                 r.stats.rx_errors += 1
                 return False
-        if sender.cfg.hop_seed() != seed:
+        if sender.cfg.hop != seed:
             # another hopping sequence (AES key): on our channel only by chance
             if self.rng.random() >= 1.0 / max(r.cfg.num_channels, 1):
                 return False

@@ -19,6 +19,7 @@ import math
 import random
 from collections import deque
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Protocol
 
 from radios.sik.timing import TdmTiming, tdm_timing
@@ -56,9 +57,27 @@ class RadioConfig:
     def hop_seed(self) -> int:
         """What seeds the channel shuffle (freq_hopping.c shuffleRand): the NETID, or a
         CRC-16 of the 32-byte key when encryption is on."""
+        return self.hop
+
+    @cached_property
+    def hop(self) -> int:
+        """:meth:`hop_seed`, worked out once (the air model asks it per receiver)."""
         if not self.key:
             return self.netid
         return binascii.crc_hqx((self.key + bytes(32))[:32], 0)
+
+    @cached_property
+    def air_key(self) -> tuple[int, int, bool, int, int, int, str]:
+        """The settings of :meth:`compatible`: two radios hear each other when theirs are equal."""
+        return (
+            self.netid,
+            self.air_kbps,
+            self.ecc,
+            self.min_freq,
+            self.max_freq,
+            self.num_channels,
+            self.firmware,
+        )
 
     @property
     def multipoint_base(self) -> bool:
@@ -69,15 +88,7 @@ class RadioConfig:
         """Both ends must match on these to hear each other (ArduPilot's SiK radio
         documentation: NETID, air speed, ECC, the band and its channels, and the
         firmware: a 1.9 radio does not hear a 2.0 one)."""
-        return (
-            self.netid == other.netid
-            and self.air_kbps == other.air_kbps
-            and self.ecc == other.ecc
-            and self.min_freq == other.min_freq
-            and self.max_freq == other.max_freq
-            and self.num_channels == other.num_channels
-            and self.firmware == other.firmware
-        )
+        return self.air_key == other.air_key
 
     def timing(self) -> TdmTiming:
         mw = None if self.firmware == "multipoint" else self.max_window_ms

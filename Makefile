@@ -82,8 +82,9 @@ check: setup
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
 
-# Everything (what CI runs): two pytest sessions side by side, the real-time process
-# tests in one, everything else in the other (tests/run_all.sh says why).
+# Everything (what CI runs): three pytest sessions side by side, the real-time process
+# tests in one, the long ones that mostly wait in another, everything else in the third
+# (tests/run_all.sh says why).
 test: check
 	PYTEST=$(BIN)/pytest tests/run_all.sh
 

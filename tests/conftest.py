@@ -6,13 +6,16 @@ Markers (registered in pyproject.toml): ``processes`` marks the tests that start
 processes, radios emulated in real time, Zenoh sessions or a browser and take
 seconds each; ``make test-quick`` leaves them out, ``make test`` runs them all.
 
-``make test`` runs two pytest sessions side by side (``tests/run_all.sh``). The
+``make test`` runs three pytest sessions side by side (``tests/run_all.sh``). The
 process tests run in real time and some judge rates, formation errors or recovery on
 a shared machine, so they stay one after another in one session, as they always
 ran; the other session runs the tests that start no process, then the light process
 tests (:data:`LIGHT`, marked ``light`` here: AT commands over ptys, a wheel build,
 the pre-flight check, pages and stations checked for what they show: no rates or
-durations judged), balancing the two sessions' lengths.
+durations judged), balancing the two sessions' lengths. A third session runs the few
+long process tests marked ``waits`` in their modules: they mostly wait out a fixed
+stretch of real time (a recorded 41.5 s boot, a minute of uptime) with little CPU,
+and the README's runnable examples, which share the README's fixed ports.
 """
 
 from __future__ import annotations

@@ -18,6 +18,7 @@ pytestmark = pytest.mark.processes  # the bench's processes through a fault camp
 
 
 @pytest.mark.timeout(900)
+@pytest.mark.waits  # members up for 75 s before the restart fault; a third of a core
 def test_signed_swarm_survives_the_bounded_fault_campaign() -> None:
     lines: list[str] = []
     result = run_faults(FAULTS_QUICK, log=lines.append, member_uptime_s=75.0)

@@ -11,18 +11,15 @@ one out as the ``manual_clock`` fixture.
 
 from __future__ import annotations
 
-import random
-import socket
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
-#: The socket kinds a test asks a free port of.
-PortKind = Literal["tcp", "udp"]
-_SOCK_TYPES = {"tcp": socket.SOCK_STREAM, "udp": socket.SOCK_DGRAM}
-#: Not the seeded ``random``: two pytest sessions side by side must not pick alike.
-_RANDOM = random.SystemRandom()
+# free ports live in the library (the benches and the demo need them too): re-exported
+from radios.ports import PortKind as PortKind
+from radios.ports import free_port as free_port
+from radios.ports import free_port_range as free_port_range
 
 
 class Watched(Protocol):
@@ -34,61 +31,6 @@ class Watched(Protocol):
 
     @property
     def proc(self) -> Any: ...
-
-
-def _bindable(port: int, kind: PortKind) -> bool:
-    with socket.socket(socket.AF_INET, _SOCK_TYPES[kind]) as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
-def _ephemeral_range() -> tuple[int, int]:
-    try:
-        lo, hi = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
-    except (OSError, ValueError):
-        return 32768, 60999
-    return lo, hi
-
-
-def _candidates() -> range:
-    """Ports the kernel never hands out on its own: outside the ephemeral range, so a
-    socket some process binds to port 0 (a simulator's sending socket, a client's
-    connect, the other pytest session beside this one) cannot take a port a test chose
-    and has not bound yet. CI saw exactly that race once (EADDRINUSE)."""
-    lo, hi = _ephemeral_range()
-    if lo - 1 - 10000 >= 5000:
-        return range(10000, lo)
-    return range(hi + 1, 65000)
-
-
-def free_port(kind: PortKind = "tcp") -> int:
-    """A ``kind`` port on 127.0.0.1 that was free a moment ago, chosen outside the
-    kernel's ephemeral range (see :func:`_candidates`)."""
-    pick = _RANDOM.choice
-    ports = _candidates()
-    for _ in range(200):
-        port = pick(ports)
-        if _bindable(port, kind):
-            return port
-    with socket.socket(socket.AF_INET, _SOCK_TYPES[kind]) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def free_port_range(count: int, kind: PortKind = "tcp", step: int = 1) -> int:
-    """A base port P such that the ``kind`` ports P, P+step, ..., P+(count-1)*step on
-    127.0.0.1 were free a moment ago (a simulator's vehicles: PX4's consecutive UDP
-    ports, ArduPilot's TCP ports 10 apart)."""
-    for _ in range(50):
-        base = free_port(kind)
-        if base + step * count > _candidates().stop:
-            continue
-        if all(_bindable(base + step * i, kind) for i in range(count)):
-            return base
-    raise RuntimeError(f"no {count} free {kind.upper()} ports {step} apart")
 
 
 def _exited(children: Sequence[Watched], what: str) -> None:

@@ -169,9 +169,12 @@ def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> Non
     ep = f"tcp/127.0.0.1:{free_port()}"
     common = ["--zenoh-listen", ep, "--json"]
     loud = Child(["-v", "agent", "--name", "loud", "--id", "1", *common], name="loud")
-    quiet = Child(["agent", "--name", "quiet", "--id", "2", "--zenoh-connect", ep, "--json"], name="quiet")
+    kids = [loud]
     try:
-        loud.wait_lines(1, 60)
+        loud.wait_lines(1, 60)  # listening: the quiet one finds a peer at once (no warning)
+        argv = ["agent", "--name", "quiet", "--id", "2", "--zenoh-connect", ep, "--json"]
+        quiet = Child(argv, name="quiet")
+        kids.append(quiet)
         quiet.wait_lines(1, 60)
         with Transport.open("intruder", connect=[ep]) as tr:
 
@@ -189,7 +192,7 @@ def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> Non
         assert len(lines) == 1 and " swarm.runtime.agent INFO: agent loud: " in lines[0]
         assert lines[0][:4].isdigit()  # the time first
     finally:
-        for ch in (loud, quiet):
+        for ch in kids:
             assert ch.stop() == 0
     assert quiet.errors == []  # without -v: nothing configured, INFO stays quiet
 

@@ -16,6 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from net_helpers import free_port
 
 from swarm.cli.commands import doctor
 from swarm.core.doctor import Check, clean, exit_code, report_json, summary, text_line
@@ -343,9 +344,7 @@ def test_zenoh_endpoint_grammar() -> None:
 
 
 def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_port("tcp")
 
 
 def test_zenoh_probe_sees_a_taken_port_and_garbage() -> None:

@@ -176,9 +176,7 @@ def test_connect_errors_are_clear() -> None:
     with pytest.raises(ConnectError, match="resolve"):
         drv.connect("udpout:no-such-host.invalid:14550", timeout=1)
     # a TCP port nobody listens on: refused at once, not retried forever
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port("tcp")
     t0 = time.monotonic()
     with pytest.raises(ConnectError):
         drv.connect(f"tcp:127.0.0.1:{port}", timeout=2)
@@ -216,9 +214,7 @@ def test_silent_tcp_server_times_out() -> None:
 def test_tcp_autopilot_that_opens_its_port_late_is_found_within_the_timeout() -> None:
     """A script started together with its SITL or ``swarm sim``: the port is refused
     for a moment, then listens and talks; connect() finds it within its timeout."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port("tcp")  # outside the ephemeral range: no retry can connect to itself
     done = threading.Event()
     conns: list[socket.socket] = []
 

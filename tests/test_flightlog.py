@@ -377,24 +377,37 @@ def test_a_folder_without_permission_is_exit_2_for_another_user() -> None:
         os.rmdir(base)
 
 
-# the agent's command in a process of its own, stopped (SIGTERM) once its flight log has
-# both sources; then the modules it loaded that it must not need
+# the agent's command in a process of its own, stopped (SIGTERM) once its flight log holds
+# what the test looks for (however long a loaded machine took to get there); then the
+# modules it loaded that it must not need
 AGENT_RUN = textwrap.dedent(
     """
     import json, os, signal, sys, threading, time
     from swarm.cli import main
+    from radios.tlogset import read_flight_log
     folder = sys.argv[2]
+    FC_WANTED = {"HEARTBEAT", "GLOBAL_POSITION_INT", "SYS_STATUS"}
+
+    def logged():
+        try:
+            fc = {r.frame.name for r in read_flight_log(folder, source="fc")}
+            radio = {(r.frame.name, r.frame.sysid, r.frame.compid) for r in read_flight_log(folder)}
+        except Exception:  # not there yet, or a record half written
+            return False
+        names = {n for n, _, _ in radio}
+        return (
+            FC_WANTED <= fc
+            and ("RADIO_STATUS", 51, 68) in radio
+            and ("HEARTBEAT", 1, 191) in radio
+            and "TUNNEL" in names
+        )
 
     def stop_when_logged():
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            names = os.listdir(folder) if os.path.isdir(folder) else []
-            if any(n.endswith(".fc.tlog") for n in names) and time.monotonic() > t0 + 4:
-                break
-            time.sleep(0.1)
+        while time.monotonic() < deadline and not logged():
+            time.sleep(0.2)
         os.kill(os.getpid(), signal.SIGTERM)
 
-    t0 = time.monotonic()
     threading.Thread(target=stop_when_logged, daemon=True).start()
     code = main(json.loads(sys.argv[1]))
     loaded = {m.split(".")[0] for m in sys.modules}

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 import re
-import socket
 import stat
 import time
 from collections import Counter
@@ -45,6 +44,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.sim.autopilot import Autopilot
 from firmware_bridge.sim.boot import RECORDED_TOTAL
+from radios.ports import free_port
 
 COMPANION, AUTOPILOT = 191, 1
 MAX_TRACE_S = 3600.0  # a longer file is refused, not replayed for hours
@@ -327,9 +327,7 @@ def conformance(path: Path, boot_time: float = RECORDED_TOTAL) -> dict[str, Any]
 
 # ------------------------------------------------------- live, on real sockets
 def _free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_port("tcp")  # outside the ephemeral range: radios.ports
 
 
 def replay_live(trace: Trace, speedup: float = 10.0, boot_time: float = RECORDED_TOTAL) -> list[Record]:

@@ -50,7 +50,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import tempfile
 import threading
 import time
@@ -58,6 +57,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from radios.ports import free_port_range
 from swarm.cli.procs import Child, ChildError, start_emulator
 from swarm.core.messages import AckResult, CommandKind
 from swarm.core.profiles import PROFILE_NAMES
@@ -119,24 +119,12 @@ class DemoResult:
 
 
 def _free_base_port(count: int) -> int:
-    """A base port with ``count`` consecutive free UDP ports after it."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + count >= 65535:
-            continue
-        ok = True
-        for p in range(base, base + count):
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-                try:
-                    s.bind(("127.0.0.1", p))
-                except OSError:
-                    ok = False
-                    break
-        if ok:
-            return base
-    raise DemoError("no free UDP ports for the simulated vehicles")
+    """A base port with ``count`` consecutive free UDP ports after it (outside the
+    kernel's ephemeral range: :mod:`radios.ports`)."""
+    try:
+        return free_port_range(count, "udp")
+    except RuntimeError:
+        raise DemoError("no free UDP ports for the simulated vehicles") from None
 
 
 class _Watch:

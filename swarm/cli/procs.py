@@ -7,7 +7,6 @@ import contextlib
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -16,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from radios.ports import free_port
 from swarm.errors import SwarmError
 
 
@@ -40,10 +40,9 @@ def json_events(lines: Sequence[str], event: str | None = None) -> list[dict[str
 
 
 def free_tcp_port() -> int:
-    """A TCP port free on 127.0.0.1 right now (for a child to listen on)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A TCP port free on 127.0.0.1 right now, for a child to listen on (outside the
+    kernel's ephemeral range: :mod:`radios.ports`)."""
+    return free_port("tcp")
 
 
 def cpu_seconds(pid: int) -> float:

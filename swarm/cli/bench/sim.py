@@ -13,37 +13,22 @@ setpoints at 10 Hz while the 20 vehicles run. Figures:
 
 from __future__ import annotations
 
-import random
-import socket
 import statistics
 import time
 from typing import Any
 
 from firmware_bridge.driver import connect
+from radios.ports import free_port_range
 from swarm.cli.procs import Child, cpu_seconds
 
 VEHICLES = 20
 RATE_HZ = 10.0
 
 
-def _free_udp_range(count: int, tries: int = 50) -> int:
-    """A base port with ``count`` consecutive free UDP ports on 127.0.0.1."""
-    rng = random.Random()
-    for _ in range(tries):
-        base = rng.randrange(20000, 60000 - count)
-        socks: list[socket.socket] = []
-        try:
-            for p in range(base, base + count):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", p))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError(f"no {count} consecutive free UDP ports found")
+def _free_udp_range(count: int) -> int:
+    """A base port with ``count`` consecutive free UDP ports on 127.0.0.1 (outside the
+    kernel's ephemeral range: :mod:`radios.ports`)."""
+    return free_port_range(count, "udp")
 
 
 def _percentile(values: list[float], q: float) -> float:

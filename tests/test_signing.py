@@ -125,6 +125,55 @@ def test_a_new_stream_more_than_a_minute_old_is_a_replay(wall: WallClock) -> Non
     assert Verifier(KEY).check(recorded)
 
 
+def test_a_dead_process_stream_replayed_to_a_restarted_verifier_is_refused(wall: WallClock) -> None:
+    """The attack the fault bench caught on CI: a neighbour records agent 2 leading; agent 2
+    is killed and restarts (a new link id, a new stream); then agent 1 restarts too, so its
+    new verifier never heard agent 2's old stream. Replayed within the minute, the old
+    stream passed as a new one and agent 1 saw agent 2 lead again. A new stream of a
+    system must be newer than anything accepted from that system."""
+    old = FrameBuilder(2, 191, signing_key=KEY, link_id=1)
+    recorded = [parse(old.heartbeat()) for _ in range(3)]  # what the neighbour captured
+    wall.t += 20.0
+    successor = FrameBuilder(2, 191, signing_key=KEY, link_id=2)  # agent 2 restarted
+    v = Verifier(KEY)  # agent 1 restarted: it never heard stream (2, 191, 1)
+    assert v.check(parse(successor.heartbeat()))
+    assert [v.check(f) for f in recorded] == [False, False, False]
+    assert v.stats.replayed == 3
+    # another system's stream as old is not judged by system 2's: its first frame passes
+    third = FrameBuilder(3, 191, signing_key=KEY, link_id=1)
+    wall.t -= 20.0
+    other = parse(third.heartbeat())
+    wall.t += 20.0
+    assert v.check(other)
+    # nor another component of system 2 (the bridge's vehicle-side builder, compid 1)
+    wall.t -= 20.0
+    vehicle_side = parse(FrameBuilder(2, 1, signing_key=KEY, link_id=1).heartbeat())
+    wall.t += 20.0
+    assert v.check(vehicle_side)
+
+
+def test_a_sender_restarted_with_its_clock_behind_is_heard_once_it_has_heard_the_swarm(
+    wall: WallClock,
+) -> None:
+    """A Pi without a real-time clock restarts with its clock 30 s behind its last run: its
+    first frames are older than its old stream's and are refused (they look like a replay
+    of that system); once it has heard one signed frame it stamps with the swarm's time
+    and is heard again."""
+    v = Verifier(KEY)  # a peer that heard the first run
+    first_run = FrameBuilder(4, 191, signing_key=KEY)
+    assert v.check(parse(first_run.heartbeat()))
+    peer = FrameBuilder(5, 191, signing_key=KEY)
+    wall.t -= 30.0  # the restarted machine's clock
+    clock = SigningClock()
+    second_run = FrameBuilder(4, 191, signing_key=KEY, clock=clock)
+    assert not v.check(parse(second_run.heartbeat()))
+    wall.t += 30.0
+    heard = parse(peer.heartbeat())
+    wall.t -= 30.0
+    assert Verifier(KEY, clock=clock).check(heard)  # its own verifier moves its clock
+    assert v.check(parse(second_run.heartbeat()))  # its clock still 30 s behind: the swarm's time
+
+
 def test_a_verifier_with_a_slow_clock_adopts_the_swarm_time(wall: WallClock) -> None:
     """A Pi without a real-time clock booted an hour behind: it accepts current streams (they are
     not old) and from then on stamps its own frames with the swarm's time, as the MAVLink signing

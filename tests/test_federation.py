@@ -32,6 +32,7 @@ class Side:
         self.ran: list[Any] = []
         self.events: list[tuple[str, str]] = []
         self.agents = [{"id": i, "name": f"a{i}", "connected": True, "leader": agents[0]} for i in agents]
+        opts: dict[str, Any] = {"period": 0.2, "timeout": 1.5, "forget": 4.0, "command_timeout": 3.0}
         self.fed = Federation(
             name,
             connect=[ep],
@@ -39,11 +40,7 @@ class Side:
             local=lambda: {"agents": self.agents, "events": [], "swarms": []},
             run_local=self.run,
             on_event=lambda k, t: self.events.append((k, t)),
-            period=0.2,
-            timeout=1.5,
-            forget=4.0,
-            command_timeout=3.0,
-            **kw,
+            **(opts | kw),
         )
 
     def run(self, body: Any) -> Future[tuple[int, dict[str, Any]]]:
@@ -198,7 +195,9 @@ def test_huge_malformed_and_misnamed_states_are_dropped_and_names_taken_are_said
 
 @pytest.mark.processes
 def test_a_station_gone_ages_out_and_without_a_key_commands_are_refused(router: str) -> None:
-    a, c = pair(router, key=None)
+    # shown gone from 1.5 s after C stops until forgotten at 10 s: a window no stall of
+    # this test's polling misses (with 4 s, a 2.5 s stall on a loaded machine could)
+    a, c = pair(router, key=None, forget=10.0)
     evil = open_session(connect=[router])
     try:
         assert a.fed.request("gcsC", {"target": 41, "kind": "land"}).result(10)[0] == 504

@@ -12,13 +12,13 @@ the signature and drops replays, as the MAVLink signing specification says: per 
 (sysid, compid, link id) the timestamp must grow, and a stream heard for the first time
 must not be more than a minute older than our clock (a stream from the future is
 accepted, and our clock moves up to it: a machine booted with its clock behind joins
-the swarm's time instead of refusing it). Stricter than the specification, a stream
-heard for the first time must also not be older than the newest frame accepted from
-the same (sysid, compid) on another stream: a restarted sender opens a new stream
-(a new link id) stamped later than its last run, so an older "new" stream is that
-last run replayed. Without this rule a verifier started after the sender's restart
-(which never heard the old stream) took a recording of it, replayed within the
-minute, for a live one. Only frames whose signature verified move the clock.
+the swarm's time instead of refusing it). Stricter than the specification, a frame
+must also not be older than the newest frame accepted from the same (sysid, compid)
+on another stream: a restarted sender opens a new stream (a new link id) stamped
+later than its last run, so an older frame on another stream is that last run
+replayed. Without this rule a verifier started after the sender's restart (which
+never heard the old stream) took a recording of it, replayed within the minute, for
+a live one. Only frames whose signature verified move the clock.
 
 Keys: :func:`load_key` reads 32 raw bytes, 64 hex digits, or else a passphrase
 turned into a key by SHA-256 as MAVProxy's ``signing setup`` does.
@@ -96,7 +96,8 @@ class Verifier:
     allow_unsigned: Callable[[Frame], bool] = lambda f: f.msgid == 109 and f.sysid == 51 and f.compid == 68
     stats: VerifyStats = field(default_factory=VerifyStats)
     _last: dict[tuple[int, int, int], int] = field(default_factory=dict)
-    _newest: dict[tuple[int, int], int] = field(default_factory=dict)  # per (sysid, compid)
+    #: per (sysid, compid): the newest accepted timestamp and the stream (link id) it came on
+    _newest: dict[tuple[int, int], tuple[int, int]] = field(default_factory=dict)
 
     def check(self, frame: Frame) -> bool:
         raw = frame.raw
@@ -114,18 +115,16 @@ class Verifier:
         system = (frame.sysid, frame.compid)
         stream = (frame.sysid, frame.compid, link_id)
         last = self._last.get(stream)
-        if last is None:
-            # a new stream: not more than a minute old, and not older than what that
-            # system last said on another stream (its earlier run, replayed)
-            if ts < self.clock.reference() - MAX_SKEW_TICKS or ts < self._newest.get(system, 0):
-                self.stats.replayed += 1
-                return False
-        elif ts <= last:
-            self.stats.replayed += 1
+        newest_ts, newest_link = self._newest.get(system, (0, link_id))
+        if last is None and ts < self.clock.reference() - MAX_SKEW_TICKS:
+            self.stats.replayed += 1  # a new stream more than a minute old
+            return False
+        if (last is not None and ts <= last) or (newest_link != link_id and ts < newest_ts):
+            self.stats.replayed += 1  # not newer on its stream, or an earlier run of the sender
             return False
         self._last[stream] = ts
-        if ts > self._newest.get(system, 0):
-            self._newest[system] = ts
+        if ts >= newest_ts:
+            self._newest[system] = (ts, link_id)
         self.clock.observe(ts)
         self.stats.accepted += 1
         return True

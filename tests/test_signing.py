@@ -139,6 +139,12 @@ def test_a_dead_process_stream_replayed_to_a_restarted_verifier_is_refused(wall:
     assert v.check(parse(successor.heartbeat()))
     assert [v.check(f) for f in recorded] == [False, False, False]
     assert v.stats.replayed == 3
+    # a verifier that got the recording first (before the live stream: the minute's window)
+    # takes no more of it once it has heard the live stream
+    early = Verifier(KEY)
+    assert early.check(recorded[0])
+    assert early.check(parse(successor.heartbeat()))
+    assert [early.check(f) for f in recorded[1:]] == [False, False]
     # another system's stream as old is not judged by system 2's: its first frame passes
     third = FrameBuilder(3, 191, signing_key=KEY, link_id=1)
     wall.t -= 20.0

@@ -9,16 +9,19 @@ bytes of SHA-256(secret_key + every byte of the frame before the signature).
 :class:`~radios.mavlink.SigningClock`: the wall clock, strictly increasing, and never
 behind the newest timestamp the node has accepted from a peer. :class:`Verifier` checks
 the signature and drops replays, as the MAVLink signing specification says: per stream
-(sysid, compid, link id) the timestamp must grow, and a stream heard for the first time
-must not be more than a minute older than our clock (a stream from the future is
+(sysid, compid, link id) the timestamp must grow, and a frame must not be more than a
+minute older than our clock (the specification asks it of a stream's first frame; we
+ask it of every frame, or a recording played back slowly to a verifier that never
+heard the live stream would pass for as long as it lasted). A frame from the future is
 accepted, and our clock moves up to it: a machine booted with its clock behind joins
-the swarm's time instead of refusing it). Stricter than the specification, a frame
-must also not be older than the newest frame accepted from the same (sysid, compid)
-on another stream: a restarted sender opens a new stream (a new link id) stamped
-later than its last run, so an older frame on another stream is that last run
-replayed. Without this rule a verifier started after the sender's restart (which
-never heard the old stream) took a recording of it, replayed within the minute, for
-a live one. Only frames whose signature verified move the clock.
+the swarm's time instead of refusing it. Also stricter than the specification, a frame
+stamped before another stream of the same (sysid, compid) began is refused: a
+restarted sender opens a new stream (a new link id) stamped later than its last run
+began, so such a frame is an earlier run replayed. Without this rule a verifier
+started after the sender's restart (which never heard the old stream) took a
+recording of it, replayed within the minute, for a live one. Two live senders with
+one id (two stations left at the default id) are both heard: each one's stream began
+before the other's later frames. Only frames whose signature verified move the clock.
 
 Keys: :func:`load_key` reads 32 raw bytes, 64 hex digits, or else a passphrase
 turned into a key by SHA-256 as MAVProxy's ``signing setup`` does.
@@ -96,8 +99,8 @@ class Verifier:
     allow_unsigned: Callable[[Frame], bool] = lambda f: f.msgid == 109 and f.sysid == 51 and f.compid == 68
     stats: VerifyStats = field(default_factory=VerifyStats)
     _last: dict[tuple[int, int, int], int] = field(default_factory=dict)
-    #: per (sysid, compid): the newest accepted timestamp and the stream (link id) it came on
-    _newest: dict[tuple[int, int], tuple[int, int]] = field(default_factory=dict)
+    #: per (sysid, compid): each stream's (link id's) first accepted timestamp
+    _starts: dict[tuple[int, int], dict[int, int]] = field(default_factory=dict)
 
     def check(self, frame: Frame) -> bool:
         raw = frame.raw
@@ -115,16 +118,17 @@ class Verifier:
         system = (frame.sysid, frame.compid)
         stream = (frame.sysid, frame.compid, link_id)
         last = self._last.get(stream)
-        newest_ts, newest_link = self._newest.get(system, (0, link_id))
-        if last is None and ts < self.clock.reference() - MAX_SKEW_TICKS:
-            self.stats.replayed += 1  # a new stream more than a minute old
-            return False
-        if (last is not None and ts <= last) or (newest_link != link_id and ts < newest_ts):
-            self.stats.replayed += 1  # not newer on its stream, or an earlier run of the sender
+        starts = self._starts.get(system)
+        if (
+            ts < self.clock.reference() - MAX_SKEW_TICKS  # more than a minute old
+            or (last is not None and ts <= last)  # not newer on its stream
+            or (starts is not None and any(ts < t0 for lid, t0 in starts.items() if lid != link_id))
+        ):  # (the last: stamped before another stream of the sender began: an earlier run)
+            self.stats.replayed += 1
             return False
         self._last[stream] = ts
-        if ts >= newest_ts:
-            self._newest[system] = (ts, link_id)
+        if last is None:
+            self._starts.setdefault(system, {})[link_id] = ts
         self.clock.observe(ts)
         self.stats.accepted += 1
         return True

@@ -312,7 +312,7 @@ def test_clock_in_the_past_fails() -> None:
 
 def test_clock_injected_into_the_whole_check() -> None:
     """examine() takes ``now``: the same check with the clock at 1970 fails on it alone."""
-    port = free_tcp_port()
+    port = free_port("tcp")
     setup = Setup(zenoh_listen=(f"tcp/127.0.0.1:{port}",))
     good = examine(setup, now=NOW)
     past = examine(setup, now=0.0)
@@ -343,10 +343,6 @@ def test_zenoh_endpoint_grammar() -> None:
             parse_zenoh_endpoint("tcp/h:" + digit)
 
 
-def free_tcp_port() -> int:
-    return free_port("tcp")
-
-
 def test_zenoh_probe_sees_a_taken_port_and_garbage() -> None:
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
@@ -354,7 +350,7 @@ def test_zenoh_probe_sees_a_taken_port_and_garbage() -> None:
         port = taken.getsockname()[1]
         c = zenoh_check(zenoh_facts(f"tcp/127.0.0.1:{port}", "listen"))
         assert c.status == "fail" and "cannot bind" in c.seen
-    assert zenoh_check(zenoh_facts(f"tcp/127.0.0.1:{free_tcp_port()}", "listen")).status == "pass"
+    assert zenoh_check(zenoh_facts(f"tcp/127.0.0.1:{free_port('tcp')}", "listen")).status == "pass"
     assert zenoh_check(zenoh_facts("tcp/192.0.2.1:7447", "connect")).status == "pass"
     assert zenoh_check(zenoh_facts("tcp/no-such-host.invalid:7447", "connect")).status == "fail"
     assert zenoh_check(zenoh_facts("tcp/203.0.113.9:7447", "listen")).status == "fail"  # not ours

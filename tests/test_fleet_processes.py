@@ -14,10 +14,11 @@ from pathlib import Path
 import pytest
 from gcs_browser import browser, new_page
 
+from radios.ports import free_port
 from swarm.cli.bench.scale_procs import Deployment, http, led_swarms, poll
 from swarm.cli.commands.gcs import main as gcs_main
 from swarm.cli.commands.router import main as router_main
-from swarm.cli.procs import Child, free_tcp_port
+from swarm.cli.procs import Child
 
 
 @pytest.mark.processes
@@ -102,7 +103,7 @@ def test_bad_radios_and_router_endpoints_are_one_line_errors(capsys: pytest.Capt
 
 @pytest.mark.processes
 def test_the_router_stops_on_sigint_with_130() -> None:
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    ep = f"tcp/127.0.0.1:{free_port('tcp')}"
     router = Child(["router", "--listen", ep, "--json"], name="router")
     try:
         ready = json.loads(router.wait_lines(1, 30)[0])

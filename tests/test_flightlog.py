@@ -18,7 +18,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from net_helpers import ManualClock, free_port, wait_until
+from net_helpers import ManualClock, free_port, free_port_range, wait_until
 
 from radios.capture import CaptureLink
 from radios.errors import CaptureDamagedError, ConfigError
@@ -431,12 +431,11 @@ FC_KEPT = {
 
 @pytest.mark.processes
 def test_a_real_agent_logs_its_radio_both_ways_and_its_flight_controller(tmp_path: Path) -> None:
-    from swarm.cli.bench.sim import _free_udp_range
     from swarm.cli.procs import Child, start_emulator
     from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind
 
     emu, links = start_emulator(2, tmp_path)
-    port = _free_udp_range(1)
+    port = free_port_range(1, "udp")
     sim = Child(["sim", "--vehicles", "1", "--base-port", str(port)], name="vehicle")
     logs = tmp_path / "logs"
     try:
@@ -486,7 +485,6 @@ def test_a_real_agent_logs_its_radio_both_ways_and_its_flight_controller(tmp_pat
 def test_a_full_disk_never_stops_a_real_agent(tmp_path: Path) -> None:
     import resource
 
-    from swarm.cli.bench.sim import _free_udp_range
     from swarm.cli.procs import Child, json_events
 
     def paused() -> list[dict[str, str]]:
@@ -494,7 +492,7 @@ def test_a_full_disk_never_stops_a_real_agent(tmp_path: Path) -> None:
             e for e in json_events(agent.lines, "flight-log") if e["text"].startswith("flight log paused")
         ]
 
-    port = _free_udp_range(1)
+    port = free_port_range(1, "udp")
     sim = Child(["sim", "--vehicles", "1", "--base-port", str(port)], name="vehicle")
     argv = ["agent", "--name", "a1", "--id", "1", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"]
     argv += ["--fc", f"udpin:127.0.0.1:{port}", "--json", "--capture", str(tmp_path / "logs")]

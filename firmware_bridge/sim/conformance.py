@@ -326,10 +326,6 @@ def conformance(path: Path, boot_time: float = RECORDED_TOTAL) -> dict[str, Any]
 
 
 # ------------------------------------------------------- live, on real sockets
-def _free_tcp_port() -> int:
-    return free_port("tcp")  # outside the ephemeral range: radios.ports
-
-
 def replay_live(trace: Trace, speedup: float = 10.0, boot_time: float = RECORDED_TOTAL) -> list[Record]:
     """Like :func:`replay`, but through a :class:`VehicleSim` (``swarm sim --profile
     ardupilot``) on a real TCP socket, the companion's frames sent at their recorded
@@ -342,7 +338,7 @@ def replay_live(trace: Trace, speedup: float = 10.0, boot_time: float = RECORDED
         home=(lat, lon, alt),
         speedup=speedup,
         boot_time=boot_time,
-        base_port=_free_tcp_port(),
+        base_port=free_port("tcp"),
     )
     out: list[Record] = []
     with VehicleSim(cfg) as sim:

@@ -54,14 +54,11 @@ class RadioConfig:
     out_buf: int = 645
     key: bytes = b""  # the AES key it runs with (AES builds, ENCRYPTION_LEVEL > 0)
 
-    def hop_seed(self) -> int:
-        """What seeds the channel shuffle (freq_hopping.c shuffleRand): the NETID, or a
-        CRC-16 of the 32-byte key when encryption is on."""
-        return self.hop
-
     @cached_property
     def hop(self) -> int:
-        """:meth:`hop_seed`, worked out once (the air model asks it per receiver)."""
+        """What seeds the channel shuffle (freq_hopping.c shuffleRand): the NETID, or a
+        CRC-16 of the 32-byte key when encryption is on (worked out once: the air model
+        asks it per receiver)."""
         if not self.key:
             return self.netid
         return binascii.crc_hqx((self.key + bytes(32))[:32], 0)

@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from radios.ports import free_port
 from swarm.errors import SwarmError
 
 
@@ -37,12 +36,6 @@ def json_events(lines: Sequence[str], event: str | None = None) -> list[dict[str
         if isinstance(obj, dict) and (event is None or obj.get("event") == event):
             out.append(obj)
     return out
-
-
-def free_tcp_port() -> int:
-    """A TCP port free on 127.0.0.1 right now, for a child to listen on (outside the
-    kernel's ephemeral range: :mod:`radios.ports`)."""
-    return free_port("tcp")
 
 
 def cpu_seconds(pid: int) -> float:

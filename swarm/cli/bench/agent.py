@@ -36,10 +36,10 @@ import time
 from typing import Any
 
 from radios.mavlink import MSG_TUNNEL, FrameBuilder, decode, frame_length
+from radios.ports import free_port_range
 from radios.rotating import FlightLog
 from radios.tlog import TIMESTAMP
 from radios.tlogset import read_flight_log
-from swarm.cli.bench.sim import _free_udp_range
 from swarm.cli.procs import Child, cpu_seconds, json_events, start_emulator
 from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind
 
@@ -184,7 +184,7 @@ def _steady(d: str, window: float) -> dict[str, Any]:
     air, logs, radios = os.path.join(d, "air2.tlog"), os.path.join(d, "logs"), os.path.join(d, "steady")
     os.makedirs(radios)
     emu, links = start_emulator(2, radios, "--capture", air)
-    base = _free_udp_range(2)
+    base = free_port_range(2, "udp")
     children: list[Child] = [emu]
     try:
         sim1, measured = _agent(1, links[0], base, ["--capture", logs])

@@ -33,7 +33,8 @@ from typing import Any
 
 from firmware_bridge.sim import REALISTIC_BOOT
 from firmware_bridge.sim.boot import POSITION_VALID, RECORDED_TOTAL
-from swarm.cli.procs import Child, free_tcp_port, start_emulator
+from radios.ports import free_port
+from swarm.cli.procs import Child, start_emulator
 from swarm.core.messages import AckResult, CommandKind, PoseReport
 from swarm.core.station import DONE_RESULTS, CommandRefused, CommandSpec, StationConfig
 from swarm.runtime.station import Station
@@ -58,7 +59,7 @@ def run(quick: bool = False) -> dict[str, Any]:
             sim = Child(
                 [
                     *("sim", "--vehicles", "1", "--profile", "ardupilot"),
-                    *("--boot-time", str(boot), "--base-port", str(free_tcp_port())),
+                    *("--boot-time", str(boot), "--base-port", str(free_port("tcp"))),
                 ],
                 name="vehicle simulator",
             )

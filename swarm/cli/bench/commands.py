@@ -32,7 +32,8 @@ import urllib.request
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from swarm.cli.procs import Child, free_tcp_port, json_events, start_emulator
+from radios.ports import free_port
+from swarm.cli.procs import Child, json_events, start_emulator
 
 _AGENT_RE = re.compile(r"^command (\w+) seq (\d+) from (\d+): (\w+)")
 _STATION_RE = re.compile(r"^(\w+)(?: \(swarm\))? -> .*\((\d+)\): (\w+).* \[seq (\d+)\]$")
@@ -89,7 +90,7 @@ def run(
                     "--radio",
                     links[0],
                     "--http",
-                    f"127.0.0.1:{free_tcp_port()}",
+                    f"127.0.0.1:{free_port('tcp')}",
                     "--tiles",
                     "none",
                     "--json",

@@ -48,8 +48,9 @@ import urllib.request
 import zlib
 from typing import Any
 
+from radios.ports import free_port
 from swarm.cli.bench import replay_speed
-from swarm.cli.procs import Child, cpu_seconds, free_tcp_port
+from swarm.cli.procs import Child, cpu_seconds
 from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
 from swarm.core.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
 
@@ -114,9 +115,9 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     # full trails (60 s) make the biggest state messages: the steady state
     warm_up = 2.0 if quick else 62.0
     replay = replay_speed.measure(runs=3 if quick else 5)  # first: before the bench's processes run
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    ep = f"tcp/127.0.0.1:{free_port('tcp')}"
     station = Child(
-        ["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_tcp_port()}", "--tiles", "none", "--json"],
+        ["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_port('tcp')}", "--tiles", "none", "--json"],
         name="gcs",
     )
     feeder: subprocess.Popen[bytes] | None = None

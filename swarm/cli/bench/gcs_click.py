@@ -23,11 +23,12 @@ import tempfile
 import time
 from typing import Any
 
-from swarm.cli.bench.agent import _agent, _free_udp_range
+from radios.ports import free_port, free_port_range
+from swarm.cli.bench.agent import _agent
 from swarm.cli.bench.commands import _get
 from swarm.cli.bench.commands import _post as post
 from swarm.cli.bench.gcs_page import launch_browser, percentile
-from swarm.cli.procs import Child, free_tcp_port, json_events, start_emulator
+from swarm.cli.procs import Child, json_events, start_emulator
 
 _GOTO_RE = re.compile(r"^command GOTO seq (\d+) from \d+: (\w+)")
 SETUP_S = 150.0
@@ -109,10 +110,10 @@ def measure(trials: int = 7, loss: float = 0.1) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="swarm-bench-click-") as d:
         emu, links = start_emulator(3, d, "--loss", str(loss))
         try:
-            base = _free_udp_range(2)
+            base = free_port_range(2, "udp")
             for k in (1, 2):
                 children += _agent(k, links[k - 1], base + k - 1, [])
-            http = f"127.0.0.1:{free_tcp_port()}"
+            http = f"127.0.0.1:{free_port('tcp')}"
             gcs = Child(["gcs", "--radio", links[2], "--http", http, "--tiles", "none", "--json"], name="gcs")
             children.append(gcs)
             url = json.loads(gcs.wait_lines(1, 30)[0])["url"]

@@ -43,7 +43,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from swarm.cli.procs import Child, free_tcp_port, start_emulator
+from radios.ports import free_port
+from swarm.cli.procs import Child, start_emulator
 
 DEADLINE = 60.0
 TRAFFIC_S = 10.0  # how long the stations' states are counted on the router
@@ -113,7 +114,7 @@ class Deployment:
         self.killed: list[Child] = []
         self.t_start = 0.0
         self.key = str(directory / "swarm.key") if key else None
-        self.router_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.router_ep = f"tcp/127.0.0.1:{free_port('tcp')}"
 
     def _child(self, argv: list[str], name: str) -> Child:
         c = Child(argv, name=name)
@@ -157,7 +158,7 @@ class Deployment:
 
     def station_argv(self, c: int, link: str) -> list[str]:
         argv = ["gcs", "--name", f"st{c}", "--radio", f"c{c}={link}", "--zenoh-connect", self.router_ep]
-        argv += ["--http", f"127.0.0.1:{free_tcp_port()}", "--tiles", "none", "--json"]
+        argv += ["--http", f"127.0.0.1:{free_port('tcp')}", "--tiles", "none", "--json"]
         return argv + (["--key", self.key] if self.key else [])
 
     def state(self, station: int = 0) -> dict[str, Any]:

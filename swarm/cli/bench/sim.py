@@ -25,12 +25,6 @@ VEHICLES = 20
 RATE_HZ = 10.0
 
 
-def _free_udp_range(count: int) -> int:
-    """A base port with ``count`` consecutive free UDP ports on 127.0.0.1 (outside the
-    kernel's ephemeral range: :mod:`radios.ports`)."""
-    return free_port_range(count, "udp")
-
-
 def _percentile(values: list[float], q: float) -> float:
     if not values:
         return float("nan")
@@ -41,7 +35,7 @@ def _percentile(values: list[float], q: float) -> float:
 def run(quick: bool = False) -> dict[str, Any]:
     window = 3.0 if quick else 10.0
     warmup = 1.0 if quick else 2.0
-    base = _free_udp_range(VEHICLES)
+    base = free_port_range(VEHICLES, "udp")
     child = Child(["sim", "--vehicles", str(VEHICLES), "--base-port", str(base)], name="vehicle simulator")
     try:
         lines = child.wait_lines(VEHICLES + 1, 60.0)

@@ -7,6 +7,14 @@ The sub-swarm targets (a size cap, several channels) are ``swarm bench scale``'s
 Speed is measured on serial runs in this process (``time.process_time``); the N=50
 campaign runs over all cores (``--jobs``: identical figures) and its CPU is this
 process's plus its reaped workers'.
+
+``core_floor`` is the part of the N=10 CPU that is the protocol itself: the share of a
+run's time spent inside the agents' cores (``Core.start``, ``handle``, ``tick``,
+``next_deadline``) and the message codec (``encode``, ``decode``), timed in a separate
+pass of the same runs (:func:`core_share`; the timing adds a little to both sides).
+The simulator runs the agents' own cores, so however fast the rest became, a run
+cannot cost less than that: ``cpu_s_per_1000_runs_floor`` is the share times the
+measured CPU.
 """
 
 from __future__ import annotations
@@ -14,9 +22,11 @@ from __future__ import annotations
 import os
 import resource
 import time
+from collections.abc import Callable
 from typing import Any
 
-from swarm.sim.simulate import Scenario, campaign
+import swarm.sim.simulate as simulate
+from swarm.sim.simulate import Scenario, Sim, campaign
 
 #: issue 15's targets, CPU seconds
 TARGET_CPU_S_PER_1000_RUNS = 10.0
@@ -37,6 +47,55 @@ def _timed(sc: Scenario, runs: int, jobs: int = 1) -> tuple[dict[str, Any], floa
     return res, cpu_s() - t0
 
 
+class _Timer:
+    """Time spent inside the wrapped callables (an outermost call counts once: a tick
+    that ticks again, or start calling tick, is not counted twice)."""
+
+    def __init__(self) -> None:
+        self.s = 0.0
+        self._depth = 0
+
+    def wrap(self, f: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            if self._depth:
+                return f(*args, **kwargs)
+            self._depth = 1
+            t0 = time.perf_counter()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                self.s += time.perf_counter() - t0
+                self._depth = 0
+
+        return timed
+
+
+def core_share(sc: Scenario, runs: int) -> tuple[float, list[Any]]:
+    """``(share, results)``: the share of ``runs`` seeded runs' time spent in the
+    protocol cores and the codec (see the module docstring), and the runs' results
+    (the same as without the timing: it wraps, it changes nothing)."""
+    timer = _Timer()
+    saved = simulate.encode, simulate.decode
+    simulate.encode, simulate.decode = timer.wrap(simulate.encode), timer.wrap(simulate.decode)
+    results = []
+    t0 = time.perf_counter()
+    try:
+        for seed in range(runs):
+            sim = Sim(sc, seed)
+            for c in sim.cores:  # instance attributes shadow the class's methods
+                for name in ("start", "handle", "tick", "next_deadline"):
+                    setattr(c, name, timer.wrap(getattr(c, name)))
+            results.append(sim.run())
+    finally:
+        simulate.encode, simulate.decode = saved
+    return timer.s / (time.perf_counter() - t0), results
+
+
+def _floor(sc: Scenario, runs: int, cpu_per_1000: float) -> dict[str, Any]:
+    share, _ = core_share(sc, runs)
+    return {"core_share": round(share, 3), "cpu_s_per_1000_runs_floor": round(share * cpu_per_1000, 1)}
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     k = 20 if quick else 500
     jobs = os.cpu_count() or 1
@@ -47,6 +106,17 @@ def run(quick: bool = False) -> dict[str, Any]:
         "paper_n10_loss10": round(1000 * cpu_paper / k, 1),
         "fast_n10_loss10": round(1000 * cpu_fast / k, 1),
         "target": TARGET_CPU_S_PER_1000_RUNS,
+    }
+    n_floor = 10 if quick else 100
+    out["core_floor"] = {
+        "paper_n10_loss10": _floor(
+            Scenario(agents=10, loss=0.1), n_floor, out["cpu_s_per_1000_runs"]["paper_n10_loss10"]
+        ),
+        "fast_n10_loss10": _floor(
+            Scenario(agents=10, loss=0.1, profile="fast"),
+            n_floor,
+            out["cpu_s_per_1000_runs"]["fast_n10_loss10"],
+        ),
     }
     # the tdm profile (issue 16): election p95 within TARGET_TDM_P95_ROUNDS TDM rounds
     out["tdm_n10_loss10"] = campaign(Scenario(agents=10, loss=0.1, profile="tdm"), k, jobs=jobs)

@@ -199,21 +199,34 @@ def test_the_node_says_waiting_for_position_once_and_forgets_a_lost_fix() -> Non
 # --- the recorded autopilot over a real socket ---------------------------------------------
 class TracePlayer:
     """Plays a trace's autopilot frames to the first TCP client, ``speed`` times faster
-    than recorded; holds at ``hold_at`` (trace seconds) until :meth:`go`, and stops at
-    ``until``. What the client sends is read and dropped (nothing answers it)."""
+    than recorded; holds at each of ``hold_at`` (trace seconds) until :meth:`go`
+    (``holding`` says where it waits), and stops at ``until``. What the client sends is
+    read and dropped (nothing answers it)."""
 
-    def __init__(self, name: str, *, speed: float, hold_at: float, until: float) -> None:
+    def __init__(self, name: str, *, speed: float, hold_at: float | tuple[float, ...], until: float) -> None:
         self.frames = [(t, raw) for t, raw in trace(name) if t <= until]
-        self.speed, self.hold_at = speed, hold_at
+        self.speed = speed
+        self.holds = sorted(hold_at if isinstance(hold_at, tuple) else (hold_at,))
+        self.holding: float | None = None
         self.port = free_port()
         self._srv = socket.create_server(("127.0.0.1", self.port))
-        self._go, self._stop = threading.Event(), threading.Event()
+        self._go, self._stop = threading.Semaphore(0), threading.Event()
         self.played_to = 0.0
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def go(self) -> None:
-        self._go.set()
+        """Release the hold the replay is at (or the next one it reaches)."""
+        self._go.release()
+
+    def _hold(self, at: float) -> bool:
+        """Wait at ``at`` for :meth:`go`; False once closed."""
+        self.holding = at
+        while not self._go.acquire(timeout=0.1):
+            if self._stop.is_set():
+                return False
+        self.holding = None
+        return True
 
     def _run(self) -> None:
         self._srv.settimeout(30.0)
@@ -221,10 +234,13 @@ class TracePlayer:
         conn.setblocking(False)
         with conn:
             start = time.monotonic()
+            holds = list(self.holds)
             for t, raw in self.frames:
-                if t > self.hold_at and not self._go.is_set():
-                    self._go.wait()
-                    start = time.monotonic() - self.hold_at / self.speed
+                while holds and t > holds[0]:
+                    at = holds.pop(0)
+                    if not self._hold(at):
+                        return
+                    start = time.monotonic() - at / self.speed
                 if self._stop.wait(max(0.0, start + t / self.speed - time.monotonic())):
                     return  # recorded gaps, sped up: the pacing of a replay
                 try:
@@ -241,10 +257,16 @@ class TracePlayer:
             self._stop.wait()
 
     def close(self) -> None:
-        self._go.set()
         self._stop.set()
         self._thread.join(5.0)
         self._srv.close()
+
+
+def _refusal(v: Any) -> drv.NotReady:
+    """Why the vehicle is not ready now (it must not be)."""
+    with pytest.raises(drv.NotReady) as err:
+        v.wait_ready(0.1)
+    return err.value
 
 
 @pytest.fixture
@@ -262,7 +284,7 @@ def player() -> Iterator[Any]:
 
 @pytest.mark.processes
 def test_wait_ready_gives_the_recorded_refusals_then_returns_when_armable(player: Any) -> None:
-    p = player(FLIGHT, speed=8.0, hold_at=1.0, until=45.0)
+    p = player(FLIGHT, speed=8.0, hold_at=(1.0, 30.0), until=45.0)
     with drv.connect(f"tcp:127.0.0.1:{p.port}", timeout=15.0) as v:
         for bad in (math.nan, math.inf, -1.0, "5", True):  # a caller's mistake, refused at once
             with pytest.raises(BridgeError, match="finite number of seconds"):
@@ -273,12 +295,15 @@ def test_wait_ready_gives_the_recorded_refusals_then_returns_when_armable(player
             v.wait_ready(0.1)
         assert "autopilot still booting" in err.value.problems
         p.go()
-        wait_until(lambda: p.played_to > 30.0, "the replay past 30 s", 60.0)
-        with pytest.raises(drv.NotReady) as err:
-            v.wait_ready(0.1)
-        assert err.value.problems == ["no local position yet", "pre-arm checks failing"]
-        assert "Arm: Need Position Estimate" in err.value.texts  # the autopilot's own words
-        assert "Arm: Need Position Estimate" in str(err.value)
+        # held at 30 s (the replay would reach the fix 1.4 s later): the driver has the
+        # state of 30 s once it has read what was sent
+        wait_until(lambda: p.holding == 30.0, "the replay held at 30 s", 60.0)
+        refused = ["no local position yet", "pre-arm checks failing"]
+        wait_until(lambda: _refusal(v).problems == refused, "the refusals of 30 s", 30.0)
+        err_30 = _refusal(v)
+        assert "Arm: Need Position Estimate" in err_30.texts  # the autopilot's own words
+        assert "Arm: Need Position Estimate" in str(err_30)
+        p.go()
         s = v.wait_ready(60.0)
         assert s.position_valid and s.ned is not None and s.prearm_ok
         assert p.played_to > 41.0

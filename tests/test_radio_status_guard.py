@@ -196,6 +196,13 @@ def forged_status(rng: random.Random, seq: int, txbuf: int) -> bytes:
     return pack_frame(109, payload, sysid=51, compid=68, seq=seq & 0xFF)
 
 
+def _published(times: list[float], t0: float, t1: float) -> tuple[float, float]:
+    """(poses published per second over all agents, the publisher's longest gap) in [t0, t1]."""
+    ts = [t for t in times if t0 <= t <= t1]
+    gap = max(b - a for a, b in zip([t0, *ts], [*ts, t1], strict=True))
+    return len(ts) * len(AGENTS) / (t1 - t0), gap
+
+
 @pytest.fixture
 def swarm(tmp_path: Path) -> Iterator[tuple[list[RadioBridge], PoseRecorder, Any, list[Transport]]]:
     with ExitStack() as stack:
@@ -240,11 +247,14 @@ def test_rogue_radio_status_stream_slows_poses_by_at_most_a_fifth(
     bridges, rec, rogue, transports = swarm
     stop = threading.Event()
 
+    published: list[float] = []  # when each round of poses left (a stall of this process shows)
+
     def publish() -> None:
         next_t = time.monotonic()
         while not stop.is_set():
             for t in transports:
                 t.publish_pose(PoseReport(POSE))
+            published.append(time.monotonic())
             next_t += 1.0 / POSE_HZ
             stop.wait(max(0.0, next_t - time.monotonic()))
 
@@ -277,19 +287,29 @@ def test_rogue_radio_status_stream_slows_poses_by_at_most_a_fifth(
             attacker.join(5)
     rate0, gap0 = rec.measure(t0, t1)
     rate1, gap1 = rec.measure(t2, t3)
+    # the two windows follow each other: a loaded machine may stall this process in one
+    # of them, and then the poses are not even published. Each window is judged on what
+    # was published in it (the rate as a share of it; the gap beyond the publisher's own)
+    sent0, pub_gap0 = _published(published, t0, t1)
+    sent1, pub_gap1 = _published(published, t2, t3)
     rejected = [b.stats.radio_status_rejected for b in bridges]
     print(
         f"\nposes without the rogue: {rate0:.2f}/s, longest gap {gap0:.2f} s; with forged "
         f"RADIO_STATUS at 10 Hz, txbuf {txbuf}: {rate1:.2f}/s, longest gap {gap1:.2f} s; "
+        f"published {sent0:.2f}/s and {sent1:.2f}/s (longest gaps {pub_gap0:.2f} s, {pub_gap1:.2f} s); "
         f"rejected {rejected}, "
         f"accepted {[b.stats.radio_status_accepted for b in bridges]}, "
         f"thinned {[b.stats.poses_thinned for b in bridges]}; why rejected (a1): "
         f"{ {k: v for k, v in vars(bridges[0].guard.stats).items() if k not in ('accepted', 'rejected')} }"
     )
-    assert rate0 > 0.5 * POSE_HZ * len(AGENTS), "the baseline itself carried the poses"
-    assert rate1 >= 0.8 * rate0, f"pose rate fell from {rate0:.2f}/s to {rate1:.2f}/s"
+    share0, share1 = rate0 / sent0, rate1 / sent1
+    assert share0 > 0.5, f"the baseline itself carried the poses ({share0:.2f} of them)"
+    assert share1 >= 0.8 * share0, f"share of poses delivered fell from {share0:.2f} to {share1:.2f}"
     # held poses arrive late in a burst (the count alone hides it: 11.4/s against 12/s
     # before the fix, with the longest gap 0.60 s -> 1.76 s). The bridge may skip at most
     # one pose in a row: one pose period, and one more for a loaded machine
-    assert gap1 <= gap0 + 2.0 / POSE_HZ, f"longest pose gap grew from {gap0:.2f} s to {gap1:.2f} s"
+    extra0, extra1 = gap0 - pub_gap0, gap1 - pub_gap1
+    assert extra1 <= max(extra0, 0.0) + 2.0 / POSE_HZ, (
+        f"longest pose gap beyond the publisher's grew from {extra0:.2f} s to {extra1:.2f} s"
+    )
     assert all(r >= 50 for r in rejected), f"forged RADIO_STATUS counted as rejected: {rejected}"

@@ -226,6 +226,17 @@ def test_sim_boot_time_bad_values_exit_2(flags: list[str]) -> None:
 
 
 @pytest.mark.processes
+@pytest.mark.parametrize("flags", [["--profile", "px4"], ["--profile", "ardupilot", "--serial", "pty"]])
+def test_sim_wait_for_client_only_where_a_client_connects(flags: list[str]) -> None:
+    """PX4's link sends first (a udpin client never talks first) and a serial line has no
+    connection: waiting there would wait for ever, so it is refused at once."""
+    p = _swarm("sim", "--vehicles", "1", *flags, "--wait-for-client", timeout=30)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert p.stderr.startswith("swarm sim: error: --wait-for-client needs"), p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+@pytest.mark.processes
 def test_sim_boot_flags_are_exclusive() -> None:
     p = _swarm("sim", "--vehicles", "1", "--realistic-boot", "--boot-time", "3", timeout=30)
     assert p.returncode == 2 and "Traceback" not in p.stderr

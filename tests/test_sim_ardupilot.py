@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 from mav_helpers import command, wait_msg
-from net_helpers import free_port_range, wait_until
+from net_helpers import free_port, free_port_range, wait_until
 from pymavlink import mavutil
 
 from firmware_bridge.sim import SimConfig, VehicleSim
@@ -182,3 +182,24 @@ def test_auto_disarm_and_unknown_command(sim: VehicleSim, conn: mavutil.mavfile)
     t0 = sim.vehicle(0).state.time
     wait_msg(conn, "HEARTBEAT", lambda m: not m.base_mode & 128)
     assert sim.vehicle(0).state.time - t0 >= 9.5
+
+
+@pytest.mark.parametrize("wait", [True, False], ids=["waits", "runs"])
+def test_a_late_client_sees_the_boot_only_when_the_simulator_waits_for_it(wait: bool) -> None:
+    """ArduPilot SITL waits for its SERIAL0 client before it runs; ``wait_for_client``
+    does the same, so a client that connects late still sees the boot from its start.
+    Without it the boot goes on with nobody listening (the default, as before)."""
+    cfg = SimConfig(
+        profile="ardupilot", speedup=10.0, boot_time=2.0, base_port=free_port("tcp"), wait_for_client=wait
+    )
+    with VehicleSim(cfg) as s:
+        time.sleep(1.0)  # the client comes 10 simulated s late: the 2 s boot is over unless waited for
+        assert s.waiting is wait
+        c = mavutil.mavlink_connection(s.endpoints[0], source_system=255)
+        try:
+            hb = c.wait_heartbeat(timeout=DEADLINE)
+            assert hb is not None and not s.waiting
+            assert (hb.system_status == 1) is wait, hb  # MAV_STATE_BOOT, else STANDBY
+            wait_msg(c, "HEARTBEAT", lambda m: m.system_status == 3, timeout=DEADLINE)  # booted
+        finally:
+            c.close()

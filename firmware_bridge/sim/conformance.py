@@ -339,11 +339,12 @@ def replay_live(trace: Trace, speedup: float = 10.0, boot_time: float = RECORDED
         speedup=speedup,
         boot_time=boot_time,
         base_port=free_port("tcp"),
+        wait_for_client=True,  # the boot starts at our connection, however late it comes
     )
     out: list[Record] = []
     with VehicleSim(cfg) as sim:
-        t0 = time.monotonic()
         conn = mavutil.mavlink_connection(sim.endpoints[0], source_system=1, source_component=COMPANION)
+        t0 = time.monotonic()  # about when the simulator accepted us: its time 0
         try:
             now = lambda: (time.monotonic() - t0) * speedup  # noqa: E731
             for r in [*trace.side(COMPANION), Record(trace.duration, None)]:

@@ -13,7 +13,9 @@ Theory of operation. One thread runs every vehicle. Each vehicle is an I/O-free
   is opened with pyserial (``DEVICE`` or ``DEVICE:BAUD``, default 921600) and the client
   string returned is that same value (the client is at the other end of the cable).
 
-Simulated time is ``(monotonic() - t0) * speedup``. Everything inside the autopilot
+Simulated time is ``(monotonic() - t0) * speedup``; t0 is ``start()``, or with
+``wait_for_client`` (ardupilot's TCP links only) the moment a client first connects to
+any vehicle: until then nothing is simulated or sent. Everything inside the autopilot
 (physics, COM_OF_LOSS_T, auto-disarm, GUID_TIMEOUT, battery, stream rates and the
 fault-hook durations) runs on simulated time, so at ``speedup=5`` a 10 Hz stream
 arrives at 50 Hz of wall time. The thread sleeps in ``select`` until the earliest
@@ -67,6 +69,11 @@ class SimConfig:
     boot_time: float = 0.0
     #: percent per simulated minute every battery loses, armed or not (tests; 0: flight only)
     battery_drain: float = 0.0
+    #: ardupilot over TCP: simulated time stands at 0 until a client connects (as
+    #: ArduPilot SITL waits for its SERIAL0 client), so a client sees the boot from its
+    #: first second. Not for px4 (its link sends first: a udpin client never talks first)
+    #: nor a serial vehicle (nothing says a client is there)
+    wait_for_client: bool = False
 
     def validate(self) -> None:
         """Raise :class:`ConnectError` (a :class:`BridgeError`) for impossible values."""
@@ -89,6 +96,8 @@ class SimConfig:
             raise ConnectError(f"boot_time must be 0..600 s, got {self.boot_time}")
         if not (math.isfinite(self.battery_drain) and 0.0 <= self.battery_drain <= 6000.0):
             raise ConnectError(f"battery_drain must be 0..6000 percent per minute, got {self.battery_drain}")
+        if self.wait_for_client and (FLAVOURS[self.profile].sitl_link != "tcp" or self.serial):
+            raise ConnectError("wait_for_client needs the ardupilot profile on TCP (no serial vehicle)")
         base = self.first_port()
         last = base + (self.vehicles - 1) * FLAVOURS[self.profile].sitl_port_step
         if not base >= 1 or last > 65535:
@@ -110,6 +119,10 @@ class _Transport(ABC):
 
     def on_readable(self, fileobj: Any, sel: selectors.BaseSelector) -> list[bytes]:
         return []
+
+    def has_client(self) -> bool:
+        """A client is connected (only a link with connections can tell)."""
+        return False
 
     @abstractmethod
     def send(self, data: bytes) -> None:
@@ -205,6 +218,9 @@ class _TcpTransport(_Transport):
         if conn in self.clients:
             self.clients.remove(conn)
         conn.close()
+
+    def has_client(self) -> bool:
+        return bool(self.clients)
 
     def send(self, data: bytes) -> None:
         for c in list(self.clients):
@@ -387,6 +403,7 @@ class VehicleSim:
         self._stop = threading.Event()
         self._sel: selectors.BaseSelector | None = None
         self._t0 = 0.0
+        self._running = not config.wait_for_client  # simulated time runs
         self._wake_r, self._wake_w = -1, -1
         self.error: BaseException | None = None
 
@@ -482,7 +499,14 @@ class VehicleSim:
 
     # ------------------------------------------------------------------ loop
     def _now(self) -> float:
+        if not self._running:
+            return 0.0  # waiting for a client: time stands still
         return (time.monotonic() - self._t0) * self.config.speedup
+
+    @property
+    def waiting(self) -> bool:
+        """Waiting for a client before simulated time starts (``wait_for_client``)."""
+        return not self._running
 
     def _wake(self) -> None:
         if self._wake_w >= 0:
@@ -503,14 +527,15 @@ class VehicleSim:
             if sel is None:
                 return
             with self._lock:
-                now = self._now()
                 deadline = float("inf")
-                for v in self._vehicles:
-                    v._release(now)
-                    v._emit(v.core.tick(now), now)
-                    deadline = min(deadline, v.core.next_deadline())
-                    if v.queue:
-                        deadline = min(deadline, v.queue[0][0])
+                if self._running:
+                    now = self._now()
+                    for v in self._vehicles:
+                        v._release(now)
+                        v._emit(v.core.tick(now), now)
+                        deadline = min(deadline, v.core.next_deadline())
+                        if v.queue:
+                            deadline = min(deadline, v.queue[0][0])
             timeout = max(0.0, min((deadline - self._now()) / speed, 0.1))
             events = sel.select(timeout)
             if not events:
@@ -524,6 +549,9 @@ class VehicleSim:
                             os.read(self._wake_r, 4096)
                         continue
                     chunks = tr.on_readable(key.fileobj, sel)
+                    if not self._running and tr.has_client():
+                        self._t0, self._running = time.monotonic(), True  # the first client
+                        now = 0.0
                     if not chunks:
                         continue
                     v = next(x for x in self._vehicles if x.transport is tr)

@@ -7,7 +7,8 @@ pseudo terminal and prints the client's side. All timers run on simulated time,
 ``--speedup`` times faster than the wall clock. ``--boot-time S`` makes an ArduPilot
 vehicle boot as a real ArduCopter SITL was recorded to, scaled to S simulated seconds
 (``--realistic-boot``: the recorded 41.5 s; default 3 s on the bench; 0: booted when the
-link comes up).
+link comes up). ``--wait-for-client`` (ardupilot, TCP): simulated time stands at 0
+until a client connects, as ArduPilot SITL waits for its SERIAL0 client.
 """
 
 from __future__ import annotations
@@ -134,6 +135,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_battery_arguments(p)
     _add_boot_arguments(p)
+    p.add_argument(
+        "--wait-for-client",
+        action="store_true",
+        help="ardupilot: simulated time starts when a client first connects, as ArduPilot "
+        "SITL waits for its SERIAL0 client (a client started later still sees the whole boot)",
+    )
     return p
 
 
@@ -169,6 +176,11 @@ def main(argv: list[str] | None = None) -> int:
         raise UsageError(f"--boot-time must be 0..600 s, got {args.boot_time}")
     if not (math.isfinite(args.battery_drain) and 0.0 <= args.battery_drain <= 6000.0):
         raise UsageError(f"--battery-drain must be 0..6000 percent per minute, got {args.battery_drain}")
+    if args.wait_for_client and (args.profile != "ardupilot" or args.serial):
+        raise UsageError(
+            "--wait-for-client needs --profile ardupilot without --serial "
+            "(PX4's link sends first; a serial line has no connection to wait for)"
+        )
     if args.base_port is not None and not 1 <= args.base_port <= 65535:
         raise UsageError(f"--base-port must be 1..65535, got {args.base_port}")
     cfg = SimConfig(
@@ -183,6 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         offboard_loss_action=args.offboard_loss,
         boot_time=boot_time,
         battery_drain=args.battery_drain,
+        wait_for_client=args.wait_for_client,
     )
     stop = StopFlag().install()
     try:
@@ -200,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
         booting = f", boot {boot_time:g} s" if boot_time > 0 and args.profile == "ardupilot" else ""
-        print(f"ready: {len(endpoints)} vehicle(s), speedup {args.speedup:g}{booting}", flush=True)
+        waiting = ", waiting for a client" if args.wait_for_client else ""
+        print(f"ready: {len(endpoints)} vehicle(s), speedup {args.speedup:g}{booting}{waiting}", flush=True)
         while not stop.wait(0.5):
             if sim.error is not None:
                 print(f"{PROG}: error: {sim.error}", file=sys.stderr, flush=True)

@@ -26,7 +26,9 @@ from collections.abc import Callable
 from typing import Any
 
 import swarm.sim.simulate as simulate
-from swarm.sim.simulate import Scenario, Sim, campaign
+from swarm.sim.faultsim import make_sim
+from swarm.sim.scenario import RunResult
+from swarm.sim.simulate import Scenario, campaign
 
 #: issue 15's targets, CPU seconds
 TARGET_CPU_S_PER_1000_RUNS = 10.0
@@ -70,7 +72,7 @@ class _Timer:
         return timed
 
 
-def core_share(sc: Scenario, runs: int) -> tuple[float, list[Any]]:
+def core_share(sc: Scenario, runs: int) -> tuple[float, list[RunResult]]:
     """``(share, results)``: the share of ``runs`` seeded runs' time spent in the
     protocol cores and the codec (see the module docstring), and the runs' results
     (the same as without the timing: it wraps, it changes nothing)."""
@@ -81,7 +83,7 @@ def core_share(sc: Scenario, runs: int) -> tuple[float, list[Any]]:
     t0 = time.perf_counter()
     try:
         for seed in range(runs):
-            sim = Sim(sc, seed)
+            sim = make_sim(sc, seed)
             for c in sim.cores:  # instance attributes shadow the class's methods
                 for name in ("start", "handle", "tick", "next_deadline"):
                     setattr(c, name, timer.wrap(getattr(c, name)))
@@ -100,24 +102,17 @@ def run(quick: bool = False) -> dict[str, Any]:
     k = 20 if quick else 500
     jobs = os.cpu_count() or 1
     out: dict[str, Any] = {}
-    out["paper_n10_loss10"], cpu_paper = _timed(Scenario(agents=10, loss=0.1), k)
-    out["fast_n10_loss10"], cpu_fast = _timed(Scenario(agents=10, loss=0.1, profile="fast"), k)
-    out["cpu_s_per_1000_runs"] = {
-        "paper_n10_loss10": round(1000 * cpu_paper / k, 1),
-        "fast_n10_loss10": round(1000 * cpu_fast / k, 1),
-        "target": TARGET_CPU_S_PER_1000_RUNS,
+    n10 = {
+        "paper_n10_loss10": Scenario(agents=10, loss=0.1),
+        "fast_n10_loss10": Scenario(agents=10, loss=0.1, profile="fast"),
     }
+    per_1000: dict[str, Any] = {}
+    for name, sc in n10.items():
+        out[name], cpu = _timed(sc, k)
+        per_1000[name] = round(1000 * cpu / k, 1)
+    out["cpu_s_per_1000_runs"] = {**per_1000, "target": TARGET_CPU_S_PER_1000_RUNS}
     n_floor = 10 if quick else 100
-    out["core_floor"] = {
-        "paper_n10_loss10": _floor(
-            Scenario(agents=10, loss=0.1), n_floor, out["cpu_s_per_1000_runs"]["paper_n10_loss10"]
-        ),
-        "fast_n10_loss10": _floor(
-            Scenario(agents=10, loss=0.1, profile="fast"),
-            n_floor,
-            out["cpu_s_per_1000_runs"]["fast_n10_loss10"],
-        ),
-    }
+    out["core_floor"] = {name: _floor(sc, n_floor, per_1000[name]) for name, sc in n10.items()}
     # the tdm profile (issue 16): election p95 within TARGET_TDM_P95_ROUNDS TDM rounds
     out["tdm_n10_loss10"] = campaign(Scenario(agents=10, loss=0.1, profile="tdm"), k, jobs=jobs)
     out["tdm_n10_loss10"]["target_p95_rounds"] = TARGET_TDM_P95_ROUNDS

@@ -189,11 +189,12 @@ def test_a_late_client_sees_the_boot_only_when_the_simulator_waits_for_it(wait: 
     """ArduPilot SITL waits for its SERIAL0 client before it runs; ``wait_for_client``
     does the same, so a client that connects late still sees the boot from its start.
     Without it the boot goes on with nobody listening (the default, as before)."""
+    # a 60 s boot is BOOT for its first 3.4 simulated s: 0.68 s of wall time at speedup 5
     cfg = SimConfig(
-        profile="ardupilot", speedup=10.0, boot_time=2.0, base_port=free_port("tcp"), wait_for_client=wait
+        profile="ardupilot", speedup=5.0, boot_time=60.0, base_port=free_port("tcp"), wait_for_client=wait
     )
     with VehicleSim(cfg) as s:
-        time.sleep(1.0)  # the client comes 10 simulated s late: the 2 s boot is over unless waited for
+        time.sleep(1.5)  # the client comes 7.5 simulated s late: BOOT is over unless waited for
         assert s.waiting is wait
         c = mavutil.mavlink_connection(s.endpoints[0], source_system=255)
         try:

@@ -258,11 +258,17 @@ def test_bounded_campaign_has_no_violation() -> None:
         "cpu_s",
         "scenarios_per_cpu_s",
         "reference_cpu_s",
+        "reference_cpu_s_before_after",
         "cpu_in_reference_units",
         "by_kind",
     }
-    # 200 drawn scenarios cost more than the 40 plain runs of the reference
+    # 200 drawn scenarios cost more than the 40 plain runs of the reference; the
+    # reference is the mean of one taken before the campaign and one after
     assert res["reference_cpu_s"] > 0 and res["cpu_in_reference_units"] > 1
+    before, after = res["reference_cpu_s_before_after"]
+    assert (
+        before > 0 and after > 0 and res["reference_cpu_s"] == pytest.approx((before + after) / 2, abs=0.01)
+    )
     assert res["scenarios"] == 200 and res["agents_max"] <= bench_campaign.QUICK_AGENTS
     assert res["violations"] == 0, res["failing"]
     assert res["by_kind"]["restart"]["scenarios"] > 0 and res["by_kind"]["one_way"]["scenarios"] > 0

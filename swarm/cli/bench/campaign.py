@@ -9,10 +9,14 @@ time on a 2-core machine); ``--quick`` (CI) runs QUICK with at most QUICK_AGENTS
 agents (the same draws otherwise: about a minute of CPU).
 
 Machines differ and a shared one is slower on some days than on others, so the
-bench also times a fixed piece of work on this machine first (REFERENCE_RUNS N=10
-paper runs at 10 % loss, serial: ``reference_cpu_s``) and gives the campaign's CPU
-in units of it (``cpu_in_reference_units``): a figure that compares across days and
-machines where ``wall_s`` does not.
+bench also times a fixed piece of work on this machine (REFERENCE_RUNS N=10 paper
+runs at 10 % loss, serial) before the campaign and again after it
+(``reference_cpu_s_before_after``; a shared machine's speed drifts over half an hour:
+one reference taken first once ran 27 % faster than the day before while the
+campaign's own CPU was the same within 1 %), and gives the campaign's CPU in units of
+their mean (``reference_cpu_s``, ``cpu_in_reference_units``): a figure that compares
+across days and machines where ``wall_s`` does not. Neither reference counts in
+``wall_s`` or ``cpu_s``.
 """
 
 from __future__ import annotations
@@ -46,10 +50,12 @@ def reference_cpu_s() -> float:
 
 def run(quick: bool = False, scenarios: int | None = None, seed: int = 0) -> dict[str, Any]:
     k = scenarios if scenarios is not None else QUICK if quick else FULL
-    ref = reference_cpu_s()
+    ref_before = reference_cpu_s()
     cpu0, wall0 = _cpu_s(), time.monotonic()
     res = run_campaign(k, seed, jobs=os.cpu_count() or 1, max_agents=QUICK_AGENTS if quick else 50)
     cpu, wall = _cpu_s() - cpu0, time.monotonic() - wall0
+    ref_after = reference_cpu_s()
+    ref = (ref_before + ref_after) / 2
     return {
         "scenarios": res["scenarios"],
         "violations": res["violations"],
@@ -58,6 +64,7 @@ def run(quick: bool = False, scenarios: int | None = None, seed: int = 0) -> dic
         "cpu_s": round(cpu, 1),
         "scenarios_per_cpu_s": round(k / cpu, 2) if cpu > 0 else None,
         "reference_cpu_s": round(ref, 2),
+        "reference_cpu_s_before_after": [round(ref_before, 2), round(ref_after, 2)],
         "cpu_in_reference_units": round(cpu / ref, 1) if ref > 0 else None,
         "virtual_s": res["virtual_s"],
         "agents_max": res["agents_max"],

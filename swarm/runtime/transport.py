@@ -8,14 +8,29 @@ Keys (the paper's topics, DESIGN.md section 4):
 ``swarm/advertize``         Advertize: an agent announces name and id
 ``swarm/GSAdvertize``       GSAdvertize: the ground station announces itself
 ``swarm/<name>``            P2P messages to agent ``<name>`` (its inbox)
+``swarm/<name>/command``    Commands to agent ``<name>`` (from stations only)
 ``swarm/<name>/pose``       the agent's pose stream
 ``swarm/<name>/state``      the agent's protocol state
 ==========================  ==============================================
 
+Commands have a key of their own so that Zenoh's access control can tell them
+from the election's messages, which agents send to each other's inboxes: only a
+station's certificate may put on ``swarm/*/command`` (:mod:`swarm.core.zenoh_acl`).
+:meth:`Transport.send` puts a Command there, and :meth:`Transport.on_inbox` takes
+Commands from there only: one found on an inbox is dropped, counted in
+``misplaced_commands`` and logged once. Over a radio the bytes on the air are the
+same P2P frame as before; the bridge maps the key (:mod:`swarm.runtime.bridge`).
+
 Payloads are the compact messages of :mod:`swarm.core.messages`. Agents connect
-either through Zenoh's own network over IP (peer mode, explicit endpoints,
-multicast scouting off by default) or through the radio bridge
-(:mod:`swarm.runtime.bridge`), which carries the same keys over MAVLink TUNNEL frames.
+either through Zenoh's own network over IP (explicit endpoints, multicast scouting
+off by default) or through the radio bridge (:mod:`swarm.runtime.bridge`), which
+carries the same keys over MAVLink TUNNEL frames.
+
+A session listens only where it is told to (:func:`session_config`): a node that
+listens is a Zenoh peer, a node that only connects is a Zenoh client (through the
+router or peer it reaches: :class:`ClientSession`, which opens in the background so a
+router down never holds up a node), and a node on a radio has no endpoint at all:
+its session is reached only from its own process (its transport and radio bridge).
 Callbacks run on Zenoh's threads; a payload that does not decode is counted and
 dropped, never raised into Zenoh.
 """
@@ -23,6 +38,7 @@ dropped, never raised into Zenoh.
 from __future__ import annotations
 
 import json
+import logging
 import re
 import threading
 from collections.abc import Callable, Sequence
@@ -33,6 +49,7 @@ import zenoh
 from swarm.core.messages import (
     Advertize,
     AgentState,
+    Command,
     GSAdvertize,
     Message,
     PoseReport,
@@ -41,6 +58,8 @@ from swarm.core.messages import (
     encode,
 )
 from swarm.errors import DecodeError, TransportError
+
+log = logging.getLogger(__name__)
 
 PREFIX = "swarm"
 KEY_ADVERTIZE = f"{PREFIX}/advertize"
@@ -52,6 +71,10 @@ def inbox_key(name: str) -> str:
     return f"{PREFIX}/{name}"
 
 
+def command_key(name: str) -> str:
+    return f"{PREFIX}/{name}/command"
+
+
 def pose_key(name: str) -> str:
     return f"{PREFIX}/{name}/pose"
 
@@ -60,16 +83,28 @@ def state_key(name: str) -> str:
     return f"{PREFIX}/{name}/state"
 
 
+def session_mode(listen: Sequence[str], connect: Sequence[str]) -> str:
+    """The Zenoh mode of a node's session: ``peer`` when it listens (it was asked to),
+    ``client`` when it only connects (every sample goes through the router or peer it
+    reached; it listens nowhere), and ``peer`` with no endpoint at all (a session in
+    this process only: a radio node's)."""
+    if listen:
+        return "peer"
+    return "client" if connect else "peer"
+
+
 def session_config(
     listen: Sequence[str] = (), connect: Sequence[str] = (), *, scouting: bool = False
 ) -> zenoh.Config:
-    """A peer-mode Zenoh config with explicit endpoints (``tcp/127.0.0.1:7447``)."""
+    """A Zenoh config with explicit endpoints (``tcp/127.0.0.1:7447``) that listens
+    exactly where ``listen`` says and nowhere else: Zenoh's own default for a peer is
+    every address on a random port (``tcp/[::]:0``), which would let anyone who
+    reaches the machine into the key space. See :func:`session_mode`."""
     cfg = zenoh.Config()
     try:
-        cfg.insert_json5("mode", '"peer"')
+        cfg.insert_json5("mode", json.dumps(session_mode(listen, connect)))
         cfg.insert_json5("scouting/multicast/enabled", "true" if scouting else "false")
-        if listen:
-            cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
         if connect:
             cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except Exception as exc:  # zenoh raises its own ZError for bad JSON5 values
@@ -77,16 +112,153 @@ def session_config(
     return cfg
 
 
-def open_session(
-    listen: Sequence[str] = (), connect: Sequence[str] = (), *, scouting: bool = False
-) -> zenoh.Session:
-    """Open a Zenoh session. Raises TransportError (bad endpoint, port in use)."""
+def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), *, scouting: bool = False) -> Any:
+    """Open a Zenoh session. Raises TransportError (bad endpoint, port in use).
+
+    A session that only connects is a :class:`ClientSession` (Zenoh's client mode,
+    opened in the background until the other side answers); otherwise Zenoh's own
+    session in peer mode."""
+    cfg = session_config(listen, connect, scouting=scouting)
+    if session_mode(listen, connect) == "client":
+        return ClientSession(cfg, connect)
     try:
-        return zenoh.open(session_config(listen, connect, scouting=scouting))
-    except TransportError:
-        raise
+        return zenoh.open(cfg)
     except Exception as exc:
         raise TransportError(zenoh_open_message(str(exc), listen, connect)) from exc
+
+
+#: how long one attempt of a client session to reach its router may take, ms
+CLIENT_ATTEMPT_MS = 1000
+
+
+class _NoInfo:
+    """A client session's ``info`` before it reached anyone."""
+
+    def peers_zid(self) -> list[Any]:
+        return []
+
+    def routers_zid(self) -> list[Any]:
+        return []
+
+
+class _Declared:
+    """A subscriber or queryable declared on a :class:`ClientSession`: declared again on
+    each session it opens; :meth:`undeclare` as Zenoh's."""
+
+    def __init__(self, owner: ClientSession, method: str, args: tuple[Any, ...], kw: dict[str, Any]) -> None:
+        self.owner, self.method, self.args, self.kw = owner, method, args, kw
+        self.real: Any = None
+
+    def attach(self, session: Any) -> None:
+        self.real = getattr(session, self.method)(*self.args, **self.kw)
+
+    def undeclare(self) -> None:
+        self.owner._forget(self)
+        real, self.real = self.real, None
+        if real is not None:
+            real.undeclare()
+
+
+class ClientSession:
+    """A Zenoh session in client mode that never holds up its node: Zenoh's client
+    refuses to open until it reaches a router or peer, so this one opens on a thread,
+    trying again every :data:`CLIENT_ATTEMPT_MS` (a router started after the node, or
+    down for a while, is reached when it comes), and then lets Zenoh's client keep the
+    link (it reconnects by itself). Until then a put is dropped (counted in
+    :attr:`dropped`), a get finds no one, ``info`` lists no peer, and subscribers and
+    queryables are declared on the session once it opens. The same calls as Zenoh's
+    session, as far as the swarm uses them."""
+
+    def __init__(self, cfg: zenoh.Config, connect: Sequence[str]) -> None:
+        try:
+            cfg.insert_json5("connect/timeout_ms", str(CLIENT_ATTEMPT_MS))
+            cfg.insert_json5("connect/exit_on_failure", "true")
+        except Exception as exc:
+            raise TransportError(zenoh_config_message(str(exc))) from exc
+        self.cfg = cfg
+        self.connect = tuple(connect)
+        self.dropped = 0
+        self.last_error = ""
+        self._lock = threading.Lock()
+        self._session: Any = None
+        self._declared: list[_Declared] = []
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._open_loop, name="zenoh-client", daemon=True)
+        self._thread.start()
+
+    def _open_loop(self) -> None:
+        while not self._closed.is_set():
+            try:
+                session = zenoh.open(self.cfg)
+            except Exception as exc:  # nobody there yet (or it refused us): try again
+                self.last_error = _RUST_SOURCE.sub("", str(exc)).strip()
+                self._closed.wait(0.2)
+                continue
+            with self._lock:
+                if self._closed.is_set():
+                    break
+                self._session = session
+                for d in self._declared:
+                    try:
+                        d.attach(session)
+                    except Exception:
+                        log.debug("client session: declaring again failed", exc_info=True)
+                return
+        else:
+            return
+        session.close()  # closed while it opened
+
+    @property
+    def opened(self) -> bool:
+        return self._session is not None
+
+    @property
+    def info(self) -> Any:
+        s = self._session
+        return _NoInfo() if s is None else s.info
+
+    def put(self, key: Any, payload: Any, **kw: Any) -> None:
+        s = self._session
+        if s is None:
+            self.dropped += 1
+            return
+        s.put(key, payload, **kw)
+
+    def get(self, *args: Any, **kw: Any) -> Any:
+        s = self._session
+        return [] if s is None else s.get(*args, **kw)
+
+    def _declare(self, method: str, args: tuple[Any, ...], kw: dict[str, Any]) -> _Declared:
+        d = _Declared(self, method, args, kw)
+        with self._lock:
+            if self._closed.is_set():
+                raise TransportError("the Zenoh session is closed")
+            self._declared.append(d)
+            if self._session is not None:
+                d.attach(self._session)
+        return d
+
+    def declare_subscriber(self, *args: Any, **kw: Any) -> _Declared:
+        return self._declare("declare_subscriber", args, kw)
+
+    def declare_queryable(self, *args: Any, **kw: Any) -> _Declared:
+        return self._declare("declare_queryable", args, kw)
+
+    def _forget(self, d: _Declared) -> None:
+        with self._lock:
+            if d in self._declared:
+                self._declared.remove(d)
+
+    def close(self) -> None:
+        """Stop trying, close the session if it opened. Safe twice."""
+        with self._lock:
+            self._closed.set()
+            session, self._session = self._session, None
+            self._declared.clear()
+        if session is not None:
+            session.close()
+        if self._thread is not threading.current_thread():
+            self._thread.join(CLIENT_ATTEMPT_MS / 1000 + 1.0)  # an attempt under way ends
 
 
 def has_peer(session: Any) -> bool:
@@ -143,6 +315,7 @@ class Transport:
         self._lock = threading.Lock()
         self.decode_errors = 0
         self.last_decode_error = ""
+        self.misplaced_commands = 0  # Commands found on the inbox, dropped
         self._closed = False
 
     @classmethod
@@ -156,8 +329,9 @@ class Transport:
         self.session.put(key, encode(msg))
 
     def send(self, to: str, msg: Message) -> None:
-        """A P2P message to agent ``to``'s inbox."""
-        self.put(inbox_key(check_name(to)), msg)
+        """A P2P message to agent ``to``'s inbox (a Command: to its command key)."""
+        name = check_name(to)
+        self.put(command_key(name) if isinstance(msg, Command) else inbox_key(name), msg)
 
     def advertise(self, msg: Advertize) -> None:
         self.put(KEY_ADVERTIZE, msg)
@@ -201,7 +375,26 @@ class Transport:
             self._subs.append(self.session.declare_subscriber(key, handler))
 
     def on_inbox(self, callback: Callable[[Message], None]) -> None:
-        self.subscribe(inbox_key(self.name), lambda _k, m: callback(m))
+        """Every message to this node: its inbox's (but Commands) and its command key's
+        Commands (see the module docstring)."""
+        self.subscribe(inbox_key(self.name), lambda _k, m: self._inbox(m, callback))
+        self.subscribe(command_key(self.name), lambda _k, m: callback(m) if isinstance(m, Command) else None)
+
+    def _inbox(self, msg: Message, callback: Callable[[Message], None]) -> None:
+        if not isinstance(msg, Command):
+            callback(msg)
+            return
+        with self._lock:
+            self.misplaced_commands += 1
+            first = self.misplaced_commands == 1
+        if first:
+            log.warning(
+                "%s: a Command on its inbox %s was dropped: commands come on %s (from a station of "
+                "another version, or a sender without the right to command)",
+                self.name,
+                inbox_key(self.name),
+                command_key(self.name),
+            )
 
     def on_advertize(self, callback: Callable[[Advertize], None]) -> None:
         self.subscribe(KEY_ADVERTIZE, lambda _k, m: callback(m) if isinstance(m, Advertize) else None)

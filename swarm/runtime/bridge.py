@@ -15,6 +15,8 @@ local key              air target  key on the receiving node
 swarm/advertize        0           swarm/advertize
 swarm/GSAdvertize      0           swarm/GSAdvertize
 swarm/<peer>           peer id     swarm/<own name> (only the addressee keeps it)
+swarm/<peer>/command   peer id     swarm/<own name>/command (a P2P frame whose
+                                   message is a Command: the same bytes on air)
 swarm/<own>/pose       0           swarm/<sender name>/pose
 swarm/<own>/state      0           swarm/<sender name>/state
 =====================  ==========  ===========================================
@@ -282,6 +284,16 @@ class RadioBridge(AirToLocal):
                 return
             klass = Klass.TELEMETRY if data[:1] and (data[0] & 0x1F) == Telemetry.TYPE else Klass.PROTOCOL
             self._enqueue(AirItem(klass, Kind.P2P, [peer], data))
+        elif len(parts) == 3 and parts[2] == "command":
+            # a station's Command: on the air the P2P frame it always was (the
+            # receiving bridge puts it back on the addressee's command key)
+            peer = self.names.id_of(parts[1])
+            if parts[1] == self.name:
+                return  # to ourselves: local delivery only
+            if peer is None:
+                self.stats.unroutable += 1
+                return
+            self._enqueue(AirItem(Klass.PROTOCOL, Kind.P2P, [peer], data))
         elif len(parts) == 3 and parts[1] == self.name:
             if parts[2] == "pose":
                 self._enqueue(AirItem(Klass.POSE, Kind.POSE, [0], data))

@@ -17,7 +17,7 @@ bridge's receive thread):
   Then the key is rebuilt from the kind and the sender: Advertize and GSAdvertize
   (whose sender must be the frame's) teach the name table
   (:class:`swarm.core.names.NameTable`) and are published unless the name
-  conflicts; P2P goes to our own inbox; a pose or state goes under the sender's
+  conflicts; P2P goes to our own inbox (a Command to our command key); a pose or state goes under the sender's
   name, if known.
 
 Any frame but RADIO_STATUS carrying our own system id was sent by someone else (a
@@ -42,12 +42,19 @@ from typing import TYPE_CHECKING, Any
 from radios.mavlink import MSG_RADIO_STATUS, MSG_TUNNEL, Frame, radio_status_fields
 from radios.signing import Verifier
 from swarm.core.air_queue import AirItem, Klass
-from swarm.core.messages import Advertize, GSAdvertize, Message, NameConflict, decode, encode
+from swarm.core.messages import Advertize, Command, GSAdvertize, Message, NameConflict, decode, encode
 from swarm.core.names import NameTable, conflict_note
 from swarm.core.radio_guard import RadioState, RadioStatusGuard
 from swarm.core.tunnel import Kind, unpack_tunnel
 from swarm.errors import DecodeError, VersionMismatch
-from swarm.runtime.transport import KEY_ADVERTIZE, KEY_GS_ADVERTIZE, inbox_key, pose_key, state_key
+from swarm.runtime.transport import (
+    KEY_ADVERTIZE,
+    KEY_GS_ADVERTIZE,
+    command_key,
+    inbox_key,
+    pose_key,
+    state_key,
+)
 
 if TYPE_CHECKING:
     from swarm.runtime.bridge import BridgeStats
@@ -179,7 +186,9 @@ class AirToLocal:
                     msg.name,
                     msg.other_id,
                 )
-            self._publish(inbox_key(self.name), data)
+            # a Command goes to our command key, the one key a station may command on
+            # over Zenoh (swarm.runtime.transport): its frame is an ordinary P2P frame
+            self._publish(command_key(self.name) if isinstance(msg, Command) else inbox_key(self.name), data)
         else:
             peer = self.names.name_of(sender)
             if peer is None:

@@ -7,8 +7,9 @@ bridge's ``id_collision`` (a frame with the station's system id that it did not 
 MAVProxy or QGroundControl left at their default 255) becomes one ``radio`` event.
 The agents' inboxes are heard too, for the plan (:mod:`swarm.core.station_plan`):
 the leader's Heartbeats (one per round: the copies to each member are dropped
-before the core's queue) and other stations' Commands; other messages there, and the
-station's own inbox, are passed over on their first byte, undecoded.
+before the core's queue), and their command keys for other stations' Commands; other
+messages there, and the station's own keys, are passed over on their first byte,
+undecoded.
 :class:`StationView` is what the server reads from a station, live or replayed.
 """
 
@@ -27,13 +28,14 @@ from swarm.core.station import CommandRefused, CommandSpec, Event, StationConfig
 from swarm.runtime.loop import EventLoop
 from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
 from swarm.runtime.options import NodeOptions
-from swarm.runtime.transport import inbox_key
+from swarm.runtime.transport import command_key, inbox_key
 
 log = logging.getLogger(__name__)
 
 TICK_S = 0.05
-#: the message types overheard on the agents' inboxes for the plan (the first byte's low bits)
-PLAN_TYPES = (Heartbeat.TYPE, Command.TYPE)
+#: the message types overheard for the plan (the first byte's low bits): the leader's
+#: Heartbeats on the agents' inboxes, other stations' Commands on their command keys
+HB_TYPE, CMD_TYPE = Heartbeat.TYPE, Command.TYPE
 
 
 class StationView:
@@ -146,7 +148,11 @@ class Station(StartOnce, StationView):
         tr.on_state("*", lambda n, m: self.loop.put((m, n)))
         own = inbox_key(self.name)
         tr.subscribe(
-            "swarm/*", self._on_inboxes, lambda k, b: k != own and bool(b) and b[0] & 0x1F in PLAN_TYPES
+            "swarm/*", self._on_inboxes, lambda k, b: k != own and bool(b) and b[0] & 0x1F == HB_TYPE
+        )
+        mine = command_key(self.name)  # other stations' Commands, on the agents' command keys
+        tr.subscribe(
+            command_key("*"), self._on_inboxes, lambda k, b: k != mine and bool(b) and b[0] & 0x1F == CMD_TYPE
         )
         if io.bridge is not None:
             io.bridge.add_listener(self._on_radio)

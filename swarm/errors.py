@@ -34,3 +34,8 @@ class VersionMismatch(DecodeError):
 
 class TransportError(SwarmError):
     """The Zenoh session or the radio bridge cannot do what was asked."""
+
+
+class CertError(SwarmError):
+    """A certificate, private key or access-control file is missing, malformed,
+    expired, unsafe or not of this swarm (the user's input: exit 2)."""

@@ -39,6 +39,7 @@ BAD_INPUT: dict[str, list[str]] = {
     "bench": ["no-such-area"],
     "config": ["example", "no-such-command"],
     "keygen": ["{dir}/no-such-folder/swarm.key"],
+    "certs": ["node", "{dir}", "agent1", "--role", "agent"],  # no CA in that folder
     "service": ["print", "no-such-kind"],
     "doctor": ["--id", "0"],
 }

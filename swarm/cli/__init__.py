@@ -38,6 +38,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("bench", "run a benchmark and print its figures"),
     "config": ("config", "print a commented example config file: swarm config example agent|gcs"),
     "keygen": ("keygen", "write a new swarm signing key (32 random bytes, mode 0600)"),
+    "certs": ("certs", "make the swarm's CA, node certificates and Zenoh ACL (TLS over IP)"),
     "service": ("service", "print or install the systemd unit of an agent or the ground station"),
     "doctor": ("doctor", "pre-flight check of a field set-up: radio, flight controller, key, clock"),
 }

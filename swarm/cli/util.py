@@ -29,10 +29,10 @@ from typing import TYPE_CHECKING, Any
 
 from firmware_bridge.errors import BridgeError, ConnectError
 from radios.errors import CaptureDamagedError, ConfigError, LinkOpenError, RadioError
-from swarm.errors import SwarmError, TransportError
+from swarm.errors import CertError, SwarmError, TransportError
 
 if TYPE_CHECKING:
-    from swarm.runtime.options import NodeOptions
+    from swarm.runtime.options import NodeOptions, TlsFiles
 
 log = logging.getLogger("swarm.cli")
 
@@ -49,8 +49,9 @@ class UsageError(SwarmError):
 ERROR_ROOTS: tuple[type[Exception], ...] = (RadioError, BridgeError, SwarmError)
 #: the kinds that mean the user's input is wrong (exit 2): a command-line value, a
 #: parameter or key file, a link URL or missing device, a flight-controller URL or
-#: port, a Zenoh endpoint, a capture that is damaged or not a capture at all. A
-#: timeout among them (no heartbeat) is a failure instead.
+#: port, a Zenoh endpoint, a certificate or access-control file, a capture that is
+#: damaged or not a capture at all. A timeout among them (no heartbeat) is a failure
+#: instead.
 BAD_INPUT: tuple[type[Exception], ...] = (
     UsageError,
     ConfigError,
@@ -58,6 +59,7 @@ BAD_INPUT: tuple[type[Exception], ...] = (
     LinkOpenError,
     ConnectError,
     TransportError,
+    CertError,
 )
 
 
@@ -107,8 +109,9 @@ def parser(prog: str, description: str) -> argparse.ArgumentParser:
 
 def add_node_arguments(p: argparse.ArgumentParser, *, title: str | None = None, radios: bool = False) -> Any:
     """Where a node meets the others (``--radio``, ``--zenoh-listen``, ``--zenoh-connect``
-    in a group ``title`` if given, which is returned), its signing key (``--key``) and
-    ``--exit-on-radio-loss``. :func:`node_options` reads them back. ``radios``:
+    in a group ``title`` if given, which is returned), its Zenoh TLS and access
+    control (``--tls-ca``, ``--tls-cert``, ``--tls-key``, ``--zenoh-acl``), its signing
+    key (``--key``) and ``--exit-on-radio-loss``. :func:`node_options` reads them back. ``radios``:
     ``--radio [NAME=]URL`` may be repeated (a list; the station's channels)."""
     where = p.add_argument_group(title) if title else p
     if radios:
@@ -131,6 +134,19 @@ def add_node_arguments(p: argparse.ArgumentParser, *, title: str | None = None, 
             ": the agents' (no --radio), other stations' (with --radio)" if radios else ", instead of a radio"
         )
         where.add_argument(flag, nargs="+", default=[], metavar="EP", help=f"Zenoh endpoints to {what}{also}")
+    tls = p.add_argument_group(
+        "Zenoh over IP: mutual TLS and access control (tls/ endpoints; swarm certs makes the files)"
+    )
+    tls.add_argument("--tls-ca", metavar="FILE", help="the swarm CA's certificate (ca.pem)")
+    tls.add_argument(
+        "--tls-cert", metavar="FILE", help="this node's certificate (NAME.pem; its name is --name)"
+    )
+    tls.add_argument("--tls-key", metavar="FILE", help="this node's private key (NAME.key, mode 0600)")
+    tls.add_argument(
+        "--zenoh-acl",
+        metavar="FILE",
+        help="Zenoh access control for the nodes that connect to --zenoh-listen (acl.json5)",
+    )
     p.add_argument("--key", metavar="FILE", help="swarm signing key (32 bytes, 64 hex digits or passphrase)")
     p.add_argument(
         "--exit-on-radio-loss",
@@ -151,15 +167,62 @@ def node_options(a: argparse.Namespace, who: str, *, others: str = "") -> NodeOp
     """
     from swarm.runtime.options import NodeOptions
 
+    tls, acl = zenoh_security(a, "agent" if who == "an agent" else "station")
     try:
         node = NodeOptions(
-            radio=a.radio, zenoh_listen=a.zenoh_listen, zenoh_connect=a.zenoh_connect, key_file=a.key
+            radio=a.radio,
+            zenoh_listen=a.zenoh_listen,
+            zenoh_connect=a.zenoh_connect,
+            key_file=a.key,
+            tls=tls,
+            acl_file=acl,
         )
     except ValueError:
         raise UsageError(f"give one of --radio URL, --zenoh-listen/--zenoh-connect EP...{others}") from None
     if a.exit_on_radio_loss and not node.on_radio:
         raise UsageError(f"--exit-on-radio-loss is for {who} on a radio (--radio)")
     return node
+
+
+def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, str | None]:
+    """The TLS files and ACL file of :func:`add_node_arguments`' values, for a node of
+    ``role`` named ``a.name``, once the rules of :mod:`swarm.core.zenoh_edge` allow
+    them: a ``tls/`` endpoint needs the three files, the files need ``tls/``
+    endpoints only, an ACL needs TLS and a listen endpoint; ``--key`` with a plain
+    endpoint beyond loopback is refused, on loopback it warns (one line).
+
+    Raises:
+        UsageError: what the rules refuse.
+    """
+    from swarm.core.zenoh_edge import key_over_ip, tls_needed
+    from swarm.runtime.options import TlsFiles
+
+    endpoints = [*(a.zenoh_listen or []), *(a.zenoh_connect or [])]
+    ca, cert, key = a.tls_ca, a.tls_cert, a.tls_key
+    missing = tls_needed(endpoints, has_ca=bool(ca), has_cert=bool(cert), has_key=bool(key))
+    if missing:
+        raise UsageError(missing)
+    if a.zenoh_acl is not None and not (ca and a.zenoh_listen):
+        raise UsageError(
+            "--zenoh-acl rules the nodes that connect to this one: it needs --zenoh-listen tls/... "
+        )
+    verdict = key_over_ip(endpoints, has_key=a.key is not None)
+    if verdict is not None and verdict.level == "refuse":
+        raise UsageError(verdict.text)
+    if verdict is not None:
+        log.warning("%s", verdict.text)
+    if ca and a.zenoh_listen and a.zenoh_acl is None:
+        log.warning(
+            "warning: no --zenoh-acl: any certificate of the swarm's CA that connects to %s may publish "
+            "anything (swarm certs writes acl.json5)",
+            ", ".join(a.zenoh_listen),
+        )
+    tls = (
+        TlsFiles(ca, cert, key, name=getattr(a, "name", None) or "", role=role)
+        if ca and cert and key
+        else None
+    )
+    return tls, a.zenoh_acl
 
 
 def radio_loss_message(bridge: Any) -> str:

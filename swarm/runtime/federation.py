@@ -42,7 +42,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -66,6 +66,9 @@ from swarm.core.federation import (
     thin,
 )
 from swarm.runtime.transport import open_session
+
+if TYPE_CHECKING:
+    from swarm.runtime.options import TlsFiles
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +104,8 @@ class Federation:
         connect: Sequence[str] = (),
         listen: Sequence[str] = (),
         key: bytes | None = None,
+        tls: TlsFiles | None = None,
+        acl: str | None = None,
         accept_unsigned_commands: bool = False,
         local: Callable[[], dict[str, Any]],
         run_local: Callable[[Any], Future[Result]],
@@ -115,6 +120,7 @@ class Federation:
         self.name = name
         self.connect, self.listen = tuple(connect), tuple(listen)
         self.key = key
+        self.tls, self.acl = tls, acl
         self.local, self.run_local, self.on_event = local, run_local, on_event
         self.period, self.timeout, self.forget = period, timeout, forget
         self.command_timeout = command_timeout
@@ -138,8 +144,9 @@ class Federation:
 
     # -- life cycle ---------------------------------------------------------------------
     def start(self) -> Federation:
-        """Open the session and start publishing. Raises TransportError (endpoints)."""
-        self.session = open_session(self.listen, self.connect)
+        """Open the session and start publishing. Raises TransportError (endpoints) or
+        CertError (the TLS or ACL files)."""
+        self.session = open_session(self.listen, self.connect, tls=self.tls, acl=self.acl)
         try:
             self._decls.append(self.session.declare_subscriber(f"{PREFIX}/*/state", self._on_state))
             self._decls.append(self.session.declare_queryable(command_key(self.name), self._on_query))
@@ -174,7 +181,12 @@ class Federation:
     def describe(self) -> str:
         parts = [f"listen={','.join(self.listen)}"] if self.listen else []
         parts += [f"connect={','.join(self.connect)}"] if self.connect else []
-        return "stations " + " ".join(parts) + (" signed" if self.key else " unsigned")
+        return (
+            "stations "
+            + " ".join(parts)
+            + (" signed" if self.key else " unsigned")
+            + (" tls" if self.tls else "")
+        )
 
     # -- out ------------------------------------------------------------------------------
     def _seal(self, kind: bytes, body: Any) -> tuple[int, bytes]:

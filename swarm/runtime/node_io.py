@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, Self
 
 if TYPE_CHECKING:
     from swarm.runtime.bridge import RadioBridge
-    from swarm.runtime.options import NodeOptions
+    from swarm.runtime.options import NodeOptions, TlsFiles
     from swarm.runtime.transport import Transport
 
 log = logging.getLogger(__name__)
@@ -93,11 +93,14 @@ def open_node(
     key_file: str | None = None,
     capture: Any = None,
     link: Any = None,
+    tls: TlsFiles | None = None,
+    acl: str | None = None,
 ) -> tuple[Any, Any, RadioBridge | None]:
     """A node's way into the key space: ``(session, link, bridge)``. With ``radio`` the
     Zenoh session has no endpoints and no scouting (only the radio), the link is
     opened (captured to ``capture`` if given) and bridged, MAVLink 2 signed with the
-    key in ``key_file``; otherwise a session on the Zenoh endpoints, no link or bridge.
+    key in ``key_file``; otherwise a session on the Zenoh endpoints (with ``tls``
+    certificates and the ``acl`` file if given), no link or bridge.
     A ``link`` already open is bridged instead of opening ``radio``; it is not
     returned (its opener closes it). ``capture`` is a ``.tlog`` path or a capture
     sink (:class:`radios.capture.CaptureSink`: an agent's flight log); a handed link
@@ -106,7 +109,8 @@ def open_node(
 
     Raises:
         radios.errors.ConfigError: the key file. radios.errors.LinkOpenError: the radio.
-        swarm.errors.TransportError: the Zenoh endpoints.
+        swarm.errors.TransportError: the Zenoh endpoints. swarm.errors.CertError: the
+            TLS or ACL files.
     """
     from radios.link import open_link
     from radios.signing import load_key
@@ -117,7 +121,7 @@ def open_node(
     ours = link is None  # a handed link is closed by whoever opened it
     if link is None:
         if radio is None:
-            return open_session(listen, connect), None, None
+            return open_session(listen, connect, tls=tls, acl=acl), None, None
         link = open_link(radio, capture=capture)
     elif capture is not None and not isinstance(capture, str):
         from radios.capture import CaptureLink
@@ -159,6 +163,8 @@ def open_node_io(name: str, agent_id: int, node: NodeOptions, *, capture: Any = 
         key_file=node.key_file,
         capture=capture,
         link=node.link,
+        tls=node.tls,
+        acl=node.acl_file,
     )
     try:
         return NodeIO(session, link, bridge, Transport(name, session))

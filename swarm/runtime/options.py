@@ -4,8 +4,9 @@ Theory of operation
 -------------------
 :class:`NodeOptions` is a node's way into the key space, the same for an agent and
 a ground station: exactly one of a radio (a link URL, or a link the caller already
-opened) or Zenoh endpoints (listen and/or connect), and the swarm's signing key
-file. Its constructor is the one place that checks "a radio or Zenoh, not both";
+opened) or Zenoh endpoints (listen and/or connect, with :class:`TlsFiles` for
+``tls/`` ones and an access-control file for a listener), and the swarm's signing
+key file. Its constructor is the one place that checks "a radio or Zenoh, not both";
 the command line builds one from its shared node options
 (:func:`swarm.cli.util.add_node_arguments`) and turns the ValueError into a usage
 error.
@@ -36,11 +37,26 @@ PROFILES = PROFILE_NAMES
 
 
 @dataclass(frozen=True)
+class TlsFiles:
+    """Mutual TLS for ``tls/`` Zenoh endpoints: the swarm CA's certificate, this
+    node's certificate and private key (``swarm certs``); ``name`` and ``role`` what
+    the certificate must say this node is ("": not checked)."""
+
+    ca: str
+    cert: str
+    key: str
+    name: str = ""
+    role: str = ""
+
+
+@dataclass(frozen=True)
 class NodeOptions:
     """Where a node meets the others: ``radio`` (a link URL: serial device, emulator
     pty...), ``link`` (a :class:`radios.link.Link` already open: the node bridges it
     but does not close it, its opener does), or Zenoh endpoints to listen on and
-    connect to. ``key_file``: the swarm's signing key for the radio's frames.
+    connect to. ``key_file``: the swarm's signing key for the radio's frames. ``tls``:
+    the certificates of ``tls/`` endpoints; ``acl_file``: Zenoh's access control for
+    the nodes that connect to this one's listen endpoints.
 
     Raises:
         ValueError: none or more than one way in.
@@ -51,6 +67,8 @@ class NodeOptions:
     zenoh_listen: Sequence[str] = ()
     zenoh_connect: Sequence[str] = ()
     key_file: str | None = None
+    tls: TlsFiles | None = None
+    acl_file: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "zenoh_listen", tuple(self.zenoh_listen))
@@ -127,4 +145,4 @@ class AgentConfig:
             raise ValueError(f"swarm_name {self.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
 
 
-__all__ = ["PROFILES", "VOTES", "AgentConfig", "NodeOptions"]
+__all__ = ["PROFILES", "VOTES", "AgentConfig", "NodeOptions", "TlsFiles"]

@@ -42,7 +42,7 @@ import logging
 import re
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -58,6 +58,9 @@ from swarm.core.messages import (
     encode,
 )
 from swarm.errors import DecodeError, TransportError
+
+if TYPE_CHECKING:
+    from swarm.runtime.options import TlsFiles
 
 log = logging.getLogger(__name__)
 
@@ -94,12 +97,18 @@ def session_mode(listen: Sequence[str], connect: Sequence[str]) -> str:
 
 
 def session_config(
-    listen: Sequence[str] = (), connect: Sequence[str] = (), *, scouting: bool = False
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    *,
+    scouting: bool = False,
+    tls: TlsFiles | None = None,
+    acl_text: str | None = None,
 ) -> zenoh.Config:
     """A Zenoh config with explicit endpoints (``tcp/127.0.0.1:7447``) that listens
     exactly where ``listen`` says and nowhere else: Zenoh's own default for a peer is
     every address on a random port (``tcp/[::]:0``), which would let anyone who
-    reaches the machine into the key space. See :func:`session_mode`."""
+    reaches the machine into the key space. See :func:`session_mode`. With ``tls``,
+    mutual TLS (and ``acl_text``, Zenoh's access control): :mod:`swarm.runtime.zenoh_tls`."""
     cfg = zenoh.Config()
     try:
         cfg.insert_json5("mode", json.dumps(session_mode(listen, connect)))
@@ -107,18 +116,38 @@ def session_config(
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
         if connect:
             cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        if tls is not None:
+            from swarm.runtime import zenoh_tls
+
+            zenoh_tls.apply(cfg, tls, listening=bool(listen), acl_text=acl_text)
     except Exception as exc:  # zenoh raises its own ZError for bad JSON5 values
         raise TransportError(zenoh_config_message(str(exc))) from exc
     return cfg
 
 
-def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), *, scouting: bool = False) -> Any:
-    """Open a Zenoh session. Raises TransportError (bad endpoint, port in use).
+def open_session(
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    *,
+    scouting: bool = False,
+    tls: TlsFiles | None = None,
+    acl: str | None = None,
+) -> Any:
+    """Open a Zenoh session. Raises TransportError (bad endpoint, port in use) or
+    CertError (``tls`` files or the ``acl`` file: :func:`swarm.runtime.zenoh_tls.check_tls`).
 
     A session that only connects is a :class:`ClientSession` (Zenoh's client mode,
     opened in the background until the other side answers); otherwise Zenoh's own
     session in peer mode."""
-    cfg = session_config(listen, connect, scouting=scouting)
+    acl_text = None
+    if tls is not None:
+        from swarm.runtime import zenoh_tls
+
+        zenoh_tls.check_tls(tls)
+        acl_text = zenoh_tls.load_acl(acl) if acl is not None else None
+    elif acl is not None:
+        raise TransportError("Zenoh access control (an ACL file) needs TLS: certificates name who is who")
+    cfg = session_config(listen, connect, scouting=scouting, tls=tls, acl_text=acl_text)
     if session_mode(listen, connect) == "client":
         return ClientSession(cfg, connect)
     try:

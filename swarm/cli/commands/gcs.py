@@ -53,6 +53,7 @@ from swarm.cli.util import (
     parser,
     peer_watch,
     print_json,
+    zenoh_security,
 )
 from swarm.core.gslink import STATION_IDS
 from swarm.core.message_types import NAME_RE
@@ -323,7 +324,7 @@ def _check(a: argparse.Namespace) -> None:
     if a.replay is None and a.channels is None:
         a.node = node_options(a, "a station", others=ways)
     elif a.replay is None:
-        pass
+        a.zenoh_tls, a.zenoh_acl_file = zenoh_security(a, "station")  # the stations' own Zenoh
     elif has_radio or a.zenoh_listen or a.zenoh_connect:
         raise UsageError(f"give one of --radio URL, --zenoh-listen/--zenoh-connect EP...{ways}")
     elif a.exit_on_radio_loss:
@@ -411,6 +412,8 @@ def _open_fleet(a: argparse.Namespace) -> Any:
             connect=a.zenoh_connect,
             listen=a.zenoh_listen,
             key=key,
+            tls=a.zenoh_tls,
+            acl=a.zenoh_acl_file,
             accept_unsigned_commands=a.allow_unsigned_remote,
             local=fleet.local_state,
             run_local=fleet.run_local,

@@ -189,7 +189,8 @@ def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, s
     ``role`` named ``a.name``, once the rules of :mod:`swarm.core.zenoh_edge` allow
     them: a ``tls/`` endpoint needs the three files, the files need ``tls/``
     endpoints only, an ACL needs TLS and a listen endpoint; ``--key`` with a plain
-    endpoint beyond loopback is refused, on loopback it warns (one line).
+    endpoint beyond loopback is refused, on loopback it warns (one line; kept in
+    ``a.zenoh_warnings`` instead when ``a.quiet_warnings`` is set: the doctor's).
 
     Raises:
         UsageError: what the rules refuse.
@@ -209,14 +210,16 @@ def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, s
     verdict = key_over_ip(endpoints, has_key=a.key is not None)
     if verdict is not None and verdict.level == "refuse":
         raise UsageError(verdict.text)
-    if verdict is not None:
-        log.warning("%s", verdict.text)
+    warnings = [verdict.text] if verdict is not None else []
     if ca and a.zenoh_listen and a.zenoh_acl is None:
-        log.warning(
-            "warning: no --zenoh-acl: any certificate of the swarm's CA that connects to %s may publish "
-            "anything (swarm certs writes acl.json5)",
-            ", ".join(a.zenoh_listen),
+        warnings.append(
+            f"warning: no --zenoh-acl: any certificate of the swarm's CA that connects to "
+            f"{', '.join(a.zenoh_listen)} may publish anything (swarm certs writes acl.json5)"
         )
+    a.zenoh_warnings = warnings  # swarm doctor shows them as its own lines
+    if not getattr(a, "quiet_warnings", False):
+        for text in warnings:
+            log.warning("%s", text)
     tls = (
         TlsFiles(ca, cert, key, name=getattr(a, "name", None) or "", role=role)
         if ca and cert and key

@@ -15,8 +15,10 @@ NODEID and NODECOUNT; the other radios' answers to ``RTI``), the flight controll
 (answers within 5 s; autopilot, firmware, vehicle type, armed, GPS fix, home or EKF
 origin, serial rate), the key
 file (present, mode 0600, 32 bytes), the clock (plausible for MAVLink signing), the
-Zenoh endpoints (well formed; listen endpoints free) and, when the agent captures,
-the disk. ``--json`` prints one object ``{"ok": bool, "checks": [{"status", "name",
+Zenoh endpoints (well formed; listen endpoints free), their TLS files (the CA; the
+certificate: signed by that CA, this agent's name and role, not expired nor within 30
+days of it; the key: mode 0600, the certificate's) and access-control file and, when
+the agent captures, the disk. ``--json`` prints one object ``{"ok": bool, "checks": [{"status", "name",
 "seen", "fix"}...]}`` instead. Exit 0 when nothing fails (warnings allowed), 1 when
 a check fails, 2 for bad arguments (what ``swarm agent`` would refuse to start with).
 
@@ -27,6 +29,7 @@ program holds open (a running agent) is reported and not touched.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 from radios.sik.guard import parse_expected
@@ -66,6 +69,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     a = read_arguments(_build_parser(), argv)  # --config FILE: the agent's config file
     round_given = a.round_s is not None
     probe = argparse.Namespace(**{**vars(a), "id": 1 if a.id is None else a.id, "name": a.name or "doctor"})
+    probe.quiet_warnings = True  # the node's warnings become the check's own lines
     # the agent would open (and create) its flight log folder: the doctor only looks at it
     probe.capture = None
     for flag in agent.CAPTURE_FLAGS:
@@ -73,7 +77,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     with file_errors(a):
         agent._check_arguments(probe)  # raises UsageError for what the agent refuses
         agent._agent(probe, agent._Lines(probe))  # builds (opens nothing): refuses what the agent would
-    a.node, a.round_s = probe.node, probe.round_s
+    a.node, a.round_s, a.zenoh_warnings = probe.node, probe.round_s, probe.zenoh_warnings
     a.expected = parse_expected(a.radio_params) if a.radio_params else None
     fast = a.profile != "paper" and not round_given  # the round comes from --slots and --air-speed
     a.plan = RadioPlan(
@@ -93,6 +97,10 @@ def _setup(a: argparse.Namespace) -> Setup:
         zenoh_connect=tuple(a.zenoh_connect),
         capture=getattr(a, "capture", None),  # the agent's --capture DIR, when it has one
         plan=a.plan,
+        # without --name the certificate's own name is not judged
+        tls=a.node.tls if a.node.tls is None or a.name else dataclasses.replace(a.node.tls, name=""),
+        acl=a.node.acl_file,
+        zenoh_warnings=tuple(a.zenoh_warnings),
     )
 
 

@@ -7,7 +7,8 @@ Theory of operation
 what its radio must agree with). :func:`examine` turns it into the checklist, in a
 fixed order: the radio (its device, then what it says in AT command mode), the
 flight controller (its device if serial, then its MAVLink answers), the key file,
-the clock, the Zenoh endpoints and the capture disk. The two slow probes, the radio's
+the clock, the Zenoh endpoints (and their TLS files and access control) and the
+capture disk. The two slow probes, the radio's
 (about 3 s of AT command mode) and the flight controller's (up to 5 s for its
 heartbeat, 2.5 s for the messages asked for), run at the same time on two threads;
 the rest is quick. The verdicts are the pure functions of :mod:`swarm.core.doctor`;
@@ -23,6 +24,7 @@ import os
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from firmware_bridge.connection import parse_url
 from firmware_bridge.errors import BridgeError
@@ -38,10 +40,16 @@ from swarm.core.doctor.host import (
     zenoh_check,
 )
 from swarm.core.doctor.radio import RadioFacts, RadioPlan, radio_checks
+from swarm.core.doctor.tls import acl_check, tls_checks
 from swarm.core.doctor.vehicle import VehicleFacts, vehicle_checks
+from swarm.core.zenoh_edge import CERTS_HINT
 from swarm.runtime.doctor.host import device_facts, disk_facts, key_facts, zenoh_facts
 from swarm.runtime.doctor.radio import radio_facts
+from swarm.runtime.doctor.tls import acl_facts, tls_facts
 from swarm.runtime.doctor.vehicle import HEARTBEAT_S, vehicle_facts
+
+if TYPE_CHECKING:
+    from swarm.runtime.options import TlsFiles
 
 
 @dataclass(frozen=True)
@@ -57,6 +65,9 @@ class Setup:
     capture: str | None = None
     plan: RadioPlan = field(default_factory=RadioPlan)
     fc_timeout: float = HEARTBEAT_S
+    tls: TlsFiles | None = None  # --tls-ca/--tls-cert/--tls-key, with the name and role expected
+    acl: str | None = None  # --zenoh-acl
+    zenoh_warnings: Sequence[str] = ()  # what the agent would warn of its Zenoh (swarm.core.zenoh_edge)
 
 
 def _radio_device(setup: Setup, out: list[Check]) -> tuple[str, int] | None:
@@ -125,6 +136,12 @@ def _host_checks(setup: Setup, now: float) -> list[Check]:
     out.append(clock_check(now))
     out += [zenoh_check(zenoh_facts(ep, "listen")) for ep in setup.zenoh_listen]
     out += [zenoh_check(zenoh_facts(ep, "connect")) for ep in setup.zenoh_connect]
+    if setup.tls is not None:
+        t = setup.tls
+        out += tls_checks(tls_facts(t.ca, t.cert, t.key, expect_name=t.name, expect_role=t.role), now)
+    if setup.acl is not None:
+        out.append(acl_check(acl_facts(setup.acl)))
+    out += [warn("zenoh", text.removeprefix("warning: "), CERTS_HINT) for text in setup.zenoh_warnings]
     if setup.capture is not None:
         out.append(disk_check(disk_facts(setup.capture)))
     return out

@@ -55,12 +55,14 @@ ACTIONS = {
     "Query": "query",
     "Reply": "reply",
     "Declare/Undeclare Subscriber": "declare_subscriber",
+    "Declare Subscriber": "declare_subscriber",
     "Declare/Undeclare Queryable": "declare_queryable",
+    "Declare Queryable": "declare_queryable",
     "Declare/Undeclare Liveliness Token": "liveliness_token",
     "Liveliness Query": "liveliness_query",
     "Declare Liveliness Subscriber": "declare_liveliness_subscriber",
 }
-PRECOMPUTED = len(ACTIONS)  # decisions Zenoh logs after "caching permissions for"
+PRECOMPUTED = 9  # decisions Zenoh logs after "caching permissions for" (one per kind of message)
 ANONYMOUS = "a node without a certificate"
 _HINT = ". Hint: increase the system open file limit."
 

@@ -35,6 +35,10 @@ AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
         "scale_procs",
         "channels x agents, a station each and a Zenoh router: listing, command, kill",
     ),
+    "ip-edge": (
+        "ip_edge",
+        "stations on two machines, a router over mutual TLS with an ACL, an attacker on every listener",
+    ),
     "conformance": ("conformance", "simulated ArduCopter vs recorded SITL traces: milestones, acks, timings"),
 }
 

@@ -120,8 +120,8 @@ def _identity(f: TlsFacts) -> list[Check]:
         return [
             fail(
                 "tls name",
-                f"{c.path} is {c.name!r}'s certificate, this node is {f.expect_name!r}: its own keys would "
-                "be refused",
+                f"{c.path} names {c.name!r}, but this node is {f.expect_name!r}: its own keys would be "
+                "refused",
                 f"give {f.expect_name}'s certificate, or make one: swarm certs node DIR "
                 f"{f.expect_name} --role {f.expect_role or c.role}",
             )

@@ -30,7 +30,7 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.cli.bench.ip_attack import PHANTOM_ID, attack, describe, listeners
+from swarm.cli.bench.ip_attack import PHANTOM_ID, attack, describe, executed, listeners
 from swarm.cli.commands.keygen import write_key
 from swarm.cli.procs import Child, json_events, start_emulator
 
@@ -95,6 +95,7 @@ def test_an_ip_attacker_on_every_listener_executes_and_learns_nothing(tmp_path: 
         # disarmed, no agent follows or lists the phantom leader
         wait_until(lambda: len(api(url, "api/state")["agents"]) == 2, "the station's view", 10)
         commands = [e["text"] for c in (a1, a2) for e in agent_events(c, "pilot") if "command" in e["text"]]
+        assert executed(e for c in (a1, a2) for e in agent_events(c, "pilot")) == commands
         assert commands == [], f"the attacker's commands were carried out: {commands}"
         assert api(url, "api/agents/1")["armed"] is False
         phantom = [

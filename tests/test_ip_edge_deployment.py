@@ -9,7 +9,8 @@ B's agents through B and is answered, B's swarm takes a FOLLOW from A; every soc
 every process is found and attacked; another CA's certificate and an expired one are
 refused at the handshake, an agent's certificate asking a station's command queryable
 is refused by the ACL; the router refused none of the stations' own traffic, and the
-swarm is still led on both channels after all of it.
+swarm is still led on both channels after all of it. The router restarts: st1 is shown
+gone, then back, and a command crosses again.
 """
 
 from __future__ import annotations
@@ -46,4 +47,8 @@ def test_two_machines_a_tls_router_with_an_acl_and_an_attacker_everywhere(tmp_pa
         "acl: a1 query (ingress) gcs/st1/command",
     } <= set(f["router_refusals"]), f["router_refusals"]
     assert f["legit_refused"] == []
+    # a router restart: st1 shown gone, back once the router is, commands cross again
+    r = f["router_restart"]
+    assert r["command_across_after"] == ["agent 22 FAILED via st1"] and r["status"] == 200, r
+    assert r["st1_shown_gone_s"] < 10 and r["st1_back_s"] < 15, r
     assert f["ok"] is True

@@ -223,6 +223,9 @@ def test_the_log_reader_finds_real_attempts_only() -> None:
     assert r.line(tls + "received corrupt message of type InvalidContentType") == Refusal(
         "tls", why="not TLS (a plain TCP client?)"
     )
+    assert r.line(tls + "received fatal alert: UnknownCA") == Refusal(
+        "tls", why="a client without the swarm's CA (UnknownCA)"
+    )
     other = r.line(f"{T}  WARN ThreadId(01) zenoh::net::runtime::orchestrator: Unable to connect to tls/x:1!")
     assert other == Passed("WARN", "zenoh::net::runtime::orchestrator: Unable to connect to tls/x:1!")
     assert (

@@ -107,6 +107,8 @@ def tls_reason(msg: str) -> str | None:
         return "no client certificate"
     if "invalidcontenttype" in low:  # not a TLS record: a plain TCP client at a TLS port
         return "not TLS (a plain TCP client?)"
+    if low.startswith("received fatal alert"):  # the client refused our certificate: not one of ours
+        return f"a client without the swarm's CA ({m.rsplit(': ', 1)[-1]})"
     if not low.startswith(("invalid peer certificate", "can not accept tls connection", "received corrupt")):
         return None
     if "unknownissuer" in low or "unknown issuer" in low:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import os
+import re
 import threading
 import time
 from collections.abc import Iterable
@@ -40,6 +41,8 @@ UNIX_ACCEPTCON = 0x10000
 UNIX_DGRAM = 2
 #: the id a forged leader uses (no real agent has it)
 PHANTOM_ID = 200
+#: the attacker's Commands carry sequence numbers from here (ARM), +1000 (TAKEOFF)
+ATTACK_SEQ = 60000
 
 
 @dataclass(frozen=True)
@@ -150,18 +153,20 @@ class AttackReport:
         }
 
 
-def forgeries(agents: dict[str, int], station_id: int = 255) -> list[tuple[str, bytes]]:
+def forgeries(
+    agents: dict[str, int], station_id: int = 255, phantom_id: int = PHANTOM_ID
+) -> list[tuple[str, bytes]]:
     """The (key, payload) pairs an attacker publishes: a station's ARM and TAKEOFF to
     each agent (on its inbox and on its command key), a phantom leader's Advertize and
     Heartbeats naming every agent its member."""
     from swarm.core.messages import Advertize, Command, CommandKind, Heartbeat, encode
 
     members = frozenset(agents.values())
-    out: list[tuple[str, bytes]] = [("swarm/advertize", encode(Advertize(PHANTOM_ID, "phantom")))]
-    for seq, (name, aid) in enumerate(sorted(agents.items()), start=60000):
+    out: list[tuple[str, bytes]] = [("swarm/advertize", encode(Advertize(phantom_id, "phantom")))]
+    for seq, (name, aid) in enumerate(sorted(agents.items()), start=ATTACK_SEQ):
         arm = encode(Command(station_id, seq, aid, CommandKind.ARM))
         takeoff = encode(Command(station_id, seq + 1000, aid, CommandKind.TAKEOFF, alt=10.0))
-        hb = encode(Heartbeat(PHANTOM_ID, 0xBEEF, seq % 200, members))
+        hb = encode(Heartbeat(phantom_id, 0xBEEF, seq % 200, members))
         for key in (f"swarm/{name}", f"swarm/{name}/command"):
             out += [(key, arm), (key, takeoff)]
         out.append((f"swarm/{name}", hb))
@@ -187,6 +192,7 @@ def attack(
     duration_s: float = 3.0,
     rounds: int = 5,
     open_timeout_s: float = 2.0,
+    phantom_id: int = PHANTOM_ID,
 ) -> AttackReport:
     """Try every Zenoh endpoint that reaches ``listener`` as a stranger would (see the
     module docstring), for ``duration_s`` seconds each."""
@@ -214,7 +220,7 @@ def attack(
             ]
             time.sleep(0.3)  # the subscriptions reach the other side before the puts
             for _ in range(rounds):
-                for key, payload in forgeries(agents):
+                for key, payload in forgeries(agents, phantom_id=phantom_id):
                     session.put(key, payload)
                     report.sent += 1
                 try:  # the stations' command queryables, as another station would ask
@@ -240,4 +246,30 @@ def describe(found: Iterable[Listener]) -> list[str]:
     return [x.describe() for x in found]
 
 
-__all__ = ["AttackReport", "Listener", "attack", "attack_all", "describe", "forgeries", "listeners"]
+_SEQ = re.compile(r"\bseq (\d+)\b")
+
+
+def executed(events: Iterable[dict[str, Any]]) -> list[str]:
+    """The attacker's commands among an agent's ``pilot`` events (``--json`` lines:
+    ``command ARM seq 60000 from 255: ACCEPTED``), by their sequence numbers."""
+    out = []
+    for e in events:
+        text = str(e.get("text", ""))
+        m = _SEQ.search(text)
+        if text.startswith("command ") and m and ATTACK_SEQ <= int(m.group(1)) < ATTACK_SEQ + 2000:
+            out.append(text)
+    return out
+
+
+__all__ = [
+    "ATTACK_SEQ",
+    "PHANTOM_ID",
+    "AttackReport",
+    "Listener",
+    "attack",
+    "attack_all",
+    "describe",
+    "executed",
+    "forgeries",
+    "listeners",
+]

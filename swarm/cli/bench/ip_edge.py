@@ -22,8 +22,11 @@ every socket every process listens on (:mod:`swarm.cli.bench.ip_attack`: plain, 
 without a certificate), and with real certificates: another CA's station, an expired
 agent's, and a valid agent's asking st1's command queryable (only stations may). What
 the router refused is its own count (``swarm router``'s lines); none of the stations'
-own traffic may be among it. Last, what the access control costs a router
-(:func:`router_load`: it reads Zenoh's decisions from its log at ``TRACE``).
+own traffic may be among it. Then the router restarts (SIGTERM, down 2 s, started
+again on the same endpoint): how long until st0 shows st1 gone, and back once the
+router is (the stations' Zenoh clients reconnect by themselves), and a command across
+again. Last, what the access control costs a router (:func:`router_load`: it reads
+Zenoh's decisions from its log at ``TRACE``).
 """
 
 from __future__ import annotations
@@ -326,6 +329,30 @@ def _run(d: Path, ns: str | None, a_addr: str, b_addr: str) -> dict[str, Any]:
         still = sorted(led_swarms(state()))
         cpu = round(cpu_seconds(router.proc.pid), 2)
         run_s = round(time.monotonic() - t_router, 1)
+        # a router restart: SIGTERM (its counts are its last line), down 2 s, started again
+        router.stop(grace=10)
+        children.remove(router)  # stopped on purpose: state() must not take it for a crash
+        t_down = time.monotonic()
+        poll(lambda: not _alive(state(), "st1"), "st0 to show st1 gone", DEADLINE)
+        gone_s = round(time.monotonic() - t_down, 2)
+        time.sleep(max(0.0, 2.0 - (time.monotonic() - t_down)))
+        again = MachineChild(router.argv[3:], name="router again", ns=None)
+        children.append(again)
+        again.wait_lines(1, 30)
+        t_up = time.monotonic()
+        poll(lambda: _alive(state(), "st1") and len(led_swarms(state())) == 2, "st1 back on st0", DEADLINE)
+        back_s = round(time.monotonic() - t_up, 2)
+        st_again, body_again = http(urls[0] + "api/command", {"target": 22, "kind": "arm"})
+        restart = {
+            "down_s": round(t_up - t_down, 1),
+            "st1_shown_gone_s": gone_s,
+            "st1_back_s": back_s,
+            "command_across_after": [
+                f"agent {r['agent']} {r['result']} via {r.get('station')}"
+                for r in body_again.get("results", [])
+            ],
+            "status": st_again,
+        }
         for ch in reversed(children):
             ch.stop(grace=5)
         refused = json_events(router.lines, "refusals")
@@ -361,12 +388,17 @@ def _run(d: Path, ns: str | None, a_addr: str, b_addr: str) -> dict[str, Any]:
             "router_cpu_s": cpu,
             "router_run_s": run_s,
             "station_b_ready": bool(by_station_b),
+            "router_restart": restart,
         }
         figures["ok"] = _ok(figures)
         return figures
     finally:
         for c in reversed(children):
             c.stop(grace=5)
+
+
+def _alive(state: dict[str, Any], station: str) -> bool:
+    return any(x["name"] == station and x["alive"] for x in state.get("stations", []))
 
 
 def _refusal_label(c: dict[str, Any]) -> str:
@@ -386,6 +418,7 @@ def _ok(f: dict[str, Any]) -> bool:
         and all(v.endswith("opened 0, samples received 0") for v in f["ip_attacks"].values())
         and not any(c["received"] or c["replies"] for c in f["cert_attacks"].values())
         and f["legit_refused"] == []
+        and f["router_restart"]["command_across_after"] == ["agent 22 FAILED via st1"]
     )
 
 

@@ -8,12 +8,14 @@ each other's inboxes), the station connects both (GSAdvertize, its inbox), a swa
 FOLLOW reaches the leader and an ARM reaches an agent without a flight controller
 (both on the agents' command keys, which only stations may put on), and the router
 refused none of it. An agent started with its certificate but another agent's name
-refuses to start, in one line.
+refuses to start, in one line. The same swarm with no router, the station listening
+with the ACL: it works the same, and enforces the rules itself.
 """
 
 from __future__ import annotations
 
 import json
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -22,8 +24,12 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
+from swarm.cli.bench.ip_attack import ATTACK_SEQ, executed
 from swarm.cli.procs import Child, json_events
+from swarm.core.messages import Command, CommandKind, encode
+from swarm.runtime.options import TlsFiles
 from swarm.runtime.pki import issue, make_ca, nodes, write_acl
+from swarm.runtime.transport import open_session
 
 pytestmark = pytest.mark.processes  # a router, two agents and a station over TLS
 
@@ -50,65 +56,63 @@ def flags(d: Path, name: str) -> list[str]:
     ]
 
 
+def make_pki(d: Path) -> Path:
+    now = time.time()
+    make_ca(d, now=now)
+    issue(d, "r1", "router", now=now, hosts=["127.0.0.1"])
+    issue(d, "gcs", "station", now=now, hosts=["127.0.0.1"])  # it listens in the second test
+    for name in ("agent1", "agent2"):
+        issue(d, name, "agent", now=now)
+    return write_acl(d, nodes(d)[0])
+
+
+def fly(d: Path, ep: str, station: list[str], children: list[Child]) -> Child:
+    """Two agents connecting to ``ep`` and a station (``station``: its Zenoh flags); the
+    agents elected, connected to the station, a FOLLOW and an ARM answered."""
+    for i in (1, 2):
+        argv = ["agent", "--name", f"agent{i}", "--id", str(i), "--zenoh-connect", ep, "--json"]
+        children.append(Child([*argv, *flags(d, f"agent{i}")], name=f"agent{i}"))
+    http = free_port("tcp")
+    argv = ["gcs", *station, *flags(d, "gcs"), "--http", f"127.0.0.1:{http}"]
+    gcs = Child([*argv, "--tiles", "none", "--json"], name="gcs")
+    children.append(gcs)
+    url = f"http://127.0.0.1:{http}/"
+    wait_until(lambda: json_events(gcs.lines, "ready"), "the station ready", DEADLINE, children=children)
+
+    def state() -> dict[str, Any]:
+        with urllib.request.urlopen(url + "api/state", timeout=30) as r:
+            return dict(json.loads(r.read()))
+
+    def led() -> int | None:
+        agents = state()["agents"]
+        leaders = {a["leader"] for a in agents if a["connected"]}
+        ok = len(agents) == 2 and all(a["connected"] for a in agents) and len(leaders) == 1
+        return leaders.pop() if ok and 0 not in leaders else None
+
+    leader = wait_until(
+        led, "both agents connected to the station, one leader", DEADLINE, 0.2, children=children
+    )
+    st, body = post(url + "api/command", {"target": "swarm", "kind": "follow", "heading": 90})
+    assert st == 200 and body["results"] == [
+        {"agent": leader, "result": "ACCEPTED", "reason": "", "swarm": True}
+    ]
+    st, body = post(url + "api/command", {"target": 2, "kind": "arm"})
+    assert body["results"] == [
+        {"agent": 2, "result": "FAILED", "reason": "no flight controller on this agent"}
+    ]
+    return gcs
+
+
 @pytest.mark.timeout(240)
 def test_agents_and_a_station_over_a_tls_router_with_the_acl(tmp_path: Path) -> None:
-    import time
-
-    now = time.time()
-    make_ca(tmp_path, now=now)
-    issue(tmp_path, "r1", "router", now=now, hosts=["127.0.0.1"])
-    for name, role in (("agent1", "agent"), ("agent2", "agent"), ("gcs", "station")):
-        issue(tmp_path, name, role, now=now)
-    acl = write_acl(tmp_path, nodes(tmp_path)[0])
+    acl = make_pki(tmp_path)
     ep = f"tls/127.0.0.1:{free_port('tcp')}"
-    router = Child(
-        [
-            "router",
-            "--listen",
-            ep,
-            *flags(tmp_path, "r1"),
-            "--acl",
-            str(acl),
-            "--json",
-            "--report-every",
-            "0",
-        ],
-        name="router",
-    )
+    argv = ["router", "--listen", ep, *flags(tmp_path, "r1"), "--acl", str(acl)]
+    router = Child([*argv, "--json", "--report-every", "0"], name="router")
     children = [router]
     try:
         router.wait_lines(1, 30)
-        for i in (1, 2):
-            argv = ["agent", "--name", f"agent{i}", "--id", str(i), "--zenoh-connect", ep, "--json"]
-            children.append(Child([*argv, *flags(tmp_path, f"agent{i}")], name=f"agent{i}"))
-        http = free_port("tcp")
-        argv = ["gcs", "--zenoh-connect", ep, *flags(tmp_path, "gcs"), "--http", f"127.0.0.1:{http}"]
-        gcs = Child([*argv, "--tiles", "none", "--json"], name="gcs")
-        children.append(gcs)
-        url = f"http://127.0.0.1:{http}/"
-        wait_until(lambda: json_events(gcs.lines, "ready"), "the station ready", DEADLINE, children=children)
-
-        def state() -> dict[str, Any]:
-            with urllib.request.urlopen(url + "api/state", timeout=30) as r:
-                return dict(json.loads(r.read()))
-
-        def led() -> int | None:
-            agents = state()["agents"]
-            leaders = {a["leader"] for a in agents if a["connected"]}
-            ok = len(agents) == 2 and all(a["connected"] for a in agents) and len(leaders) == 1
-            return leaders.pop() if ok and 0 not in leaders else None
-
-        leader = wait_until(
-            led, "both agents connected to the station, one leader", DEADLINE, 0.2, children=children
-        )
-        st, body = post(url + "api/command", {"target": "swarm", "kind": "follow", "heading": 90})
-        assert st == 200 and body["results"] == [
-            {"agent": leader, "result": "ACCEPTED", "reason": "", "swarm": True}
-        ]
-        st, body = post(url + "api/command", {"target": 2, "kind": "arm"})
-        assert body["results"] == [
-            {"agent": 2, "result": "FAILED", "reason": "no flight controller on this agent"}
-        ]
+        fly(tmp_path, ep, ["--zenoh-connect", ep], children)
         router.proc.terminate()
         assert router.proc.wait(30) == 0
         router.stop()
@@ -127,3 +131,33 @@ def test_agents_and_a_station_over_a_tls_router_with_the_acl(tmp_path: Path) -> 
     assert (
         len(wrong.errors) == 1 and "agent1.pem names 'agent1', but this node is 'agent2'" in wrong.errors[0]
     )
+
+
+@pytest.mark.timeout(240)
+def test_a_station_listening_with_the_acl_is_the_agents_meeting_point(tmp_path: Path) -> None:
+    """No router: the station listens (``--zenoh-listen tls/... --zenoh-acl``) and the
+    agents connect to it; its session enforces the ACL (agent1's certificate putting a
+    Command on agent2's command key through it is refused: agent2 never sees it)."""
+    acl = make_pki(tmp_path)
+    ep = f"tls/127.0.0.1:{free_port('tcp')}"
+    children: list[Child] = []
+    try:
+        fly(tmp_path, ep, ["--zenoh-listen", ep, "--zenoh-acl", str(acl)], children)
+        files = TlsFiles(str(tmp_path / "ca.pem"), str(tmp_path / "agent1.pem"), str(tmp_path / "agent1.key"))
+        evil = open_session(connect=[ep], tls=files)
+        try:
+            wait_until(lambda: evil.opened, "agent1's certificate connected", DEADLINE, children=children)
+            for seq in range(ATTACK_SEQ, ATTACK_SEQ + 10):
+                evil.put("swarm/agent2/command", encode(Command(255, seq, 2, CommandKind.ARM)))
+                time.sleep(0.1)
+            time.sleep(2.0)  # room for it to arrive, were it let through
+        finally:
+            evil.close()
+        agent2 = next(c for c in children if c.name == "agent2")
+        assert executed(json_events(agent2.lines, "pilot")) == []
+        assert any(
+            "command ARM" in e["text"] for e in json_events(agent2.lines, "pilot")
+        )  # the station's did
+    finally:
+        for c in reversed(children):
+            c.stop(grace=5)

@@ -17,11 +17,14 @@ first)``, any other warning to ``on_warning(text)`` once per distinct text.
 set up once per process, so one watch per process: the router's
 (``swarm router``), started just before its session opens. The access control's
 decisions are ``TRACE`` lines, one or two per message the router passes: measured
-in the README ("Zenoh over IP").
+in the README ("Zenoh over IP"). Zenoh's threads wait on a full pipe, so the reader
+must keep up: the pipe holds 1 MiB of lines for a burst.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import sys
@@ -34,6 +37,7 @@ log = logging.getLogger(__name__)
 
 DIRECTIVES = "warn,zenoh_link_tls=warn,zenoh::net::routing::interceptor::access_control=trace"
 MAX_WARNINGS = 1000  # distinct warning texts remembered (and each shown once)
+PIPE_BYTES = 1 << 20  # the log pipe's buffer: Zenoh's threads wait when it is full
 
 
 class LogWatch:
@@ -57,6 +61,8 @@ class LogWatch:
 
         sys.stdout.flush()
         read_fd, write_fd = os.pipe()
+        with contextlib.suppress(OSError, AttributeError):  # Linux: room for a burst of lines
+            fcntl.fcntl(write_fd, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
         real = os.dup(1)
         os.dup2(write_fd, 1)
         os.close(write_fd)

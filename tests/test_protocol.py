@@ -186,6 +186,33 @@ def test_an_agent_that_hears_a_leader_is_not_alone() -> None:
     assert a.phase == Phase.LEADER and t >= quiet + PAPER.alone_timeout  # alone now: a swarm of one
 
 
+def test_time_without_a_radio_is_not_time_alone() -> None:
+    """Found by the fault bench (issue 27): a member whose radio a flood of garbage kept
+    from sending was expelled; IDLE, it heard the leader's Advertizes, but its radio was
+    re-checked every few seconds (the radio guard borrows the port), and a check that
+    covered the gap between two Advertizes made it a swarm of one beside the real leader
+    for the rest of the flood (two leaders for 144 s of a 1 MiB flood). Once its radio is
+    back an IDLE agent listens a whole alone timeout again before it leads alone."""
+    from swarm.core.node import AgentNode, RadioBack
+    from swarm.core.protocol import FLAG_LEADER
+
+    node = AgentNode(4, "agent4", PAPER)
+    node.start(0.0)
+    a = node.core
+    a.handle(Advertize(1, "agent1", FLAG_LEADER), 1.0)  # the leader heard at 1 s
+    back = 1.0 + PAPER.alone_timeout - 0.5  # the radio lent for a check until then
+    node.handle(RadioBack(), back)
+    t = back
+    while t < back + PAPER.alone_timeout - 0.25:
+        t += 0.25
+        node.tick(t)
+        assert a.phase == Phase.IDLE, t  # listening again, not alone yet
+    while a.phase == Phase.IDLE and t < back + 2 * PAPER.alone_timeout:
+        t += 0.25
+        node.tick(t)
+    assert a.phase == Phase.LEADER and t >= back + PAPER.alone_timeout  # heard no one for a whole timeout
+
+
 def test_leader_adopts_a_late_joiner() -> None:
     lead = Core(1)
     lead.start(0.0)

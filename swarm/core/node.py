@@ -147,6 +147,11 @@ class VehicleLink:
 
 
 @dataclass(frozen=True)
+class RadioBack:
+    """The radio link was away (lent to a check, unplugged) and is back."""
+
+
+@dataclass(frozen=True)
 class PositionFix:
     """Whether the flight controller's position is valid now, and if not why."""
 
@@ -341,6 +346,8 @@ class AgentNode:
             self.stats["vehicle_link_back" if ev.up else "vehicle_link_lost"] += 1
             core.set_vehicle_link(ev.up, now)  # a leader that cannot fly hands over
             return [EventOut(VEHICLE_LINK_BACK if ev.up else VEHICLE_LINK_LOST)]
+        elif isinstance(ev, RadioBack):
+            core.radio_back(now)  # what was not heard meanwhile proves no one absent
         elif isinstance(ev, PositionFix):
             return self._tell(self._position_fix(ev), now)
         elif isinstance(ev, AutopilotText):
@@ -514,6 +521,7 @@ __all__ = [
     "PoseHeard",
     "PositionFix",
     "PublishState",
+    "RadioBack",
     "RadioInfo",
     "Send",
     "SetTask",

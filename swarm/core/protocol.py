@@ -82,6 +82,7 @@ Beyond the paper (each rule stated once, here):
   advertise is not alone: it keeps asking that leader (StartPool) instead. One that
   can hear the swarm but not be heard (its radio flooded, a one-way link) would
   otherwise lead a swarm of one beside the real leader for as long as that lasts.
+  Time without a radio (:meth:`Core.radio_back`) is not time alone.
 * **Votes** come from a pluggable :class:`VotePolicy`: random (the paper),
   battery, or link quality, each in the high byte with random low bits.
 * **Elections are named** by ``epoch`` = the pool digest's low 16 bits: votes
@@ -349,6 +350,17 @@ class Core:
         if up != self.vehicle_ok:
             self.vehicle_ok = up
             self.vehicle_lost_at = now
+
+    def radio_back(self, now: float) -> None:
+        """The radio was away (lent to the radio guard's check, unplugged) and is back.
+        Not having heard anyone while it was away says nothing about who is there, so
+        an IDLE agent starts its alone timer again: it forms a swarm of one only after
+        a whole ``alone_timeout`` of listening (see "Alone"). The fault bench saw a
+        member whose radio a flood of garbage kept from sending: expelled, IDLE, its
+        radio re-checked every few seconds, it missed the leader's Advertizes during a
+        check and led a swarm of one beside the real leader for the rest of the flood."""
+        if self.phase == Phase.IDLE:
+            self.idle_since = max(self.idle_since, now)
 
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""

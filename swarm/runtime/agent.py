@@ -115,6 +115,7 @@ from swarm.core.node import (
     PoseHeard,
     PositionFix,
     PublishState,
+    RadioBack,
     RadioInfo,
     Send,
     SetpointOut,
@@ -311,6 +312,10 @@ class Agent(StartOnce):
             cap=self.config.swarm_cap,
             swarm_name=self.config.swarm_name,
         )
+        if self.bridge is not None:  # time without a radio is not time alone (Core.radio_back)
+            self.bridge.add_listener(
+                lambda what, _text: self.loop.put(RadioBack()) if what == "back" else None
+            )
         self.transport.on_inbox(self.loop.put)
         self.transport.on_advertize(self.loop.put)
         self.transport.on_gs_advertize(self.loop.put)
@@ -324,6 +329,10 @@ class Agent(StartOnce):
         if self.vehicle is not None:
             self._spawn(self._pose_loop, "pose")
             self._spawn(self._vehicle_loop, "vehicle")
+
+    def _radio_event(self, what: str, _text: str) -> None:
+        if what == "back":
+            self.loop.put(RadioBack())
 
     def _spawn(self, target: Callable[[], None], what: str) -> None:
         t = threading.Thread(target=target, name=f"agent-{self.name}-{what}", daemon=True)

@@ -343,24 +343,39 @@ def test_bridge_never_writes_to_another_device_at_its_radios_path(
 
 
 def test_a_device_swapped_while_the_radio_is_lent_is_not_taken_back(tmp_path: Path) -> None:
-    """The radio check borrows the port; meanwhile the path comes to name another device.
-    The bridge does not take that one; with --exit-on-radio-loss (no reopening) it stops,
-    the refusal as its reason."""
+    """The radio check borrows the port. A path that already names another device is not
+    lent (the check would talk to it); one that comes to name another device while lent
+    is not taken back; with --exit-on-radio-loss (no reopening) the bridge stops, the
+    refusal as its reason."""
+    from radios.errors import DeviceMismatchError
+
     heard: list[tuple[str, str]] = []
     with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
         _n1, n2 = _two_bridged_nodes(run, stack)
         b2 = n2.bridge
         b2.add_listener(lambda what, text: heard.append((what, text)))
-        b2.cfg.reopen_radio = False  # --exit-on-radio-loss
         master, other = raw_pty()
         stack.callback(os.close, master)
         path = Path(run.paths[1])
+        # 1. swapped before the check: the borrower is not called, the radio waited for
+        point(path, other)
+        called: list[bool] = []
+        with pytest.raises(DeviceMismatchError, match=other):
+            b2.lend_radio(lambda: called.append(True), why="radio check")
+        assert not called
+        wait_until(lambda: b2.stats.radio_refused, "the other device refused", DEADLINE)
+        assert arriving(master, 1.0) == b""
+        point(path, run.emu.slave_names[1])  # its radio back at the path
+        wait_until(lambda: b2.stats.radio_reopens == 1, "a2's radio taken back", DEADLINE)
+        assert [what for what, _ in heard] == ["paused", "refused", "back"], heard
+        # 2. swapped during the check, with --exit-on-radio-loss
+        b2.cfg.reopen_radio = False
         b2.lend_radio(lambda: point(path, other), why="radio check")
         wait_until(lambda: b2.link_lost, "a2's bridge to give up the radio", DEADLINE)
-        assert b2.stats.radio_reopens == 0
+        assert b2.stats.radio_reopens == 1
         assert other in b2.loss_reason and "radio 1" in b2.loss_reason, b2.loss_reason
         assert arriving(master, 1.0) == b""
-        assert [what for what, _ in heard] == ["paused", "lost"], heard
+        assert [what for what, _ in heard][3:] == ["paused", "lost"], heard
 
 
 # -- real processes --------------------------------------------------------------------

@@ -42,8 +42,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-#: Kinds of device (see the module docstring).
-KINDS = ("usb", "emulator", "pty", "node", "serial")
+#: Kinds of device (see the module docstring), as messages name them.
+KIND_NAMES = {
+    "usb": "USB adapter",
+    "emulator": "emulator radio",
+    "pty": "pty",
+    "node": "device",
+    "serial": "built-in serial port",
+}
+KINDS = tuple(KIND_NAMES)
 
 #: ``ws_xpixel`` of an emulator pty's window size: the label's mark ("SW")
 EMULATOR_MARK = 0x5357
@@ -88,14 +95,13 @@ class DeviceIdentity:
                 text += f" interface {self.interface}"
             if self.port:
                 text += f" in port {self.port}"
-            return text + f" ({self.node})"
+            return f"{text} at {self.node}"
         if self.kind == "emulator":
-            return f"emulator radio {self.radio} (emulator {self.emulator or 0:08x}, {self.node})"
+            return f"emulator {self.emulator or 0:08x}'s radio {self.radio} at {self.node}"
         if self.kind == "serial":
-            return f"serial port {self.node} ({self.device})"
-        what = "pty" if self.kind == "pty" else "device"
+            return f"serial port {self.node} at {self.device}"
         made = f", made {self.created}" if self.created else ""
-        return f"{what} {self.node} (no identity{made})"
+        return f"{KIND_NAMES.get(self.kind, 'device')} {self.node} with no identity{made}"
 
 
 def shared_serial(serial: str | None) -> bool:
@@ -108,7 +114,7 @@ def mismatch(expected: DeviceIdentity, found: DeviceIdentity) -> str | None:
     """Why ``found`` is not the device ``expected`` names (a short phrase), or None when
     it is the same device."""
     if found.kind != expected.kind:
-        return "another kind of device"
+        return f"not {_a(KIND_NAMES.get(expected.kind, expected.kind))}"
     if expected.kind == "usb":
         if (found.vid, found.pid) != (expected.vid, expected.pid):
             return "another kind of USB adapter"
@@ -130,6 +136,10 @@ def mismatch(expected: DeviceIdentity, found: DeviceIdentity) -> str | None:
         return None if found.device == expected.device else "another serial port"
     # pty, node: no identity but the node itself
     return None if found.instance == expected.instance else "another device (the one opened is gone)"
+
+
+def _a(noun: str) -> str:
+    return ("an " if noun[:1] in "aeiou" else "a ") + noun
 
 
 def refusal(path: str, expected: DeviceIdentity, found: DeviceIdentity, why: str) -> str:
@@ -156,6 +166,7 @@ def read_emulator_label(winsize: tuple[int, int, int, int]) -> tuple[int, int] |
 __all__ = [
     "EMULATOR_MARK",
     "KINDS",
+    "KIND_NAMES",
     "DeviceIdentity",
     "emulator_label",
     "mismatch",

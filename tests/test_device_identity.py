@@ -63,8 +63,9 @@ UART = DeviceIdentity("serial", "/dev/ttyAMA0", (3, 3), device="platform/soc/fe2
         (EMU, replace(EMU, node="/dev/pts/9", instance=(5, 5)), None),
         (EMU, replace(EMU, radio=2), "another radio"),
         (EMU, replace(EMU, emulator=0x3FA2C8E2), "a radio of another emulator"),
-        (EMU, PTY, "another kind of device"),
-        (FTDI, PTY, "another kind of device"),
+        (EMU, PTY, "not an emulator radio"),
+        (FTDI, PTY, "not a USB adapter"),
+        (PTY, EMU, "not a pty"),
         # a bare pty or node: only the node that was opened (same number, same birth)
         (PTY, replace(PTY), None),
         (PTY, replace(PTY, instance=(PTY.instance[0], 456)), "another device (the one opened is gone)"),
@@ -90,13 +91,13 @@ def test_shared_serial_numbers() -> None:
 def test_one_line_names_both_devices() -> None:
     line = refusal("/dev/serial/by-id/usb-radio", CP2102, replace(CP2102, port="1-1.3"), "another USB port")
     assert line == (
-        "/dev/serial/by-id/usb-radio: USB 10c4:ea60 serial 0001 in port 1-1.3 (/dev/ttyUSB0) is not the "
-        "radio opened (USB 10c4:ea60 serial 0001 in port 1-1.2 (/dev/ttyUSB0)): another USB port"
+        "/dev/serial/by-id/usb-radio: USB 10c4:ea60 serial 0001 in port 1-1.3 at /dev/ttyUSB0 is not the "
+        "radio opened (USB 10c4:ea60 serial 0001 in port 1-1.2 at /dev/ttyUSB0): another USB port"
     )
     assert "\n" not in line
-    assert EMU.describe() == "emulator radio 1 (emulator 3fa2c8e1, /dev/pts/4)"
-    assert PTY.describe() == "pty /dev/pts/7 (no identity, made 2026-01-01 10:00:00.000)"
-    assert UART.describe() == "serial port /dev/ttyAMA0 (platform/soc/fe201000.serial)"
+    assert EMU.describe() == "emulator 3fa2c8e1's radio 1 at /dev/pts/4"
+    assert PTY.describe() == "pty /dev/pts/7 with no identity, made 2026-01-01 10:00:00.000"
+    assert UART.describe() == "serial port /dev/ttyAMA0 at platform/soc/fe201000.serial"
     assert (
         replace(FTDI, serial=None, interface=2)
         .describe()
@@ -235,7 +236,7 @@ def test_identify_an_emulator_radio_and_a_bare_pty(tmp_path: Path) -> None:
         assert (
             bare.kind == "pty"
             and bare.node == name
-            and bare.describe().startswith(f"pty {name} (no identity")
+            and bare.describe().startswith(f"pty {name} with no identity")
         )
         assert mismatch(bare, identify(name)) is None  # the same pty, identified again
     finally:
@@ -297,7 +298,9 @@ def test_serial_link_reopens_its_own_pty_and_refuses_another(tmp_path: Path) -> 
             with pytest.raises(DeviceMismatchError) as info:
                 link.reopen()
         text = str(info.value)
-        assert text.startswith(f"{path}: pty {other} (no identity") and f"radio opened (pty {name}" in text
+        assert (
+            text.startswith(f"{path}: pty {other} with no identity") and f"radio opened (pty {name} " in text
+        )
         assert info.value.found is not None and info.value.expected == link.identity
         assert _arrived(other_master, 0.3) == b""
         path.unlink()

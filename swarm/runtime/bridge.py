@@ -40,9 +40,16 @@ swarm/<own>/state      0           swarm/<sender name>/state
   device at the same path with back-off (``reopen_radio``), keeping its name table
   and signing state; listeners hear ``("lost", reason)`` and ``("back", "after S s")``.
   With ``reopen_radio`` off it stops and sets ``link_lost``, as before.
+  **Only the same device**: the link reopens only the device it first opened
+  (:mod:`radios.device_id`); another device at the path (a reassigned
+  ``/dev/ttyUSB0``, another pty) is refused unopened, with one line and
+  ``("refused", text)`` naming both, once per device that appears (every attempt
+  counts in ``radio_refused``), and the bridge waits on for its own radio.
   :meth:`RadioBridge.lend_radio` uses the same path on purpose: it releases the
   device for a function that needs the port to itself (the radio guard's AT
   commands), then takes it back; listeners hear ``("paused", why)`` and ``("back", ...)``.
+  It first checks that the device at the path is still its own (``Link.check_device``),
+  so the borrower does not talk to another one.
 * **HEARTBEAT** into the local radio once a second (that makes a SiK radio report
   RADIO_STATUS), and the vehicle's HEARTBEAT and GLOBAL_POSITION_INT forwarded at
   1 Hz under the agent's system id so MAVProxy or QGroundControl list vehicles.
@@ -69,7 +76,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any, TypeVar
 
-from radios.errors import LinkClosedError, LinkOpenError, RadioError
+from radios.errors import DeviceMismatchError, LinkClosedError, LinkOpenError, RadioError
 from radios.link import Link
 from radios.mavlink import (
     FrameBuilder,
@@ -141,6 +148,7 @@ class BridgeStats:
     radio_status_rejected: int = 0  # RADIO_STATUS not plausibly from the local radio
     radio_losses: int = 0  # the radio's device went away
     radio_reopens: int = 0  # ... and was opened again
+    radio_refused: int = 0  # attempts that found another device at the radio's path
     dropped_radio_down: int = 0  # frames dropped while the radio was away
     heartbeats: int = 0
     vehicle_forwarded: int = 0
@@ -405,6 +413,7 @@ class RadioBridge(AirToLocal):
             deadline = time.monotonic() + timeout
             # the receive thread notices its closed port and waits in _radio_lost
             self._rx_away.wait(max(0.0, deadline - time.monotonic()))
+            self.link.check_device()  # the borrower talks to our radio, not what replaced it
             return fn()
         finally:
             with self._cond:
@@ -460,6 +469,7 @@ class RadioBridge(AirToLocal):
         open, False if the bridge closes or the radio cannot come back."""
         first, longest = self.cfg.reopen_backoff
         backoff, next_log = first, t0 + 1.0
+        refused = ""  # the last refusal said (one line per device that appears)
         while True:
             self._beat_rx = time.monotonic()  # the receive thread, waiting for the radio
             with self._cond:
@@ -475,11 +485,23 @@ class RadioBridge(AirToLocal):
                 self.link.reopen()
                 return True
             except LinkOpenError as exc:
-                if not self.cfg.reopen_radio:  # lent, and gone meanwhile: as any loss without reopening
+                mismatch = isinstance(exc, DeviceMismatchError)
+                if mismatch:
+                    self.stats.radio_refused += 1
+                if not self.cfg.reopen_radio:  # lent, and gone (or replaced) meanwhile: as any loss
                     log.info("bridge %s: radio %s lost: %s", self.name, url, exc)
+                    self.loss_reason = str(exc)
                     self.link_lost = True
                     self._tell("lost", str(exc))
                     return False
+                if mismatch:  # another device at the path: never opened; said once per device
+                    if str(exc) != refused:
+                        refused = str(exc)
+                        log.warning("bridge %s: radio refused %s; waiting for the radio", self.name, exc)
+                        self._tell("refused", refused)
+                    backoff = min(longest, backoff * 2)
+                    continue
+                refused = ""
                 now = self.clock()
                 if now >= next_log:  # about once a second, not once per attempt
                     next_log = now + 1.0

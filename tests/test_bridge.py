@@ -638,3 +638,35 @@ def test_signed_swarm_flows_and_drops_unsigned_and_forged(tmp_path: Path) -> Non
         for x in net.nodes:
             assert not x.rec.from_radio(unsigned) and not x.rec.from_radio(forged)
             assert x.bridge.stats.replayed == 0
+
+
+def test_a_station_overhears_the_leaders_heartbeats_to_its_members() -> None:
+    """A station learns what the swarm flies (the leader's task, its members) from the
+    leader's Heartbeats on their way to the members: over the radio they are addressed to
+    the members, and the station's bridge dropped them as not for it, so a station started
+    (or restarted) while the V flew showed no task until it sent one itself (the fault
+    bench's station restart during a command). An agent's bridge still drops them; only a
+    Heartbeat from its own sender is overheard, nothing else addressed to others."""
+    hb = encode(Heartbeat(1, epoch=1, seq=42, members=frozenset({2, 3})))
+    other = encode(StartPool(2))
+    for who, overhears in ((255, True), (4, False)):
+        with ExitStack() as stack:
+            session = open_session()
+            stack.callback(session.close)
+            link, _tap = virtual_link(stack)
+            name = "gcs" if who == 255 else "a4"
+            bridge = RadioBridge(session, link, name=name, agent_id=who).start()
+            stack.callback(bridge.close)
+            rec = Recorder(session)
+            stack.callback(rec.close)
+            bridge.handle_frame(tunnel_frame(1, Kind.MULTI, bytes([2, 2, 3]) + hb))  # to members 2 and 3
+            bridge.handle_frame(tunnel_frame(1, Kind.P2P, hb, target=2))
+            bridge.handle_frame(tunnel_frame(2, Kind.P2P, other, target=3))  # not a Heartbeat
+            bridge.handle_frame(tunnel_frame(3, Kind.P2P, hb, target=2))  # sender 3 claims 1's Heartbeat
+            if overhears:
+                wait_until(partial(lambda r: len(r.from_radio(hb)) == 2, rec), "the Heartbeats overheard")
+            time.sleep(0.3)
+            assert rec.from_radio(hb, key=f"swarm/{name}") == (
+                [(f"swarm/{name}", hb)] * 2 if overhears else []
+            )
+            assert not rec.from_radio(other)

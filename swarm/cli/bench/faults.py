@@ -286,6 +286,62 @@ def radio_unplug(bench: FaultBench, down_s: float = 3.0) -> FaultResult:
     return res
 
 
+def radio_swap(bench: FaultBench, down_s: float = 3.0) -> FaultResult:
+    """The leader's radio unplugged and another device put at its path meanwhile (a
+    fresh pty the bench holds: a reassigned /dev/ttyUSB0), then its own radio back. The
+    agent must write nothing to the stranger, say so once, and take its radio back."""
+    import pty
+    import select
+    import tty
+
+    bench.settled("radio swap")
+    lead = bench.leader()
+    agent = bench.agents[lead]
+    path = agent.radio
+    before = len([e for e in agent.events("radio") if e.get("state") == "refused"])
+    t = time.monotonic()
+    bench.control(f"unplug {lead - 1}")
+    deadline = time.monotonic() + 10
+    while os.path.lexists(path) and time.monotonic() < deadline:  # the emulator removes the link
+        time.sleep(0.05)
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    other = os.ttyname(slave)
+    os.close(slave)
+    written = 0
+    try:
+        os.symlink(other, path)
+        end = time.monotonic() + down_s
+        while (left := end - time.monotonic()) > 0:
+            if select.select([master], [], [], left)[0]:
+                try:
+                    written += len(os.read(master, 4096))
+                except OSError:  # nobody holds it open
+                    time.sleep(0.05)
+        os.unlink(path)
+    finally:
+        os.close(master)
+    bench.control(f"replug {lead - 1}")
+    res = bench.measure(
+        f"the leader's radio unplugged and another device at its path for {down_s:g} s",
+        t,
+        time.monotonic(),
+        injected=f"the leader agent{lead}'s radio unplugged, a fresh pty put at its path ({path}) for "
+        f"{down_s:g} s, then its own radio plugged back",
+        radio=f"agent{lead}",
+    )
+    refused = [e for e in agent.events("radio") if e.get("state") == "refused"][before:]
+    res.detail.update(bytes_to_other_device=written, refused_lines=len(refused), agent_alive=agent.live)
+    res.frames_accepted_from_rogue += written > 0
+    res.observed += (
+        f"; {written} bytes written to the other device, {len(refused)} 'refused' line(s) from the agent, "
+        + ("the agent alive" if agent.live else "the agent DEAD")
+    )
+    if written or len(refused) != 1 or not agent.live:
+        res.survived = False
+    return res
+
+
 def commands(bench: FaultBench, count: int = 20, loss: float = 0.2) -> FaultResult:
     """``count`` swarm commands (FOLLOW with a new heading, STOP, in turn) through the
     station's API at ``loss``, each outcome checked against the agents' own logs."""
@@ -742,6 +798,7 @@ FAULTS: dict[str, Callable[..., FaultResult]] = {
     "station_restart": station_restart,
     "station_restart_in_command": station_restart_in_command,
     "radio_unplug": radio_unplug,
+    "radio_swap": radio_swap,
     "vehicle_restart": vehicle_restart,
     "garbage": garbage,
     "garbage_small": garbage_small,
@@ -773,6 +830,7 @@ FAULTS_ALL = (
     "station_restart",
     "station_restart_in_command",
     "radio_unplug",
+    "radio_swap",
     "vehicle_restart",
     "garbage",
     "rogue_unsigned",

@@ -59,7 +59,10 @@ swarm/<own>/state      0           swarm/<sender name>/state
   bytes), the receiving one every 0.2 s and while it waits for a lost radio.
 * **Signing** (optional): every frame signed with the swarm key and this radio's
   link id; unsigned (but the local RADIO_STATUS), badly signed and replayed frames
-  are dropped and counted.
+  are dropped and counted. The node's signing clock starts at its start reference
+  (:mod:`radios.signing_state`: kept in ``signing_state``, the node's file in its
+  state folder, carried across restarts; without one, the wall clock at start), and
+  a frame stamped before it is refused: it was on the air before this run began.
 
 The receiving side (frames into the key space) is
 :class:`swarm.runtime.bridge_rx.AirToLocal`, a part of :class:`RadioBridge`; this
@@ -83,6 +86,7 @@ from radios.mavlink import (
     SigningClock,
 )
 from radios.signing import Verifier
+from radios.signing_state import ClockKeeper, wall_ticks
 from swarm.core.air_queue import AirItem, AirQueue, Klass
 from swarm.core.messages import (
     Message,
@@ -116,6 +120,8 @@ class BridgeConfig:
     queue_sizes: tuple[int, int, int] = (64, 4, 16)
     signing_key: bytes | None = None
     link_id: int | None = None  # signing link id; None: drawn at random per start (a new stream)
+    #: the file that keeps the signing clock across restarts (radios.signing_state); None: none
+    signing_state: str | None = None
     radio_status_stale_s: float = 5.0
     #: reopen the radio when its device goes away (else stop and set ``link_lost``)
     reopen_radio: bool = True
@@ -182,7 +188,13 @@ class RadioBridge(AirToLocal):
         self.clock = clock
         self.stats = BridgeStats()
         self.guard = RadioStatusGuard(stale_s=self.cfg.radio_status_stale_s)
-        signing = SigningClock()  # one time base for what this node signs and verifies
+        # one time base for what this node signs and verifies, from its start reference
+        self._keeper: ClockKeeper | None = None
+        if self.cfg.signing_key and self.cfg.signing_state:
+            self._keeper = ClockKeeper(self.cfg.signing_state, name)
+            signing = self._keeper.open()
+        else:
+            signing = SigningClock(start=wall_ticks())
         self._builder = FrameBuilder(
             agent_id, COMP_ID, signing_key=self.cfg.signing_key, link_id=self.cfg.link_id, clock=signing
         )
@@ -220,6 +232,8 @@ class RadioBridge(AirToLocal):
     # -- life cycle -------------------------------------------------------------
     def start(self) -> RadioBridge:
         self._sub = self.session.declare_subscriber(f"{PREFIX}/**", self._on_local)
+        if self._keeper is not None:
+            self._keeper.start()
         for target, nm in ((self._tx_loop, "tx"), (self._rx_loop, "rx")):
             t = threading.Thread(target=target, name=f"bridge-{self.name}-{nm}", daemon=True)
             t.start()
@@ -240,6 +254,8 @@ class RadioBridge(AirToLocal):
                 pass
         for t in self._threads:
             t.join(2.0)
+        if self._keeper is not None:
+            self._keeper.close()  # the mark, once more, for the next start
 
     def beats(self) -> dict[str, tuple[float, float]]:
         """Each thread's last round (``time.monotonic()``) and its longest wait between rounds."""

@@ -45,6 +45,10 @@ messages in ``...NNNN.fc.tlog``, rotated at ``--capture-max-mb`` or
 synced about once a second. A folder that is a symbolic link, a file, or not
 writable is refused at start (exit 2); a full disk later pauses the log with one
 line (``{"event": "flight-log", ...}`` with ``--json``) and the agent flies on.
+
+With ``--key`` on a radio the agent keeps its signing clock in its state folder
+(``--state-dir``, :mod:`swarm.cli.state_dir`): a frame stamped before this start is
+refused, so a recording made before a restart is not taken after it.
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 from firmware_bridge.errors import BridgeError
@@ -62,6 +67,7 @@ from radios.errors import ATError, RadioError
 from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
+from swarm.cli.state_dir import add_state_dir_argument, node_file, open_state_dir
 from swarm.cli.util import (
     StopFlag,
     UsageError,
@@ -103,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", required=True, help="agent name (1-16 of A-Z a-z 0-9 _ -)")
     p.add_argument("--id", required=True, type=int, help="MAVLink system id, 1..250, unique in the swarm")
     add_node_arguments(p)
+    add_state_dir_argument(p)
     p.add_argument(
         "--fc",
         metavar="URL",
@@ -382,6 +389,10 @@ def _check_arguments(a: argparse.Namespace) -> None:
     if a.swarm_name is not None and not NAME_RE.match(a.swarm_name):
         raise UsageError(f"--swarm-name {a.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
     a.node = node_options(a, "an agent")
+    if a.key is not None and a.node.on_radio:  # the signing clock, kept across restarts
+        folder = open_state_dir(a.state_dir, PROG)
+        if folder is not None:
+            a.node = replace(a.node, signing_state=node_file(folder, "agent", a.name, a.id, "signing"))
     a.fence = fence_from(a)
     if a.round_s is None:
         if not 2 <= a.slots <= 32:

@@ -191,6 +191,8 @@ class AgentProc:
                 self.fc,
                 "--key",
                 b.key_file,
+                "--state-dir",
+                b.state_dir,
                 "--profile",
                 b.profile,
                 "--slots",
@@ -262,6 +264,8 @@ class FaultBench:
         self.workdir = workdir or self._tmp.name  # type: ignore[union-attr]
         self.key_file = os.path.join(self.workdir, "swarm.key")
         self.capture = os.path.join(self.workdir, "air.tlog")
+        # what the nodes keep across their restarts (their signing clocks): this run's own
+        self.state_dir = os.path.join(self.workdir, "state")
         # the radio guard: a radio moved off the swarm's network by a rogue's RT commands is
         # restored by its agent once it has heard no one for RECHECK_S
         self.agent_args: list[str] = [
@@ -344,6 +348,8 @@ class FaultBench:
                 self.links[self.n],
                 "--key",
                 self.key_file,
+                "--state-dir",
+                self.state_dir,
                 "--http",
                 "127.0.0.1:0",
                 "--json",

@@ -191,8 +191,10 @@ def test_the_default_folder_that_cannot_be_used_is_one_warning(
     afile.write_text("")
     assert open_state_dir(None, "swarm agent", {"STATE_DIRECTORY": str(afile)}) is None
     assert open_state_dir(None, "swarm agent", {}) is None
+    assert open_state_dir(None, "swarm agent", {"HOME": str(tmp_path / "no-home")}) is None
+    assert not (tmp_path / "no-home").exists()  # a home that is not there is not made
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(e.startswith("swarm agent: warning: no state folder") for e in err), err
+    assert len(err) == 3 and all(e.startswith("swarm agent: warning: no state folder") for e in err), err
     open_to_all = tmp_path / "shared"
     open_to_all.mkdir()
     open_to_all.chmod(0o777)

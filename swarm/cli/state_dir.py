@@ -48,14 +48,21 @@ def add_state_dir_argument(p: argparse.ArgumentParser) -> None:
 
 def default_state_dir(env: Mapping[str, str]) -> Path | None:
     """The default folder (module docstring), None if the environment names none."""
+    found = _default(env)
+    return None if found is None else found[1]
+
+
+def _default(env: Mapping[str, str]) -> tuple[Path, Path] | None:
+    """(the folder that must exist already, the state folder in it)."""
     service = env.get("STATE_DIRECTORY", "")
     if service:
-        return Path(service.split(":")[0])  # systemd: one path per StateDirectory= entry
+        path = Path(service.split(":")[0])  # systemd: one path per StateDirectory= entry
+        return path, path
     xdg = env.get("XDG_STATE_HOME", "")
     if os.path.isabs(xdg):
-        return Path(xdg) / APP
+        return Path(xdg), Path(xdg) / APP
     home = env.get("HOME", "")
-    return Path(home) / ".local" / "state" / APP if os.path.isabs(home) else None
+    return (Path(home), Path(home) / ".local" / "state" / APP) if os.path.isabs(home) else None
 
 
 def _prepare(path: Path, *, parents: bool) -> str | None:
@@ -92,12 +99,14 @@ def open_state_dir(given: str | None, prog: str, env: Mapping[str, str] | None =
         if why is not None:
             raise UsageError(f"--state-dir {given}: {why}")
     else:
-        found = default_state_dir(env)
-        why = (
-            "no $STATE_DIRECTORY, $XDG_STATE_HOME or $HOME"
-            if found is None
-            else _prepare(found, parents=True)
-        )
+        pair = _default(env)
+        found = None if pair is None else pair[1]
+        if pair is None:
+            why = "no $STATE_DIRECTORY, $XDG_STATE_HOME or $HOME"
+        elif not pair[0].is_dir():
+            why = f"{pair[0]} is no folder"  # a home that does not exist is not made
+        else:
+            why = _prepare(pair[1], parents=True)
         if found is None or why is not None:
             where = "" if found is None else f" {found}"
             print(

@@ -38,8 +38,9 @@ cross a restart (:meth:`~swarm.core.federation.Gate.records`): read at :meth:`st
 (a file that cannot be read is one warning line, and the gates start empty), written
 atomically (:func:`radios.statefile.write_atomic`) when a command is taken, before it
 is carried out (so one overheard on the router and replayed after a crash is still
-one seen before), at most once a second when states came, and at :meth:`stop`. A
-save that fails is one warning line (the command still runs: it is the operator's).
+one seen before), at most every 10 s when states came (a state replayed from those
+seconds is superseded by the sender's next live one), and at :meth:`stop`. A save
+that fails is one warning line (the command still runs: it is the operator's).
 Without a key nothing is kept: anyone could forge what a record would guard against.
 """
 
@@ -86,7 +87,7 @@ MAX_IN_FLIGHT = 8
 MAX_STATIONS = 32  # other stations kept at once: names beyond are refused (one event)
 STATE_FORMAT = "uav-swarm station replay guard"
 STATE_LIMIT = 2 * 1024 * 1024  # bytes: 4096 commands and 256 senders are well under this
-SAVE_S = 1.0  # states taken are saved at most this often
+SAVE_S = 10.0  # states taken are saved at most this often (commands: each, at once)
 
 Result = tuple[int, dict[str, Any]]
 

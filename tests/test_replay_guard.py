@@ -209,11 +209,15 @@ def test_state_dir_from_the_flag_or_the_config_file_names_a_file_per_node(tmp_pa
     conf.write_text('name = "a1"\nid = 3\nradio = "/dev/null"\nkey = "swarm.key"\nstate_dir = "st"\n')
     a = read_arguments(agent_cmd.build_parser(), ["--config", str(conf)])
     agent_cmd._check_arguments(a)
+    assert a.node.signing_state is None  # what swarm doctor runs too: it makes no folder
+    assert not (tmp_path / "st").exists()
+    agent_cmd._state_files(a)
     assert a.node.signing_state == str(tmp_path / "st" / "agent-a1-3.signing.json")
     # without a key nothing is kept, and no folder made
     b = read_arguments(agent_cmd.build_parser(), ["--name", "a2", "--id", "4", "--radio", "/dev/null"])
     b.state_dir = str(tmp_path / "never")
     agent_cmd._check_arguments(b)
+    agent_cmd._state_files(b)
     assert b.node.signing_state is None and not (tmp_path / "never").exists()
     # a station on two radios: one file per channel, and one for its replay guard
     g = read_arguments(

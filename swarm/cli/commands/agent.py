@@ -389,10 +389,6 @@ def _check_arguments(a: argparse.Namespace) -> None:
     if a.swarm_name is not None and not NAME_RE.match(a.swarm_name):
         raise UsageError(f"--swarm-name {a.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
     a.node = node_options(a, "an agent")
-    if a.key is not None and a.node.on_radio:  # the signing clock, kept across restarts
-        folder = open_state_dir(a.state_dir, PROG)
-        if folder is not None:
-            a.node = replace(a.node, signing_state=node_file(folder, "agent", a.name, a.id, "signing"))
     a.fence = fence_from(a)
     if a.round_s is None:
         if not 2 <= a.slots <= 32:
@@ -407,6 +403,16 @@ def _check_arguments(a: argparse.Namespace) -> None:
         raise UsageError(f"--radio-recheck {a.radio_recheck}: seconds, 0 for off")
     if a.radio_params and a.radio is None:
         raise UsageError("--radio-params checks a radio: give --radio")
+
+
+def _state_files(a: argparse.Namespace) -> None:
+    """With --key on a radio: the signing clock's file in the state folder, in the node
+    options (swarm.cli.state_dir; made if missing: not by swarm doctor, which only looks).
+    Raises UsageError for a --state-dir that cannot be used."""
+    if a.key is not None and a.node.on_radio:
+        folder = open_state_dir(a.state_dir, PROG)
+        if folder is not None:
+            a.node = replace(a.node, signing_state=node_file(folder, "agent", a.name, a.id, "signing"))
 
 
 def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
@@ -450,6 +456,7 @@ def main(argv: list[str] | None = None) -> int:
     a = read_arguments(build_parser(), argv)
     with file_errors(a):
         _check_arguments(a)
+        _state_files(a)
     out = _Lines(a)
     if a.radio_params:
         _check_radio(a, out)

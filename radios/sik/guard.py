@@ -60,12 +60,12 @@ from pathlib import Path
 from radios.errors import ATError, ConfigError, LinkOpenError, RadioError
 from radios.seriallink import DEFAULT_BAUD
 from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port
+from radios.sik.param_table import UNGUARDED
 from radios.sik.params import FLAVOURS, spec_for, validate_user_value
 from radios.smallfile import read_small_file
 from radios.url import Options, parse_link_url
 
 REBOOT_SETTLE = 0.5  # seconds for a rebooted radio to start before talking to it again
-UNGUARDED = frozenset({"FORMAT"})  # read-only: the firmware's table version
 
 
 @dataclass(frozen=True)

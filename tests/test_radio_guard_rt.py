@@ -15,14 +15,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from emu_helpers import running_emulator
+from emu_helpers import RunningEmulator, running_emulator
 from net_helpers import wait_until
 
 from radios.emulator_config import radio_config_of
 from radios.sik.config import SikConfigurator, open_port
 from radios.sik.guard import UNGUARDED, Known, baseline, check_radio, known_of
-from radios.sik.params import SikParams, params_for
-from radios.sik.rogue import Attack, landed, plan_attack, send_attack, send_line, send_reboot
+from radios.sik.params import SikParams, params_for, spec_for
+from radios.sik.rogue import Attack, attack_radio, landed, plan_attack, send_line, send_reboot
 from swarm.cli.procs import Child, json_events
 
 pytestmark = pytest.mark.processes  # radios emulated in real time, agents
@@ -33,15 +33,7 @@ AGENT_DEADLINE = 120.0
 
 def _rogue(path: str, attack: Attack) -> bool:
     """The rogue's host: command mode on its own radio, the attack, back to data mode."""
-    port = open_port(path)
-    try:
-        conf = SikConfigurator(port, flavour="multipoint", port_name="rogue")
-        conf.enter_command_mode()
-        ok = send_attack(conf, attack)
-        conf.exit_command_mode()
-        return ok
-    finally:
-        port.close()
+    return attack_radio(path, attack, flavour="multipoint")
 
 
 def _agent(path: str, name: str, ident: int, *extra: str) -> Child:
@@ -69,37 +61,60 @@ def _events(child: Child, kind: str) -> list[dict[str, Any]]:
     return json_events(child.lines, kind)
 
 
-def test_rogue_moves_a_members_radio_to_other_channels_and_the_guard_puts_it_back(tmp_path: Path) -> None:
-    """The known hole: NUM_CHANNELS, which the swarm's --radio-params line does not
-    name. The member's radio hops on 20 channels instead of 50 and hears no one; its
-    agent re-checks the radio (isolated) and must restore it, and the swarm must end
-    with one leader."""
+def _attack_and_wait(
+    emu: RunningEmulator, agents: list[Child], k: int, name: str, value: int
+) -> dict[str, Any]:
+    """The rogue changes register ``name`` of agent ``k``'s radio (node k-1) to ``value``;
+    it must land, and the agent must restore it: its ``radio-restored`` event."""
+    victim = emu.emu.params[k - 1]
+    shown = victim.as_dict()[name]
+    index = spec_for("multipoint", name).index
+    attack = plan_attack("multipoint", name, victim.as_dict(), node=k - 1)
+    assert attack.value == value
+    before = len(_events(agents[k - 1], "radio-restored"))
+    _rogue(emu.paths[2], attack)
+    # the attack landed: in flash, and the radio runs with it
+    wait_until(
+        lambda: victim.eeprom[index] == value and victim.active[index] == value, f"{name} changed", 30.0
+    )
+    restored = wait_until(
+        lambda: _events(agents[k - 1], "radio-restored")[before:],
+        f"agent {k}'s guard restores its radio's {name}",
+        AGENT_DEADLINE,
+        children=agents,
+        detail=lambda: _events(agents[k - 1], "radio-checked")[-3:],
+    )
+    assert restored[0]["differed"] == {name: value}
+    assert (victim.eeprom[index], victim.active[index]) == (shown, shown)
+    return dict(restored[0])
+
+
+def test_rogue_attacks_on_two_agents_radios_are_undone_and_the_swarm_keeps_one_leader(tmp_path: Path) -> None:
+    """Two agents on a multipoint network, a rogue on the third radio, every guard
+    given only NETID (the rest from the radio at the start check).
+
+    1. The known hole: NUM_CHANNELS of the member's radio (20 channels instead of 50).
+       The member hears no one; its guard (re-check when isolated, or the period)
+       must find it and restore it, and the swarm end with one leader.
+    2. TXPOWER of the leader's radio (1 dBm): the radio still hears everyone, so no
+       isolation shows it; the periodic check must find it and restore it.
+    """
+    period = 15.0
     with running_emulator(tmp_path, 3, firmware="multipoint") as emu:
         emu.wait_locked(0, 1, 2)
-        guard = ["--radio-params", "NETID=25,AIR_SPEED=64", "--restore-radio", "--radio-recheck", "8"]
+        guard = ["--radio-params", "NETID=25", "--restore-radio", "--radio-recheck", "8"]
+        guard += ["--radio-check-period", f"{period:g}"]
         agents = [_agent(emu.paths[0], "a1", 1, *guard), _agent(emu.paths[1], "a2", 2, *guard)]
         try:
             wait_until(
                 lambda: _one_leader(agents), "one leader before the attack", AGENT_DEADLINE, children=agents
             )
-            victim = emu.emu.params[1]
-            attack = plan_attack("multipoint", "NUM_CHANNELS", victim.as_dict(), node=1)
-            _rogue(emu.paths[2], attack)
-            # the attack landed: in flash, and the radio runs with it
-            assert attack.value == 20
-            wait_until(lambda: victim.eeprom[10] == 20 and victim.active[10] == 20, "the attack landed", 30.0)
-            restored = wait_until(
-                lambda: _events(agents[1], "radio-restored"),
-                "the member's guard restores its radio",
-                AGENT_DEADLINE,
-                children=agents,
-                detail=lambda: _events(agents[1], "radio-checked"),
-            )
-            assert restored[0]["differed"] == {"NUM_CHANNELS": 20}
-            assert (victim.eeprom[10], victim.active[10]) == (50, 50)
-            wait_until(
-                lambda: _one_leader(agents), "one leader after the restore", AGENT_DEADLINE, children=agents
-            )
+            member = 2 if _leaders(agents)[0] == 1 else 1
+            restored = _attack_and_wait(emu, agents, member, "NUM_CHANNELS", 20)
+            wait_until(lambda: _one_leader(agents), "one leader after it", AGENT_DEADLINE, children=agents)
+            restored = _attack_and_wait(emu, agents, 3 - member, "TXPOWER", 1)
+            assert restored["why"] == "period"  # nothing isolated it: only the period finds it
+            wait_until(lambda: _one_leader(agents), "one leader after it", AGENT_DEADLINE, children=agents)
         finally:
             for a in agents:
                 a.stop()

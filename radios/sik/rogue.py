@@ -23,7 +23,10 @@ values, a value the firmware accepts as it is (no rewrite on set or at boot, so
 the victim shows exactly that value) and that differs from the current one, and
 the ``RT`` lines; :func:`landed` says whether a victim's values show it. I/O part:
 :func:`send_attack` sends a plan through a rogue's :class:`SikConfigurator`
-already in command mode. Tests and ``swarm bench faults`` both use these.
+already in command mode, :func:`attack_radio` does the whole rogue (its port, command
+mode, the attack, ``ATO``). Tests and ``swarm bench faults`` both use these; on the
+emulator, its statistics (``radios[i]["params"|"saved"|"active"]``) show an attack
+land and be undone from another process.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from radios.errors import ATError, ConfigError
-from radios.sik.config import SikConfigurator, strip_node
+from radios.sik.config import SikConfigurator, open_port, strip_node
 from radios.sik.params import spec_for, validate_user_value
 
 #: per register, values a rogue writes (the first that differs from the victim's is
@@ -142,3 +145,23 @@ def send_attack(conf: SikConfigurator, attack: Attack, tries: int = 5, reboots: 
     answered = send_line(conf, attack.set_line, tries) and send_line(conf, attack.save_line, tries)
     send_reboot(conf, attack.reboot_line, reboots)
     return answered
+
+
+def attack_radio(rogue_path: str, attack: Attack, *, flavour: str, baud: int = 57600, tries: int = 5) -> bool:
+    """The rogue's host, whole: open its radio at ``rogue_path``, command mode, send
+    ``attack`` (:func:`send_attack`), back to data mode, close. Returns whether the
+    victim answered ``OK`` to ``RTSn=`` and ``RT&W`` (an attack on NODEID never is: the
+    victim answers to its new id). Raises :class:`~radios.errors.LinkOpenError` if the
+    rogue's port cannot be opened, :class:`~radios.errors.ATTimeoutError` if its radio
+    does not enter command mode."""
+    port = open_port(rogue_path, baud)
+    try:
+        conf = SikConfigurator(port, flavour=flavour, port_name=rogue_path)
+        conf.enter_command_mode()
+        try:
+            return send_attack(conf, attack, tries)
+        finally:
+            with contextlib.suppress(ATError):
+                conf.exit_command_mode()
+    finally:
+        port.close()

@@ -35,7 +35,7 @@ value the radio showed at that start check (:func:`~radios.sik.guard.baseline`).
 ``--radio-check-period S`` checks the radio again every S seconds, and
 ``--radio-recheck S`` when the agent has heard no other agent for S seconds (a radio
 moved to another network hears no one): the radio bridge lends the port to the
-check for about 2.5 s (:meth:`~swarm.runtime.bridge.RadioBridge.lend_radio`) while
+check for about 2.3 s (:meth:`~swarm.runtime.bridge.RadioBridge.lend_radio`) while
 the agent goes on, in flight too: its protocol state, its pilot and its flight
 controller are not touched. Each re-check prints ``radio-checked`` (``why``:
 ``period`` or ``isolated``; the ``radio`` events ``paused`` and ``back`` around it
@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import random
 import signal
 import sys
 import threading
@@ -99,7 +100,7 @@ from swarm.runtime.agent import (
 from swarm.runtime.notify import Service
 
 PROG = "swarm agent"
-MIN_CHECK_PERIOD_S = 10.0  # a radio check pauses the link about 2.5 s: at most a quarter of the time
+MIN_CHECK_PERIOD_S = 10.0  # a radio check pauses the link about 2.3 s: at most a quarter of the time
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -248,7 +249,7 @@ def _add_radio_check_arguments(p: argparse.ArgumentParser) -> None:
         default=0.0,
         metavar="S",
         help="with --radio-params: check every register of the radio every S seconds "
-        "(the link pauses about 2.5 s each time; 0: off, the default)",
+        "(the link pauses about 2.3 s each time; 0: off, the default)",
     )
     p.add_argument(
         "--restore-radio",
@@ -426,7 +427,7 @@ def _check_arguments(a: argparse.Namespace) -> None:
     if 0 < a.radio_check_period < MIN_CHECK_PERIOD_S:
         raise UsageError(
             f"--radio-check-period {a.radio_check_period:g}: at least {MIN_CHECK_PERIOD_S:g} s "
-            "(each check pauses the link about 2.5 s)"
+            "(each check pauses the link about 2.3 s)"
         )
     if a.radio_params and a.radio is None:
         raise UsageError("--radio-params checks a radio: give --radio")
@@ -531,7 +532,10 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
         if a.exit_on_radio_loss:  # the bridge gives up instead of reopening: main exits 1
             agent.bridge.cfg.reopen_radio = False
         agent.bridge.add_listener(out.radio)
-    checks = CheckSchedule(a.radio_check_period, a.radio_recheck, time.monotonic())
+    # the first periodic check at a random point of the second period: agents started
+    # together do not all pause their radios at once (the network would fall silent)
+    first = a.radio_check_period * (1.0 + random.random())
+    checks = CheckSchedule(a.radio_check_period, a.radio_recheck, time.monotonic(), first)
     service = Service(agent.loop_beats)  # systemd's READY and WATCHDOG (README, "Run as a service")
     try:
         out.open(agent)

@@ -1,0 +1,76 @@
+"""The radio guard's pure parts: what it keeps, when it checks, what a rogue sends."""
+
+from __future__ import annotations
+
+import pytest
+
+from radios.errors import ConfigError
+from radios.sik.at import ATEngine
+from radios.sik.guard import CheckSchedule, baseline
+from radios.sik.params import PARAMS_MULTIPOINT, PARAMS_STANDARD, SikParams
+from radios.sik.rogue import landed, plan_attack
+
+
+def test_the_guard_keeps_every_register_but_format_and_the_given_values_win() -> None:
+    shown = {"FORMAT": 26, "NETID": 25, "NUM_CHANNELS": 20, "TXPOWER": 20}
+    assert baseline({"NETID": 30}, shown) == {"NETID": 30, "NUM_CHANNELS": 20, "TXPOWER": 20}
+    # a given register the radio did not show is kept too (the check names it missing)
+    assert baseline({"NODEID": 2}, {"FORMAT": 26})["NODEID"] == 2
+
+
+def test_check_schedule_periodic_and_isolated() -> None:
+    s = CheckSchedule(30.0, 0.0, now=100.0)
+    assert s.active
+    assert s.due(False, 129.9) is None
+    assert s.due(False, 130.0) == "period"
+    s.checked(133.0)  # the check took 3 s: the next one a period after it ended
+    assert s.due(True, 162.9) is None
+    assert s.due(True, 163.0) == "period"
+
+    both = CheckSchedule(60.0, 10.0, now=0.0)
+    assert both.due(True, 0.0) is None
+    assert both.due(True, 10.0) == "isolated"
+    both.checked(12.0)
+    assert both.due(False, 20.0) is None  # heard someone: no isolation check
+    assert both.due(False, 71.9) is None  # the isolation check started the period over
+    assert both.due(False, 72.0) == "period"
+
+    off = CheckSchedule(0.0, 0.0, now=0.0)
+    assert not off.active and off.due(True, 1e9) is None
+    with pytest.raises(ConfigError):
+        CheckSchedule(-1.0, 0.0, now=0.0)
+
+
+@pytest.mark.parametrize("flavour", ["standard", "multipoint"])
+def test_a_planned_attack_lands_as_planned_on_the_firmware_model(flavour: str) -> None:
+    """For every register: the planned value differs, the firmware takes it as it is
+    (no rewrite on set, nor at boot), and RTSn= + RT&W + RTZ make the radio run with it
+    (registers SiK applies at once: already after RTSn=)."""
+    specs = PARAMS_STANDARD if flavour == "standard" else PARAMS_MULTIPOINT
+    node = 1 if flavour == "multipoint" else None
+    for spec in specs[1:]:
+        stored = {"NODECOUNT": 3, "NODEID": 1} if flavour == "multipoint" else {}
+        params = SikParams(flavour, stored=stored)
+        engine = ATEngine(params, flavour=flavour, ati6=str, ati7=str)
+        attack = plan_attack(flavour, spec.name, params.as_dict(), node=node)
+        assert params.as_dict()[spec.name] != attack.value
+        result = engine.run_remote(attack.set_line)
+        assert b"OK" in result.output, attack
+        assert landed(params.as_dict(), attack)
+        assert result.applied == attack.applies_now == (spec.applies == "now")
+        if attack.applies_now:
+            assert params.active_value(spec.name) == attack.value
+        else:
+            assert params.active_value(spec.name) != attack.value  # not before the reboot
+        after = attack.value if spec.name == "NODEID" else node
+        assert attack.save_line == ("RT&W" if after is None else f"RT&W,{after}")
+        assert engine.run_remote(attack.save_line).output.endswith(b"OK\n")
+        assert engine.run_remote(attack.reboot_line).reboot
+        assert landed(params.as_dict(), attack) and params.active_value(spec.name) == attack.value
+
+
+def test_plan_attack_refuses_what_the_firmware_lacks() -> None:
+    with pytest.raises(ConfigError):
+        plan_attack("multipoint", "MAX_WINDOW", {})
+    with pytest.raises(ConfigError):
+        plan_attack("standard", "FORMAT", {"FORMAT": 26})

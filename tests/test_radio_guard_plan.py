@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+from emu_helpers import heartbeat
+from test_sik_rogue import AtBench
 
 from radios.errors import ConfigError
 from radios.sik.at import ATEngine
@@ -74,3 +76,29 @@ def test_plan_attack_refuses_what_the_firmware_lacks() -> None:
         plan_attack("multipoint", "MAX_WINDOW", {})
     with pytest.raises(ConfigError):
         plan_attack("standard", "FORMAT", {"FORMAT": 26})
+
+
+def test_mavlink_off_over_rt_stops_radio_status_at_once_in_the_air_model() -> None:
+    """SiK's param_set applies MAVLINK at once: a rogue's ``RTS6=0`` (no ``RT&W``, no
+    ``RTZ``) stops the victim's RADIO_STATUS and framing there and then, as on the
+    firmware; ``RTS6=1`` brings them back. Virtual time, the real AT interpreter."""
+    params = [SikParams("standard") for _ in range(2)]
+    bench = AtBench(params)
+    bench.run(30.0)  # locked
+    assert bench.model.status(0)["locked"]
+
+    def reports(seconds: float) -> int:
+        before = bench.model.status(0)["radio_status"]
+        for _ in range(int(seconds)):
+            bench.write(0, heartbeat(1))
+            bench.run(1.0)
+        return int(bench.model.status(0)["radio_status"] - before)
+
+    assert reports(5) >= 4
+    bench.command_mode(1)
+    bench.send(1, "RTS6=0", wait=2.0)
+    assert params[0].active_value("MAVLINK") == 0 and params[0].eeprom[6] == 1  # not saved
+    assert bench.model.radios[0].cfg.mavlink == 0  # the running radio, not at the next boot
+    assert reports(5) == 0
+    bench.send(1, "RTS6=1", wait=2.0)
+    assert reports(5) >= 4

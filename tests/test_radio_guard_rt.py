@@ -21,19 +21,14 @@ from net_helpers import wait_until
 from radios.emulator_config import radio_config_of
 from radios.sik.config import SikConfigurator, open_port
 from radios.sik.guard import UNGUARDED, Known, baseline, check_radio, known_of
-from radios.sik.params import SikParams, params_for, spec_for
-from radios.sik.rogue import Attack, attack_radio, landed, plan_attack, send_line, send_reboot
+from radios.sik.params import SikParams, params_for
+from radios.sik.rogue import Attack, landed, plan_attack, play_rt_attack, send_line, send_reboot
 from swarm.cli.procs import Child, json_events
 
 pytestmark = pytest.mark.processes  # radios emulated in real time, agents
 
 # the agents' deadlines: generous, for a loaded machine
 AGENT_DEADLINE = 120.0
-
-
-def _rogue(path: str, attack: Attack) -> bool:
-    """The rogue's host: command mode on its own radio, the attack, back to data mode."""
-    return attack_radio(path, attack, flavour="multipoint")
 
 
 def _agent(path: str, name: str, ident: int, *extra: str) -> Child:
@@ -64,28 +59,32 @@ def _events(child: Child, kind: str) -> list[dict[str, Any]]:
 def _attack_and_wait(
     emu: RunningEmulator, agents: list[Child], k: int, name: str, value: int
 ) -> dict[str, Any]:
-    """The rogue changes register ``name`` of agent ``k``'s radio (node k-1) to ``value``;
-    it must land, and the agent must restore it: its ``radio-restored`` event."""
+    """The rogue changes register ``name`` of agent ``k``'s radio (node k-1) to ``value``
+    (:func:`play_rt_attack`, as the fault bench plays it): it must land (saved and
+    running), be undone (back, saved and running), and the agent say so in its
+    ``radio-restored`` event."""
     victim = emu.emu.params[k - 1]
-    shown = victim.as_dict()[name]
-    index = spec_for("multipoint", name).index
-    attack = plan_attack("multipoint", name, victim.as_dict(), node=k - 1)
-    assert attack.value == value
     before = len(_events(agents[k - 1], "radio-restored"))
-    _rogue(emu.paths[2], attack)
-    # the attack landed: in flash, and the radio runs with it
-    wait_until(
-        lambda: victim.eeprom[index] == value and victim.active[index] == value, f"{name} changed", 30.0
+
+    def registers() -> tuple[dict[str, int], dict[str, int], dict[str, int]]:
+        return victim.as_dict(), _named(victim, victim.eeprom), _named(victim, victim.active)
+
+    outcome = play_rt_attack(
+        emu.paths[2], "multipoint", name, k - 1, registers, restore_within=AGENT_DEADLINE
+    )
+    print(f"agent {k}: {outcome.describe()}")  # the figures, with pytest -s
+    assert outcome.attack.value == value
+    assert outcome.landed_s is not None, outcome.describe()
+    assert outcome.restored_s is not None, (
+        f"{outcome.describe()}: {_events(agents[k - 1], 'radio-checked')[-3:]}"
     )
     restored = wait_until(
         lambda: _events(agents[k - 1], "radio-restored")[before:],
-        f"agent {k}'s guard restores its radio's {name}",
-        AGENT_DEADLINE,
+        f"agent {k}'s radio-restored event",
+        10.0,
         children=agents,
-        detail=lambda: _events(agents[k - 1], "radio-checked")[-3:],
     )
     assert restored[0]["differed"] == {name: value}
-    assert (victim.eeprom[index], victim.active[index]) == (shown, shown)
     return dict(restored[0])
 
 

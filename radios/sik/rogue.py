@@ -24,15 +24,19 @@ the victim shows exactly that value) and that differs from the current one, and
 the ``RT`` lines; :func:`landed` says whether a victim's values show it. I/O part:
 :func:`send_attack` sends a plan through a rogue's :class:`SikConfigurator`
 already in command mode, :func:`attack_radio` does the whole rogue (its port, command
-mode, the attack, ``ATO``). Tests and ``swarm bench faults`` both use these; on the
-emulator, its statistics (``radios[i]["params"|"saved"|"active"]``) show an attack
-land and be undone from another process.
+mode, the attack, ``ATO``), and :func:`play_rt_attack` plays one whole fault: the
+attack, its landing (the victim saved it and runs with it) and its undoing (back at
+the value it had), timed. Tests and ``swarm bench faults`` both use these; on the
+emulator, its statistics (``radios[i]["params"|"saved"|"active"]``,
+:func:`registers_from_stats`) show an attack land and be undone from another process.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping
+import json
+import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from radios.errors import ATError, ConfigError
@@ -165,3 +169,101 @@ def attack_radio(rogue_path: str, attack: Attack, *, flavour: str, baud: int = 5
                 conf.exit_command_mode()
     finally:
         port.close()
+
+
+#: a victim's registers, three copies: (RAM as ATI5 shows it, flash, what it runs with);
+#: None when they cannot be read just now (a statistics file being rewritten)
+Registers = tuple[Mapping[str, int], Mapping[str, int], Mapping[str, int]]
+
+
+@dataclass(frozen=True)
+class RtAttackOutcome:
+    """One attack played (:func:`play_rt_attack`): what was sent, whether it landed,
+    whether it was undone, and when (seconds)."""
+
+    attack: Attack
+    before: int  # the victim's value before the attack
+    answered: bool  # the victim answered OK to RTSn= and RT&W
+    landed_s: float | None  # from the first RT line until the victim saved it and ran with it
+    restored_s: float | None  # from landing until it was back at ``before``, saved and running
+
+    def describe(self) -> str:
+        a = self.attack
+        text = f"{a.set_line} + {a.save_line} + {a.reboot_line} ({a.name} {self.before} -> {a.value}): "
+        if self.landed_s is None:
+            return text + "did not land"
+        text += f"landed after {self.landed_s:.1f} s, "
+        if self.restored_s is None:
+            return text + "never restored"
+        return text + f"restored {self.restored_s:.1f} s later"
+
+
+def registers_from_stats(path: str, radio: int) -> Registers | None:
+    """Radio ``radio``'s registers from an emulator's ``--stats-json`` file (None if the
+    file cannot be read or parsed just now)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            entry = json.load(fh)["radios"][radio]
+        return entry["params"], entry["saved"], entry["active"]
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return None
+
+
+def play_rt_attack(
+    rogue_path: str,
+    flavour: str,
+    name: str,
+    node: int | None,
+    read_victim: Callable[[], Registers | None],
+    *,
+    land_within: float = 30.0,
+    restore_within: float = 120.0,
+    poll_s: float = 0.2,
+) -> RtAttackOutcome:
+    """A whole remote-AT fault: plan the attack on register ``name`` from the victim's
+    current values, send it from the rogue's radio (:func:`attack_radio`), wait for it
+    to land (saved and running, within ``land_within`` s) and then to be undone (back
+    at the value it had, saved and running, within ``restore_within`` s). Times use
+    ``time.monotonic``; ``read_victim`` gives the victim's registers (the emulator's
+    statistics file: :func:`registers_from_stats`). Raises
+    :class:`~radios.errors.ConfigError` if the victim cannot be read before the attack,
+    what :func:`attack_radio` raises for the rogue's own radio."""
+    deadline = time.monotonic() + 10.0
+    first = read_victim()
+    while first is None and time.monotonic() < deadline:
+        time.sleep(poll_s)
+        first = read_victim()
+    if first is None:
+        raise ConfigError("cannot read the victim's registers before the attack")
+    ram = first[0]
+    attack = plan_attack(flavour, name, ram, node)
+    before = ram[attack.name]
+    t0 = time.monotonic()
+    answered = attack_radio(rogue_path, attack, flavour=flavour)
+
+    def shows(value: int) -> bool:
+        regs = read_victim()
+        return regs is not None and all(copy.get(attack.name) == value for copy in regs[1:])
+
+    landed_at = _until(lambda: shows(attack.value), t0 + land_within, poll_s)
+    if landed_at is None:
+        return RtAttackOutcome(attack, before, answered, None, None)
+    restored_at = _until(lambda: shows(before), landed_at + restore_within, poll_s)
+    return RtAttackOutcome(
+        attack,
+        before,
+        answered,
+        landed_at - t0,
+        None if restored_at is None else restored_at - landed_at,
+    )
+
+
+def _until(pred: Callable[[], bool], deadline: float, poll_s: float) -> float | None:
+    """When ``pred`` first held (``time.monotonic``), or None if not by ``deadline``."""
+    while True:
+        now = time.monotonic()
+        if pred():
+            return now
+        if now >= deadline:
+            return None
+        time.sleep(poll_s)

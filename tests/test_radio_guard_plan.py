@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from emu_helpers import heartbeat
 from test_sik_rogue import AtBench
 
+from radios.emulator import Emulator, EmulatorConfig
 from radios.errors import ConfigError
 from radios.sik.at import ATEngine
 from radios.sik.guard import CheckSchedule, baseline
 from radios.sik.params import PARAMS_MULTIPOINT, PARAMS_STANDARD, SikParams
-from radios.sik.rogue import landed, plan_attack
+from radios.sik.rogue import RtAttackOutcome, landed, plan_attack, registers_from_stats
 
 
 def test_the_guard_keeps_every_register_but_format_and_the_given_values_win() -> None:
@@ -102,3 +105,32 @@ def test_mavlink_off_over_rt_stops_radio_status_at_once_in_the_air_model() -> No
     assert reports(5) == 0
     bench.send(1, "RTS6=1", wait=2.0)
     assert reports(5) >= 4
+
+
+def test_a_bench_reads_a_victims_registers_from_the_emulators_statistics(tmp_path: Path) -> None:
+    stats = tmp_path / "stats.json"
+    emu = Emulator(EmulatorConfig(nodes=2, directory=str(tmp_path), stats_json=str(stats), netids=[30]))
+    try:
+        emu.open()
+        emu.params[1].set(10, 20)  # ATS10=20: RAM only, until AT&W and ATZ
+        emu.write_stats()
+    finally:
+        emu.close()
+    regs = registers_from_stats(str(stats), 1)
+    assert regs is not None
+    ram, saved, active = regs
+    assert ram["NETID"] == saved["NETID"] == active["NETID"] == 30
+    assert (ram["NUM_CHANNELS"], saved["NUM_CHANNELS"], active["NUM_CHANNELS"]) == (20, 0, 50)
+    assert registers_from_stats(str(stats), 5) is None
+    stats.write_text("{not json")
+    assert registers_from_stats(str(stats), 0) is None
+    assert registers_from_stats(str(tmp_path / "none.json"), 0) is None
+
+
+def test_an_outcome_says_what_was_injected_and_observed() -> None:
+    attack = plan_attack("multipoint", "NUM_CHANNELS", {"NUM_CHANNELS": 50}, node=0)
+    assert RtAttackOutcome(attack, 50, True, 3.21, 9.54).describe() == (
+        "RTS10=20,0 + RT&W,0 + RTZ,0 (NUM_CHANNELS 50 -> 20): landed after 3.2 s, restored 9.5 s later"
+    )
+    assert RtAttackOutcome(attack, 50, False, None, None).describe().endswith("did not land")
+    assert RtAttackOutcome(attack, 50, True, 1.0, None).describe().endswith("never restored")

@@ -14,6 +14,7 @@ from radios.sik.at import ATEngine
 from radios.sik.guard import CheckSchedule, baseline
 from radios.sik.params import PARAMS_MULTIPOINT, PARAMS_STANDARD, SikParams
 from radios.sik.rogue import RtAttackOutcome, landed, plan_attack, registers_from_stats
+from swarm.cli.commands import agent as agent_cmd
 
 
 def test_the_guard_keeps_every_register_but_format_and_the_given_values_win() -> None:
@@ -134,3 +135,20 @@ def test_an_outcome_says_what_was_injected_and_observed() -> None:
     )
     assert RtAttackOutcome(attack, 50, False, None, None).describe().endswith("did not land")
     assert RtAttackOutcome(attack, 50, True, 1.0, None).describe().endswith("never restored")
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--radio-check-period", "30"], "need --radio-params"),
+        (["--radio-params", "NETID=25", "--radio-check-period", "5"], "at least 10 s"),
+        (["--radio-params", "NETID=25", "--radio-check-period", "nan"], "seconds, 0 for off"),
+        (["--radio-params", "NETID=25", "--radio-check-period", "-1"], "seconds, 0 for off"),
+    ],
+)
+def test_radio_check_period_usage_errors(
+    extra: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert agent_cmd.main(["--name", "a1", "--id", "1", "--radio", "/dev/null", *extra]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err

@@ -549,6 +549,11 @@ class Emulator:
                     "pty": self.slave_names[i],
                     "connected": self.connected[i],
                     "plugged": self.plugged[i],
+                    # what ATI5 shows, what flash holds and what the radio runs with: a
+                    # fault bench in another process sees an RT attack land and be undone
+                    "params": self.params[i].as_dict(),
+                    "saved": _named(self.params[i], self.params[i].eeprom),
+                    "active": _named(self.params[i], self.params[i].active),
                     **model.status(i),
                 }
                 for i in range(self.cfg.nodes)
@@ -596,6 +601,10 @@ class Emulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _named(p: SikParams, table: dict[int, int]) -> dict[str, int]:
+    return {spec.name: table[spec.index] for spec in p.specs}
 
 
 # re-exported: the configuration lives in radios.emulator_config

@@ -116,7 +116,10 @@ AGENT_BAD = [
         'name = "a1"\nid = 1\nradio_recheck = -1.0\nradio_params = "NETID=25"\nradio = "x"\n',
         "radio_recheck = -1.0",
     ),
-    ('name = "a1"\nid = 1\nrestore_radio = true\n' + NODE, "restore_radio = true: --restore-radio and"),
+    (
+        'name = "a1"\nid = 1\nrestore_radio = true\n' + NODE,
+        "restore_radio = true: --restore-radio, --radio-recheck and",
+    ),
     ('name = "a1"\nid = 1\nexit_on_radio_loss = true\n' + NODE, "exit_on_radio_loss = true: "),
     ('name = "a1"\nid = 1\nradio = "x"\n' + NODE, "give one of --radio URL"),
 ]

@@ -24,19 +24,26 @@ the agent does not read from the radio: give ``--round-s``, or ``--slots N`` (th
 number of radios of a multipoint network; 2 for a standard pair) and
 ``--air-speed`` and the round is computed as the SiK firmware does.
 
-``--radio-params NETID=25,AIR_SPEED=64`` (or a JSON/TOML file) makes the agent check
-its radio before the bridge opens it (:mod:`radios.sik.guard`: ``+++``, ``ATI5``):
-any radio in range can change a SiK radio's parameters with ``RT`` commands. A
-radio that differs is named in one line and the agent exits 1; with
-``--restore-radio`` it writes the expected values back (``AT&W``, ``ATZ``), says so
-in one line and starts. ``--radio-recheck S`` repeats the check when the agent has
-heard no other agent for S seconds (a radio moved to another NETID hears no one):
-the radio bridge lends the port to the check for a few seconds
-(:meth:`~swarm.runtime.bridge.RadioBridge.lend_radio`) while the agent goes on, in flight
-too: its protocol state, its pilot and its flight controller are not touched, and
-a radio that hears no one loses nothing by the pause. A re-check that finds the
-radio silent, or different without ``--restore-radio``, prints one line
-(``radio-check-failed``) and the agent carries on; it tries again S seconds later.
+``--radio-params NETID=25,AIR_SPEED=64`` (or a JSON/TOML file, such as the one
+``swarm radio-config --write-params`` writes) makes the agent check its radio before
+the bridge opens it (:mod:`radios.sik.guard`: ``+++``, ``ATI5``): any radio in range
+can change a SiK radio's parameters with ``RT`` commands. A radio that differs is
+named in one line and the agent exits 1; with ``--restore-radio`` it writes the
+expected values back (``AT&W``, ``ATZ``), says so in one line and starts. From then
+on the guard keeps every register: the given ones, and every other register at the
+value the radio showed at that start check (:func:`~radios.sik.guard.baseline`).
+``--radio-check-period S`` checks the radio again every S seconds, and
+``--radio-recheck S`` when the agent has heard no other agent for S seconds (a radio
+moved to another network hears no one): the radio bridge lends the port to the
+check for about 2.3 s (:meth:`~swarm.runtime.bridge.RadioBridge.lend_radio`) while
+the agent goes on, in flight too: its protocol state, its pilot and its flight
+controller are not touched. Each re-check prints ``radio-checked`` (``why``:
+``period`` or ``isolated``; the ``radio`` events ``paused`` and ``back`` around it
+say how long the radio was away); one that finds
+a register changed restores it with ``--restore-radio`` (``radio-restored``, with
+``differed``: name -> the value found); one that finds the radio silent, or
+different without ``--restore-radio``, prints ``radio-check-failed`` and the agent
+carries on and tries again at the next check.
 
 ``--capture DIR`` keeps a flight log (:mod:`radios.rotating`): the radio's traffic
 both ways in ``NAME-YYYYmmddTHHMMSSZ-NNNN.tlog`` and the flight controller's key
@@ -55,6 +62,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import random
 import signal
 import sys
 import threading
@@ -64,7 +72,7 @@ from typing import Any
 
 from firmware_bridge.errors import BridgeError
 from radios.errors import ATError, RadioError
-from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
+from radios.sik.guard import CheckSchedule, baseline, check_radio, describe, known_of, parse_expected
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
 from swarm.cli.state_dir import add_state_dir_argument, node_file, open_state_dir
@@ -98,6 +106,7 @@ from swarm.runtime.agent import (
 from swarm.runtime.notify import Service
 
 PROG = "swarm agent"
+MIN_CHECK_PERIOD_S = 10.0  # a radio check pauses the link about 2.3 s: at most a quarter of the time
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -239,7 +248,15 @@ def _add_radio_check_arguments(p: argparse.ArgumentParser) -> None:
         default=0.0,
         metavar="S",
         help="with --radio-params: check the radio again after S seconds without "
-        "hearing another agent (not while the vehicle is armed; default: off)",
+        "hearing another agent (default: off)",
+    )
+    p.add_argument(
+        "--radio-check-period",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="with --radio-params: check every register of the radio every S seconds "
+        "(the link pauses about 2.3 s each time; 0: off, the default)",
     )
     p.add_argument(
         "--restore-radio",
@@ -347,22 +364,34 @@ class _Lines:
             self._pending.clear()
 
 
-def _check_radio(a: argparse.Namespace, out: _Lines, *, again: bool = False) -> None:
+def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) -> None:
     """The radio guard (before the bridge opens the port, or on a port it lent). Raises
     RadioError for a radio that differs (without --restore-radio) or does not answer, and
-    ConfigError for bad expected parameters. ``again``: a re-check of an isolated agent,
-    which says so in one line even when the radio is as expected."""
-    report = check_radio(a.radio, parse_expected(a.radio_params), restore=a.restore_radio)
+    ConfigError for bad expected parameters. The start check (``why`` None) sets
+    ``a.radio_guard``, every register the later checks keep, and ``a.radio_known``; a
+    re-check (``why``: ``period`` or ``isolated``) compares them all and says so in one
+    line even when the radio is as expected."""
+    guard = getattr(a, "radio_guard", None)
+    expected = guard if guard is not None else parse_expected(a.radio_params)
+    report = check_radio(a.radio, expected, restore=a.restore_radio, known=getattr(a, "radio_known", None))
+    if guard is None:
+        a.radio_guard = baseline(expected, report.values)
+        a.radio_known = known_of(report.flavour, report.values)
 
     def say(obj: dict[str, Any], text: str) -> None:
-        out.line({**obj, "name": a.name, "id": a.id, "radio": a.radio}, f"agent {a.name}: {text}")
+        fields = {} if why is None else {"why": why}
+        out.line({**obj, "name": a.name, "id": a.id, "radio": a.radio, **fields}, f"agent {a.name}: {text}")
 
     if not report.mismatches:
-        if again:
+        if why is not None:
+            after = (
+                f"after {a.radio_recheck:g} s without hearing another agent"
+                if why == "isolated"
+                else f"(every {a.radio_check_period:g} s)"
+            )
             say(
-                {"event": "radio-checked"},
-                f"radio {a.radio} checked after {a.radio_recheck:g} s "
-                "without hearing another agent: as expected",
+                {"event": "radio-checked", "registers": len(expected)},
+                f"radio {a.radio} checked {after}: as expected",
             )
         return
     what = describe(report.mismatches)
@@ -397,10 +426,16 @@ def _check_arguments(a: argparse.Namespace) -> None:
             a.round_s = default_round_s(a.slots, a.air_speed)
         except ValueError as exc:
             raise UsageError(f"--air-speed: {exc}") from None
-    if (a.restore_radio or a.radio_recheck) and not a.radio_params:
-        raise UsageError("--restore-radio and --radio-recheck need --radio-params")
-    if a.radio_recheck < 0:
-        raise UsageError(f"--radio-recheck {a.radio_recheck}: seconds, 0 for off")
+    if (a.restore_radio or a.radio_recheck or a.radio_check_period) and not a.radio_params:
+        raise UsageError("--restore-radio, --radio-recheck and --radio-check-period need --radio-params")
+    for flag, value in (("--radio-recheck", a.radio_recheck), ("--radio-check-period", a.radio_check_period)):
+        if not (math.isfinite(value) and value >= 0):
+            raise UsageError(f"{flag} {value}: seconds, 0 for off")
+    if 0 < a.radio_check_period < MIN_CHECK_PERIOD_S:
+        raise UsageError(
+            f"--radio-check-period {a.radio_check_period:g}: at least {MIN_CHECK_PERIOD_S:g} s "
+            "(each check pauses the link about 2.3 s)"
+        )
     if a.radio_params and a.radio is None:
         raise UsageError("--radio-params checks a radio: give --radio")
 
@@ -478,13 +513,20 @@ def _isolated(agent: Agent) -> bool:
     return not others and st.leader in (0, agent.id)
 
 
-def _recheck_radio(a: argparse.Namespace, bridge: Any, out: _Lines) -> None:
+def _recheck_radio(a: argparse.Namespace, bridge: Any, out: _Lines, why: str) -> None:
     """Check (and restore) the radio of a running agent: the bridge lends the port."""
     try:
-        bridge.lend_radio(lambda: _check_radio(a, out, again=True), why="radio check")
+        bridge.lend_radio(lambda: _check_radio(a, out, why=why), why="radio check")
     except RadioError as exc:  # silent, different, refused: say so, keep flying, retry later
         out.line(
-            {"event": "radio-check-failed", "name": a.name, "id": a.id, "radio": a.radio, "error": str(exc)},
+            {
+                "event": "radio-check-failed",
+                "name": a.name,
+                "id": a.id,
+                "radio": a.radio,
+                "why": why,
+                "error": str(exc),
+            },
             f"agent {a.name}: radio check failed: {exc}",
         )
 
@@ -508,7 +550,10 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
         if a.exit_on_radio_loss:  # the bridge gives up instead of reopening: main exits 1
             agent.bridge.cfg.reopen_radio = False
         agent.bridge.add_listener(out.radio)
-    recheck = RecheckTimer(a.radio_recheck) if a.radio_recheck else None
+    # the first periodic check at a random point of the second period: agents started
+    # together do not all pause their radios at once (the network would fall silent)
+    first = a.radio_check_period * (1.0 + random.random())
+    checks = CheckSchedule(a.radio_check_period, a.radio_recheck, time.monotonic(), first)
     service = Service(agent.loop_beats)  # systemd's READY and WATCHDOG (README, "Run as a service")
     try:
         out.open(agent)
@@ -516,12 +561,10 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
         check_peer = peer_watch(PROG, a, agent)
         while not stop.wait(0.5):
             check_peer()
-            if (
-                recheck is not None
-                and agent.bridge is not None
-                and recheck.update(_isolated(agent), time.monotonic())
-            ):
-                _recheck_radio(a, agent.bridge, out)
+            why = checks.due(_isolated(agent), time.monotonic()) if checks.active else None
+            if why is not None and agent.bridge is not None:
+                _recheck_radio(a, agent.bridge, out, why)
+                checks.checked(time.monotonic())
                 continue
             if not agent.running:
                 return exit_when_stopped(PROG, agent, "the agent's protocol thread")

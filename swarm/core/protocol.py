@@ -82,7 +82,6 @@ Beyond the paper (each rule stated once, here):
   advertise is not alone: it keeps asking that leader (StartPool) instead. One that
   can hear the swarm but not be heard (its radio flooded, a one-way link) would
   otherwise lead a swarm of one beside the real leader for as long as that lasts.
-  Time without a radio (:meth:`Core.radio_back`) is not time alone.
 * **Votes** come from a pluggable :class:`VotePolicy`: random (the paper),
   battery, or link quality, each in the high byte with random low bits.
 * **Elections are named** by ``epoch`` = the pool digest's low 16 bits: votes
@@ -112,6 +111,7 @@ from swarm.core.formation import reconcile
 from swarm.core.messages import (
     AgentState,
     Heartbeat,
+    HeartbeatAck,
     Message,
     Phase,
     Pose,
@@ -351,16 +351,19 @@ class Core:
             self.vehicle_ok = up
             self.vehicle_lost_at = now
 
-    def radio_back(self, now: float) -> None:
-        """The radio was away (lent to the radio guard's check, unplugged) and is back.
-        Not having heard anyone while it was away says nothing about who is there, so
-        an IDLE agent starts its alone timer again: it forms a swarm of one only after
-        a whole ``alone_timeout`` of listening (see "Alone"). The fault bench saw a
-        member whose radio a flood of garbage kept from sending: expelled, IDLE, its
-        radio re-checked every few seconds, it missed the leader's Advertizes during a
-        check and led a swarm of one beside the real leader for the rest of the flood."""
-        if self.phase == Phase.IDLE:
-            self.idle_since = max(self.idle_since, now)
+    def resume(self, now: float) -> list[Out]:
+        """The node's radio is back after a time away, during which this core's time
+        stood still (see "Deaf" in :mod:`swarm.core.node`) but the others' did not: a
+        leader sends its Heartbeat and a member its HeartbeatAck at once, so the others
+        hear from it before their own timeouts, without waiting for its next interval."""
+        out: list[Out] = []
+        if self.phase == Phase.LEADER:
+            self._next["heartbeat"] = now
+            self._leader_timers(now, out)
+        elif self.phase == Phase.MEMBER and self.leader:
+            self.acked_at = now
+            out.append(Out(self.leader, HeartbeatAck(self.me, self.heard_seq, self.pose or NO_POSE)))
+        return out
 
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""

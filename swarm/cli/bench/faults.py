@@ -239,6 +239,7 @@ def garbage(bench: FaultBench, size: int = 1 << 20) -> FaultResult:
     k = next(k for k in sorted(bench.agents) if k != lead)
     rnd = random.Random(bench.seed)
     data = rnd.randbytes(size)
+    paused_before = len([e for e in bench.agents[k].events("radio") if e.get("state") == "paused"])
     t = time.monotonic()
     fd = os.open(bench.agents[k].radio, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
     written = 0
@@ -251,7 +252,7 @@ def garbage(bench: FaultBench, size: int = 1 << 20) -> FaultResult:
     finally:
         os.close(fd)
     end = time.monotonic()
-    return bench.measure(
+    res = bench.measure(
         f"{size // 1024} KiB of garbage into a member's radio",
         t,
         end,
@@ -259,6 +260,10 @@ def garbage(bench: FaultBench, size: int = 1 << 20) -> FaultResult:
         f"(taken in {end - t:.0f} s: the radio sends them on the air in its own slots)",
         radio=f"agent{k}",
     )
+    checks = [e for e in bench.agents[k].events("radio") if e.get("state") == "paused"][paused_before:]
+    res.detail["radio_checks_during"] = len(checks)
+    res.observed += f"; agent{k}'s radio checked {len(checks)} times (it still heard the swarm)"
+    return res
 
 
 def garbage_small(bench: FaultBench) -> FaultResult:

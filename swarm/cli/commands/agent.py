@@ -505,12 +505,34 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _isolated(agent: Agent) -> bool:
-    """The agent hears no other agent: alone in its pool, following no one else."""
+    """The agent is alone: in its pool, following no one else."""
     st = agent.state()
     if st is None:
         return True
     others = (st.pool | st.members) - {agent.id}
     return not others and st.leader in (0, agent.id)
+
+
+class _Isolation:
+    """Whether the agent hears no other agent, looked at every half second: alone
+    (:func:`_isolated`) and nothing from another node came off its radio since the last
+    look. An agent alone that still hears the others (expelled while a flood kept its
+    own frames from getting out) has a radio that works: a check would only take it
+    away, every few seconds for as long as the flood lasted (the fault bench's 1 MiB
+    flood: a failed check every 5 s)."""
+
+    def __init__(self, agent: Agent) -> None:
+        self.agent = agent
+        self.heard = self._published()
+
+    def _published(self) -> int:
+        bridge = self.agent.bridge
+        return bridge.stats.published if bridge is not None else 0
+
+    def __call__(self) -> bool:
+        n, before = self._published(), self.heard
+        self.heard = n
+        return _isolated(self.agent) and n == before
 
 
 def _recheck_radio(a: argparse.Namespace, bridge: Any, out: _Lines, why: str) -> None:
@@ -554,6 +576,7 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
     # together do not all pause their radios at once (the network would fall silent)
     first = a.radio_check_period * (1.0 + random.random())
     checks = CheckSchedule(a.radio_check_period, a.radio_recheck, time.monotonic(), first)
+    isolated = _Isolation(agent)
     service = Service(agent.loop_beats)  # systemd's READY and WATCHDOG (README, "Run as a service")
     try:
         out.open(agent)
@@ -561,7 +584,7 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
         check_peer = peer_watch(PROG, a, agent)
         while not stop.wait(0.5):
             check_peer()
-            why = checks.due(_isolated(agent), time.monotonic()) if checks.active else None
+            why = checks.due(isolated(), time.monotonic()) if checks.active else None
             if why is not None and agent.bridge is not None:
                 _recheck_radio(a, agent.bridge, out, why)
                 checks.checked(time.monotonic())

@@ -49,6 +49,9 @@ SPACING_M = 8.0
 HEALTH_TIMEOUT_S = 120.0
 ROGUE_ID = 77
 RECHECK_S = 5.0
+#: the agents' radio-check period (``--radio-check-period``): a change that does not cut
+#: the radio off (TXPOWER, MAVLINK...) is found within one and undone within two
+CHECK_PERIOD_S = 20.0
 
 
 class BenchError(ChildError):
@@ -274,7 +277,11 @@ class FaultBench:
             "--restore-radio",
             "--radio-recheck",
             str(RECHECK_S),
+            "--radio-check-period",
+            str(CHECK_PERIOD_S),
         ]
+        #: the emulator's statistics (every radio's registers: RAM, flash, running)
+        self.stats_json = os.path.join(self.workdir, "emulator-stats.json")
         self.log = log or (lambda _s: None)
         self.emu: Child | None = None
         self.links: list[str] = []
@@ -321,6 +328,8 @@ class FaultBench:
             str(self.seed),
             "--capture",
             self.capture,
+            "--stats-json",
+            self.stats_json,
         )
         self.base_port = _free_base_port(self.n + 2)
         for k in range(1, self.n + 1):

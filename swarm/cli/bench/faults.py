@@ -34,6 +34,7 @@ from typing import Any
 
 from swarm.cli.bench.fault_bench import (
     AGENTS,
+    CHECK_PERIOD_S,
     HEALTH_TIMEOUT_S,
     HOME,
     KEY_PASSPHRASE,
@@ -752,40 +753,90 @@ def rogue_vote(bench: FaultBench, seconds: float = 15.0) -> FaultResult:
     return res
 
 
-def rogue_remote_at(bench: FaultBench) -> FaultResult:
-    """The rogue's host puts its radio in command mode and sends the leader's radio
-    ``RTS3=77``, ``RT&W`` and ``RTZ`` (multipoint: ``,<node>``): the leader's radio
-    moves to NETID 77 for good unless its agent notices and restores it."""
-    from radios.errors import RadioError
-    from radios.sik.config import SikConfigurator, open_port
+#: the registers the quick set attacks over RT: one that cuts the radio off its network
+#: (found by isolation) and one that only weakens it (found by the periodic check)
+REMOTE_AT_QUICK = ("NUM_CHANNELS", "TXPOWER")
 
-    bench.settled("rogue remote AT")
+
+def rogue_remote_at(bench: FaultBench, name: str = "NETID", target: str = "leader") -> FaultResult:
+    """A rogue radio changes register ``name`` of the ``target``'s radio ("leader" or
+    "member") over the air: ``RTSn=v``, ``RT&W``, ``RTZ`` (multipoint: to the node),
+    as any SiK radio in range can. Judged on the victim radio's own registers (the
+    emulator's statistics: RAM, flash and what it runs with): the attack must land, or
+    the row proves nothing, and be undone by the agent's radio guard within two
+    radio-check periods, with never two leaders once it is undone."""
+    from radios.errors import ConfigError, RadioError
+    from radios.sik.rogue import play_rt_attack, registers_from_stats
+
+    bench.settled(f"rogue remote AT on {name}")
     lead = bench.leader()
-    node = lead - 1  # radio K-1 is node K-1
+    k = lead if target == "leader" else next(m for m in sorted(bench.agents) if m != lead)
+    period = CHECK_PERIOD_S
     t = time.monotonic()
-    port = open_port(bench.links[bench.n + 1])
     try:
-        conf = SikConfigurator(port, flavour="multipoint", port_name="rogue")
-        conf.enter_command_mode()
-        for cmd in (f"RTS3=77,{node}", f"RT&W,{node}", f"RTZ,{node}"):
-            for _ in range(3):  # air loss: a rogue repeats itself (RTZ is never answered)
-                with contextlib.suppress(RadioError):
-                    conf.command(cmd, timeout=1.0)
-        with contextlib.suppress(Exception):
-            conf.exit_command_mode()
-    finally:
-        port.close()
+        out = play_rt_attack(
+            bench.links[bench.n + 1],
+            "multipoint",
+            name,
+            k - 1,  # radio K-1 is node K-1
+            lambda: registers_from_stats(bench.stats_json, k - 1),
+            restore_within=3 * period + 10,
+        )
+    except (ConfigError, RadioError) as exc:
+        res = FaultResult(f"rogue radio: remote AT on {name}", detail={"error": str(exc)})
+        res.injected = f"a rogue radio's RT commands on {name} of agent{k}'s radio"
+        res.observed = f"the bench could not play it: {exc}"
+        return res
+    restored_at = None
+    if out.landed_s is not None and out.restored_s is not None:
+        restored_at = t + out.landed_s + out.restored_s
     res = bench.measure(
-        "rogue radio: remote AT (RTS3=77, RT&W, RTZ) to the leader's radio",
+        f"rogue radio: remote AT on {name} ({target})",
         t,
-        time.monotonic(),
-        target=f"agent{lead}",
+        restored_at if restored_at is not None else time.monotonic(),
+        injected=f"from a rogue radio to agent{k}'s ({target}) radio: {out.attack.set_line}, "
+        f"{out.attack.save_line}, {out.attack.reboot_line} ({name} {out.before} -> {out.attack.value})",
+        target=f"agent{k}",
+        register=name,
+        landed_s=None if out.landed_s is None else round(out.landed_s, 2),
+        restored_s=None if out.restored_s is None else round(out.restored_s, 2),
+        radio_check_period_s=period,
     )
-    moved = any(e.get("event") == "radio-restored" for e in bench.agents[lead].all_events())
-    res.detail["leader_radio_restored"] = moved
-    if not res.survived:
-        res.frames_accepted_from_rogue += 1  # the radio stayed moved: the commands took
+    after = bench.dual_leader_s(restored_at, time.monotonic()) if restored_at is not None else None
+    res.detail["dual_leader_s_after_restore"] = None if after is None else round(after, 2)
+    restored = [e for e in bench.agents[k].all_events() if e.get("event") == "radio-restored"]
+    why = restored[-1].get("why") if restored else None
+    landed = f"landed after {out.landed_s:.1f} s" if out.landed_s is not None else "did NOT land"
+    res.observed += f"; the attack {landed}"
+    if out.landed_s is not None:
+        res.observed += (
+            f", undone by agent{k}'s guard {out.restored_s:.1f} s later (found by its {why or '?'} check; "
+            f"target {2 * period:g} s, two periods)"
+            if out.restored_s is not None
+            else ", NEVER undone"
+        )
+        if after is not None:
+            res.observed += f"; two leaders for {after:.1f} s after it was undone"
+    if out.landed_s is None or out.restored_s is None or (after or 0.0) > 0.0:
+        res.survived = False
+    if out.restored_s is None:
+        res.frames_accepted_from_rogue += 1  # the change stayed
     return res
+
+
+def _remote_at_all(bench: FaultBench, names: tuple[str, ...]) -> list[FaultResult]:
+    """One row per register, the leader's radio and a member's in turn."""
+    return [
+        rogue_remote_at(bench, name, "leader" if i % 2 == 0 else "member") for i, name in enumerate(names)
+    ]
+
+
+def remote_at_registers() -> tuple[str, ...]:
+    """Every register the guard keeps on the multipoint firmware the bench runs (all but
+    the read-only FORMAT)."""
+    from radios.sik.param_table import UNGUARDED, params_for
+
+    return tuple(spec.name for spec in params_for("multipoint") if spec.name not in UNGUARDED)
 
 
 class _Lines:
@@ -796,7 +847,7 @@ class _Lines:
 
 
 #: every fault by name (``swarm bench faults`` runs them in :data:`FAULTS_ALL`'s order)
-FAULTS: dict[str, Callable[..., FaultResult]] = {
+FAULTS: dict[str, Callable[..., FaultResult | list[FaultResult]]] = {
     "leader_kill": leader_kill,
     "leader_stop": leader_stop,
     "member_restart": member_restart,
@@ -813,6 +864,8 @@ FAULTS: dict[str, Callable[..., FaultResult]] = {
     "replay_across_restart": replay_across_restart,
     "rogue_vote": rogue_vote,
     "rogue_remote_at": rogue_remote_at,
+    "remote_at_all": lambda bench: _remote_at_all(bench, remote_at_registers()),
+    "remote_at_quick": lambda bench: _remote_at_all(bench, REMOTE_AT_QUICK),
     "rogue_radio_status": rogue_radio_status,
     "commands": commands,
 }
@@ -843,7 +896,7 @@ FAULTS_ALL = (
     "rogue_replay",
     "replay_across_restart",
     "rogue_vote",
-    "rogue_remote_at",
+    "remote_at_all",
     "rogue_radio_status",
     "commands",
 )
@@ -863,16 +916,18 @@ def run_faults(
             fn = FAULTS[name]
             args = {"uptime_s": member_uptime_s} if name == "member_restart" else {}
             try:
-                r = fn(bench, **args)
+                got = fn(bench, **args)
             except BenchError as exc:
-                r = FaultResult(name, detail={"error": str(exc)})
-            results.append(r)
-            bench.log(json.dumps(r.as_dict()))
+                got = FaultResult(name, detail={"error": str(exc)})
+            for r in got if isinstance(got, list) else [got]:
+                results.append(r)
+                bench.log(json.dumps(r.as_dict()))
         elect = bench.elect_s or 0.0
         profile_elect = bench.profile_elect_s
         lt = bench.leader_timeout_s
     faults = [r.as_dict() for r in results]
     kills = [r.detail.get("new_leader_s") for r in results if r.fault == "leader kill -9"]
+    rt = [r for r in results if "register" in r.detail]
     return {
         "faults": faults,
         "survived": sum(
@@ -882,6 +937,7 @@ def run_faults(
         "elect_s": round(elect, 2),
         "profile_elect_s": round(profile_elect, 2),
         "leader_timeout_s": round(lt, 2),
+        "radio_check_period_s": CHECK_PERIOD_S,
         "targets": {
             "all_survived": all(r.survived for r in results),
             "leader_kill_new_leader_within_2_profile_elections": all(
@@ -893,6 +949,17 @@ def run_faults(
                 r.recovery_s is not None and r.recovery_s <= 2 * profile_elect for r in results
             ),
             "dual_leader_within_leader_timeout": all(r.dual_leader_s <= lt for r in results),
+            "remote_at_restored_within_2_periods": all(
+                r.detail.get("restored_s") is not None and r.detail["restored_s"] <= 2 * CHECK_PERIOD_S
+                for r in rt
+            )
+            if rt
+            else None,
+            "remote_at_never_two_leaders_after": all(
+                r.detail.get("dual_leader_s_after_restore") == 0 for r in rt
+            )
+            if rt
+            else None,
             "no_command_lost": all(r.commands_lost == 0 for r in results),
             "no_rogue_frame_accepted": all(r.frames_accepted_from_rogue == 0 for r in results),
         },

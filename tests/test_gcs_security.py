@@ -710,6 +710,7 @@ def test_swarm_gcs_with_a_token_file_does_not_print_it(tmp_path: Any) -> None:
 
     path = tmp_path / "gcs.token"
     path.write_text(TOKEN + "\n")
+    path.chmod(0o600)
     gcs = Child(
         [
             "gcs",

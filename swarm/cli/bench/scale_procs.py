@@ -125,6 +125,7 @@ class Deployment:
         self.t_start = time.monotonic()
         if self.key is not None:
             Path(self.key).write_bytes(os.urandom(32))
+            Path(self.key).chmod(0o600)  # the agents refuse a key others can read
         keyed = ["--key", self.key] if self.key else []
         router = self._child(["router", "--listen", self.router_ep, "--json"], "router")
         router.wait_lines(1, 30)

@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from swarm.core.station import CommandRefused
 
@@ -244,8 +245,9 @@ async def read_json(request: web.Request, body_timeout: float) -> Any:
 
     Raises:
         CommandRefused: 415 not ``application/json`` (UTF-8), 413 over
-            :data:`MAX_BODY`, 408 not in within ``body_timeout``, 400 not UTF-8 or
-            malformed (:func:`parse_json`).
+            :data:`MAX_BODY`, 400 not UTF-8 or
+            malformed (:func:`parse_json`); :class:`BodyBroken`: 408 not in within
+            ``body_timeout``, 400 cut off.
     """
     charset = (request.charset or "utf-8").lower()
     if request.content_type != "application/json" or charset not in ("utf-8", "utf8"):
@@ -255,12 +257,20 @@ async def read_json(request: web.Request, body_timeout: float) -> Any:
     try:
         raw = await asyncio.wait_for(request.read(), body_timeout)
     except TimeoutError:
-        raise CommandRefused(408, f"the body did not arrive in {body_timeout:g} s") from None
+        raise BodyBroken(408, f"the body did not arrive in {body_timeout:g} s") from None
+    except (ConnectionError, web.RequestPayloadError, HttpProcessingError) as exc:
+        raise BodyBroken(400, "the body could not be read: " + " ".join(str(exc).split())[:120]) from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise CommandRefused(400, "malformed JSON: the body is not UTF-8 text") from None
     return parse_json(text)
+
+
+class BodyBroken(CommandRefused):
+    """A body that did not arrive whole (408: not in time, which is also what bad
+    chunking after the headers comes to; 400: the connection lost): a malformed
+    request, logged as one (:class:`swarm.runtime.connections.HttpLog`)."""
 
 
 class Guard:

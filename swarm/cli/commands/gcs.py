@@ -59,6 +59,7 @@ from swarm.core.gslink import STATION_IDS
 from swarm.core.message_types import NAME_RE
 from swarm.core.messages import check_name
 from swarm.errors import MessageError
+from swarm.runtime.connections import raise_file_limit
 from swarm.runtime.notify import Service
 from swarm.runtime.server import (
     MAX_WS_HZ,
@@ -464,6 +465,8 @@ def _beats(station: Any, server: GcsServer) -> dict[str, tuple[float, float]]:
 
 
 def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
+    # room for the page's connections, Zenoh and the radio (the server caps its own)
+    raise_file_limit()
     station = _open_station(a)
     server = None
     service: Service | None = None  # systemd's READY and WATCHDOG (README, "Run as a service")

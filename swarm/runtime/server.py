@@ -70,7 +70,6 @@ from swarm.errors import SwarmError
 from swarm.runtime.connections import ConnectionLimiter, HttpLog, default_limit
 from swarm.runtime.security import (
     HOST_RE,
-    LOGIN_PAGE,
     MAX_BODY,
     MAX_DEPTH,
     MAX_ID,
@@ -235,7 +234,7 @@ class GcsServer:
 
     @property
     def cookie_name(self) -> str:
-        """One cookie per port: cookies are per host, and two stations may share one."""
+        """The cookie earlier versions kept the token in (deleted where a browser sends it)."""
         return f"gcs_token_{self.port}"
 
     # -- life cycle ---------------------------------------------------------------
@@ -416,14 +415,16 @@ class GcsServer:
             raise
 
     # -- files ---------------------------------------------------------------------
-    async def _file(self, root: Path, rel: str, what: str) -> web.StreamResponse:
+    async def _file(self, root: Path, rel: str, what: str, cache: str = "no-cache") -> web.StreamResponse:
         p = safe_file(root, rel)
         if p is None:
             return error_response(404, f"{what} not found: {rel}")
-        return web.FileResponse(p, headers={"Cache-Control": "no-cache"})
+        return web.FileResponse(p, headers={"Cache-Control": cache})
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        return await self._file(self.cfg.static_dir, "index.html", "page")
+        # public (it holds nothing of the swarm); its address may hold the token once:
+        # kept out of the browser's cache
+        return await self._file(self.cfg.static_dir, "index.html", "page", cache="no-store")
 
     async def _static(self, request: web.Request) -> web.StreamResponse:
         return await self._file(self.cfg.static_dir, request.match_info["path"], "file")
@@ -546,7 +547,6 @@ __all__ = [
     "HOST_RE",
     "LEAFLET_DIR",
     "LOCAL_TILES",
-    "LOGIN_PAGE",
     "MAX_BODY",
     "MAX_DEPTH",
     "MAX_ID",

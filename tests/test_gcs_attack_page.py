@@ -326,17 +326,20 @@ def test_another_service_on_the_host_never_receives_the_token(
             "() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0", timeout=DEADLINE * 1000
         )
         assert page.errors == []
-        # the operator visits the other service: by a link, an image, a fetch, a frame
+        # the station's page may talk to its station only (its Content-Security-Policy):
+        # a script on it could not even send what it holds elsewhere
+        out = page.evaluate(
+            f"""() => fetch('http://127.0.0.1:{port}/exfiltrated', {{mode: 'no-cors'}})
+                      .then(() => 'sent', () => 'blocked')"""
+        )
+        assert out == "blocked" and seen == []
+        # the operator visits the other service: its page, and what its page loads
         page.goto(f"http://127.0.0.1:{port}/visited")
         page.evaluate(
-            f"fetch('http://127.0.0.1:{port}/fetched', {{credentials: 'include', mode: 'no-cors'}})"
-        )
-        page.goto(base)
-        page.wait_for_function("() => window.gcs && window.gcs.ready", timeout=DEADLINE * 1000)
-        page.evaluate(
-            f"""() => {{ const i = new Image(); i.src = 'http://127.0.0.1:{port}/image';
-                        const f = document.createElement('iframe'); f.src = 'http://127.0.0.1:{port}/frame';
-                        document.body.append(f); }}"""
+            """() => { fetch('/fetched', {credentials: 'include'});
+                       const i = new Image(); i.src = '/image';
+                       const f = document.createElement('iframe'); f.src = '/frame';
+                       document.body.append(f); }"""
         )
         wait_until(lambda: len(seen) >= 4, "the other service's four requests", DEADLINE, 0.2)
         page.close()

@@ -31,7 +31,7 @@ from hypothesis import strategies as st
 from net_helpers import ManualClock, free_port, wait_until
 
 from swarm.core.station import KINDS, CommandRefused, parse_command
-from swarm.runtime.server import STATIC_DIR, GcsServer, ServerConfig
+from swarm.runtime.server import OSM_TILES, STATIC_DIR, GcsServer, ServerConfig, page_policy
 
 TOKEN = "Zq0-test-token-with-enough-entropy_42"
 
@@ -257,6 +257,8 @@ def test_beyond_loopback_every_api_needs_the_token(swarm: Swarm, field_server: G
     a = request(port, "GET", "/")
     assert a.status == 200 and a.body == (STATIC_DIR / "index.html").read_bytes()
     assert b'name="token"' in a.body and a.headers.get("Cache-Control") == "no-store"
+    csp = a.headers.get("Content-Security-Policy", "")
+    assert "default-src 'self'" in csp and "frame-ancestors 'none'" in csp, csp
     assert request(port, "GET", "/static/token.js").status == 200
     unchanged(swarm, before)
 
@@ -323,6 +325,15 @@ def test_the_websocket_needs_the_token_too(field_server: GcsServer) -> None:
     assert asyncio.run(attempt(base + "ws", {}, page)) == ("state", "swarm-gcs")
     assert asyncio.run(attempt(base + "ws", {}, ("swarm-gcs", "token.wrong-token-0123456789"))) == 401
     assert asyncio.run(attempt(base + "api/state", {}, page)) == 401  # on /ws only
+
+
+def test_the_pages_policy_names_the_tile_source() -> None:
+    assert "img-src 'self' data: blob:;" in page_policy(None)
+    assert "img-src 'self' data: blob: https://tile.openstreetmap.org;" in page_policy(OSM_TILES)
+    assert "blob: https://*.tile.example.org;" in page_policy("https://{s}.tile.example.org/{z}/{x}/{y}.png")
+    assert "blob: http://127.0.0.1:5555;" in page_policy("http://127.0.0.1:5555/{z}/{x}/{y}.png")
+    assert "blob: https:;" in page_policy("https://a{s}b.example.org/{z}/{x}/{y}.png")  # no wildcard there
+    assert "blob:;" in page_policy("/tiles/{z}/{x}/{y}.png")
 
 
 def test_a_token_is_generated_beyond_loopback_and_optional_on_it(swarm: Swarm) -> None:

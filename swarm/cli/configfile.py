@@ -332,7 +332,7 @@ def read_arguments(
         origin.flags = {k.flag: k.action.dest for k in keys(p).values()}
         displaced = _under(p, origin)
     a = p.parse_args(argv)
-    if origin is not None:
+    if origin is not None and path is not None:
         secrets = [name for name, _v in origin.values.values() if keys(p)[name].is_secret]
         _fill(p, a, origin, displaced)
         _check_mode(path, secrets)

@@ -53,6 +53,7 @@ import json
 import logging
 import math
 import os
+import re
 import secrets
 import threading
 import time
@@ -103,6 +104,22 @@ OSM_ATTRIBUTION = '&copy; <a href="https://www.openstreetmap.org/copyright">Open
 LOCAL_TILES = "/tiles/{z}/{x}/{y}.png"
 MAX_WS_HZ = 10.0
 BACKLOG = 128  # connections the kernel holds for the server to accept (aiohttp's default)
+
+
+def page_policy(tiles: str | None) -> str:
+    """The page's Content-Security-Policy: scripts, styles and connections of its own
+    origin only, images also from the tile source ``tiles`` (a URL template), no
+    frames around it (no clickjacking of the command buttons)."""
+    img = "'self' data: blob:"
+    m = re.match(r"(https?)://([^/?#]+)", tiles or "")
+    if m:
+        host = re.sub(r"\{[^}]*\}", "*", m.group(2))  # {s}.tile.example.org
+        ok = re.fullmatch(r"(\*\.)?[A-Za-z0-9.-]+(:\d{1,5})?|\[[0-9A-Fa-f:.]+\](:\d{1,5})?", host)
+        img += f" {m.group(1)}://{host}" if ok else f" {m.group(1)}:"
+    return (
+        f"default-src 'self'; img-src {img}; object-src 'none'; base-uri 'none'; "
+        "frame-ancestors 'none'; form-action 'self'"
+    )
 
 
 class ServerError(SwarmError):
@@ -415,16 +432,24 @@ class GcsServer:
             raise
 
     # -- files ---------------------------------------------------------------------
-    async def _file(self, root: Path, rel: str, what: str, cache: str = "no-cache") -> web.StreamResponse:
+    async def _file(
+        self, root: Path, rel: str, what: str, headers: dict[str, str] | None = None
+    ) -> web.StreamResponse:
         p = safe_file(root, rel)
         if p is None:
             return error_response(404, f"{what} not found: {rel}")
-        return web.FileResponse(p, headers={"Cache-Control": cache})
+        return web.FileResponse(p, headers=headers or {"Cache-Control": "no-cache"})
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         # public (it holds nothing of the swarm); its address may hold the token once:
-        # kept out of the browser's cache
-        return await self._file(self.cfg.static_dir, "index.html", "page", cache="no-store")
+        # kept out of the browser's cache. The page's scripts can read the token, so
+        # they may run only from here and talk only to here (and load the map's tiles)
+        headers = {
+            "Cache-Control": "no-store",
+            "Content-Security-Policy": page_policy(self.cfg.tile_template),
+            "X-Content-Type-Options": "nosniff",
+        }
+        return await self._file(self.cfg.static_dir, "index.html", "page", headers)
 
     async def _static(self, request: web.Request) -> web.StreamResponse:
         return await self._file(self.cfg.static_dir, request.match_info["path"], "file")
@@ -566,6 +591,7 @@ __all__ = [
     "check_host_name",
     "check_token",
     "is_loopback",
+    "page_policy",
     "parse_json",
     "replay_args",
     "safe_file",

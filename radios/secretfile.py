@@ -16,7 +16,10 @@ is. Two rules:
   group is this process's own effective group. The service set-up installs the
   settings and the token as 0640 root:uav-swarm and runs the station as group
   uav-swarm: the service reads them through its group and cannot change them; a file
-  of another group (``users``, shared with every login) is refused.
+  of another group (``users``, shared with every login) is refused, and so is the
+  service's file read by another user (root trying the service's settings by hand:
+  ``sudo -u uav-swarm``, as the service runs). Only the effective group counts: a
+  supplementary group is usually shared.
 
 :func:`config_file_problem` is for a settings file that holds no secret: others may
 read it, but neither others nor a group that is not this process's may change it
@@ -51,13 +54,23 @@ def _regular_mode(path: str | Path) -> os.stat_result | None:
     return st if stat.S_ISREG(st.st_mode) else None
 
 
+def _group(gid: int) -> str:
+    """``uav-swarm (gid 999)``, or ``(gid 999)`` for a group without a name."""
+    try:
+        import grp
+
+        return f"{grp.getgrgid(gid).gr_name} (gid {gid})"
+    except (ImportError, KeyError):
+        return f"(gid {gid})"
+
+
 def _describe(group: int, others: int, gid: int, foreign_read: bool) -> str:
     """``readable by its group, readable and writable by others`` for the offending bits."""
     g = _verbs(group)
     o = _verbs(others)
     whose = "its group"
     if foreign_read:
-        whose += f" (gid {gid}, not this process's group {os.getegid()})"
+        whose += f" {_group(gid)}, not this process's group {_group(os.getegid())}"
     if g and o and g == o and not foreign_read:
         return f"{g} by its group and others"
     parts = [f"{g} by {whose}"] if g else []
@@ -90,7 +103,10 @@ def secret_file_problem(path: str | Path, policy: str, what: str = "") -> str | 
     if not (group or others):
         return None
     who = _describe(group, others, st.st_gid, foreign_read)
-    return f"{path}{what}: mode {perm:04o}: {who}; fix: chmod 600 {path}"
+    fix = f"chmod 600 {path}"
+    if foreign_read and not (group & 3 or others):  # only that: the service set-up run by another user
+        fix += " (or run as its group, as the service does: sudo -u USER ...)"
+    return f"{path}{what}: mode {perm:04o}: {who}; fix: {fix}"
 
 
 def config_file_problem(path: str | Path) -> str | None:
@@ -105,7 +121,7 @@ def config_file_problem(path: str | Path) -> str | None:
     if not (group or others):
         return None
     who = "go" if group and others else "g" if group else "o"
-    whose = f"its group (gid {st.st_gid}, not this process's group {os.getegid()})"
+    whose = f"its group {_group(st.st_gid)}, not this process's group {_group(os.getegid())}"
     text = ", ".join(
         x for x in (f"writable by {whose}" if group else "", "writable by others" if others else "") if x
     )

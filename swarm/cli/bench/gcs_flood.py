@@ -13,9 +13,11 @@ accepted) are timed:
   ``flood_baseline_ms_p50`` (the same requests before the flood);
   The operator starts once the station is full (its open files seen in ``/proc``:
   80 % of its limit, or 100 of the attacker's connections closed to make room);
-* ``flood_attacker_opened``: connections the attacker opened during the flood,
-  ``flood_closed_by_station``: those the station closed (the oldest idle ones, to make
-  room: README, "The ground station's API");
+* ``flood_attacker_opened``: connections the attacker opened in all,
+  ``flood_attacker_opened_during`` of them from the moment the station was full to
+  the attacker's first report after the operator's requests (it reports once a
+  second), ``flood_closed_by_station``: those the station closed (the oldest idle
+  ones, to make room: README, "The ground station's API");
 * ``flood_station_cpu_percent`` (of one core) and ``flood_station_log_lines``: what
   the flood cost the station, and the lines it wrote about it.
 
@@ -179,6 +181,15 @@ class Flood:
                 raise RuntimeError(f"station not full in {timeout:.0f} s: {files} files, {self.status}")
             time.sleep(0.2)
 
+    def next_status(self, timeout: float = 5.0) -> dict[str, int]:
+        """The attacker's next report (it reports once a second), or its last one."""
+        with self._cond:
+            seen = self.status
+            deadline = time.monotonic() + timeout
+            while self.status is seen and time.monotonic() < deadline and self.proc.poll() is None:
+                self._cond.wait(0.2)
+            return dict(self.status)
+
     def stop(self) -> dict[str, int]:
         """Stop the attacker (its connections close with it); its last status."""
         if self.proc.poll() is None:
@@ -280,12 +291,11 @@ def measure(quick: bool = False) -> dict[str, Any]:
         out["flood_baseline_ms_p50"] = _ms([t for s, t in base if s], 0.5)
         lines0 = len(station.lines) + len(station.errors)
         with Flood(port) as flood:
-            flood.wait_full(station.pid, FILE_LIMIT, 120)
-            start = flood.status["opened"]
+            start = flood.wait_full(station.pid, FILE_LIMIT, 120)["opened"]
             cpu0, w0 = cpu_seconds(station.pid), time.monotonic()
             got = operator_round(port, rounds)
             cpu1, w1 = cpu_seconds(station.pid), time.monotonic()
-            end = dict(flood.status)
+            end = flood.next_status()
         times = [t for s, t in got if s]
         out["flood_operator_requests"] = len(got)
         out["flood_operator_answered"] = sum(1 for s, _t in got if 0 < s < 500)

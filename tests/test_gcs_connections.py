@@ -215,3 +215,18 @@ def test_a_connection_that_never_finishes_its_headers_is_closed(small_server: Gc
                 break
     assert b"200" not in got
     wait_until(lambda: request(small_server.port, "GET", "/api/config").status == 200, "an answer", 10)
+
+
+def test_the_pages_public_files_prove_nothing() -> None:
+    """On a station with a token, fetching the page (no token needed) does not move a
+    connection out of the first ones to close."""
+    lim = ConnectionLimiter(3, {})
+    operator = _open(lim, "10.0.0.2")
+    with lim.serving(operator, proven=True):  # type: ignore[arg-type]
+        pass
+    page_only = _open(lim, "10.0.0.2")
+    with lim.serving(page_only, proven=False):  # type: ignore[arg-type]
+        pass
+    _open(lim, "10.0.0.2")
+    _open(lim, "10.0.0.2")  # full: the oldest that proved nothing goes, not the operator's
+    assert page_only.aborted and not operator.aborted

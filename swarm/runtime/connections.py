@@ -14,8 +14,9 @@ the server's protocol factory (aiohttp's low-level ``web.Server``, given to
 closes (resets) one *idle* connection, chosen in this order:
 
 1. a connection that has not yet passed the guard (no request of it got past the
-   Host, Origin and token checks: an attacker's, or a new one not yet used), from the
-   peer holding the most connections (IPv6 peers by /64), the oldest first;
+   Host, Origin and token checks; fetching the page's public files does not count:
+   an attacker's, or a new one not yet used), from the peer holding the most
+   connections (IPv6 peers by /64), the oldest first;
 2. else an idle keep-alive connection of a client that did pass it, least recently
    used first (a browser opens a new one when it needs it);
 3. never a connection with a request in progress (a command awaiting its answer, a
@@ -205,14 +206,16 @@ class ConnectionLimiter:
 
     # -- requests ------------------------------------------------------------------------
     @contextlib.contextmanager
-    def serving(self, transport: asyncio.Transport | None) -> Iterator[None]:
-        """A request that passed the guard is in progress on ``transport``: its
-        connection is proven and, until the request ends, not idle."""
+    def serving(self, transport: asyncio.Transport | None, proven: bool = True) -> Iterator[None]:
+        """A request that passed the guard is in progress on ``transport``: until it
+        ends its connection is not idle; ``proven``: it had the token (or none is
+        needed), and its connection is from then on a client's that passed the guard
+        (the page's public files need no token: they prove nothing)."""
         conn = self._conns.get(transport) if transport is not None else None
         if conn is None:
             yield
             return
-        conn.proven = True
+        conn.proven = conn.proven or proven
         conn.busy += 1
         self._unlist(conn)
         try:
@@ -220,7 +223,8 @@ class ConnectionLimiter:
         finally:
             conn.busy -= 1
             if conn.busy == 0 and self._conns.get(conn.transport) is conn:
-                self._kept.setdefault(conn.peer, {})[conn] = None  # the newest used, last
+                pool = self._kept if conn.proven else self._fresh
+                pool.setdefault(conn.peer, {})[conn] = None  # the newest used, last
 
 
 class _Admitted(asyncio.Protocol):

@@ -70,6 +70,8 @@ TOKEN_RE = re.compile(r"[A-Za-z0-9._~-]{16,256}")
 TOKEN_RULE = "16 to 256 characters of A-Z a-z 0-9 . _ ~ -"
 HOST_RE = re.compile(r"[a-z0-9]([a-z0-9-]*[a-z0-9])?(\.[a-z0-9]([a-z0-9-]*[a-z0-9])?)*")
 WILDCARDS = ("", "0.0.0.0", "::")
+#: a request's key: it passed rule 3 (the page's files pass without a token)
+AUTHORIZED = web.RequestKey("gcs_authorized", bool)
 #: the page's WebSocket subprotocol, and the prefix of the one that carries the token
 WS_PROTOCOL = "swarm-gcs"
 WS_TOKEN_PREFIX = "token."
@@ -240,9 +242,8 @@ async def read_json(request: web.Request, body_timeout: float) -> Any:
 
     Raises:
         CommandRefused: 415 not ``application/json`` (UTF-8), 413 over
-            :data:`MAX_BODY`, 400 not UTF-8 or
-            malformed (:func:`parse_json`); :class:`BodyBroken`: 408 not in within
-            ``body_timeout``, 400 cut off.
+            :data:`MAX_BODY`, 400 not UTF-8 or malformed (:func:`parse_json`);
+            :class:`BodyBroken`: 408 not in within ``body_timeout``, 400 cut off.
     """
     charset = (request.charset or "utf-8").lower()
     if request.content_type != "application/json" or charset not in ("utf-8", "utf8"):
@@ -372,7 +373,9 @@ class Guard:
         if why is not None:
             self.stats["http_refused"] += 1
             return error_response(403, why)
-        if self.token is not None and not page and self.token_source(request) is None:
+        authorized = self.token is None or self.token_source(request) is not None
+        request[AUTHORIZED] = authorized  # the connection's owner has the token (or none is needed)
+        if not authorized and not page:
             self.stats["http_refused"] += 1
             return error_response(
                 401,

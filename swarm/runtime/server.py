@@ -70,6 +70,7 @@ from swarm.core.station import CommandRefused, CommandSpec, parse_command
 from swarm.errors import SwarmError
 from swarm.runtime.connections import ConnectionLimiter, HttpLog, default_limit
 from swarm.runtime.security import (
+    AUTHORIZED,
     HOST_RE,
     MAX_BODY,
     MAX_DEPTH,
@@ -416,11 +417,11 @@ class GcsServer:
     async def _serving(
         self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
     ) -> web.StreamResponse:
-        """A request that passed the guard: its connection is the operator's and busy
-        until it ends (never closed to make room for another)."""
+        """A request that passed the guard: busy until it ends (never closed to make room
+        for another); its connection is the operator's if it had the token."""
         if self.limiter is None:
             return await handler(request)
-        with self.limiter.serving(request.transport):
+        with self.limiter.serving(request.transport, proven=request.get(AUTHORIZED, True)):
             return await handler(request)
 
     async def _body(self, request: web.Request) -> Any:

@@ -217,6 +217,7 @@ def test_repeated_and_exclusive_gcs_flags_override_the_file(tmp_path: Path) -> N
         'allow_host = ["a.local", "b.local"]\ntoken = "' + "t" * 32 + '"\ntiles = "none"\n',
         "gcs.toml",
     )
+    path.chmod(0o600)  # it holds the token
     a = parse(gcs_cmd, ["--config", str(path)])
     assert a.allow_host == ["a.local", "b.local"] and a.token == "t" * 32 and a.tiles == "none"
     b = parse(gcs_cmd, ["--config", str(path), "--allow-host", "c.local", "--token-file", "tok"])

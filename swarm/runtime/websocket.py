@@ -57,7 +57,7 @@ from aiohttp import WSMsgType, web
 from swarm.core.federation import ack_any
 from swarm.core.station import CommandRefused
 from swarm.core.station_delta import build
-from swarm.runtime.security import MAX_BODY, MAX_WS_FRAME, parse_json, replay_args, ws_id
+from swarm.runtime.security import MAX_BODY, MAX_WS_FRAME, WS_PROTOCOL, parse_json, replay_args, ws_id
 
 if TYPE_CHECKING:
     from swarm.runtime.server import StationView
@@ -126,7 +126,9 @@ class WsHub:
                 await ws.close(code=1001, message=b"station stopping")
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
-        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=MAX_WS_FRAME)
+        # the page offers "swarm-gcs" and "token.<TOKEN>" (its token: security.py); the
+        # answer names the first, never the token
+        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=MAX_WS_FRAME, protocols=(WS_PROTOCOL,))
         await ws.prepare(request)
         c = _Client(ws)
         self._clients[ws] = c

@@ -125,6 +125,7 @@ class Deployment:
         self.t_start = time.monotonic()
         if self.key is not None:
             Path(self.key).write_bytes(os.urandom(32))
+            Path(self.key).chmod(0o600)  # the agents refuse a key others can read
         # the nodes' state (their signing clocks, the stations' replay guards): this run's own
         keyed = ["--key", self.key, "--state-dir", str(self.dir / "state")] if self.key else []
         router = self._child(["router", "--listen", self.router_ep, "--json"], "router")

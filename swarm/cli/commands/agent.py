@@ -72,6 +72,7 @@ from typing import Any
 
 from firmware_bridge.errors import BridgeError
 from radios.errors import ATError, RadioError
+from radios.secretfile import KEY, secret_file_problem
 from radios.sik.guard import CheckSchedule, baseline, check_radio, describe, known_of, parse_expected
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
@@ -418,6 +419,9 @@ def _check_arguments(a: argparse.Namespace) -> None:
     if a.swarm_name is not None and not NAME_RE.match(a.swarm_name):
         raise UsageError(f"--swarm-name {a.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
     a.node = node_options(a, "an agent")
+    unsafe = None if a.key is None else secret_file_problem(a.key, KEY)
+    if unsafe is not None:  # the swarm's key, readable by others (README, "Security")
+        raise UsageError(f"--key {unsafe}")
     a.fence = fence_from(a)
     if a.round_s is None:
         if not 2 <= a.slots <= 32:

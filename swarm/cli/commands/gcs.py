@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from radios.errors import CaptureDamagedError, CaptureError
+from radios.secretfile import KEY, TOKEN, secret_file_problem
 from radios.smallfile import read_small_file
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
@@ -63,6 +64,7 @@ from swarm.core.gslink import STATION_IDS
 from swarm.core.message_types import NAME_RE
 from swarm.core.messages import check_name
 from swarm.errors import MessageError
+from swarm.runtime.connections import raise_file_limit
 from swarm.runtime.notify import Service
 from swarm.runtime.server import (
     MAX_WS_HZ,
@@ -203,6 +205,9 @@ def _token(a: argparse.Namespace) -> str | None:
         except (ValueError, UnicodeDecodeError) as exc:
             why = "not UTF-8 text" if isinstance(exc, UnicodeDecodeError) else str(exc)
             raise UsageError(f"--token-file {a.token_file}: {why}") from None
+        unsafe = secret_file_problem(a.token_file, TOKEN)
+        if unsafe is not None:
+            raise UsageError(f"--token-file {unsafe}")
         try:
             return check_token(text)
         except ValueError:
@@ -340,6 +345,9 @@ def _check(a: argparse.Namespace) -> None:
         raise UsageError("--capture records a radio's traffic: it needs --radio")
     if a.replay is not None and a.key is not None:
         raise UsageError("--key is for a live station (a replay sends nothing)")
+    unsafe = None if a.key is None else secret_file_problem(a.key, KEY)
+    if unsafe is not None:
+        raise UsageError(f"--key {unsafe}")
     try:
         check_name(a.name)
     except MessageError as exc:
@@ -482,6 +490,8 @@ def _beats(station: Any, server: GcsServer) -> dict[str, tuple[float, float]]:
 
 
 def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
+    # room for the page's connections, Zenoh and the radio (the server caps its own)
+    raise_file_limit()
     station = _open_station(a)
     server = None
     service: Service | None = None  # systemd's READY and WATCHDOG (README, "Run as a service")

@@ -772,6 +772,7 @@ def rogue_remote_at(bench: FaultBench, name: str = "NETID", target: str = "leade
     lead = bench.leader()
     k = lead if target == "leader" else next(m for m in sorted(bench.agents) if m != lead)
     period = CHECK_PERIOD_S
+    events_before = len(bench.agents[k].all_events())
     t = time.monotonic()
     try:
         out = play_rt_attack(
@@ -804,7 +805,15 @@ def rogue_remote_at(bench: FaultBench, name: str = "NETID", target: str = "leade
     )
     after = bench.dual_leader_s(restored_at, time.monotonic()) if restored_at is not None else None
     res.detail["dual_leader_s_after_restore"] = None if after is None else round(after, 2)
-    restored = [e for e in bench.agents[k].all_events() if e.get("event") == "radio-restored"]
+    guard = [
+        e
+        for e in bench.agents[k].all_events()[events_before:]
+        if e.get("event") in ("radio-checked", "radio-restored", "radio-check-failed")
+    ]
+    res.detail["guard_events"] = [
+        {k2: e.get(k2) for k2 in ("event", "why", "differed", "error") if k2 in e} for e in guard
+    ]
+    restored = [e for e in guard if e.get("event") == "radio-restored"]
     why = restored[-1].get("why") if restored else None
     landed = f"landed after {out.landed_s:.1f} s" if out.landed_s is not None else "did NOT land"
     res.observed += f"; the attack {landed}"

@@ -79,6 +79,7 @@ class _Client:
         self.wake = asyncio.Event()
         self.seq = 0  # the push this client holds (0: none, the next is the whole state)
         self.full_queued = False  # a whole state waits in the queue
+        self.full_seq = 0  # the push whose whole state it was last given
         self.closed = False
 
 
@@ -189,8 +190,10 @@ class WsHub:
         elif mtype == "replay":
             self._replay(c, obj, mid)
         elif mtype == "state":
-            if self._base is not None and c.seq == self._seq:
-                c.seq = 0  # it has this push (or it is queued): the whole state at the next one
+            if self._base is not None and self._seq in (c.seq, c.full_seq):
+                # it has this push (or it is queued), or had its whole state already: the
+                # whole state at the next push, so a storm of requests gets at most one a push
+                c.seq = 0
             else:
                 self._send_full(c)
         elif mtype == "ack_alert":
@@ -245,7 +248,7 @@ class WsHub:
         self._enqueue(c, self._base_text, full=True)
         if self._replay_text is not None:
             self._enqueue(c, self._replay_text)
-        c.seq = self._seq
+        c.seq = c.full_seq = self._seq
 
     def push(self) -> None:
         """One push: a new snapshot, its delta to the clients in step, the whole state

@@ -60,8 +60,8 @@ def _attack_and_wait(
     emu: RunningEmulator, agents: list[Child], k: int, name: str, value: int
 ) -> dict[str, Any]:
     """The rogue changes register ``name`` of agent ``k``'s radio (node k-1) to ``value``
-    (:func:`play_rt_attack`, as the fault bench plays it): it must land (held by the
-    radio), be undone (back, saved and running), and the agent say so in its
+    (:func:`play_rt_attack`, as the fault bench plays it): it must land (saved in its
+    flash), be undone (back, saved and running), and the agent say so in its
     ``radio-restored`` event."""
     victim = emu.emu.params[k - 1]
     before = len(_events(agents[k - 1], "radio-restored"))

@@ -184,7 +184,7 @@ class RtAttackOutcome:
     attack: Attack
     before: int  # the victim's value before the attack
     answered: bool  # the victim answered OK to RTSn= and RT&W
-    landed_s: float | None  # from the first RT line until the victim held it (RAM, flash or running)
+    landed_s: float | None  # from the first RT line until the victim's flash held it
     restored_s: float | None  # from landing until it was back at ``before`` in all three
 
     def describe(self) -> str:
@@ -222,9 +222,8 @@ def play_rt_attack(
 ) -> RtAttackOutcome:
     """A whole remote-AT fault: plan the attack on register ``name`` from the victim's
     current values, send it from the rogue's radio (:func:`attack_radio`), wait for it
-    to land (the value in any copy of the victim's registers, RAM, flash or running,
-    within ``land_within`` s) and then to be undone (back at the value it had in all
-    three, within ``restore_within`` s). Times use
+    to land (saved in the victim's flash, within ``land_within`` s) and then to be undone
+    (back at the value it had in RAM, flash and running, within ``restore_within`` s). Times use
     ``time.monotonic``; ``read_victim`` gives the victim's registers (the emulator's
     statistics file: :func:`registers_from_stats`). Raises
     :class:`~radios.errors.ConfigError` if the victim cannot be read before the attack,
@@ -242,18 +241,19 @@ def play_rt_attack(
     t0 = time.monotonic()
     answered = attack_radio(rogue_path, attack, flavour=flavour)
 
-    def shows(value: int, *, anywhere: bool = False) -> bool:
+    def shows(value: int, *, saved: bool = False) -> bool:
         regs = read_victim()
         if regs is None:
             return False
-        if anywhere:
-            return any(copy.get(attack.name) == value for copy in regs)
+        if saved:
+            return regs[1].get(attack.name) == value
         return all(copy.get(attack.name) == value for copy in regs)
 
-    # landed: the victim's radio holds the value anywhere (RAM, flash or running): a guard
-    # that reads ATI5 between RTSn= and RTZ undoes it before it was saved and run, which
-    # is an attack that landed and was undone, not one that failed
-    landed_at = _until(lambda: shows(attack.value, anywhere=True), t0 + land_within, poll_s)
+    # landed: saved in the victim's flash (RT&W took), so the change outlives a reboot: a
+    # guard that reads ATI5 between RT&W and RTZ undoes it before the radio ran with it,
+    # which is an attack that landed and was undone, not one that failed; a change only
+    # in RAM that the rogue's own RTZ reverts (its RT&W lost) has not landed
+    landed_at = _until(lambda: shows(attack.value, saved=True), t0 + land_within, poll_s)
     if landed_at is None:
         return RtAttackOutcome(attack, before, answered, None, None)
     restored_at = _until(lambda: shows(before), landed_at + restore_within, poll_s)

@@ -29,6 +29,7 @@ import time
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
+from radios.device_id import DeviceIdentity
 from radios.errors import LinkClosedError
 from radios.linkbase import Link, LinkStats
 from radios.mavlink import Frame
@@ -110,9 +111,18 @@ class CaptureLink(Link):
     def can_reopen(self) -> bool:  # type: ignore[override]
         return self.inner.can_reopen
 
+    @property
+    def identity(self) -> DeviceIdentity | None:
+        """The inner link's device identity."""
+        return self.inner.identity
+
+    def check_device(self) -> None:
+        """The inner link's :meth:`~Link.check_device`."""
+        self.inner.check_device()
+
     def reopen(self) -> None:
-        """Reopen the inner link's device (see :meth:`Link.reopen`); the capture goes on
-        in the same file."""
+        """Reopen the inner link's device (see :meth:`Link.reopen`: only the device it
+        opened first); the capture goes on in the same file."""
         if self._closed:
             raise LinkClosedError(f"{self.url} is closed")
         self.inner.reopen()

@@ -31,7 +31,12 @@ master ends and drives one :class:`radios.air.AirModel` in real time
   reads and writes fail as on a USB radio pulled out; plugging back creates a new
   pty at the same path. The radio itself stays powered (a radio fed by the
   vehicle, its USB cable pulled): it keeps its slot and its lock on the air, sends
-  what it still held, and what it receives meanwhile is lost.
+  what it still held, and what it receives meanwhile is lost;
+* **each pty is labelled** with the emulator's instance number (random, drawn at
+  start) and the radio's index, in the pty's window size
+  (:func:`radios.device_id.emulator_label`), as a USB adapter states its ids and
+  serial number: a link reopening ``DIR/radio<i>`` after a replug knows its radio from
+  another radio, another emulator's or another program's pty.
 
 :class:`Emulator` is usable in-process (tests) or through ``swarm radio-emu``. Its
 options, their checks and the parameters each radio boots with are in
@@ -42,10 +47,14 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import json
 import os
+import secrets
 import select
 import stat
+import struct
+import termios
 import threading
 import time
 import tty
@@ -55,6 +64,7 @@ from pathlib import Path
 from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
+from radios.device_id import emulator_label
 from radios.emulator_config import (
     BAUD_CODE,
     SERIAL_BAUD,
@@ -110,6 +120,8 @@ class Emulator:
         self._control_fds: list[int] = []
         self._control_buf = bytearray()
         self.uniform_loss = UniformLoss(cfg.loss)
+        #: this emulator's instance number, in every pty's label (see the module docstring)
+        self.instance = secrets.randbits(32)
         #: called on the emulator's thread with one line per unplug, plug or bad control line
         self.on_event: Callable[[str], None] | None = None
 
@@ -210,9 +222,15 @@ class Emulator:
     def _plug(self, i: int) -> None:
         """A new pty for radio ``i`` at ``DIR/radio<i>``."""
         master, slave = os.openpty()
-        tty.setraw(slave)
-        name = os.ttyname(slave)
-        os.close(slave)
+        try:
+            tty.setraw(slave)
+            fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", *emulator_label(self.instance, i)))
+            name = os.ttyname(slave)
+        except BaseException:
+            os.close(master)
+            raise
+        finally:
+            os.close(slave)
         os.set_blocking(master, False)
         self.masters[i], self.slave_names[i] = master, name
         self.connected[i] = False
@@ -515,6 +533,7 @@ class Emulator:
         now = self.clock()
         return {
             "nodes": self.cfg.nodes,
+            "emulator": f"{self.instance:08x}",
             "firmware": self.firmware,
             "air_speed_kbps": model.radios[0].cfg.air_kbps,
             "serial_speed": model.radios[0].cfg.serial_baud,
@@ -530,6 +549,11 @@ class Emulator:
                     "pty": self.slave_names[i],
                     "connected": self.connected[i],
                     "plugged": self.plugged[i],
+                    # what ATI5 shows, what flash holds and what the radio runs with: a
+                    # fault bench in another process sees an RT attack land and be undone
+                    "params": self.params[i].as_dict(),
+                    "saved": _named(self.params[i], self.params[i].eeprom),
+                    "active": _named(self.params[i], self.params[i].active),
                     **model.status(i),
                 }
                 for i in range(self.cfg.nodes)
@@ -577,6 +601,10 @@ class Emulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _named(p: SikParams, table: dict[int, int]) -> dict[str, int]:
+    return {spec.name: table[spec.index] for spec in p.specs}
 
 
 # re-exported: the configuration lives in radios.emulator_config

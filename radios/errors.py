@@ -4,7 +4,8 @@ Every error raised on purpose by `radios` derives from :class:`RadioError`.
 The classes say who is at fault:
 
 * :class:`LinkOpenError`, :class:`ConfigError`: the caller's input (a URL, a path,
-  a parameter value) is wrong.
+  a parameter value) is wrong; :class:`DeviceMismatchError`: the path names another
+  device than the one the link opened.
 * :class:`ATError`: the radio answered, but not as the protocol says.
 * :class:`CaptureDamagedError`: a capture file is truncated or corrupted.
 * Timeouts also derive from the built-in :class:`TimeoutError`.
@@ -23,6 +24,17 @@ class LinkError(RadioError):
 
 class LinkOpenError(LinkError):
     """A link URL is malformed, names an unknown scheme, or its device is missing."""
+
+
+class DeviceMismatchError(LinkOpenError):
+    """Another device is at a link's path than the one it opened first (a reassigned
+    ``/dev/ttyUSB0`` or pty): it is refused unopened. ``expected`` and ``found`` are
+    their :class:`radios.device_id.DeviceIdentity`."""
+
+    def __init__(self, message: str, *, expected: object = None, found: object = None) -> None:
+        super().__init__(message)
+        self.expected = expected
+        self.found = found
 
 
 class LinkClosedError(LinkError):

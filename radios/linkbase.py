@@ -18,7 +18,10 @@ API on top of them (python-can's ``BusABC`` pattern):
   (a USB radio unplugged and plugged back, an emulator pty dropped and recreated):
   backends that can say so with ``can_reopen``, others raise ``LinkOpenError``.
   The link object stays the same, with its statistics; bytes of a half-received
-  frame are dropped.
+  frame are dropped. A link with a device notes its identity (``identity``,
+  :mod:`radios.device_id`) and reopens only that device: another one at the same
+  path is refused (``DeviceMismatchError``); :meth:`Link.check_device` asks the same
+  question without opening anything.
 
 Backends (:mod:`radios.seriallink`, :mod:`radios.virtual`, :mod:`radios.replay`,
 the :mod:`radios.capture` wrapper) import this module, never the URL factory
@@ -33,6 +36,7 @@ import time
 from collections import deque
 from dataclasses import asdict, dataclass
 
+from radios.device_id import DeviceIdentity
 from radios.errors import LinkClosedError, LinkOpenError, LinkTimeoutError
 from radios.mavlink import Frame, FrameParser, parse_one
 
@@ -151,11 +155,29 @@ class Link:
                 if not self._pending and deadline is not None and now >= deadline:
                     return None
 
+    @property
+    def identity(self) -> DeviceIdentity | None:
+        """The device this link opened first, which is the only one it reopens (None: a
+        link without a device identity, such as ``loop://`` or ``virtual://``)."""
+        return None
+
+    def check_device(self) -> None:
+        """Check, without opening it, that the device at the link's path is still the one
+        it opened (before lending the path to another program); nothing to check for a
+        link without an identity.
+
+        Raises:
+            DeviceMismatchError: another device is there.
+            LinkOpenError: none is there, or it cannot be identified.
+        """
+
     def reopen(self) -> None:
         """Open the device behind this link again, at the same URL, after it went away.
 
         Raises:
             LinkClosedError: the link was closed by its owner.
+            DeviceMismatchError: another device is at the path than the one the link
+                opened first (it is not opened).
             LinkOpenError: the device is (still) missing or cannot be opened, or this
                 kind of link cannot be reopened (``can_reopen`` is False).
         """

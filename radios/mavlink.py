@@ -263,15 +263,23 @@ class SigningClock:
     repeat or go back when the clock steps back, and a machine whose clock is behind (a Pi
     without a real-time clock) takes the swarm's time from the first signed frame it
     accepts. Thread-safe; share one clock between the builders and the verifier of a node.
+
+    ``start``: the node's start reference (:mod:`radios.signing_state`: the time the last
+    run reached, carried across the restart): the clock never issues less, and the
+    verifier refuses any frame stamped before it (0: none, the clock of a node that keeps
+    no state). :meth:`mark` is what is kept for the next start: the latest time issued or
+    accepted.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, start: int = 0) -> None:
+        self.start = start
         self._last = 0
-        self._seen = 0
+        self._seen = start
         self._lock = threading.Lock()
 
     def reference(self) -> int:
-        """The current time: the wall clock, or the newest peer timestamp if later."""
+        """The current time: the wall clock, or the newest peer timestamp (or the start
+        reference) if later."""
         return max(int((time.time() - SIGNING_EPOCH) * 100_000), self._seen)
 
     def issue(self) -> int:
@@ -284,6 +292,11 @@ class SigningClock:
         with self._lock:
             if ts > self._seen:
                 self._seen = ts
+
+    def mark(self) -> int:
+        """The latest timestamp this clock issued or accepted (or its start reference)."""
+        with self._lock:
+            return max(self._last, self._seen)
 
 
 class FrameBuilder:

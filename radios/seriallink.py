@@ -10,6 +10,13 @@ one (a device, a pty) and fall back to pyserial's own timeout otherwise
 ``LinkTimeoutError`` (the frame counts as a drop). The link can be released (the
 port closed, the link kept) and reopened at the same URL with the same options.
 
+**A device is the device it was** (:mod:`radios.device_id`): a device path's identity
+(USB ids, serial number and port; the emulator's radio; a pty's node) is read when
+the link opens it (:attr:`SerialLink.identity`, read by :mod:`radios.device_probe`
+without opening it) and read again before every reopen; another device at the same
+path is refused with one line naming both (:class:`~radios.errors.DeviceMismatchError`)
+before it is opened, so it never gets a byte. pyserial URLs have no identity.
+
 :func:`open_serial_url` is the backend factory :mod:`radios.link` calls for the
 ``serial`` scheme, bare device paths and pyserial's schemes (options ``baud``,
 ``rtscts``, ``write_timeout``); :func:`open_serial` takes the URL as a string.
@@ -21,7 +28,9 @@ import os
 import select
 from typing import Any
 
-from radios.errors import LinkClosedError, LinkOpenError, LinkTimeoutError
+from radios.device_id import DeviceIdentity, mismatch, refusal
+from radios.device_probe import confirm, identify
+from radios.errors import DeviceMismatchError, LinkClosedError, LinkOpenError, LinkTimeoutError
 from radios.linkbase import Link
 from radios.mavlink import FrameParser
 from radios.url import PYSERIAL_SCHEMES, LinkURL, Options, parse_link_url
@@ -34,9 +43,10 @@ class SerialLink(Link):
 
     can_reopen = True
 
-    def __init__(self, url: str, port: Any) -> None:
+    def __init__(self, url: str, port: Any, identity: DeviceIdentity | None = None) -> None:
         super().__init__(url)
         self.port = port
+        self._identity = identity
         self._gone = False  # the device went away; reopen() may bring it back
         self._fd = self._fileno(port)
 
@@ -47,16 +57,31 @@ class SerialLink(Link):
         except Exception:
             return None
 
+    @property
+    def identity(self) -> DeviceIdentity | None:
+        """The device this link opened first (None for a pyserial URL)."""
+        return self._identity
+
+    def check_device(self) -> None:
+        """See :meth:`Link.check_device`."""
+        if self._identity is not None:
+            _check(parse_link_url(self.url).target, self._identity)
+
     def reopen(self) -> None:
-        """See :meth:`Link.reopen`: the old port is closed first, then the device is
-        opened again with the same options."""
+        """See :meth:`Link.reopen`: the old port is closed first, then the device at the
+        path is identified and, if it is the device first opened, opened again with the
+        same options.
+
+        Raises:
+            DeviceMismatchError: another device is at the path (it is not opened).
+        """
         with self._send_lock, self._recv_lock:
             if self._closed:
                 raise LinkClosedError(f"{self.url} is closed")
             if not self._gone:
                 self._gone = True
                 self._close()
-            fresh = open_serial(self.url)
+            fresh = open_serial_url(parse_link_url(self.url), expected=self._identity)
             self.port, self._fd = fresh.port, fresh._fd
             self._parser = FrameParser(stats=self._parser.stats)
             self._pending.clear()
@@ -130,13 +155,29 @@ def _serial_options(url: LinkURL) -> tuple[int, bool, float]:
     return baud, rtscts, write_timeout
 
 
-def open_serial_url(url: LinkURL, **options: Any) -> SerialLink:
+def _check(target: str, expected: DeviceIdentity) -> DeviceIdentity:
+    """The identity of the device at ``target`` now, if it is ``expected``'s device.
+
+    Raises:
+        DeviceMismatchError: another device (the one line names both).
+        LinkOpenError: none, or it cannot be identified.
+    """
+    found = identify(target)
+    why = mismatch(expected, found)
+    if why is not None:
+        raise DeviceMismatchError(refusal(target, expected, found, why), expected=expected, found=found)
+    return found
+
+
+def open_serial_url(url: LinkURL, *, expected: DeviceIdentity | None = None, **options: Any) -> SerialLink:
     """Open the serial device or pyserial URL ``url`` names (the backend factory).
+    With ``expected`` (a reopen), only that device: another is refused unopened.
 
     Raises:
         LinkOpenError: a malformed or unknown option, keyword ``options`` (a serial
             link takes none), no device path, a missing device, or pyserial cannot
             open it.
+        DeviceMismatchError: the device at the path is not ``expected``'s.
     """
     import serial
 
@@ -147,11 +188,11 @@ def open_serial_url(url: LinkURL, **options: Any) -> SerialLink:
     is_url = url.scheme in PYSERIAL_SCHEMES
     if is_url and not target.lower().startswith(f"{url.scheme}://"):
         raise LinkOpenError(f"{url.url}: a pyserial URL is written {url.scheme}://...")
+    identity = None
     if not is_url:
         if not target:
             raise LinkOpenError(f"{url.url}: no device path")
-        if not os.path.exists(target):
-            raise LinkOpenError(f"{target}: no such device (is the radio plugged in / the emulator running?)")
+        identity = identify(target) if expected is None else _check(target, expected)
     try:
         if is_url:
             port = serial.serial_for_url(
@@ -163,7 +204,15 @@ def open_serial_url(url: LinkURL, **options: Any) -> SerialLink:
             )
     except (serial.SerialException, OSError, ValueError) as exc:
         raise LinkOpenError(f"cannot open {target}: {exc}") from exc
-    return SerialLink(url.url, port)
+    if identity is not None:
+        try:
+            confirm(SerialLink._fileno(port), identity, target)
+        except (LinkOpenError, OSError):
+            port.close()
+            raise LinkOpenError(f"{target}: the device changed while it was being opened") from None
+        if expected is not None:
+            identity = expected  # what a later reopen compares with stays the first device
+    return SerialLink(url.url, port, identity)
 
 
 __all__ = ["DEFAULT_BAUD", "SerialLink", "open_serial", "open_serial_url"]

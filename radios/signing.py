@@ -23,6 +23,19 @@ recording of it, replayed within the minute, for a live one. Two live senders wi
 one id (two stations left at the default id) are both heard: each one's stream began
 before the other's later frames. Only frames whose signature verified move the clock.
 
+Across a restart of the verifier these rules would start from nothing: a recording of a
+sender it never heard (a dead leader, recorded from the air less than a minute before)
+passed for a live stream. So a node keeps its clock's mark (the latest time it issued
+or accepted) in its state folder (:mod:`radios.signing_state`) and starts its clock
+from it: the clock's ``start`` is at least the time the last run had reached, and a
+frame stamped before it is refused, whoever sent it: it was on the air before this run
+began. A live peer whose clock lags ours is refused only until it hears one of our
+frames (its clock then moves up to ours, as above); of two nodes started together, the
+one with the later start is always heard by the other, which then catches up. One mark
+is kept, not each stream's last timestamp: every stream's last is at most the mark, so
+the start reference refuses all that a restored table of streams would, and also what
+the node never heard (frames recorded while it was down).
+
 Keys: :func:`load_key` reads 32 raw bytes, 64 hex digits, or else a passphrase
 turned into a key by SHA-256 as MAVProxy's ``signing setup`` does.
 """
@@ -120,7 +133,8 @@ class Verifier:
         last = self._last.get(stream)
         starts = self._starts.get(system)
         if (
-            ts < self.clock.reference() - MAX_SKEW_TICKS  # more than a minute old
+            ts < self.clock.start  # on the air before this run began (radios.signing_state)
+            or ts < self.clock.reference() - MAX_SKEW_TICKS  # more than a minute old
             or (last is not None and ts <= last)  # not newer on its stream
             or (starts is not None and any(ts < t0 for lid, t0 in starts.items() if lid != link_id))
         ):  # (the last: stamped before another stream of the sender began: an earlier run)

@@ -20,6 +20,8 @@ and the README's runnable examples, which share the README's fixed ports.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 from net_helpers import ManualClock
 
@@ -71,6 +73,18 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.name in LIGHT and item.get_closest_marker("processes") is not None:
             item.add_marker(pytest.mark.light)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _state_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Signed nodes the tests start (in process or as children, which inherit it) keep
+    their state (``swarm.cli.state_dir``) in a folder of the session, never in the home
+    of whoever runs the tests."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("xdg-state")))
+    mp.delenv("STATE_DIRECTORY", raising=False)
+    yield
+    mp.undo()
 
 
 @pytest.fixture

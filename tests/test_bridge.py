@@ -605,6 +605,9 @@ def test_signed_swarm_flows_and_drops_unsigned_and_forged(tmp_path: Path) -> Non
     with bridged(tmp_path, 3, config=lambda i: BridgeConfig(signing_key=KEY, link_id=i)) as net:
         net.learn()
         a1, a2, a3 = net.nodes
+        # frames sent before a bridge started (in its radio's buffer when it opened it) are
+        # refused as replays (radios.signing_state): none may be counted from here on
+        replayed_at_start = [x.bridge.stats.replayed for x in net.nodes]
         msg = encode(Selection(1, 3, 777, 5))
         a1.transport.send("a3", decode(msg))
         wait_until(lambda: a3.rec.from_radio(msg), "a signed P2P message delivered")
@@ -637,4 +640,36 @@ def test_signed_swarm_flows_and_drops_unsigned_and_forged(tmp_path: Path) -> Non
         time.sleep(QUIET)
         for x in net.nodes:
             assert not x.rec.from_radio(unsigned) and not x.rec.from_radio(forged)
-            assert x.bridge.stats.replayed == 0
+        assert [x.bridge.stats.replayed for x in net.nodes] == replayed_at_start
+
+
+def test_a_station_overhears_the_leaders_heartbeats_to_its_members() -> None:
+    """A station learns what the swarm flies (the leader's task, its members) from the
+    leader's Heartbeats on their way to the members: over the radio they are addressed to
+    the members, and the station's bridge dropped them as not for it, so a station started
+    (or restarted) while the V flew showed no task until it sent one itself (the fault
+    bench's station restart during a command). An agent's bridge still drops them; only a
+    Heartbeat from its own sender is overheard, nothing else addressed to others."""
+    hb = encode(Heartbeat(1, epoch=1, seq=42, members=frozenset({2, 3})))
+    other = encode(StartPool(2))
+    for who, overhears in ((255, True), (4, False)):
+        with ExitStack() as stack:
+            session = open_session()
+            stack.callback(session.close)
+            link, _tap = virtual_link(stack)
+            name = "gcs" if who == 255 else "a4"
+            bridge = RadioBridge(session, link, name=name, agent_id=who).start()
+            stack.callback(bridge.close)
+            rec = Recorder(session)
+            stack.callback(rec.close)
+            bridge.handle_frame(tunnel_frame(1, Kind.MULTI, bytes([2, 2, 3]) + hb))  # to members 2 and 3
+            bridge.handle_frame(tunnel_frame(1, Kind.P2P, hb, target=2))
+            bridge.handle_frame(tunnel_frame(2, Kind.P2P, other, target=3))  # not a Heartbeat
+            bridge.handle_frame(tunnel_frame(3, Kind.P2P, hb, target=2))  # sender 3 claims 1's Heartbeat
+            if overhears:
+                wait_until(partial(lambda r: len(r.from_radio(hb)) == 2, rec), "the Heartbeats overheard")
+            time.sleep(0.3)
+            assert rec.from_radio(hb, key=f"swarm/{name}") == (
+                [(f"swarm/{name}", hb)] * 2 if overhears else []
+            )
+            assert not rec.from_radio(other)

@@ -116,7 +116,10 @@ AGENT_BAD = [
         'name = "a1"\nid = 1\nradio_recheck = -1.0\nradio_params = "NETID=25"\nradio = "x"\n',
         "radio_recheck = -1.0",
     ),
-    ('name = "a1"\nid = 1\nrestore_radio = true\n' + NODE, "restore_radio = true: --restore-radio and"),
+    (
+        'name = "a1"\nid = 1\nrestore_radio = true\n' + NODE,
+        "restore_radio = true: --restore-radio, --radio-recheck and",
+    ),
     ('name = "a1"\nid = 1\nexit_on_radio_loss = true\n' + NODE, "exit_on_radio_loss = true: "),
     ('name = "a1"\nid = 1\nradio = "x"\n' + NODE, "give one of --radio URL"),
 ]
@@ -214,6 +217,7 @@ def test_repeated_and_exclusive_gcs_flags_override_the_file(tmp_path: Path) -> N
         'allow_host = ["a.local", "b.local"]\ntoken = "' + "t" * 32 + '"\ntiles = "none"\n',
         "gcs.toml",
     )
+    path.chmod(0o600)  # it holds the token
     a = parse(gcs_cmd, ["--config", str(path)])
     assert a.allow_host == ["a.local", "b.local"] and a.token == "t" * 32 and a.tiles == "none"
     b = parse(gcs_cmd, ["--config", str(path), "--allow-host", "c.local", "--token-file", "tok"])

@@ -3,7 +3,8 @@ second origin (another port, another host name) and a DNS-rebound name try every
 way a browser lets a page reach a local server (a JSON fetch, a no-cors text/plain
 fetch, a form post, a WebSocket); none may make a command reach the station or read
 its state. Then the token flow as an operator lives it: the station bound to every
-address, the URL token once, the cookie after, the page working.
+address, the URL token once, kept in the page's own origin's storage (never a cookie:
+another web service on the same host must never receive it), the page working.
 
 The host names resolve to 127.0.0.1 in this browser only (``--host-resolver-rules``);
 every wait polls for an outcome until a generous deadline.
@@ -14,9 +15,11 @@ from __future__ import annotations
 import http.server
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
+from gcs_browser import write_tiles
 from gcs_security_helpers import Swarm, live_swarm
 from net_helpers import free_port, wait_until
 
@@ -92,6 +95,38 @@ def attacker() -> Iterator[int]:
     t.start()
     try:
         yield int(srv.server_address[1])
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+class RecordingHandler(http.server.BaseHTTPRequestHandler):
+    """Another web service on the same host: answers every GET and keeps its headers."""
+
+    seen: list[str] = []
+
+    def do_GET(self) -> None:
+        RecordingHandler.seen.append(f"{self.requestline}\n{self.headers}")
+        data = b"<!doctype html><title>another service</title><p>hello"
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        pass
+
+
+@pytest.fixture
+def other_service() -> Iterator[tuple[int, list[str]]]:
+    """A plain web server on another port of 127.0.0.1, and the requests it received."""
+    RecordingHandler.seen = []
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), RecordingHandler)
+    t = threading.Thread(target=srv.serve_forever, daemon=True)
+    t.start()
+    try:
+        yield int(srv.server_address[1]), RecordingHandler.seen
     finally:
         srv.shutdown()
         srv.server_close()
@@ -180,40 +215,45 @@ def test_the_token_flow_in_the_browser_and_a_same_site_page_still_fails(
     ).start()
     base = f"http://127.0.0.1:{server.port}/"
     try:
-        # no token: the page asks for it, the API refuses
+        # no token: the page (it holds nothing of the swarm) asks for it, the API refuses
         page = ctx.new_page()
         r = page.goto(base)
-        assert r.status == 401 and page.locator('input[name="token"]').count() == 1
+        assert r.status == 200
+        page.locator('#token-needed input[name="token"]').wait_for(state="visible", timeout=DEADLINE * 1000)
         assert page.evaluate("fetch('/api/state').then(r => r.status)") == 401
         page.close()
-        # the URL token once: the page works, the token leaves the address bar, the
-        # cookie is out of the scripts' reach
+        # the URL token once: the page works, the token leaves the address bar; it is
+        # kept in the station's origin's storage, never in a cookie
         page = login(ctx, base)
         assert "token" not in page.url and page.url == base
-        assert TOKEN not in page.evaluate("document.cookie")
-        cookies = {c["name"]: c for c in ctx.cookies(base)}
-        c = cookies[f"gcs_token_{server.port}"]
-        assert c["value"] == TOKEN and c["httpOnly"] is True and c["sameSite"] == "Strict"
+        assert page.evaluate("localStorage.getItem('gcs_token')") == TOKEN
+        assert ctx.cookies() == [] and page.evaluate("document.cookie") == ""
+        assert page.locator("#token-needed").is_hidden()
         n = len(swarm.agents[2].commands)
         page.click('#agents [data-agent-id="2"]')
         page.select_option("#cmd-target", "selected")
         page.click('#commands [data-kind="arm"]')
         wait_until(lambda: page.inner_text("#cmd-status").endswith("accepted"), "arm accepted", DEADLINE, 0.2)
         assert len(swarm.agents[2].commands) > n
-        # POST from the page itself (as while the socket is down) works with the cookie
-        st = page.evaluate("""fetch('/api/command', {method: 'POST',
+        # POST from the page itself (as while the socket is down) works with the token;
+        # nothing the browser adds on its own carries it
+        st = page.evaluate("""gcsToken.fetch('/api/command', {method: 'POST',
                                 headers: {'Content-Type': 'application/json'},
                                 body: JSON.stringify({target: 2, kind: 'disarm'})}).then(r => r.status)""")
         assert st == 200
-        # a reload without the token: the cookie carries it
+        st = page.evaluate("""fetch('/api/command', {method: 'POST', credentials: 'include',
+                                headers: {'Content-Type': 'application/json'},
+                                body: JSON.stringify({target: 2, kind: 'disarm'})}).then(r => r.status)""")
+        assert st == 401
+        # a reload without the token: the page's storage holds it
         page.goto(base)
         page.wait_for_function(
             "() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0", timeout=DEADLINE * 1000
         )
         assert page.errors == []
         page.close()
-        # a page of another port on the same host: the cookie is sent (same site), the
-        # station still refuses it
+        # a page of another port on the same host (same site): it has no token, and the
+        # station refuses it
         before = swarm.commands()
         out = attack(ctx, f"http://127.0.0.1:{attacker}", base)
         assert_nothing_reached(swarm, before, out)
@@ -230,9 +270,9 @@ def test_the_login_form_and_an_allowed_name(swarm: Swarm, ctx: Any) -> None:
     ).start()
     try:
         page = ctx.new_page()
-        assert page.goto(f"http://gcs.field:{server.port}/").status == 401
-        page.fill('input[name="token"]', TOKEN)
-        page.click('button[type="submit"]')
+        assert page.goto(f"http://gcs.field:{server.port}/").status == 200
+        page.fill('#token-needed input[name="token"]', TOKEN)  # shown once the API refused
+        page.click('#token-needed button[type="submit"]')
         page.wait_for_function(
             "() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0", timeout=DEADLINE * 1000
         )
@@ -263,6 +303,71 @@ def test_a_dns_rebound_name_is_refused(swarm: Swarm, ctx: Any) -> None:
         }""")
         assert out == {"command": 403, "state": 403, "ws": "closed"}, out
         assert swarm.commands() == before
+        page.close()
+    finally:
+        server.stop()
+
+
+def test_another_service_on_the_host_never_receives_the_token(
+    swarm: Swarm, ctx: Any, other_service: tuple[int, list[str]]
+) -> None:
+    """Cookies are per host, not per port: a token kept in one reached every web
+    service of the machine the browser visited. The page holds it in its own
+    origin's storage and sends it only to the station."""
+    port, seen = other_service
+    server = GcsServer(
+        swarm.station, ServerConfig(host="0.0.0.0", port=free_port(), tiles=None, token=TOKEN)
+    ).start()
+    base = f"http://127.0.0.1:{server.port}/"
+    try:
+        page = login(ctx, base)
+        page.goto(base)  # a reload: still working, without the token in the address
+        page.wait_for_function(
+            "() => window.gcs && window.gcs.ready && window.gcs.stateCount > 0", timeout=DEADLINE * 1000
+        )
+        assert page.errors == []
+        # the station's page may talk to its station only (its Content-Security-Policy):
+        # a script on it could not even send what it holds elsewhere
+        out = page.evaluate(
+            f"""() => fetch('http://127.0.0.1:{port}/exfiltrated', {{mode: 'no-cors'}})
+                      .then(() => 'sent', () => 'blocked')"""
+        )
+        assert out == "blocked" and seen == []
+        # the operator visits the other service: its page, and what its page loads
+        page.goto(f"http://127.0.0.1:{port}/visited")
+        page.evaluate(
+            """() => { fetch('/fetched', {credentials: 'include'});
+                       const i = new Image(); i.src = '/image';
+                       const f = document.createElement('iframe'); f.src = '/frame';
+                       document.body.append(f); }"""
+        )
+        wait_until(lambda: len(seen) >= 4, "the other service's four requests", DEADLINE, 0.2)
+        page.close()
+    finally:
+        server.stop()
+    assert not any(TOKEN in r for r in seen), "\n\n".join(seen)
+    assert all("gcs_token" not in r for r in seen), "\n\n".join(seen)
+
+
+def test_the_stations_own_tiles_come_with_the_token(swarm: Swarm, ctx: Any, tmp_path: Path) -> None:
+    """An <img> cannot send the token: the page fetches each of the station's tiles
+    with it; without the token a tile is refused like the API."""
+    lat, lon = 47.397742, 8.545594
+    write_tiles(tmp_path, lat, lon, zooms=(17,), radius=2)
+    server = GcsServer(
+        swarm.station,
+        ServerConfig(host="0.0.0.0", port=free_port(), tiles_dir=tmp_path, center=(lat, lon), token=TOKEN),
+    ).start()
+    base = f"http://127.0.0.1:{server.port}/"
+    try:
+        page = login(ctx, base)
+        loaded = (
+            "Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))"
+            ".filter(i => (i.dataset.tile || '').startsWith('/tiles/17/')).length"
+        )
+        wait_until(lambda: page.evaluate(loaded) > 0, "the station's tiles drawn", DEADLINE, 0.2)
+        assert page.evaluate("fetch('/tiles/17/1/1.png').then(r => r.status)") == 401
+        assert page.errors == []
         page.close()
     finally:
         server.stop()

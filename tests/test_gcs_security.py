@@ -5,8 +5,9 @@ every command they receive.
 Who may command the swarm: a foreign ``Origin`` (another page, another port), a
 foreign ``Host`` (DNS rebinding), a body that is not ``application/json`` (a
 no-cors text/plain fetch, a form), a missing or wrong token: refused before
-anything reaches the station. The token flow: a URL token becomes an HttpOnly,
-SameSite=Strict cookie; a Bearer header works too.
+anything reaches the station. The token: an "Authorization: Bearer" header (the
+page's requests), the WebSocket subprotocol ``token.<TOKEN>`` or ``?token=``; never a
+cookie (a host's cookies go to every port of it).
 
 What may not break it: huge numbers, NaN/Infinity, deep nesting, wrong types,
 bodies over 64 KiB, non-UTF-8, slow clients: always a 4xx with a one-line JSON
@@ -30,7 +31,7 @@ from hypothesis import strategies as st
 from net_helpers import ManualClock, free_port, wait_until
 
 from swarm.core.station import KINDS, CommandRefused, parse_command
-from swarm.runtime.server import GcsServer, ServerConfig
+from swarm.runtime.server import OSM_TILES, STATIC_DIR, GcsServer, ServerConfig, page_policy
 
 TOKEN = "Zq0-test-token-with-enough-entropy_42"
 
@@ -251,46 +252,53 @@ def test_beyond_loopback_every_api_needs_the_token(swarm: Swarm, field_server: G
     for q in ("", "?token=wrong", f"?token={TOKEN[:-1]}"):
         a = request(port, "GET", "/api/state" + q)
         assert a.status == 401
-    # the page without a token: a form asking for it, nothing of the swarm
+    # the page without a token: its own file (a form asking for the token in it), nothing
+    # of the swarm; its scripts too
     a = request(port, "GET", "/")
-    assert a.status == 401 and b'name="token"' in a.body and b"agent" not in a.body
+    assert a.status == 200 and a.body == (STATIC_DIR / "index.html").read_bytes()
+    assert b'name="token"' in a.body and a.headers.get("Cache-Control") == "no-store"
+    csp = a.headers.get("Content-Security-Policy", "")
+    assert "default-src 'self'" in csp and "frame-ancestors 'none'" in csp, csp
+    assert request(port, "GET", "/static/token.js").status == 200
     unchanged(swarm, before)
 
 
-def test_the_token_by_header_url_and_cookie(swarm: Swarm, field_server: GcsServer) -> None:
+def test_the_token_by_header_and_url_never_by_cookie(swarm: Swarm, field_server: GcsServer) -> None:
     port = field_server.port
-    a = request(port, "GET", "/api/state", headers={"Authorization": f"Bearer {TOKEN}"})
+    bearer = {"Authorization": f"Bearer {TOKEN}"}
+    a = request(port, "GET", "/api/state", headers=bearer)
     assert a.status == 200 and len(a.json["agents"]) == 2
-    # the URL token once: the page, and a cookie the page's scripts cannot read
+    assert request(port, "GET", f"/api/state?token={TOKEN}").status == 200  # tools
+    # the printed address: the page, and no cookie (cookies reach every port of the host)
     a = request(port, "GET", f"/?token={TOKEN}")
     assert a.status == 200 and b"<html" in a.body.lower()
-    cookie = a.headers.get("Set-Cookie", "")
+    assert "Set-Cookie" not in a.headers, a.headers
+    # the cookie earlier versions set opens nothing, and is deleted where it is shown
     name = f"gcs_token_{port}"
-    assert cookie.startswith(f"{name}={TOKEN};"), cookie
-    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Path=/" in cookie, cookie
     jar = {"Cookie": f"{name}={TOKEN}"}
-    assert request(port, "GET", "/", headers=jar).status == 200
-    assert request(port, "GET", "/static/app.js", headers=jar).status == 200
-    a = request(port, "GET", "/api/state", headers=jar)
-    assert a.status == 200 and len(a.json["agents"]) == 2
+    assert request(port, "GET", "/api/state", headers=jar).status == 401
+    a = request(port, "GET", "/", headers=jar)
+    assert a.status == 200
+    gone = a.headers.get("Set-Cookie", "")
+    assert gone.startswith(f'{name}="";') and "Max-Age=0" in gone and "Path=/" in gone, gone
     n = len(swarm.agents[1].commands)
     a = request(
         port,
         "POST",
         "/api/command",
         json.dumps({"target": 1, "kind": "disarm"}).encode(),
-        {**jar, **JSON, "Origin": f"http://127.0.0.1:{port}"},
+        {**bearer, **JSON, "Origin": f"http://127.0.0.1:{port}"},
     )
     assert a.status == 200 and a.json["ok"] is True
     assert len(swarm.agents[1].commands) > n
     # an allowed name and any address of this machine's; a foreign name still refused
     for host in ("gcs.field", f"gcs.field:{port}", f"10.9.8.7:{port}", f"[fe80::1]:{port}"):
-        assert request(port, "GET", "/api/config", headers={"Host": host, **jar}).status == 200, host
-    a = request(port, "GET", "/api/config", headers={"Host": f"rebind.test:{port}", **jar})
+        assert request(port, "GET", "/api/config", headers={"Host": host, **bearer}).status == 200, host
+    a = request(port, "GET", "/api/config", headers={"Host": f"rebind.test:{port}", **bearer})
     assert a.status == 403 and "--allow-host" in a.error()
     # but the token does not let another origin in
     a = request(
-        port, "POST", "/api/command", TAKEOFF, {**jar, **JSON, "Origin": f"http://127.0.0.1:{port + 1}"}
+        port, "POST", "/api/command", TAKEOFF, {**bearer, **JSON, "Origin": f"http://127.0.0.1:{port + 1}"}
     )
     assert a.status == 403
 
@@ -299,19 +307,33 @@ def test_the_websocket_needs_the_token_too(field_server: GcsServer) -> None:
     port = field_server.port
     base = f"http://127.0.0.1:{port}/"
 
-    async def attempt(url: str, headers: dict[str, str]) -> Any:
+    async def attempt(url: str, headers: dict[str, str], protocols: tuple[str, ...] = ()) -> Any:
         async with aiohttp.ClientSession() as s:
             try:
-                async with s.ws_connect(url, headers=headers) as ws:
-                    return (await ws.receive_json(timeout=10))["type"]
+                async with s.ws_connect(url, headers=headers, protocols=protocols) as ws:
+                    first = (await ws.receive_json(timeout=10))["type"]
+                    return first if not protocols else (first, ws.protocol)
             except aiohttp.WSServerHandshakeError as exc:
                 return exc.status
 
     assert asyncio.run(attempt(base + "ws", {})) == 401
-    assert asyncio.run(attempt(base + "ws", {"Cookie": f"gcs_token_{port}=x"})) == 401
-    assert asyncio.run(attempt(base + "ws", {"Cookie": f"gcs_token_{port}={TOKEN}"})) == "state"
+    assert asyncio.run(attempt(base + "ws", {"Cookie": f"gcs_token_{port}={TOKEN}"})) == 401
     assert asyncio.run(attempt(base + "ws", {"Authorization": f"Bearer {TOKEN}"})) == "state"
     assert asyncio.run(attempt(base + f"ws?token={TOKEN}", {})) == "state"
+    # the page's way: the token as a subprotocol; the answer names "swarm-gcs", not it
+    page = ("swarm-gcs", f"token.{TOKEN}")
+    assert asyncio.run(attempt(base + "ws", {}, page)) == ("state", "swarm-gcs")
+    assert asyncio.run(attempt(base + "ws", {}, ("swarm-gcs", "token.wrong-token-0123456789"))) == 401
+    assert asyncio.run(attempt(base + "api/state", {}, page)) == 401  # on /ws only
+
+
+def test_the_pages_policy_names_the_tile_source() -> None:
+    assert "img-src 'self' data: blob:;" in page_policy(None)
+    assert "img-src 'self' data: blob: https://tile.openstreetmap.org;" in page_policy(OSM_TILES)
+    assert "blob: https://*.tile.example.org;" in page_policy("https://{s}.tile.example.org/{z}/{x}/{y}.png")
+    assert "blob: http://127.0.0.1:5555;" in page_policy("http://127.0.0.1:5555/{z}/{x}/{y}.png")
+    assert "blob: https:;" in page_policy("https://a{s}b.example.org/{z}/{x}/{y}.png")  # no wildcard there
+    assert "blob:;" in page_policy("/tiles/{z}/{x}/{y}.png")
 
 
 def test_a_token_is_generated_beyond_loopback_and_optional_on_it(swarm: Swarm) -> None:
@@ -699,7 +721,7 @@ def test_swarm_gcs_beyond_loopback_prints_a_generated_token_once(tmp_path: Any) 
             == 200
         )
         a = request(port, "GET", f"/?token={token}")
-        assert a.status == 200 and f"gcs_token_{port}={token}" in a.headers.get("Set-Cookie", "")
+        assert a.status == 200 and "Set-Cookie" not in a.headers
     finally:
         gcs.stop()
     assert sum(token in line for line in gcs.lines + gcs.errors) == 1, "the token printed once"
@@ -710,6 +732,7 @@ def test_swarm_gcs_with_a_token_file_does_not_print_it(tmp_path: Any) -> None:
 
     path = tmp_path / "gcs.token"
     path.write_text(TOKEN + "\n")
+    path.chmod(0o600)
     gcs = Child(
         [
             "gcs",

@@ -41,7 +41,7 @@ from swarm.core.node import (
     VehicleInfo,
     VehicleLink,
 )
-from swarm.core.protocol import profile_by_name
+from swarm.core.protocol import PAPER, Profile, profile_by_name
 
 HOME = Pose(47.397742, 8.545594, 508.0)
 STATION = 255
@@ -53,14 +53,16 @@ class Air:
 
     LATENCY = 0.02
 
-    def __init__(self, n: int, *, has_fc: bool = True) -> None:
-        profile = profile_by_name("fast", 0.25)
+    def __init__(self, n: int, *, has_fc: bool = True, profile: Profile | None = None) -> None:
+        profile = profile or profile_by_name("fast", 0.25)
         self.clock = ManualClock()
         self.nodes = {
             i: AgentNode(i, f"agent{i}", profile, rng=random.Random(i), has_fc=has_fc)
             for i in range(1, n + 1)
         }
         self.down: set[int] = set()
+        self.deaf: set[int] = set()  # running, but their radio is away: nothing in or out
+        self.lose_next: set[int] = set()  # the next message to each of these is lost
         self.to_station: list[Send] = []
         self.outs: dict[int, list[NodeOut]] = {i: [] for i in self.nodes}
         self._flight: list[tuple[float, int, int, Message]] = []  # (due, order, to, msg)
@@ -72,7 +74,7 @@ class Air:
     def deliver(self, sender: int, outs: list[NodeOut]) -> None:
         """Put a node's Sends on the air (they arrive ``LATENCY`` later)."""
         self.outs[sender] += outs
-        if sender in self.down:
+        if sender in self.down or sender in self.deaf:
             return
         for o in outs:
             if not isinstance(o, Send):
@@ -98,7 +100,9 @@ class Air:
             self.clock.now = now = max(self.clock.now, due)
             while self._flight and self._flight[0][0] <= now:
                 _t, _o, k, msg = heapq.heappop(self._flight)
-                if k not in self.down:
+                if k in self.lose_next:
+                    self.lose_next.discard(k)
+                elif k not in self.down and k not in self.deaf:
                     self.deliver(k, self.nodes[k].handle(msg, now))
             for k, nd in self.nodes.items():
                 if k not in self.down and nd.next_deadline() <= now:
@@ -293,3 +297,57 @@ def test_ticking_at_each_deadline_always_moves_time_on() -> None:
         now = d
     assert nd.core.phase == Phase.LEADER and now > 20.0
     assert PoseReport(HOME)  # the node never needed a clock: only the times it was given
+
+
+def test_a_radio_check_costs_a_member_neither_its_leader_nor_its_place() -> None:
+    """The radio guard lends an agent's radio for about 2.3 s (issue 27's periodic check).
+    Against the paper profile's 3 s leader timeout, a member that had last heard its
+    leader a moment before the check had little time left once it was over: one lost
+    Heartbeat after it, and it left its leader and re-joined (the guard's bench: 0.9 s
+    without agreement in 180 s). While the radio is away the election core's time stands
+    still, and once it is back the member acknowledges at once (the leader's timers did
+    not stand still): checked from every point of the heartbeat interval, 2.4 s each
+    time, with the first frame after it lost."""
+    from swarm.core.node import RadioAway, RadioBack
+
+    air = Air(3, profile=PAPER)
+    air.run(30.0)
+    [lead] = air.leaders()
+    members = sorted(k for k in air.nodes if k != lead)
+    deaf = members[0]
+    for k in range(10):
+        air.run(air.clock.now + 1.0 + 0.05 * k)  # a check at another point of the interval
+        air.deaf.add(deaf)
+        air.nodes[deaf].handle(RadioAway(), air.clock.now)
+        air.run(air.clock.now + 2.4)
+        air.deaf.discard(deaf)
+        air.lose_next.add(deaf)
+        air.deliver(deaf, air.nodes[deaf].handle(RadioBack(), air.clock.now))
+        for _ in range(12):
+            air.run(air.clock.now + 0.25)
+            phases = {j: (nd.core.phase, nd.core.leader) for j, nd in air.nodes.items()}
+            assert air.leaders() == [lead], (k, phases)
+            assert set(air.nodes[lead].core.members) == set(members), (k, phases)
+            assert all(air.nodes[m].core.phase == Phase.MEMBER for m in members), (k, phases)
+
+
+def test_without_a_radio_for_longer_than_a_timeout_the_swarm_still_moves_on_once_it_is_back() -> None:
+    """Deaf time stands still, but once the radio is back a leader that died meanwhile is
+    left after a leader timeout as ever (held, not forgotten)."""
+    from swarm.core.node import RadioAway, RadioBack
+
+    air = Air(3)
+    air.run(30.0)
+    [lead] = air.leaders()
+    deaf = next(k for k in air.nodes if k != lead)
+    air.deaf.add(deaf)
+    air.nodes[deaf].handle(RadioAway(), air.clock.now)
+    air.down.add(lead)  # the leader dies while the member is deaf
+    air.run(air.clock.now + 60.0)
+    assert air.nodes[deaf].core.phase == Phase.MEMBER  # it heard nothing: it holds
+    air.deaf.discard(deaf)
+    air.deliver(deaf, air.nodes[deaf].handle(RadioBack(), air.clock.now))
+    air.run(air.clock.now + 30.0)
+    live = [k for k in air.nodes if k != lead]
+    assert len(air.leaders()) == 1 and air.leaders()[0] in live
+    assert all(air.nodes[k].core.phase in (Phase.LEADER, Phase.MEMBER) for k in live)

@@ -186,6 +186,39 @@ def test_an_agent_that_hears_a_leader_is_not_alone() -> None:
     assert a.phase == Phase.LEADER and t >= quiet + PAPER.alone_timeout  # alone now: a swarm of one
 
 
+def test_time_without_a_radio_is_not_time_alone() -> None:
+    """Found by the fault bench (issue 27): a member whose radio a flood of garbage kept
+    from sending was expelled; IDLE, it heard the leader's Advertizes, but its radio was
+    re-checked every few seconds (the radio guard borrows the port), and a check that
+    covered the gap between two Advertizes made it a swarm of one beside the real leader
+    for the rest of the flood (two leaders for 144 s of a 1 MiB flood). While the radio
+    is away the election core's time stands still."""
+    from swarm.core.node import AgentNode, RadioAway, RadioBack
+    from swarm.core.protocol import FLAG_LEADER
+
+    node = AgentNode(4, "agent4", PAPER)
+    node.start(0.0)
+    a = node.core
+    a.handle(Advertize(1, "agent1", FLAG_LEADER), 1.0)  # the leader heard at 1 s
+    away = 2.0
+    node.handle(RadioAway(), away)
+    t = away
+    while t < away + 3 * PAPER.alone_timeout:  # a long unplug: deaf, not alone
+        t += 0.5
+        node.tick(t)
+        assert a.phase == Phase.IDLE, t
+    back = t
+    node.handle(RadioBack(), back)
+    heard_quiet = away - 1.0  # quiet before the radio went away
+    while a.phase == Phase.IDLE and t < back + 2 * PAPER.alone_timeout:
+        t += 0.25
+        node.tick(t)
+        if a.phase == Phase.IDLE:
+            assert t < back + PAPER.alone_timeout - heard_quiet, t
+    # alone only after a whole alone timeout of listening, the time before the radio went counted
+    assert a.phase == Phase.LEADER and t >= back + PAPER.alone_timeout - heard_quiet - 0.25
+
+
 def test_leader_adopts_a_late_joiner() -> None:
     lead = Core(1)
     lead.start(0.0)

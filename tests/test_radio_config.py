@@ -60,17 +60,16 @@ def test_network_setup_of_one_radio(tmp_path: Path, capsys: pytest.CaptureFixtur
     captured = capsys.readouterr()
     values = json.loads(captured.out)
     assert values["AIR_SPEED"] == 128 and values["NODEDESTINATION"] == 65535
-    assert "for swarm agent: --radio-params SERIAL_SPEED=57,AIR_SPEED=128,NETID=30,ECC=1," in captured.err
-    assert parse_expected(str(params_file)) == {
-        "SERIAL_SPEED": 57,
-        "AIR_SPEED": 128,
-        "NETID": 30,
-        "ECC": 1,
-        "MAVLINK": 1,
-        "NODEID": 2,
-        "NODEDESTINATION": 65535,
-        "NODECOUNT": 5,
-    }
+    assert (
+        "for swarm agent: --radio-params SERIAL_SPEED=57,AIR_SPEED=128,NETID=30,TXPOWER=20,ECC=1,"
+        in captured.err
+    )
+    # every register the guard keeps, as the radio reads back: the frequencies and
+    # channels too (a rogue moved them and the agent had nothing to compare them with)
+    written = parse_expected(str(params_file))
+    assert written == {name: value for name, value in values.items() if name != "FORMAT"}
+    assert {"NUM_CHANNELS", "MIN_FREQ", "MAX_FREQ", "TXPOWER", "DUTY_CYCLE", "LBT_RSSI"} <= set(written)
+    assert written["NODEID"] == 2 and written["NODECOUNT"] == 5 and written["MAX_FREQ"] == 928000
 
 
 def test_a_radio_that_reads_back_other_values_exits_1_naming_them(

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import select
 import signal
 import time
 from collections.abc import Callable
@@ -26,12 +27,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from emu_helpers import AIR_DEADLINE, heartbeat, recv_until, running_emulator, tunnel
+from emu_helpers import AIR_DEADLINE, heartbeat, raw_pty, recv_until, running_emulator, tunnel
 from net_helpers import free_port, wait_until
 
 from radios.errors import LinkClosedError, LinkOpenError
 from radios.link import open_link
-from swarm.cli.procs import Child, start_emulator
+from swarm.cli.procs import Child, json_events, start_emulator
 from swarm.core.messages import Advertize, Selection, encode
 from swarm.runtime.bridge import RadioBridge
 from swarm.runtime.transport import Transport, open_session
@@ -254,6 +255,137 @@ def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytes
     assert any(f.msgid == 0 for f in sent[:3]), "and what was sent before it"
 
 
+# -- another device at the radio's path (issue 27) ---------------------------------------
+
+
+def arriving(master: int, seconds: float) -> bytes:
+    """What a program writes into the pty whose master is ``master`` over ``seconds``
+    (an EIO while nobody holds the slave open is no byte: wait and read again)."""
+    got = bytearray()
+    end = time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        r, _, _ = select.select([master], [], [], min(left, 0.1))
+        if not r:
+            continue
+        try:
+            got += os.read(master, 4096)
+        except OSError:
+            time.sleep(min(0.05, max(0.0, end - time.monotonic())))
+    return bytes(got)
+
+
+def arriving_until(master: int, done: Callable[[], Any], what: str, timeout: float = DEADLINE) -> bytes:
+    """What arrives on ``master`` until ``done()`` (failing after ``timeout`` s)."""
+    got = bytearray()
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
+        got += arriving(master, 0.2)
+    return bytes(got)
+
+
+def point(path: Path, target: str) -> None:
+    """Make ``path`` a symbolic link to ``target`` (what a reassigned device node is)."""
+    if path.is_symlink() or path.exists():
+        path.unlink()
+    os.symlink(target, path)
+
+
+def test_bridge_never_writes_to_another_device_at_its_radios_path(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """While a2's radio is unplugged its path is made to point at another device, first a
+    fresh pty (a reassigned /dev/ttyUSB0, a reused /dev/pts/N), then another radio of the
+    same emulator: the bridge opens neither for writing, says so once per device, keeps
+    waiting, and takes its own radio back when it returns."""
+    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge")
+    heard: list[tuple[str, str]] = []
+    with running_emulator(tmp_path, 3) as run, ExitStack() as stack:
+        n1, n2 = _two_bridged_nodes(run, stack)
+        b2 = n2.bridge
+        b2.add_listener(lambda what, text: heard.append((what, text)))
+        path = Path(run.paths[1])
+        run.emu.unplug(1)
+        wait_until(lambda: b2.stats.radio_losses == 1, "a2's bridge to notice its radio gone", AIR_DEADLINE)
+        wait_until(lambda: not path.is_symlink(), "radio1's link removed", AIR_DEADLINE)
+
+        def refused() -> list[str]:
+            return [text for what, text in heard if what == "refused"]
+
+        # 1. a fresh pty where the radio was
+        master, other = raw_pty()
+        stack.callback(os.close, master)
+        point(path, other)
+        wait_until(
+            lambda: refused() or b2.stats.radio_reopens, "a2's bridge to try the device at its path", DEADLINE
+        )
+        assert b2.stats.radio_reopens == 0, "the bridge took another device as its radio"
+        attempts = b2.stats.radio_refused
+        wrote = arriving_until(master, lambda: b2.stats.radio_refused >= attempts + 3, "three more attempts")
+        assert wrote == b"", f"the bridge wrote {len(wrote)} bytes to a device that is not its radio"
+        assert len(refused()) == 1, heard
+        assert other in refused()[0] and "radio 1" in refused()[0], refused()
+        # 2. another radio of the same emulator, which nobody holds
+        before = run.radio(2)["serial_in"]
+        point(path, run.emu.slave_names[2])
+        wait_until(lambda: len(refused()) == 2, "the second device refused", DEADLINE)
+        attempts = b2.stats.radio_refused
+        wait_until(lambda: b2.stats.radio_refused >= attempts + 2, "two more attempts on it", DEADLINE)
+        assert run.radio(2)["serial_in"] == before, "bytes written into another radio"
+        assert len(refused()) == 2 and "radio 2" in refused()[1], heard
+        assert b2.stats.radio_reopens == 0 and not b2.link_lost
+        # 3. its own radio back
+        path.unlink()
+        run.emu.replug(1)
+        wait_until(lambda: b2.stats.radio_reopens == 1, "a2's own radio taken back", DEADLINE)
+        assert heard[-1][0] == "back"
+        wait_until(
+            lambda: (
+                n1.t.send("a2", Selection(1, 2, 9, 3)),
+                any(m == Selection(1, 2, 9, 3) for m in n2.inbox),
+            )[1],
+            "a1 -> a2 after its radio came back",
+            DEADLINE,
+            0.5,
+        )
+    lines = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+    assert len(lines) == 2, f"one line per device refused, not one per attempt: {lines}"
+
+
+def test_a_device_swapped_while_the_radio_is_lent_is_not_taken_back(tmp_path: Path) -> None:
+    """The radio check borrows the port. A path that already names another device is not
+    lent (the check would talk to it); one that comes to name another device while lent
+    is not taken back; with --exit-on-radio-loss (no reopening) the bridge stops, the
+    refusal as its reason."""
+    heard: list[tuple[str, str]] = []
+    with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
+        _n1, n2 = _two_bridged_nodes(run, stack)
+        b2 = n2.bridge
+        b2.add_listener(lambda what, text: heard.append((what, text)))
+        master, other = raw_pty()
+        stack.callback(os.close, master)
+        path = Path(run.paths[1])
+        # 1. swapped before the check: the borrower is not called, the radio waited for
+        point(path, other)
+        called: list[bool] = []
+        with pytest.raises(LinkOpenError, match=f"{other} .* is not the radio opened") as info:
+            b2.lend_radio(lambda: called.append(True), why="radio check")
+        assert not called and type(info.value).__name__ == "DeviceMismatchError"
+        wait_until(lambda: b2.stats.radio_refused, "the other device refused", DEADLINE)
+        assert arriving(master, 1.0) == b""
+        point(path, run.emu.slave_names[1])  # its radio back at the path
+        wait_until(lambda: b2.stats.radio_reopens == 1, "a2's radio taken back", DEADLINE)
+        assert [what for what, _ in heard] == ["paused", "refused", "back"], heard
+        # 2. swapped during the check, with --exit-on-radio-loss
+        b2.cfg.reopen_radio = False
+        b2.lend_radio(lambda: point(path, other), why="radio check")
+        wait_until(lambda: b2.link_lost, "a2's bridge to give up the radio", DEADLINE)
+        assert b2.stats.radio_reopens == 1
+        assert other in b2.loss_reason and "radio 1" in b2.loss_reason, b2.loss_reason
+        assert arriving(master, 1.0) == b""
+        assert [what for what, _ in heard][3:] == ["paused", "lost"], heard
+
+
 # -- real processes --------------------------------------------------------------------
 
 
@@ -414,3 +546,41 @@ def test_exit_on_radio_loss_needs_a_radio(capsys: pytest.CaptureFixture[str]) ->
         "swarm gcs: error: --exit-on-radio-loss is for a station on a radio (--radio)",
         "swarm agent: error: --exit-on-radio-loss is for an agent on a radio (--radio)",
     ]
+
+
+def test_agent_refuses_another_device_at_its_radio_path_with_one_line(tmp_path: Path) -> None:
+    """A real ``swarm agent``: its radio unplugged, the path made to point at a fresh pty,
+    then the radio plugged back. Nothing reaches the other pty; stdout has one
+    ``refused`` event naming both devices, stderr one line; the agent takes its radio back."""
+    emu, paths = start_emulator(1, tmp_path, "--seed", "16")
+    agent = Child(["agent", "--name", "agent1", "--id", "1", "--radio", paths[0], "--json"], name="agent1")
+    master, other = raw_pty()
+    try:
+        agent.wait_lines(1, 30)
+        path = Path(paths[0])
+
+        def radio_events() -> list[dict[str, Any]]:
+            up(agent)()
+            return json_events(agent.lines, "radio")
+
+        control(tmp_path, "unplug 0")
+        wait_until(lambda: radio_events() and not path.is_symlink(), "agent1: radio lost", DEADLINE, 0.1)
+        point(path, other)
+        wait_until(lambda: len(radio_events()) >= 2, "agent1: the device at its path tried", DEADLINE, 0.1)
+        assert radio_events()[1]["state"] == "refused", radio_events()
+        wrote = arriving(master, 3.0)
+        assert wrote == b"", f"the agent wrote {len(wrote)} bytes to a device that is not its radio"
+        refused = radio_events()[1]
+        assert len(radio_events()) == 2 and other in refused["text"] and "radio 0" in refused["text"], refused
+        assert len([e for e in agent.errors if "refused" in e]) == 1, agent.errors
+        path.unlink()
+        control(tmp_path, "replug 0")
+        wait_until(lambda: len(radio_events()) >= 3, "agent1: radio back", DEADLINE, 0.1)
+        assert radio_events()[2]["state"] == "back"
+        agent.proc.send_signal(signal.SIGTERM)
+        assert agent.proc.wait(10) == 0, agent.errors
+        assert not [e for e in agent.errors if "Traceback" in e], agent.errors
+    finally:
+        os.close(master)
+        agent.stop(grace=3)
+        emu.stop()

@@ -110,12 +110,13 @@ def test_differences_one_line_per_register() -> None:
 def test_agent_params_round_trip_through_the_guard(tmp_path: Path) -> None:
     values = {"FORMAT": 26, "SERIAL_SPEED": 57, "AIR_SPEED": 64, "NETID": 30, "TXPOWER": 20, "ECC": 0}
     values |= {"MAVLINK": 1, "NODEID": 2, "NODEDESTINATION": 65535, "NODECOUNT": 3}
+    values |= {"NUM_CHANNELS": 50}
     params = agent_params(values)
-    assert "FORMAT" not in params and "TXPOWER" not in params and params["NODEID"] == 2
+    assert "FORMAT" not in params and params["TXPOWER"] == 20 and params["NODEID"] == 2
     line = params_text(params, "line")
-    assert (
-        line
-        == "SERIAL_SPEED=57,AIR_SPEED=64,NETID=30,ECC=0,MAVLINK=1,NODEID=2,NODEDESTINATION=65535,NODECOUNT=3"
+    assert line == (
+        "SERIAL_SPEED=57,AIR_SPEED=64,NETID=30,TXPOWER=20,ECC=0,"
+        "MAVLINK=1,NODEID=2,NODEDESTINATION=65535,NODECOUNT=3,NUM_CHANNELS=50"
     )
     assert parse_expected(line) == params
     for kind in ("toml", "json"):

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from net_helpers import free_port
 
 from swarm.cli.commands import agent as agent_cmd
 from swarm.cli.commands import certs
@@ -25,8 +26,10 @@ from swarm.core.doctor.tls import SOON_S, AclFacts, CertFacts, TlsFacts, acl_che
 from swarm.core.zenoh_acl import Node, acl
 from swarm.core.zenoh_edge import endpoint_kind, key_over_ip, tls_needed
 from swarm.core.zenoh_log import ANONYMOUS, Passed, Refusal, RefusalBook, ZenohLogReader
+from swarm.errors import TransportError
 from swarm.runtime.doctor.tls import acl_facts, tls_facts
 from swarm.runtime.pki import issue, make_ca
+from swarm.runtime.transport import open_session
 
 # -- endpoints and the key -------------------------------------------------------------
 
@@ -99,14 +102,20 @@ def test_the_agent_refuses_its_key_on_plain_tcp_with_one_line(
     assert "swarm certs" in err
 
 
-def test_loopback_with_the_key_warns_once_and_tls_flags_are_checked(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    with caplog.at_level(logging.WARNING, logger="swarm.cli"):
-        node = node_options(agent_args("--key", "k", "--zenoh-connect", "tcp/127.0.0.1:7447"), "an agent")  # type: ignore[arg-type]
-    assert node.tls is None
+def test_loopback_with_the_key_warns_once_and_tls_flags_are_checked(caplog: pytest.LogCaptureFixture) -> None:
+    a = agent_args("--key", "k", "--zenoh-connect", "tcp/127.0.0.1:7447")
+    node = node_options(a, "an agent")  # type: ignore[arg-type]
+    warnings = a.zenoh_warnings  # type: ignore[attr-defined]
+    assert node.tls is None and len(warnings) == 1
+    assert warnings[0].startswith("warning: --key does not cover Zenoh: tcp/127.0.0.1:7447 is")
+    # said once the node's session opens (after every other check passed), not before
+    with caplog.at_level(logging.WARNING, logger="swarm.runtime.transport"):
+        session = open_session(listen=[f"tcp/127.0.0.1:{free_port()}"], signed=True)
+        session.close()
     said = [r.getMessage() for r in caplog.records]
-    assert len(said) == 1 and said[0].startswith("warning: --key does not cover Zenoh: tcp/127.0.0.1:7447 is")
+    assert len(said) == 1 and said[0].startswith("warning: --key does not cover Zenoh: tcp/127.0.0.1:")
+    with pytest.raises(TransportError, match=r"--key signs radio frames, not Zenoh over IP: tcp/0\.0\.0\.0:"):
+        open_session(listen=[f"tcp/0.0.0.0:{free_port()}"], signed=True)  # the Python API refuses too
     with pytest.raises(UsageError, match="needs --tls-ca, --tls-cert, --tls-key"):
         node_options(agent_args("--zenoh-connect", "tls/10.0.0.5:7447"), "an agent")  # type: ignore[arg-type]
     with pytest.raises(UsageError, match="needs --zenoh-listen"):

@@ -185,6 +185,16 @@ class AirModel:
         r.configure(cfg, self.rng, now)
         self._schedule_state_end(r)
 
+    def apply_now(self, node: int, cfg: RadioConfig) -> None:
+        """A register the firmware applies at once (``ATSn=`` or ``RTSn=`` of TXPOWER,
+        MAVLINK, DUTY_CYCLE, LBT_RSSI, RTSCTS, OPPRESEND; multipoint NODEID,
+        NODEDESTINATION, SYNCANY, NODECOUNT) changed: the radio runs with ``cfg`` from
+        now on, its TDM phase, lock, buffers and counters untouched (SiK's param_set)."""
+        r = self.radios[node]
+        r.cfg = cfg
+        if cfg.mavlink == 0:
+            r.mav_pending = 0  # raw bytes from now on: no frame to wait for
+
     def ati6(self, node: int) -> str:
         t = self.radios[node].t
         return (
@@ -241,6 +251,8 @@ class AirModel:
             r.remote_cmd = out.remote_command
         if out.reboot and self.on_reboot is not None:
             self.reconfigure(r.index, self.on_reboot(r.index), t)
+        elif getattr(out, "applied", False) and self.on_reboot is not None:
+            self.apply_now(r.index, self.on_reboot(r.index))
         dl = r.at.next_deadline() if r.at is not None else None
         if dl is not None:
             self._push(max(dl, t), _AT_POLL, r.index, None)
@@ -481,6 +493,8 @@ class AirModel:
             r.injected += reply[:252]
         if getattr(res, "reboot", False) and self.on_reboot is not None:
             self.reconfigure(r.index, self.on_reboot(r.index), t)
+        elif getattr(res, "applied", False) and self.on_reboot is not None:
+            self.apply_now(r.index, self.on_reboot(r.index))
 
     def _rssi(self, sender: int, receiver: int, t: float) -> int:
         for m in self.losses:

@@ -113,6 +113,11 @@ class ATOutput:
     reboot: bool = False
     """``ATZ``: the engine already ran ``params.boot()``; the caller re-inits its timing
     (air speed, windows, serial speed) from ``params.active``."""
+    applied: bool = False
+    """An ``ATSn=`` of a register the firmware applies at once (param_set: TXPOWER,
+    DUTY_CYCLE, LBT_RSSI, MAVLINK, RTSCTS, OPPRESEND; multipoint NODEID,
+    NODEDESTINATION, SYNCANY, NODECOUNT) changed ``params.active``: the caller runs
+    with it from now on, without a reboot."""
 
 
 @dataclass(frozen=True)
@@ -127,6 +132,8 @@ class RemoteResult:
     whole table is sent, not cut at 252 bytes (tdm.c's packet_ati5_inject)."""
     reboot: bool = False
     """``RTZ``: the engine already ran ``params.boot()``; the caller re-inits this radio."""
+    applied: bool = False
+    """As :attr:`ATOutput.applied`: a register that applies at once was set over the air."""
 
 
 def split_remote_target(command: str) -> tuple[str, int]:
@@ -163,9 +170,10 @@ class _Out:
         self.host = bytearray()
         self.remote: str | None = None
         self.reboot = False
+        self.applied = False
 
     def build(self) -> ATOutput:
-        return ATOutput(bytes(self.air), bytes(self.host), self.remote, self.reboot)
+        return ATOutput(bytes(self.air), bytes(self.host), self.remote, self.reboot, self.applied)
 
 
 class ATEngine:
@@ -219,6 +227,7 @@ class ATEngine:
         self._test_rssi = False
         self._test_tdm = False
         self._rssi_deadline: float | None = None
+        self._applied = False  # an ATSn= of a 'now' register since the last output
         self._restart(boot_time)
 
     # -- public state ---------------------------------------------------------------
@@ -289,13 +298,15 @@ class ATEngine:
             line = "AT" + line[2:]
         elif not line.startswith("AT"):
             return RemoteResult()
+        self._applied = False
         lines, reboot = self._run_at(line, t)
+        applied, self._applied = self._applied, False
         if reboot:
             return RemoteResult(b"", reboot=True)
         text = "".join(f"{self._prefix()}{entry}\n" for entry in lines).encode("ascii", "replace")
         if self.flavour == "multipoint" and line == "ATI5":
             return RemoteResult(text, per_line=True)
-        return RemoteResult(text[:REMOTE_REPLY_MAX])
+        return RemoteResult(text[:REMOTE_REPLY_MAX], applied=applied)
 
     # -- time ---------------------------------------------------------------------------
 
@@ -375,6 +386,9 @@ class ATEngine:
             return False
         lines, reboot = self._run_at(line, now)
         out.host += self._format(lines)
+        if self._applied:
+            self._applied = False
+            out.applied = True
         if reboot:
             out.reboot = True
         return reboot
@@ -435,7 +449,11 @@ class ATEngine:
             return [str(self.params.get(index))]
         if op == "=" and index > 0:
             value = _parse_number(arg, i + 1)[0]
-            return ["OK"] if self.params.set(index, value) else ["ERROR"]
+            if not self.params.set(index, value):
+                return ["ERROR"]
+            if self.params.specs[index].applies == "now":
+                self._applied = True
+            return ["OK"]
         return ["ERROR"]
 
     def _ampersand(self, arg: str, now: float) -> list[str]:

@@ -199,16 +199,20 @@ class SikConfigurator:
 
     # -- command mode -------------------------------------------------------------------
 
-    def enter_command_mode(self, timeout: float = 3.0) -> None:
+    def enter_command_mode(self, timeout: float = 3.0, *, probe: bool = True) -> None:
         """Put the local radio into AT command mode.
 
         ``timeout`` bounds each wait for ``OK`` after ``+++`` (the radio's 1 s guard
-        plus margin). Raises :class:`ATTimeoutError` if the radio never answers.
+        plus margin). ``probe=False`` skips the probe for a radio already in command
+        mode (the caller knows it is in data mode: 0.5 s less). Raises
+        :class:`ATTimeoutError` if the radio never answers.
         """
         self._discard_input()
-        self._write(b"\r\nAT\r\n")
         last_write = time.monotonic()
-        if self._wait_for(_OK_AFTER_PROBE, PROBE_TIME):
+        if probe:
+            self._write(b"\r\nAT\r\n")
+            last_write = time.monotonic()
+        if probe and self._wait_for(_OK_AFTER_PROBE, PROBE_TIME):
             self._drain_until(time.monotonic() + 0.05)  # the echo of the trailing LF, if any
             self.in_command_mode = True
             return
@@ -334,12 +338,15 @@ class SikConfigurator:
             self.flavour = "multipoint" if banner.startswith("MP ") else "standard"
         return banner
 
-    def read_params(self) -> dict[str, int]:
+    def read_params(self, lines: int | None = None) -> dict[str, int]:
         """All parameters as name -> value, in register order, read strictly
         (:mod:`radios.sik.readout`): locally one ``ATI5`` whose every line must be a
         register line of the flavour's table; remotely every register confirmed by two
         answers (``RTI5``, then ``RTSn?``), the registers that could not be read left out
         and named in :attr:`unreadable`.
+
+        ``lines`` (local only): the number of register lines expected, so that the
+        reply ends with the last one instead of after a quiet gap.
 
         Raises :class:`ATError` for a garbled local answer, :class:`ATTimeoutError`
         without an answer.
@@ -348,7 +355,7 @@ class SikConfigurator:
             readout = read_remote(self._ask, self.flavour, self.remote_node, self.tries)
             parsed, self.unreadable, self.garbled = readout.values, readout.unreadable, readout.garbled
         else:
-            parsed = parse_local(self.command("ATI5"), self.flavour, self.port_name)
+            parsed = parse_local(self.command("ATI5", lines=lines), self.flavour, self.port_name)
             self.unreadable, self.garbled = [], 0
         ordered = sorted(parsed.items(), key=lambda item: item[1][0])
         self.indices = {name: index for name, (index, _) in ordered}

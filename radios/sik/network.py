@@ -25,9 +25,10 @@ name a register the plan writes.
 :func:`expected_readback` says what ``ATI5`` must show after ``AT&W`` + ``ATZ`` (the
 firmware's own rewrites applied: AIR_SPEED rounded up to a rate, TXPOWER to a power
 level, MIN/MAX_FREQ and NUM_CHANNELS clamped to the band), and :func:`differences`
-gives one line per register that does not. :func:`agent_params` is the subset the
-agent's radio guard (``swarm agent --radio-params``) checks, and :func:`params_text`
-writes it as a line or a JSON/TOML file.
+gives one line per register that does not. :func:`agent_params` is what the agent's
+radio guard (``swarm agent --radio-params``) keeps: every register the radio read back
+but the read-only FORMAT, the regional ones included (a rogue's ``RT`` commands can
+change any of them), and :func:`params_text` writes it as a line or a JSON/TOML file.
 """
 
 from __future__ import annotations
@@ -37,13 +38,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from radios.errors import ConfigError
-from radios.sik.param_table import BANDS, BROADCAST, Band, spec_for
+from radios.sik.param_table import BANDS, BROADCAST, UNGUARDED, Band, spec_for
 from radios.sik.params import validate_user_value
 
 BAUD_CODES = {1200: 1, 2400: 2, 4800: 4, 9600: 9, 19200: 19, 38400: 38, 57600: 57, 115200: 115, 230400: 230}
 NODECOUNT_MAX = 0x8000
-# what the agent's radio guard should check: the registers that make the radios one network
-GUARDED = ("SERIAL_SPEED", "AIR_SPEED", "NETID", "ECC", "MAVLINK", "NODEID", "NODEDESTINATION", "NODECOUNT")
 
 
 @dataclass(frozen=True)
@@ -148,8 +147,10 @@ def differences(expected: Mapping[str, int], actual: Mapping[str, int]) -> list[
 
 
 def agent_params(values: Mapping[str, int]) -> dict[str, int]:
-    """The registers of ``values`` the agent's radio guard should check."""
-    return {name: values[name] for name in GUARDED if name in values}
+    """The registers of ``values`` the agent's radio guard keeps: every one but the
+    read-only FORMAT (a rogue can change any other over RT, and each matters: see
+    :mod:`radios.sik.guard`)."""
+    return {name: value for name, value in values.items() if name not in UNGUARDED}
 
 
 def params_text(params: Mapping[str, int], kind: str) -> str:

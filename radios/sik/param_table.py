@@ -32,6 +32,7 @@ Applies = Literal["boot", "now", "readonly"]
 FLAVOURS: tuple[Flavour, ...] = ("standard", "multipoint")
 
 PARAM_FORMAT_CURRENT = 26  # 0x1a; S0 of both flavours
+UNGUARDED = frozenset({"FORMAT"})  # the radio guard keeps every register but the read-only one
 UINT32_MAX = 0xFFFF_FFFF  # parameters are uint32 in the firmware
 BROADCAST = 0xFFFF  # multipoint NODEDESTINATION meaning "every node"
 
@@ -458,6 +459,7 @@ __all__ = [
     "SYNCANY",
     "TXPOWER",
     "UINT32_MAX",
+    "UNGUARDED",
     "Applies",
     "Band",
     "Flavour",

@@ -20,7 +20,10 @@ times. ``choices`` are checked here; ranges stay in the command's own checks.
 3. the file's keys become the parser's defaults (``None``, filled in after the
    parse, so that every value given on the command line wins; a required flag may
    come from the file), and the full parse runs;
-4. what came from the file is remembered on the namespace (:class:`FileOrigin`), so
+4. a file that holds a secret (a flag whose metavar is ``TOKEN``) must be kept from
+   the machine's other users, and any file from being changed by them
+   (:mod:`radios.secretfile`): one UsageError naming the file, its mode and the fix;
+5. what came from the file is remembered on the namespace (:class:`FileOrigin`), so
    that :func:`file_errors` can turn the command's own range checks ("--id 300:
    ...") into "agent.toml: id = 300: ..." when the value came from the file.
 Logging (``--log-level``, ``--log-format``, keys ``log_level`` and ``log_format``)
@@ -46,6 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from radios.secretfile import TOKEN, config_file_problem, secret_file_problem
 from swarm.cli.util import UsageError, add_log_arguments, apply_log_arguments
 
 #: the largest config file read (bytes); a bigger one is refused unread
@@ -57,6 +61,8 @@ MAX_ARRAY = 64
 PATH_METAVARS = ("FILE", "DIR", "CAPTURE")
 #: how much of a value or key an error message shows
 SHOW_CHARS = 200
+#: the metavars of flags whose value is a secret: a file holding one is kept from others
+SECRET_METAVARS = ("TOKEN",)
 
 
 @dataclass(frozen=True)
@@ -71,6 +77,10 @@ class Key:
     @property
     def flag(self) -> str:
         return next(s for s in self.action.option_strings if s.startswith("--"))
+
+    @property
+    def is_secret(self) -> bool:
+        return self.action.metavar in SECRET_METAVARS
 
     @property
     def is_path(self) -> bool:
@@ -322,11 +332,24 @@ def read_arguments(
         origin.flags = {k.flag: k.action.dest for k in keys(p).values()}
         displaced = _under(p, origin)
     a = p.parse_args(argv)
-    if origin is not None:
+    if origin is not None and path is not None:
+        secrets = [name for name, _v in origin.values.values() if keys(p)[name].is_secret]
         _fill(p, a, origin, displaced)
+        _check_mode(path, secrets)
     a.config_origin = origin
     apply_log_arguments(a)
     return a
+
+
+def _check_mode(path: str, secrets: list[str]) -> None:
+    """A file holding a secret (``secrets``: its keys) must be kept from others, any file
+    from being changed by them (:mod:`radios.secretfile`). Raises UsageError."""
+    if secrets:
+        why = secret_file_problem(path, TOKEN, f" (it holds {' and '.join(secrets)})")
+    else:
+        why = config_file_problem(path)
+    if why is not None:
+        raise UsageError(why)
 
 
 def _config_path(p: argparse.ArgumentParser, argv: Sequence[str] | None) -> str | None:

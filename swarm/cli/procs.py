@@ -4,6 +4,7 @@ ready, measure CPU, and stop cleanly (SIGTERM, then SIGKILL after a grace period
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import signal
@@ -46,10 +47,19 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / ticks
 
 
+def _limit_files(n: int) -> None:
+    """In a child before it runs: at most ``n`` open files (soft and hard limit)."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_NOFILE, (n, n))
+
+
 class Child:
     """A ``swarm`` subcommand in its own process, with its output collected."""
 
-    def __init__(self, argv: Sequence[str], *, name: str) -> None:
+    def __init__(self, argv: Sequence[str], *, name: str, nofile: int | None = None) -> None:
+        """``nofile``: the child's open-file limit, soft and hard (as a service manager
+        may set it); default: this process's."""
         self.name = name
         self.argv = [sys.executable, "-m", "swarm.cli", *argv]
         self.proc = subprocess.Popen(
@@ -58,6 +68,7 @@ class Child:
             stderr=subprocess.PIPE,
             text=True,
             start_new_session=True,
+            preexec_fn=None if nofile is None else functools.partial(_limit_files, nofile),
         )
         self.lines: list[str] = []
         self.errors: list[str] = []

@@ -189,8 +189,9 @@ def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, s
     ``role`` named ``a.name``, once the rules of :mod:`swarm.core.zenoh_edge` allow
     them: a ``tls/`` endpoint needs the three files, the files need ``tls/``
     endpoints only, an ACL needs TLS and a listen endpoint; ``--key`` with a plain
-    endpoint beyond loopback is refused, on loopback it warns (one line; kept in
-    ``a.zenoh_warnings`` instead when ``a.quiet_warnings`` is set: the doctor's).
+    endpoint beyond loopback is refused. The warnings (``--key`` on loopback, TLS
+    listening without an ACL) are kept in ``a.zenoh_warnings`` (the doctor's lines):
+    the node says them when its session opens, once every other check passed.
 
     Raises:
         UsageError: what the rules refuse.
@@ -216,10 +217,7 @@ def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, s
             f"warning: no --zenoh-acl: any certificate of the swarm's CA that connects to "
             f"{', '.join(a.zenoh_listen)} may publish anything (swarm certs writes acl.json5)"
         )
-    a.zenoh_warnings = warnings  # swarm doctor shows them as its own lines
-    if not getattr(a, "quiet_warnings", False):
-        for text in warnings:
-            log.warning("%s", text)
+    a.zenoh_warnings = warnings  # said when the session opens (swarm.runtime.transport); the doctor's lines
     tls = (
         TlsFiles(ca, cert, key, name=getattr(a, "name", None) or "", role=role)
         if ca and cert and key

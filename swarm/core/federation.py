@@ -28,10 +28,20 @@ time it accepted (a state not strictly newer is a replay) and the times of the
 commands and results it took in the last :data:`WINDOW_S` (one seen again is a
 replay; these may arrive out of order); a signed envelope, and any command or
 result, more than :data:`WINDOW_S` from the receiver's clock is refused (a recording
-played later). A gate with a key refuses unsigned envelopes; without a key it accepts
-unsigned states, and commands only when told so (``accept_unsigned_commands``).
-A result names the request it answers (its sender and time), so an old result
-cannot answer a new request.
+played later). A state stamped more than :data:`FUTURE_S` ahead of the receiver's
+clock is refused, signed or not: it would become the sender's newest and every real
+state after it would be "not newer" (one forged unsigned state stamped in 2100 froze
+a station's view for good). A gate with a key refuses unsigned envelopes; without a
+key it accepts unsigned states, and commands only when told so
+(``accept_unsigned_commands``). A result names the request it answers (its sender
+and time), so an old result cannot answer a new request.
+
+A gate's record crosses a restart of its station (:meth:`Gate.records`,
+:meth:`Gate.restore`: the runtime keeps it in the station's state folder), so a
+command overheard on the router and replayed to the restarted station is still one
+seen before. What is restored is checked as hostile input, and a sender's newest
+state time more than :data:`FUTURE_S` ahead of the clock at restore is dropped (a
+clock set back across the restart would otherwise freeze that sender).
 
 What crosses is checked as hostile input: a state is JSON of at most
 :data:`MAX_ENVELOPE` bytes, its agents, events, swarms and alerts are re-built from
@@ -72,6 +82,10 @@ MAC_LEN = 32
 HEADER = struct.Struct(">4scBQIB")
 MAX_ENVELOPE = 1024 * 1024  # a state of 250 agents with trails is well under this
 WINDOW_S = 30.0  # a signed envelope this far from our clock is refused
+#: a state stamped this far ahead of our clock is refused (stations' clocks in a field
+#: without internet: a laptop synchronised a few days before drifts a second or two a
+#: day; one forged state may hold a station's view still for at most this long)
+FUTURE_S = 10.0
 MAX_AGENTS = 250
 MAX_EVENTS = 50
 MAX_ALERTS = 100  # a station keeps 100 (AlertBook) and shows the open ones and 10 acknowledged
@@ -161,6 +175,7 @@ class Gate:
         self._newest: dict[tuple[str, bytes], int] = {}
         self._once: dict[tuple[str, bytes, int], float] = {}  # (sender, kind, time) -> when taken
         self.refused: dict[str, int] = {}
+        self.taken = 0  # envelopes accepted: the record changed (what a keeper saves)
 
     def open(self, data: bytes, wall_s: float, kind: bytes) -> Envelope:
         """The envelope in ``data`` if it is a ``kind`` envelope this gate accepts.
@@ -181,7 +196,47 @@ class Gate:
             why = str(exc).split(":")[0]
             self.refused[why] = self.refused.get(why, 0) + 1
             raise
+        self.taken += 1
         return env
+
+    def records(self, wall_s: float) -> dict[str, Any]:
+        """What this gate must remember across a restart, as JSON values: each sender's
+        newest state time, and the commands and results taken in the last two windows."""
+        return {
+            "states": [[sender, k.decode(), t] for (sender, k), t in self._newest.items()],
+            "taken": [
+                [sender, k.decode(), t, round(at, 3)]
+                for (sender, k, t), at in self._once.items()
+                if at >= wall_s - 2 * WINDOW_S
+            ],
+        }
+
+    def restore(self, records: Any, wall_s: float) -> int:
+        """Take back :meth:`records` (from a file: hostile input) at ``wall_s``; the
+        entries kept. Malformed entries are skipped; a newest state time more than
+        :data:`FUTURE_S` ahead is dropped; taken times older than two windows too.
+
+        Raises:
+            FederationRefused: not a record at all (malformed).
+        """
+        if not isinstance(records, dict):
+            raise FederationRefused("malformed: a gate's record is an object")
+        states, taken = records.get("states"), records.get("taken")
+        if not isinstance(states, list) or not isinstance(taken, list):
+            raise FederationRefused("malformed: a gate's record has 'states' and 'taken' lists")
+        kept = 0
+        horizon = int((wall_s + FUTURE_S) * 1e6)
+        for e in states[:MAX_SENDERS]:
+            if _entry(e, 3) and e[2] <= horizon and len(self._newest) < MAX_SENDERS:
+                key = (e[0], e[1].encode())
+                self._newest[key] = max(e[2], self._newest.get(key, 0))
+                kept += 1
+        for e in taken[:MAX_ONCE]:
+            if _entry(e, 4) and _num(e[3]) is not None and wall_s - 2 * WINDOW_S <= e[3] <= wall_s + WINDOW_S:
+                if len(self._once) < MAX_ONCE:
+                    self._once[(e[0], e[1].encode(), e[2])] = float(e[3])
+                    kept += 1
+        return kept
 
     def _take_once(self, env: Envelope, wall_s: float) -> None:
         if abs(env.t_us / 1e6 - wall_s) > WINDOW_S:
@@ -221,11 +276,25 @@ class Gate:
             signed = False
         if kind == KIND_COMMAND and not signed and not self.accept_unsigned_commands:
             raise FederationRefused(f"unsigned command: from {sender} (give the swarm key, --key)")
+        if kind == KIND_STATE and t_us / 1e6 - wall_s > FUTURE_S:
+            raise FederationRefused(f"from the future: from {sender}, {t_us / 1e6 - wall_s:+.0f} s")
         if kind == KIND_STATE and t_us <= self._newest.get((sender, kind), 0):
             raise FederationRefused(f"replayed: from {sender}")
         if flags & FLAG_DEFLATE:
             body = inflate(body)
         return Envelope(kind, signed, t_us, instance, sender, body)
+
+
+def _entry(e: Any, size: int) -> bool:
+    """A record's entry: ``[sender, kind, time_us, ...]`` of ``size`` items, each of its type."""
+    return (
+        isinstance(e, list)
+        and len(e) == size
+        and isinstance(e[0], str)
+        and bool(NAME_RE.match(e[0]))
+        and e[1] in ("S", "C", "R")
+        and _int(e[2], 1, 2**63 - 1) is not None
+    )
 
 
 def inflate(data: bytes) -> bytes:
@@ -517,6 +586,7 @@ def tame(v: Any, depth: int = 0) -> Any:
 
 __all__ = [
     "FLAG_DEFLATE",
+    "FUTURE_S",
     "KIND_COMMAND",
     "KIND_RESULT",
     "KIND_STATE",

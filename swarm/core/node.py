@@ -18,7 +18,8 @@ virtual-time flight simulator (:mod:`swarm.sim.flightsim`) drive the same code:
   Heartbeats); :class:`VehicleLink` (the flight controller fell silent or came back);
   :class:`PositionFix` (the flight controller's position became valid or stopped
   being one); :class:`CallDone` (a vehicle call finished); :class:`AutopilotText`
-  (a STATUSTEXT of the flight controller).
+  (a STATUSTEXT of the flight controller); :class:`RadioAway` and :class:`RadioBack`
+  (the radio lent or lost, and back: "Deaf" below).
 * **Outputs**: :class:`Send` (a message to an agent or station id, with the name the
   node learnt for it, or to everyone: ``to`` 0 for Advertize and GSAdvertize);
   :class:`PublishState` (when the election state changed, and as a keep-alive:
@@ -41,6 +42,20 @@ core (a leader that cannot fly hands over). Without a valid position the node sa
 "waiting for position" once (with the reason) and "position valid" when it comes;
 a fix that is lost takes the node's own pose back to none, so neither Telemetry nor
 a HeartbeatAck carries the last position as if it were current.
+
+**Deaf**: while the radio is away (:class:`RadioAway` to :class:`RadioBack`: lent to
+the radio guard's check for about 2.3 s, or unplugged) the node hears no one, and that
+says nothing about who is there. So the election core runs on its own clock, the
+node's time less the time the radio was away, standing still while it is: no window
+closes, no leader or member times out and no agent becomes a swarm of one on a
+silence it could not hear, and its timers resume where they stood once the radio is
+back; then a leader sends its Heartbeat and a member its HeartbeatAck at once
+(:meth:`~swarm.core.protocol.Core.resume`), for the others' timers did not stand
+still. The fault bench saw both: a member, expelled while a flood of garbage kept its
+radio from sending, its radio re-checked every few seconds, was made a swarm of one
+by a check that covered the gap between two of the leader's Advertizes (two leaders
+for 144 s); and a periodic radio check made members drop their leader and rejoin.
+The pilot, the station link and the command log keep the node's own time.
 
 The autopilot's STATUSTEXTs at WARNING or worse and the node's own events (the
 pilot's, the position fix, an id conflict) go to every connected station as
@@ -144,6 +159,16 @@ class SetTask:
 @dataclass(frozen=True)
 class VehicleLink:
     up: bool
+
+
+@dataclass(frozen=True)
+class RadioAway:
+    """The radio link went away (lent to the radio guard's check, unplugged)."""
+
+
+@dataclass(frozen=True)
+class RadioBack:
+    """The radio link is back after :class:`RadioAway`."""
 
 
 @dataclass(frozen=True)
@@ -271,17 +296,31 @@ class AgentNode:
         self._next_publish = 0.0
         self._next_step = 0.0
         self.notices = NoticeGate()
+        # the election core's time: ours less the time the radio was away (see "Deaf")
+        self._deaf_since: float | None = None
+        self._deaf_total = 0.0
 
     # -- driving ---------------------------------------------------------------------
     def start(self, now: float) -> list[NodeOut]:
         self._next_publish = self._next_step = now
-        return self._outs(self.core.start(now))
+        return self._outs(self.core.start(self._core_time(now)))
+
+    def _core_time(self, now: float) -> float:
+        """The election core's clock: ``now`` less the time the radio was away, held
+        still while it is away (see "Deaf" in the module docstring)."""
+        return (self._deaf_since if self._deaf_since is not None else now) - self._deaf_total
+
+    @property
+    def deaf(self) -> bool:
+        """The radio is away: the election core's time stands still."""
+        return self._deaf_since is not None
 
     def next_deadline(self) -> float:
         d = min(self._next_publish, self._next_step, self.gs.next_deadline())
         if self.gs.connected:
             d = min(d, self.notices.next_deadline())
-        for x in (self.core.next_deadline(), self.commands.next_deadline()):
+        core_due = None if self.deaf else self.core.next_deadline()
+        for x in (None if core_due is None else core_due + self._deaf_total, self.commands.next_deadline()):
             if x is not None:
                 d = min(d, x)
         return d
@@ -295,7 +334,8 @@ class AgentNode:
             # so the keep-alive can be slow; the air is shared with poses
             settled = core.phase in (Phase.LEADER, Phase.MEMBER)
             self._next_publish = now + (STATE_KEEPALIVE_S if settled else self.profile.state_interval)
-        out += self._outs(core.tick(now))
+        if not self.deaf:
+            out += self._outs(core.tick(self._core_time(now)))
         out += self._gs_outs(self.gs.tick(now, self.telemetry))
         out += [self._send(station, ack) for station, ack in self.commands.due(now)]
         if now >= self._next_step:
@@ -323,7 +363,7 @@ class AgentNode:
             sender = ev.sender or self.ids.get(ev.name, 0)
             if sender and sender != self.id:
                 self.pilot.on_pose(sender, ev.pose, now)
-                core.note_pose(sender, ev.pose, now)
+                core.note_pose(sender, ev.pose, self._core_time(now))
                 self.stats["poses_heard"] += 1
         elif isinstance(ev, OwnPose):
             core.set_pose(ev.pose)
@@ -339,8 +379,16 @@ class AgentNode:
             return self._call_done(ev, now)
         elif isinstance(ev, VehicleLink):
             self.stats["vehicle_link_back" if ev.up else "vehicle_link_lost"] += 1
-            core.set_vehicle_link(ev.up, now)  # a leader that cannot fly hands over
+            core.set_vehicle_link(ev.up, self._core_time(now))  # a leader that cannot fly hands over
             return [EventOut(VEHICLE_LINK_BACK if ev.up else VEHICLE_LINK_LOST)]
+        elif isinstance(ev, RadioAway):
+            if self._deaf_since is None:
+                self._deaf_since = now
+        elif isinstance(ev, RadioBack):
+            if self._deaf_since is not None:
+                self._deaf_total += max(0.0, now - self._deaf_since)
+                self._deaf_since = None
+                return self._outs(core.resume(self._core_time(now)))  # heard from at once
         elif isinstance(ev, PositionFix):
             return self._tell(self._position_fix(ev), now)
         elif isinstance(ev, AutopilotText):
@@ -375,7 +423,7 @@ class AgentNode:
             self.names[msg.sender] = msg.name
             self.ids[msg.name] = msg.sender
         hb = core.last_hb
-        outs = self._outs(core.handle(msg, now))
+        outs = self._outs(core.handle(msg, self._core_time(now)))
         if core.last_hb != hb and core.phase == Phase.MEMBER:
             self.pilot.on_task(core.task, now)  # every heartbeat (the heading's rate)
         return outs
@@ -514,6 +562,8 @@ __all__ = [
     "PoseHeard",
     "PositionFix",
     "PublishState",
+    "RadioAway",
+    "RadioBack",
     "RadioInfo",
     "Send",
     "SetTask",

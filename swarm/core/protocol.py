@@ -111,6 +111,7 @@ from swarm.core.formation import reconcile
 from swarm.core.messages import (
     AgentState,
     Heartbeat,
+    HeartbeatAck,
     Message,
     Phase,
     Pose,
@@ -349,6 +350,20 @@ class Core:
         if up != self.vehicle_ok:
             self.vehicle_ok = up
             self.vehicle_lost_at = now
+
+    def resume(self, now: float) -> list[Out]:
+        """The node's radio is back after a time away, during which this core's time
+        stood still (see "Deaf" in :mod:`swarm.core.node`) but the others' did not: a
+        leader sends its Heartbeat and a member its HeartbeatAck at once, so the others
+        hear from it before their own timeouts, without waiting for its next interval."""
+        out: list[Out] = []
+        if self.phase == Phase.LEADER:
+            self._next["heartbeat"] = now
+            self._leader_timers(now, out)
+        elif self.phase == Phase.MEMBER and self.leader:
+            self.acked_at = now
+            out.append(Out(self.leader, HeartbeatAck(self.me, self.heard_seq, self.pose or NO_POSE)))
+        return out
 
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""

@@ -115,6 +115,8 @@ from swarm.core.node import (
     PoseHeard,
     PositionFix,
     PublishState,
+    RadioAway,
+    RadioBack,
     RadioInfo,
     Send,
     SetpointOut,
@@ -311,6 +313,8 @@ class Agent(StartOnce):
             cap=self.config.swarm_cap,
             swarm_name=self.config.swarm_name,
         )
+        if self.bridge is not None:  # the election core stands still while the radio is away
+            self.bridge.add_listener(self._radio_event)
         self.transport.on_inbox(self.loop.put)
         self.transport.on_advertize(self.loop.put)
         self.transport.on_gs_advertize(self.loop.put)
@@ -324,6 +328,14 @@ class Agent(StartOnce):
         if self.vehicle is not None:
             self._spawn(self._pose_loop, "pose")
             self._spawn(self._vehicle_loop, "vehicle")
+
+    def _radio_event(self, what: str, _text: str) -> None:
+        """The bridge's radio events: the election core stands still while the radio is
+        away (:class:`swarm.core.node.RadioAway`)."""
+        if what in ("lost", "paused"):
+            self.loop.put(RadioAway())
+        elif what == "back":
+            self.loop.put(RadioBack())
 
     def _spawn(self, target: Callable[[], None], what: str) -> None:
         t = threading.Thread(target=target, name=f"agent-{self.name}-{what}", daemon=True)

@@ -42,9 +42,16 @@ swarm/<own>/state      0           swarm/<sender name>/state
   device at the same path with back-off (``reopen_radio``), keeping its name table
   and signing state; listeners hear ``("lost", reason)`` and ``("back", "after S s")``.
   With ``reopen_radio`` off it stops and sets ``link_lost``, as before.
+  **Only the same device**: the link reopens only the device it first opened
+  (:mod:`radios.device_id`); another device at the path (a reassigned
+  ``/dev/ttyUSB0``, another pty) is refused unopened, with one line and
+  ``("refused", text)`` naming both, once per device that appears (every attempt
+  counts in ``radio_refused``), and the bridge waits on for its own radio.
   :meth:`RadioBridge.lend_radio` uses the same path on purpose: it releases the
   device for a function that needs the port to itself (the radio guard's AT
   commands), then takes it back; listeners hear ``("paused", why)`` and ``("back", ...)``.
+  It first checks that the device at the path is still its own (``Link.check_device``),
+  so the borrower does not talk to another one.
 * **HEARTBEAT** into the local radio once a second (that makes a SiK radio report
   RADIO_STATUS), and the vehicle's HEARTBEAT and GLOBAL_POSITION_INT forwarded at
   1 Hz under the agent's system id so MAVProxy or QGroundControl list vehicles.
@@ -54,7 +61,10 @@ swarm/<own>/state      0           swarm/<sender name>/state
   bytes), the receiving one every 0.2 s and while it waits for a lost radio.
 * **Signing** (optional): every frame signed with the swarm key and this radio's
   link id; unsigned (but the local RADIO_STATUS), badly signed and replayed frames
-  are dropped and counted.
+  are dropped and counted. The node's signing clock starts at its start reference
+  (:mod:`radios.signing_state`: kept in ``signing_state``, the node's file in its
+  state folder, carried across restarts; without one, the wall clock at start), and
+  a frame stamped before it is refused: it was on the air before this run began.
 
 The receiving side (frames into the key space) is
 :class:`swarm.runtime.bridge_rx.AirToLocal`, a part of :class:`RadioBridge`; this
@@ -71,13 +81,14 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any, TypeVar
 
-from radios.errors import LinkClosedError, LinkOpenError, RadioError
+from radios.errors import DeviceMismatchError, LinkClosedError, LinkOpenError, RadioError
 from radios.link import Link
 from radios.mavlink import (
     FrameBuilder,
     SigningClock,
 )
 from radios.signing import Verifier
+from radios.signing_state import ClockKeeper, wall_ticks
 from swarm.core.air_queue import AirItem, AirQueue, Klass
 from swarm.core.messages import (
     Message,
@@ -111,6 +122,8 @@ class BridgeConfig:
     queue_sizes: tuple[int, int, int] = (64, 4, 16)
     signing_key: bytes | None = None
     link_id: int | None = None  # signing link id; None: drawn at random per start (a new stream)
+    #: the file that keeps the signing clock across restarts (radios.signing_state); None: none
+    signing_state: str | None = None
     radio_status_stale_s: float = 5.0
     #: reopen the radio when its device goes away (else stop and set ``link_lost``)
     reopen_radio: bool = True
@@ -133,6 +146,7 @@ class BridgeStats:
     unroutable: int = 0
     unknown_sender: int = 0
     not_for_us: int = 0
+    overheard: int = 0  # a station: leaders' Heartbeats to their members (bridge_rx)
     decode_errors: int = 0
     version_mismatch: int = 0
     conflicts: int = 0
@@ -143,6 +157,7 @@ class BridgeStats:
     radio_status_rejected: int = 0  # RADIO_STATUS not plausibly from the local radio
     radio_losses: int = 0  # the radio's device went away
     radio_reopens: int = 0  # ... and was opened again
+    radio_refused: int = 0  # attempts that found another device at the radio's path
     dropped_radio_down: int = 0  # frames dropped while the radio was away
     heartbeats: int = 0
     vehicle_forwarded: int = 0
@@ -175,7 +190,13 @@ class RadioBridge(AirToLocal):
         self.clock = clock
         self.stats = BridgeStats()
         self.guard = RadioStatusGuard(stale_s=self.cfg.radio_status_stale_s)
-        signing = SigningClock()  # one time base for what this node signs and verifies
+        # one time base for what this node signs and verifies, from its start reference
+        self._keeper: ClockKeeper | None = None
+        if self.cfg.signing_key and self.cfg.signing_state:
+            self._keeper = ClockKeeper(self.cfg.signing_state, name)
+            signing = self._keeper.open()
+        else:
+            signing = SigningClock(start=wall_ticks())
         self._builder = FrameBuilder(
             agent_id, COMP_ID, signing_key=self.cfg.signing_key, link_id=self.cfg.link_id, clock=signing
         )
@@ -213,6 +234,8 @@ class RadioBridge(AirToLocal):
     # -- life cycle -------------------------------------------------------------
     def start(self) -> RadioBridge:
         self._sub = self.session.declare_subscriber(f"{PREFIX}/**", self._on_local)
+        if self._keeper is not None:
+            self._keeper.start()
         for target, nm in ((self._tx_loop, "tx"), (self._rx_loop, "rx")):
             t = threading.Thread(target=target, name=f"bridge-{self.name}-{nm}", daemon=True)
             t.start()
@@ -233,6 +256,8 @@ class RadioBridge(AirToLocal):
                 pass
         for t in self._threads:
             t.join(2.0)
+        if self._keeper is not None:
+            self._keeper.close()  # the mark, once more, for the next start
 
     def beats(self) -> dict[str, tuple[float, float]]:
         """Each thread's last round (``time.monotonic()``) and its longest wait between rounds."""
@@ -417,6 +442,7 @@ class RadioBridge(AirToLocal):
             deadline = time.monotonic() + timeout
             # the receive thread notices its closed port and waits in _radio_lost
             self._rx_away.wait(max(0.0, deadline - time.monotonic()))
+            self.link.check_device()  # the borrower talks to our radio, not what replaced it
             return fn()
         finally:
             with self._cond:
@@ -472,6 +498,7 @@ class RadioBridge(AirToLocal):
         open, False if the bridge closes or the radio cannot come back."""
         first, longest = self.cfg.reopen_backoff
         backoff, next_log = first, t0 + 1.0
+        refused = ""  # the last refusal said (one line per device that appears)
         while True:
             self._beat_rx = time.monotonic()  # the receive thread, waiting for the radio
             with self._cond:
@@ -487,11 +514,23 @@ class RadioBridge(AirToLocal):
                 self.link.reopen()
                 return True
             except LinkOpenError as exc:
-                if not self.cfg.reopen_radio:  # lent, and gone meanwhile: as any loss without reopening
+                mismatch = isinstance(exc, DeviceMismatchError)
+                if mismatch:
+                    self.stats.radio_refused += 1
+                if not self.cfg.reopen_radio:  # lent, and gone (or replaced) meanwhile: as any loss
                     log.info("bridge %s: radio %s lost: %s", self.name, url, exc)
+                    self.loss_reason = str(exc)
                     self.link_lost = True
                     self._tell("lost", str(exc))
                     return False
+                if mismatch:  # another device at the path: never opened; said once per device
+                    if str(exc) != refused:
+                        refused = str(exc)
+                        log.warning("bridge %s: radio refused %s; waiting for the radio", self.name, exc)
+                        self._tell("refused", refused)
+                    backoff = min(longest, backoff * 2)
+                    continue
+                refused = ""
                 now = self.clock()
                 if now >= next_log:  # about once a second, not once per attempt
                     next_log = now + 1.0

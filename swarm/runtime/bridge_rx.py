@@ -12,8 +12,9 @@ bridge's receive thread):
   counted and logged once per reason);
 * a TUNNEL frame is unpacked (:func:`swarm.core.tunnel.unpack_tunnel`): a frame
   from our own id is a conflict; one addressed to another node (``target_system``,
-  or a multicast list without us) is not for us; its payload must decode
-  (a message of another protocol version is counted and logged once per sender).
+  or a multicast list without us) is not for us (but a station takes a leader's
+  Heartbeat to its members: the task and members it shows); its payload must
+  decode (a message of another protocol version is counted and logged once per sender).
   Then the key is rebuilt from the kind and the sender: Advertize and GSAdvertize
   (whose sender must be the frame's) teach the name table
   (:class:`swarm.core.names.NameTable`) and are published unless the name
@@ -42,7 +43,17 @@ from typing import TYPE_CHECKING, Any
 from radios.mavlink import MSG_RADIO_STATUS, MSG_TUNNEL, Frame, radio_status_fields
 from radios.signing import Verifier
 from swarm.core.air_queue import AirItem, Klass
-from swarm.core.messages import Advertize, Command, GSAdvertize, Message, NameConflict, decode, encode
+from swarm.core.gslink import is_station
+from swarm.core.messages import (
+    Advertize,
+    Command,
+    GSAdvertize,
+    Heartbeat,
+    Message,
+    NameConflict,
+    decode,
+    encode,
+)
 from swarm.core.names import NameTable, conflict_note
 from swarm.core.radio_guard import RadioState, RadioStatusGuard
 from swarm.core.tunnel import Kind, unpack_tunnel
@@ -143,13 +154,12 @@ class AirToLocal:
         if sender == self.id:
             self._conflict(self.name, sender, reason="a frame from another radio uses our id")
             return
-        if target not in (0, self.id):
+        if target not in (0, self.id) or (kind == Kind.MULTI and self.id not in ids):
             self.stats.not_for_us += 1
+            if kind in (Kind.P2P, Kind.MULTI) and is_station(self.id):
+                self._overhear(sender, data)
             return
         if kind == Kind.MULTI:
-            if self.id not in ids:
-                self.stats.not_for_us += 1
-                return
             kind = Kind.P2P
         try:
             msg = decode(data)
@@ -161,6 +171,22 @@ class AirToLocal:
             self.stats.decode_errors += 1
             return
         self._deliver(kind, sender, msg, data)
+
+    def _overhear(self, sender: int, data: bytes) -> None:
+        """A station hears a leader's Heartbeat on its way to the members: it is how the
+        station learns the task the swarm flies and the leader's member list
+        (:meth:`swarm.core.station.StationCore.handle`), also after its own restart.
+        Only a Heartbeat of the frame's own sender; anything else for others is dropped."""
+        if not data or data[0] & 0x1F != Heartbeat.TYPE:
+            return  # not a Heartbeat: not decoded
+        try:
+            msg = decode(data)
+        except DecodeError:
+            self.stats.decode_errors += 1
+            return
+        if isinstance(msg, Heartbeat) and msg.sender == sender:
+            self.stats.overheard += 1
+            self._publish(inbox_key(self.name), data)
 
     def _deliver(self, kind: Kind, sender: int, msg: Message, data: bytes) -> None:
         """Publish a frame's message (for this node) under its key."""

@@ -29,7 +29,19 @@ the envelope and what may cross are :mod:`swarm.core.federation`'s):
   ``command_timeout``: 504.
 
 Callbacks run on Zenoh's threads; whatever a hostile sender puts there is counted
-and dropped (``stats``), never raised into Zenoh.
+and dropped (``stats``), never raised into Zenoh. A state stamped too far ahead of
+this station's clock is refused (:data:`~swarm.core.federation.FUTURE_S`) and said
+once per sender as an event (a clock set wrong, or a forgery).
+
+With a key and a ``state_file`` (the station's state folder), the gates' records
+cross a restart (:meth:`~swarm.core.federation.Gate.records`): read at :meth:`start`
+(a file that cannot be read is one warning line, and the gates start empty), written
+atomically (:func:`radios.statefile.write_atomic`) when a command is taken, before it
+is carried out (so one overheard on the router and replayed after a crash is still
+one seen before), at most every 10 s when states came (a state replayed from those
+seconds is superseded by the sender's next live one), and at :meth:`stop`. A save
+that fails is one warning line (the command still runs: it is the operator's).
+Without a key nothing is kept: anyone could forge what a record would guard against.
 """
 
 from __future__ import annotations
@@ -46,7 +58,9 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from radios.statefile import read_state, write_atomic
 from swarm.core.federation import (
+    FUTURE_S,
     KIND_COMMAND,
     KIND_RESULT,
     KIND_STATE,
@@ -74,6 +88,9 @@ log = logging.getLogger(__name__)
 
 MAX_IN_FLIGHT = 8
 MAX_STATIONS = 32  # other stations kept at once: names beyond are refused (one event)
+STATE_FORMAT = "uav-swarm station replay guard"
+STATE_LIMIT = 2 * 1024 * 1024  # bytes: 4096 commands and 256 senders are well under this
+SAVE_S = 10.0  # states taken are saved at most this often (commands: each, at once)
 
 Result = tuple[int, dict[str, Any]]
 
@@ -116,6 +133,7 @@ class Federation:
         command_timeout: float = 18.0,  # inside the server's 20 s: its answer, not a 504
         clock: Callable[[], float] = time.monotonic,
         wall: Callable[[], float] = time.time,
+        state_file: str | None = None,
     ) -> None:
         self.name = name
         self.connect, self.listen = tuple(connect), tuple(listen)
@@ -141,12 +159,80 @@ class Federation:
         self._thread: threading.Thread | None = None
         self.session: Any = None
         self._decls: list[Any] = []
+        self.state_file = state_file if key is not None else None  # unsigned: nothing worth keeping
+        self._saved_at = 0.0
+        self._saved_taken = -1
+        self._save_failing = False
+        self._save_lock = threading.Lock()
+
+    # -- the gates' record across restarts -------------------------------------------------
+    def _gates_by_name(self) -> dict[str, Gate]:
+        return {"states": self.state_gate, "commands": self.command_gate, "results": self.result_gate}
+
+    def _load(self) -> None:
+        if self.state_file is None:
+            return
+        try:
+            obj = read_state(self.state_file, STATE_LIMIT)
+            if obj.get("format") != STATE_FORMAT or obj.get("version") != 1:
+                raise ValueError("not a station replay guard of this version")
+            wall = self.wall()
+            with self._gates:
+                for name, gate in self._gates_by_name().items():
+                    gate.restore(obj.get(name), wall)
+        except FileNotFoundError:
+            return
+        except (ValueError, FederationRefused) as exc:
+            log.warning(
+                "federation state %s ignored (%s): commands taken before this start are not remembered",
+                self.state_file,
+                exc,
+            )
+
+    def save(self) -> bool:
+        """Write the gates' record now (False, one warning line, if it cannot be)."""
+        if self.state_file is None:
+            return False
+        with self._save_lock:
+            wall = self.wall()
+            with self._gates:
+                taken = sum(g.taken for g in self._gates_by_name().values())
+                body = {name: g.records(wall) for name, g in self._gates_by_name().items()}
+            data = json.dumps({"format": STATE_FORMAT, "version": 1, **body}, separators=(",", ":"))
+            try:
+                write_atomic(self.state_file, data.encode())
+            except OSError as exc:
+                if not self._save_failing:
+                    log.warning(
+                        "federation state %s not saved (%s): a command overheard before a restart "
+                        "could be carried out again after it",
+                        self.state_file,
+                        exc.strerror or exc,
+                    )
+                self._save_failing = True
+                return False
+            if self._save_failing:
+                log.warning("federation state %s saved again", self.state_file)
+            self._save_failing = False
+            self._saved_at, self._saved_taken = self.clock(), taken
+            return True
+
+    def _save_if_changed(self) -> None:
+        if self.state_file is None or self.clock() - self._saved_at < SAVE_S:
+            return
+        with self._gates:
+            taken = sum(g.taken for g in self._gates_by_name().values())
+        if taken != self._saved_taken:
+            self.save()
 
     # -- life cycle ---------------------------------------------------------------------
     def start(self) -> Federation:
         """Open the session and start publishing. Raises TransportError (endpoints) or
         CertError (the TLS or ACL files)."""
-        self.session = open_session(self.listen, self.connect, tls=self.tls, acl=self.acl)
+        self._load()
+        self.session = open_session(
+            self.listen, self.connect, tls=self.tls, acl=self.acl, signed=self.key is not None
+        )
         try:
             self._decls.append(self.session.declare_subscriber(f"{PREFIX}/*/state", self._on_state))
             self._decls.append(self.session.declare_queryable(command_key(self.name), self._on_query))
@@ -173,6 +259,7 @@ class Federation:
                 session.close()
             except Exception:
                 log.debug("federation: close failed", exc_info=True)
+            self.save()
 
     @property
     def alive(self) -> bool:
@@ -210,6 +297,7 @@ class Federation:
                 self.stats["bytes"] += len(data)
             except Exception:
                 log.debug("federation: publish failed", exc_info=True)
+            self._save_if_changed()
 
     def request(self, station: str, body: dict[str, Any]) -> Future[Result]:
         """Send command object ``body`` to ``station``; its (status, body) as a future."""
@@ -254,6 +342,14 @@ class Federation:
     def _refused(self, what: str, exc: FederationRefused) -> None:
         self.stats["refused"] += 1
         log.debug("federation: %s refused: %s", what, exc)
+        text = str(exc)
+        if text.startswith("from the future: from "):  # a clock set wrong, or a forgery: said once
+            sender, _sep, ahead = text.removeprefix("from the future: from ").partition(", ")
+            self._say(
+                f"future/{sender}",
+                f"a state from station {sender} stamped {ahead} ahead of this station's clock "
+                f"was refused (more than {FUTURE_S:g} s: a clock set wrong, or a forgery)",
+            )
 
     def _on_state(self, sample: Any) -> None:
         try:
@@ -327,6 +423,7 @@ class Federation:
             query.drop()
             return
         self.stats["commands_in"] += 1
+        self.save()  # taken: remembered across a restart before it is carried out
         answer = self._answer(query, env.sender, env.t_us)
         try:
             body = load_body(env.body)

@@ -93,6 +93,7 @@ def open_node(
     key_file: str | None = None,
     capture: Any = None,
     link: Any = None,
+    signing_state: str | None = None,
     tls: TlsFiles | None = None,
     acl: str | None = None,
 ) -> tuple[Any, Any, RadioBridge | None]:
@@ -105,7 +106,8 @@ def open_node(
     returned (its opener closes it). ``capture`` is a ``.tlog`` path or a capture
     sink (:class:`radios.capture.CaptureSink`: an agent's flight log); a handed link
     is captured to a sink too, through a wrapper its opener need not know of.
-    Whatever was opened is closed again if a later step fails.
+    ``signing_state``: the file that keeps the signing clock across restarts
+    (:mod:`radios.signing_state`). Whatever was opened is closed again if a later step fails.
 
     Raises:
         radios.errors.ConfigError: the key file. radios.errors.LinkOpenError: the radio.
@@ -121,7 +123,7 @@ def open_node(
     ours = link is None  # a handed link is closed by whoever opened it
     if link is None:
         if radio is None:
-            return open_session(listen, connect, tls=tls, acl=acl), None, None
+            return open_session(listen, connect, tls=tls, acl=acl, signed=key is not None), None, None
         link = open_link(radio, capture=capture)
     elif capture is not None and not isinstance(capture, str):
         from radios.capture import CaptureLink
@@ -135,7 +137,11 @@ def open_node(
         raise
     try:
         bridge = RadioBridge(
-            session, link, name=name, agent_id=agent_id, config=BridgeConfig(signing_key=key)
+            session,
+            link,
+            name=name,
+            agent_id=agent_id,
+            config=BridgeConfig(signing_key=key, signing_state=signing_state),
         ).start()
     except BaseException:
         if ours:
@@ -163,6 +169,7 @@ def open_node_io(name: str, agent_id: int, node: NodeOptions, *, capture: Any = 
         key_file=node.key_file,
         capture=capture,
         link=node.link,
+        signing_state=node.signing_state,
         tls=node.tls,
         acl=node.acl_file,
     )

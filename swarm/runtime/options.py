@@ -54,9 +54,11 @@ class NodeOptions:
     """Where a node meets the others: ``radio`` (a link URL: serial device, emulator
     pty...), ``link`` (a :class:`radios.link.Link` already open: the node bridges it
     but does not close it, its opener does), or Zenoh endpoints to listen on and
-    connect to. ``key_file``: the swarm's signing key for the radio's frames. ``tls``:
-    the certificates of ``tls/`` endpoints; ``acl_file``: Zenoh's access control for
-    the nodes that connect to this one's listen endpoints.
+    connect to. ``key_file``: the swarm's signing key for the radio's frames;
+    ``signing_state``: the file that keeps the node's signing clock across restarts
+    (:mod:`radios.signing_state`; None: none kept, replays refused from the wall clock
+    at start only). ``tls``: the certificates of ``tls/`` endpoints; ``acl_file``:
+    Zenoh's access control for the nodes that connect to this one's listen endpoints.
 
     Raises:
         ValueError: none or more than one way in.
@@ -67,6 +69,7 @@ class NodeOptions:
     zenoh_listen: Sequence[str] = ()
     zenoh_connect: Sequence[str] = ()
     key_file: str | None = None
+    signing_state: str | None = None
     tls: TlsFiles | None = None
     acl_file: str | None = None
 

@@ -14,10 +14,16 @@ this order (README, "Security"):
    ``Sec-Fetch-Site: cross-site|same-site`` is refused too, except for the page
    and its files (a link to the station may be followed): 403.
 3. The token, when the station has one (always when it listens beyond loopback;
-   generated with :mod:`secrets` unless given): ``Authorization: Bearer``, the
-   ``gcs_token_<port>`` cookie, or ``?token=`` (then set as that cookie, HttpOnly
-   and SameSite=Strict), compared in constant time. Without it every route
-   answers 401, ``GET /`` with a form asking for it.
+   generated with :mod:`secrets` unless given): ``Authorization: Bearer`` (the page's
+   requests), the WebSocket subprotocol ``token.<TOKEN>`` beside ``swarm-gcs`` (a
+   browser cannot set headers on a WebSocket), or ``?token=`` (tools), compared in
+   constant time; without it every route answers 401 but the page itself (``GET /``,
+   ``/static/``, ``/vendor/``: files that hold nothing of the swarm). The token is
+   never a cookie: browsers send a host's cookies to every port of it, so every other
+   web service on the station's machine would get it. The page keeps it in its
+   origin's storage (scheme, host and port: this station's alone) and asks for it
+   when the API refuses (static/token.js). A cookie an earlier version set is
+   deleted when the browser shows it.
 
 Then what a client sends is read by the functions here, each assuming a hostile
 sender and refusing with a :class:`~swarm.core.station.CommandRefused` (a status and
@@ -50,6 +56,7 @@ from pathlib import Path
 from typing import Any
 
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from swarm.core.station import CommandRefused
 
@@ -58,11 +65,16 @@ MAX_WS_FRAME = 1024 * 1024  # beyond this the WebSocket closes (1009); up to it:
 MAX_DEPTH = 16  # JSON nesting: a command is 1 deep
 MAX_INT_DIGITS = 1000  # longer integers are malformed (Python refuses 4300 and more anyway)
 MAX_ID = 64  # a WebSocket request's id: a string this long, or an integer
-#: a token travels in a URL and a cookie: unreserved URL characters only
+#: a token travels in a URL and a WebSocket subprotocol: unreserved URL characters only
 TOKEN_RE = re.compile(r"[A-Za-z0-9._~-]{16,256}")
 TOKEN_RULE = "16 to 256 characters of A-Z a-z 0-9 . _ ~ -"
 HOST_RE = re.compile(r"[a-z0-9]([a-z0-9-]*[a-z0-9])?(\.[a-z0-9]([a-z0-9-]*[a-z0-9])?)*")
 WILDCARDS = ("", "0.0.0.0", "::")
+#: a request's key: it passed rule 3 (the page's files pass without a token)
+AUTHORIZED = web.RequestKey("gcs_authorized", bool)
+#: the page's WebSocket subprotocol, and the prefix of the one that carries the token
+WS_PROTOCOL = "swarm-gcs"
+WS_TOKEN_PREFIX = "token."
 
 
 def is_loopback(host: str) -> bool:
@@ -172,20 +184,6 @@ def error_response(status: int, reason: str) -> web.Response:
     return resp
 
 
-LOGIN_PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width">
-<title>Ground station: token needed</title>
-<style>body{font:16px system-ui,sans-serif;margin:3em auto;max-width:34em;padding:0 1em}
-input{font:inherit;width:100%;margin:.5em 0;padding:.4em}button{font:inherit;padding:.4em 1.2em}</style>
-</head><body><h1>This ground station needs its token</h1>
-<p>Open the address the station printed when it started (it ends in
-<code>/?token=&hellip;</code>), or paste the token here.</p>
-<form method="get" action="/"><label for="token">Token</label>
-<input id="token" name="token" type="password" autocomplete="current-password" required autofocus>
-<button type="submit">Open the station</button></form></body></html>
-"""
-
-
 def safe_file(root: Path, rel: str) -> Path | None:
     """``root/rel`` if it is a file inside ``root`` (no traversal, no symlink out)."""
     if not rel or "\x00" in rel:
@@ -244,8 +242,8 @@ async def read_json(request: web.Request, body_timeout: float) -> Any:
 
     Raises:
         CommandRefused: 415 not ``application/json`` (UTF-8), 413 over
-            :data:`MAX_BODY`, 408 not in within ``body_timeout``, 400 not UTF-8 or
-            malformed (:func:`parse_json`).
+            :data:`MAX_BODY`, 400 not UTF-8 or malformed (:func:`parse_json`);
+            :class:`BodyBroken`: 408 not in within ``body_timeout``, 400 cut off.
     """
     charset = (request.charset or "utf-8").lower()
     if request.content_type != "application/json" or charset not in ("utf-8", "utf8"):
@@ -255,7 +253,9 @@ async def read_json(request: web.Request, body_timeout: float) -> Any:
     try:
         raw = await asyncio.wait_for(request.read(), body_timeout)
     except TimeoutError:
-        raise CommandRefused(408, f"the body did not arrive in {body_timeout:g} s") from None
+        raise BodyBroken(408, f"the body did not arrive in {body_timeout:g} s") from None
+    except (ConnectionError, web.RequestPayloadError, HttpProcessingError) as exc:
+        raise BodyBroken(400, "the body could not be read: " + " ".join(str(exc).split())[:120]) from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
@@ -263,11 +263,17 @@ async def read_json(request: web.Request, body_timeout: float) -> Any:
     return parse_json(text)
 
 
+class BodyBroken(CommandRefused):
+    """A body that did not arrive whole (408: not in time, which is also what bad
+    chunking after the headers comes to; 400: the connection lost): a malformed
+    request, logged as one (:class:`swarm.runtime.connections.HttpLog`)."""
+
+
 class Guard:
     """Rules 1 to 3 for one server: its listening ``host``, the ``allow_hosts``, its
-    ``token`` (None: none needed) and its cookie's name (asked at each request: the
-    port is known once the server listens). Refusals are counted in
-    ``stats["http_refused"]``."""
+    ``token`` (None: none needed) and the name of the cookie earlier versions kept it
+    in (asked at each request: the port is known once the server listens), deleted
+    wherever a browser still sends it. Refusals are counted in ``stats["http_refused"]``."""
 
     def __init__(
         self,
@@ -332,16 +338,18 @@ class Guard:
         return None
 
     def token_source(self, request: web.Request) -> str | None:
-        """Where the request's valid token came from ("header", "cookie", "query"), or
+        """Where the request's valid token came from ("header", "protocol", "query"), or
         None; compared in constant time (rule 3)."""
         want = (self.token or "").encode()
         candidates: list[tuple[str, str]] = []
         auth = request.headers.get("Authorization", "")
         if auth[:7].lower() == "bearer ":
             candidates.append(("header", auth[7:].strip()))
-        cookie = request.cookies.get(self.cookie_name())
-        if cookie is not None:
-            candidates.append(("cookie", cookie))
+        if request.path == "/ws":
+            for proto in request.headers.get("Sec-WebSocket-Protocol", "").split(",")[:8]:
+                proto = proto.strip()
+                if proto.startswith(WS_TOKEN_PREFIX):
+                    candidates.append(("protocol", proto[len(WS_TOKEN_PREFIX) :]))
         query = request.query.get("token")
         if query is not None:
             candidates.append(("query", query))
@@ -365,24 +373,17 @@ class Guard:
         if why is not None:
             self.stats["http_refused"] += 1
             return error_response(403, why)
-        source = None
-        if self.token is not None:
-            source = self.token_source(request)
-            if source is None:
-                self.stats["http_refused"] += 1
-                if request.method in ("GET", "HEAD") and request.path == "/":
-                    return web.Response(
-                        status=401,
-                        text=LOGIN_PAGE,
-                        content_type="text/html",
-                        headers={"WWW-Authenticate": 'Bearer realm="swarm gcs"', "Cache-Control": "no-store"},
-                    )
-                return error_response(
-                    401,
-                    "this station needs its token: open the address it printed "
-                    "(.../?token=...) or send Authorization: Bearer TOKEN",
-                )
+        authorized = self.token is None or self.token_source(request) is not None
+        request[AUTHORIZED] = authorized  # the connection's owner has the token (or none is needed)
+        if not authorized and not page:
+            self.stats["http_refused"] += 1
+            return error_response(
+                401,
+                "this station needs its token: open the address it printed "
+                "(.../?token=...) or send Authorization: Bearer TOKEN",
+            )
         resp = await handler(request)
-        if source == "query" and not resp.prepared:
-            resp.set_cookie(self.cookie_name(), self.token or "", path="/", httponly=True, samesite="Strict")
+        legacy = self.cookie_name()
+        if legacy in request.cookies and not resp.prepared:
+            resp.del_cookie(legacy, path="/")  # an earlier version's: every port of the host got it
         return resp

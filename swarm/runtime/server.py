@@ -36,7 +36,10 @@ re-exports the security module's public names.
 Every error is a JSON object ``{"error": reason}`` with a 4xx status (a handler
 that fails unexpectedly answers 500 and logs the traceback, which never reaches
 the client). Idle connections (and clients that never finish their headers) are
-closed after ``idle_timeout``. A task notes the event loop's time twice a second
+closed after ``idle_timeout``. At most ``max_connections`` are open at once: the one
+over makes room by closing an idle one, never the operator's WebSocket or a request
+in progress; a malformed request is one log line, rate-limited
+(:mod:`swarm.runtime.connections`). A task notes the event loop's time twice a second
 (:meth:`GcsServer.beats`): a handler that blocks the loop stops it, and the service
 watchdog sees it (:mod:`swarm.runtime.notify`).
 """
@@ -50,6 +53,7 @@ import json
 import logging
 import math
 import os
+import re
 import secrets
 import threading
 import time
@@ -64,9 +68,10 @@ from aiohttp import web
 from swarm.core.federation import ack_any
 from swarm.core.station import CommandRefused, CommandSpec, parse_command
 from swarm.errors import SwarmError
+from swarm.runtime.connections import ConnectionLimiter, HttpLog, default_limit
 from swarm.runtime.security import (
+    AUTHORIZED,
     HOST_RE,
-    LOGIN_PAGE,
     MAX_BODY,
     MAX_DEPTH,
     MAX_ID,
@@ -75,6 +80,7 @@ from swarm.runtime.security import (
     TOKEN_RE,
     TOKEN_RULE,
     WILDCARDS,
+    BodyBroken,
     Guard,
     check_host_name,
     check_token,
@@ -98,6 +104,23 @@ OSM_TILES = "https://tile.openstreetmap.org/{z}/{x}/{y}.png"
 OSM_ATTRIBUTION = '&copy; <a href="https://www.openstreetmap.org/copyright">OpenStreetMap</a> contributors'
 LOCAL_TILES = "/tiles/{z}/{x}/{y}.png"
 MAX_WS_HZ = 10.0
+BACKLOG = 128  # connections the kernel holds for the server to accept (aiohttp's default)
+
+
+def page_policy(tiles: str | None) -> str:
+    """The page's Content-Security-Policy: scripts, styles and connections of its own
+    origin only, images also from the tile source ``tiles`` (a URL template), no
+    frames around it (no clickjacking of the command buttons)."""
+    img = "'self' data: blob:"
+    m = re.match(r"(https?)://([^/?#]+)", tiles or "")
+    if m:
+        host = re.sub(r"\{[^}]*\}", "*", m.group(2))  # {s}.tile.example.org
+        ok = re.fullmatch(r"(\*\.)?[A-Za-z0-9.-]+(:\d{1,5})?|\[[0-9A-Fa-f:.]+\](:\d{1,5})?", host)
+        img += f" {m.group(1)}://{host}" if ok else f" {m.group(1)}:"
+    return (
+        f"default-src 'self'; img-src {img}; object-src 'none'; base-uri 'none'; "
+        "frame-ancestors 'none'; form-action 'self'"
+    )
 
 
 class ServerError(SwarmError):
@@ -160,6 +183,7 @@ class ServerConfig:
     allow_hosts: tuple[str, ...] = ()  # Host names served besides localhost and the address
     body_timeout: float = 10.0  # a request body not in by then: 408
     idle_timeout: float = 15.0  # an idle connection (or one stuck in its headers) is closed
+    max_connections: int | None = None  # open at once; None: half the file limit, at most 512
     token_generated: bool = False  # set here when the token was made up
 
     def __post_init__(self) -> None:
@@ -169,6 +193,8 @@ class ServerConfig:
             v = getattr(self, k)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{k} {v}: a positive number of seconds")
+        if self.max_connections is not None and self.max_connections < 1:
+            raise ValueError(f"max_connections {self.max_connections}: at least 1")
         if self.token is not None:
             check_token(self.token)
         elif not is_loopback(self.host):
@@ -201,6 +227,9 @@ class GcsServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._runner: web.AppRunner | None = None
+        self._listener: asyncio.Server | None = None
+        self.limiter: ConnectionLimiter | None = None  # once started
+        self.http_log = HttpLog(self.stats, time.monotonic)
         self.ws = WsHub(self.station, self.cfg.ws_hz, self.stats, self.run_command, self._spawn)
         self._tasks: set[asyncio.Task[Any]] = set()
         self._stopped = False
@@ -223,7 +252,7 @@ class GcsServer:
 
     @property
     def cookie_name(self) -> str:
-        """One cookie per port: cookies are per host, and two stations may share one."""
+        """The cookie earlier versions kept the token in (deleted where a browser sends it)."""
         return f"gcs_token_{self.port}"
 
     # -- life cycle ---------------------------------------------------------------
@@ -288,7 +317,9 @@ class GcsServer:
         guard = Guard(
             self.cfg.host, self.cfg.allow_hosts, self.cfg.token, lambda: self.cookie_name, self.stats
         )
-        app = web.Application(middlewares=[self._errors, guard.middleware], client_max_size=MAX_BODY)
+        app = web.Application(
+            middlewares=[self._errors, guard.middleware, self._serving], client_max_size=MAX_BODY
+        )
         r = app.router
         r.add_get("/", self._index)
         r.add_get("/static/{path:.+}", self._static)
@@ -302,16 +333,28 @@ class GcsServer:
         r.add_get("/api/replay", self._replay_get)
         r.add_post("/api/replay", self._replay_post)
         r.add_get("/ws", self.ws.handle)
+        loop = asyncio.get_running_loop()
+        self.http_log.loop = loop
+        loop.set_exception_handler(self.http_log.loop_exception)  # a failed accept: one line
         self._runner = web.AppRunner(
-            app, access_log=None, handle_signals=False, keepalive_timeout=self.cfg.idle_timeout
+            app,
+            access_log=None,
+            handle_signals=False,
+            keepalive_timeout=self.cfg.idle_timeout,
+            logger=self.http_log,  # a malformed request: one line, rate-limited
         )
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.cfg.host, self.cfg.port)
-        await site.start()
-        addrs = self._runner.addresses
-        if addrs and isinstance(addrs[0], tuple):
-            self.port = int(addrs[0][1])
-        self.ws.attach(asyncio.get_running_loop())
+        server = self._runner.server
+        assert server is not None
+        # the listener is ours (not a TCPSite): each connection passes the limiter
+        self.limiter = ConnectionLimiter(self.cfg.max_connections or default_limit(), self.stats)
+        self._listener = await loop.create_server(
+            self.limiter.factory(server), self.cfg.host or None, self.cfg.port, backlog=BACKLOG
+        )
+        sockets = self._listener.sockets
+        if sockets:
+            self.port = int(sockets[0].getsockname()[1])
+        self.ws.attach(loop)
         self._spawn(self.ws.broadcast())
         self._spawn(self._pulse())
 
@@ -328,9 +371,12 @@ class GcsServer:
         self.ws.detach()
         for t in list(self._tasks):
             t.cancel()
+        if self._listener is not None:
+            self._listener.close()
         await self.ws.close_clients()
         if self._runner is not None:
             await self._runner.cleanup()
+        self.http_log.close()
         # what is left (a connection still draining a refused body): cancelled, not
         # abandoned with the loop
         rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
@@ -367,15 +413,44 @@ class GcsServer:
             log.exception("gcs server: %s %s failed", request.method, request.path)
             return error_response(500, f"internal error: {type(exc).__name__}")
 
+    @web.middleware
+    async def _serving(
+        self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+    ) -> web.StreamResponse:
+        """A request that passed the guard: busy until it ends (never closed to make room
+        for another); its connection is the operator's if it had the token."""
+        if self.limiter is None:
+            return await handler(request)
+        with self.limiter.serving(request.transport, proven=request.get(AUTHORIZED, True)):
+            return await handler(request)
+
+    async def _body(self, request: web.Request) -> Any:
+        """:func:`read_json`; a body broken on the wire is also a malformed request's line."""
+        try:
+            return await read_json(request, self.cfg.body_timeout)
+        except BodyBroken as exc:
+            self.http_log.malformed(request.remote or "?", exc.reason)
+            raise
+
     # -- files ---------------------------------------------------------------------
-    async def _file(self, root: Path, rel: str, what: str) -> web.StreamResponse:
+    async def _file(
+        self, root: Path, rel: str, what: str, headers: dict[str, str] | None = None
+    ) -> web.StreamResponse:
         p = safe_file(root, rel)
         if p is None:
             return error_response(404, f"{what} not found: {rel}")
-        return web.FileResponse(p, headers={"Cache-Control": "no-cache"})
+        return web.FileResponse(p, headers=headers or {"Cache-Control": "no-cache"})
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        return await self._file(self.cfg.static_dir, "index.html", "page")
+        # public (it holds nothing of the swarm); its address may hold the token once:
+        # kept out of the browser's cache. The page's scripts can read the token, so
+        # they may run only from here and talk only to here (and load the map's tiles)
+        headers = {
+            "Cache-Control": "no-store",
+            "Content-Security-Policy": page_policy(self.cfg.tile_template),
+            "X-Content-Type-Options": "nosniff",
+        }
+        return await self._file(self.cfg.static_dir, "index.html", "page", headers)
 
     async def _static(self, request: web.Request) -> web.StreamResponse:
         return await self._file(self.cfg.static_dir, request.match_info["path"], "file")
@@ -457,7 +532,7 @@ class GcsServer:
 
     async def _command_http(self, request: web.Request) -> web.Response:
         try:
-            body = await read_json(request, self.cfg.body_timeout)
+            body = await self._body(request)
         except CommandRefused as exc:
             return error_response(exc.status, exc.reason)
         status, out = await self.run_command(body)
@@ -467,7 +542,7 @@ class GcsServer:
         """``{"id": N}``: acknowledge alert N (the alert back; 400/404 one line);
         ``"station"``: another station's alert N, acknowledged there."""
         try:
-            body = await read_json(request, self.cfg.body_timeout)
+            body = await self._body(request)
             if not isinstance(body, dict):
                 raise CommandRefused(400, 'an acknowledgement is a JSON object {"id": N}')
             alert = ack_any(self.station, body.get("id"), body.get("station"))
@@ -486,7 +561,7 @@ class GcsServer:
         if rp is None:
             return error_response(404, "not in replay mode (swarm gcs --replay CAPTURE)")
         try:
-            body = await read_json(request, self.cfg.body_timeout)
+            body = await self._body(request)
             if not isinstance(body, dict):
                 raise CommandRefused(400, "a replay control is a JSON object")
             return web.json_response(rp.control(*replay_args(body)))
@@ -498,7 +573,6 @@ __all__ = [
     "HOST_RE",
     "LEAFLET_DIR",
     "LOCAL_TILES",
-    "LOGIN_PAGE",
     "MAX_BODY",
     "MAX_DEPTH",
     "MAX_ID",
@@ -518,6 +592,7 @@ __all__ = [
     "check_host_name",
     "check_token",
     "is_loopback",
+    "page_policy",
     "parse_json",
     "replay_args",
     "safe_file",

@@ -57,6 +57,7 @@ from swarm.core.messages import (
     decode,
     encode,
 )
+from swarm.core.zenoh_edge import key_over_ip
 from swarm.errors import DecodeError, TransportError
 
 if TYPE_CHECKING:
@@ -132,13 +133,28 @@ def open_session(
     scouting: bool = False,
     tls: TlsFiles | None = None,
     acl: str | None = None,
+    signed: bool = False,
 ) -> Any:
-    """Open a Zenoh session. Raises TransportError (bad endpoint, port in use) or
-    CertError (``tls`` files or the ``acl`` file: :func:`swarm.runtime.zenoh_tls.check_tls`).
+    """Open a Zenoh session. Raises TransportError (bad endpoint, port in use; with
+    ``signed``, a node holding the swarm key, a plain endpoint beyond loopback:
+    :func:`swarm.core.zenoh_edge.key_over_ip`) or CertError (``tls`` files or the
+    ``acl`` file: :func:`swarm.runtime.zenoh_tls.check_tls`). Warns (one log line) of
+    the key on a loopback endpoint and of TLS listening without an ACL.
 
     A session that only connects is a :class:`ClientSession` (Zenoh's client mode,
     opened in the background until the other side answers); otherwise Zenoh's own
     session in peer mode."""
+    verdict = key_over_ip([*listen, *connect], has_key=signed)
+    if verdict is not None and verdict.level == "refuse":
+        raise TransportError(verdict.text)
+    if verdict is not None:
+        log.warning("%s", verdict.text)
+    if tls is not None and listen and acl is None:
+        log.warning(
+            "warning: no access control: any certificate of the swarm's CA that connects to %s may publish "
+            "anything (swarm certs writes acl.json5)",
+            ", ".join(listen),
+        )
     acl_text = None
     if tls is not None:
         from swarm.runtime import zenoh_tls

@@ -57,7 +57,7 @@ from aiohttp import WSMsgType, web
 from swarm.core.federation import ack_any
 from swarm.core.station import CommandRefused
 from swarm.core.station_delta import build
-from swarm.runtime.security import MAX_BODY, MAX_WS_FRAME, parse_json, replay_args, ws_id
+from swarm.runtime.security import MAX_BODY, MAX_WS_FRAME, WS_PROTOCOL, parse_json, replay_args, ws_id
 
 if TYPE_CHECKING:
     from swarm.runtime.server import StationView
@@ -79,6 +79,7 @@ class _Client:
         self.wake = asyncio.Event()
         self.seq = 0  # the push this client holds (0: none, the next is the whole state)
         self.full_queued = False  # a whole state waits in the queue
+        self.full_seq = 0  # the push whose whole state it was last given
         self.closed = False
 
 
@@ -126,7 +127,9 @@ class WsHub:
                 await ws.close(code=1001, message=b"station stopping")
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
-        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=MAX_WS_FRAME)
+        # the page offers "swarm-gcs" and "token.<TOKEN>" (its token: security.py); the
+        # answer names the first, never the token
+        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=MAX_WS_FRAME, protocols=(WS_PROTOCOL,))
         await ws.prepare(request)
         c = _Client(ws)
         self._clients[ws] = c
@@ -187,8 +190,10 @@ class WsHub:
         elif mtype == "replay":
             self._replay(c, obj, mid)
         elif mtype == "state":
-            if self._base is not None and c.seq == self._seq:
-                c.seq = 0  # it has this push (or it is queued): the whole state at the next one
+            if self._base is not None and self._seq in (c.seq, c.full_seq):
+                # it has this push (or it is queued), or had its whole state already: the
+                # whole state at the next push, so a storm of requests gets at most one a push
+                c.seq = 0
             else:
                 self._send_full(c)
         elif mtype == "ack_alert":
@@ -243,7 +248,7 @@ class WsHub:
         self._enqueue(c, self._base_text, full=True)
         if self._replay_text is not None:
             self._enqueue(c, self._replay_text)
-        c.seq = self._seq
+        c.seq = c.full_seq = self._seq
 
     def push(self) -> None:
         """One push: a new snapshot, its delta to the clients in step, the whole state

@@ -49,6 +49,9 @@ SPACING_M = 8.0
 HEALTH_TIMEOUT_S = 120.0
 ROGUE_ID = 77
 RECHECK_S = 5.0
+#: the agents' radio-check period (``--radio-check-period``): a change that does not cut
+#: the radio off (TXPOWER, MAVLINK...) is found within one and undone within two
+CHECK_PERIOD_S = 20.0
 
 
 class BenchError(ChildError):
@@ -63,11 +66,16 @@ class FaultResult:
     dual_leader_s: float = 0.0
     commands_lost: int = 0
     frames_accepted_from_rogue: int = 0
+    #: what the fault did, and what the bench saw that proves its verdict (one line each)
+    injected: str = ""
+    observed: str = ""
     detail: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "fault": self.fault,
+            "injected": self.injected,
+            "observed": self.observed,
             "survived": self.survived,
             "recovery_s": None if self.recovery_s is None else round(self.recovery_s, 2),
             "dual_leader_s": round(self.dual_leader_s, 2),
@@ -86,12 +94,11 @@ class Snapshot:
     def leaders(self) -> set[int]:
         return {k for k, s in self.states.items() if s.get("phase") == "LEADER"}
 
-    def healthy(self) -> bool:
+    def agreed(self) -> bool:
+        """The agents' side of health: one leader, every live agent its member."""
         live = set(self.states)
-        if not live or self.station is None:
-            return False
         leaders = self.leaders()
-        if len(leaders) != 1:
+        if not live or len(leaders) != 1:
             return False
         lead = next(iter(leaders))
         if any(
@@ -99,10 +106,35 @@ class Snapshot:
             for s in self.states.values()
         ):
             return False
-        if set(self.states[lead].get("members", [])) != live - {lead}:
+        return set(self.states[lead].get("members", [])) == live - {lead}
+
+    def healthy(self) -> bool:
+        if self.station is None or not self.agreed():
             return False
+        lead = next(iter(self.leaders()))
+        live = set(self.states)
         connected = {a["id"] for a in self.station.get("agents", []) if a.get("connected")}
         return live <= connected and self.station.get("leader") == lead
+
+
+def profile_election_s(agents: int, loss: float, profile: str, seeds: int = 20) -> float:
+    """The profile's election time for the bench's swarm: the median, over ``seeds``
+    seeds, of a fresh election of ``agents`` agents at ``loss`` in the simulator (the
+    same cores over the same air model, in virtual time: a figure that does not depend
+    on how busy the machine is, unlike the bench's own first election)."""
+    import statistics
+
+    from swarm.sim.scenario import Scenario
+    from swarm.sim.simulate import Sim
+
+    times = [
+        r.elect_s
+        for r in (Sim(Scenario(agents=agents, loss=loss, profile=profile), s).run() for s in range(seeds))
+        if r.elect_s is not None
+    ]
+    if not times:
+        raise BenchError(f"the simulator elected no leader for {agents} agents at {loss:.0%} loss")
+    return float(statistics.median(times))
 
 
 def _home(k: int) -> str:
@@ -162,6 +194,8 @@ class AgentProc:
                 self.fc,
                 "--key",
                 b.key_file,
+                "--state-dir",
+                b.state_dir,
                 "--profile",
                 b.profile,
                 "--slots",
@@ -233,6 +267,8 @@ class FaultBench:
         self.workdir = workdir or self._tmp.name  # type: ignore[union-attr]
         self.key_file = os.path.join(self.workdir, "swarm.key")
         self.capture = os.path.join(self.workdir, "air.tlog")
+        # what the nodes keep across their restarts (their signing clocks): this run's own
+        self.state_dir = os.path.join(self.workdir, "state")
         # the radio guard: a radio moved off the swarm's network by a rogue's RT commands is
         # restored by its agent once it has heard no one for RECHECK_S
         self.agent_args: list[str] = [
@@ -241,7 +277,11 @@ class FaultBench:
             "--restore-radio",
             "--radio-recheck",
             str(RECHECK_S),
+            "--radio-check-period",
+            str(CHECK_PERIOD_S),
         ]
+        #: the emulator's statistics (every radio's registers: RAM, flash, running)
+        self.stats_json = os.path.join(self.workdir, "emulator-stats.json")
         self.log = log or (lambda _s: None)
         self.emu: Child | None = None
         self.links: list[str] = []
@@ -250,6 +290,8 @@ class FaultBench:
         self.station: Child | None = None
         self.station_url = ""
         self.elect_s: float | None = None
+        #: the profile's election time for this swarm (simulated: profile_election_s)
+        self.profile_elect_s = 0.0
         self.leader_timeout_s = 0.0
         self.history: list[Snapshot] = []
         self._hist_lock = threading.Lock()
@@ -286,6 +328,8 @@ class FaultBench:
             str(self.seed),
             "--capture",
             self.capture,
+            "--stats-json",
+            self.stats_json,
         )
         self.base_port = _free_base_port(self.n + 2)
         for k in range(1, self.n + 1):
@@ -298,6 +342,7 @@ class FaultBench:
         round_s = float(self.agents[1].ready.get("round_s", 0.5))
         prof = profile_by_name(self.profile, round_s)
         self.leader_timeout_s = prof.leader_timeout
+        self.profile_elect_s = profile_election_s(self.n, self.loss, self.profile)
         self._monitor = threading.Thread(target=self._watch, name="fault-bench-monitor", daemon=True)
         self._monitor.start()
         self.wait_healthy(HEALTH_TIMEOUT_S, "the first election")
@@ -312,6 +357,8 @@ class FaultBench:
                 self.links[self.n],
                 "--key",
                 self.key_file,
+                "--state-dir",
+                self.state_dir,
                 "--http",
                 "127.0.0.1:0",
                 "--json",
@@ -394,6 +441,13 @@ class FaultBench:
             f"no healthy swarm {timeout:.0f} s after {what}: " + (describe(snap) if snap else "no sample")
         )
 
+    def first_agreed(self, start: float) -> float | None:
+        """Seconds from ``start`` to the first sample where the agents agree on one
+        leader (:meth:`Snapshot.agreed`; the station not asked), None if none yet."""
+        with self._hist_lock:
+            hit = next((s for s in self.history if s.t >= start and s.agreed()), None)
+        return None if hit is None else hit.t - start
+
     def dual_leader_s(self, start: float, end: float) -> float:
         with self._hist_lock:
             samples = [s for s in self.history if start <= s.t <= end]
@@ -442,14 +496,24 @@ class FaultBench:
     def settled(self, what: str) -> None:
         self.wait_healthy(HEALTH_TIMEOUT_S, f"before {what}")
 
-    def measure(self, name: str, fault_start: float, fault_end: float, **detail: Any) -> FaultResult:
-        res = FaultResult(name, detail=dict(detail))
+    def measure(
+        self, name: str, fault_start: float, fault_end: float, *, injected: str = "", **detail: Any
+    ) -> FaultResult:
+        """Wait for health after a fault and say what was seen: ``observed`` starts as
+        the recovery and the dual leadership; a fault adds what proves its own claim."""
+        res = FaultResult(name, injected=injected, detail=dict(detail))
         try:
             res.recovery_s = self.wait_healthy(HEALTH_TIMEOUT_S, name, since=fault_end)
             res.survived = True
         except BenchError as exc:
             res.detail["error"] = str(exc)
         res.dual_leader_s = self.dual_leader_s(fault_start, time.monotonic())
+        healthy = (
+            f"healthy {res.recovery_s:.1f} s after the fault"
+            if res.recovery_s is not None
+            else f"NOT healthy within {HEALTH_TIMEOUT_S:.0f} s"
+        )
+        res.observed = f"{healthy}; two leaders for {res.dual_leader_s:.1f} s"
         return res
 
     def samples_since(self, start: float) -> list[Snapshot]:

@@ -34,6 +34,7 @@ from typing import Any
 
 from swarm.cli.bench.fault_bench import (
     AGENTS,
+    CHECK_PERIOD_S,
     HEALTH_TIMEOUT_S,
     HOME,
     KEY_PASSPHRASE,
@@ -47,6 +48,7 @@ from swarm.cli.bench.fault_bench import (
     FaultResult,
     Snapshot,
 )
+from swarm.cli.procs import json_events
 
 
 def leader_kill(bench: FaultBench) -> FaultResult:
@@ -54,9 +56,22 @@ def leader_kill(bench: FaultBench) -> FaultResult:
     lead = bench.leader()
     t = time.monotonic()
     bench.agents[lead].kill()
-    res = bench.measure("leader kill -9", t, t, killed=f"agent{lead}")
+    res = bench.measure(
+        "leader kill -9", t, t, injected=f"SIGKILL to the leader, agent{lead}", killed=f"agent{lead}"
+    )
+    new_leader = bench.first_agreed(t)
+    res.detail["new_leader_s"] = None if new_leader is None else round(new_leader, 2)
+    res.observed = (
+        f"a new leader followed by every survivor {_s(new_leader)} after the kill "
+        f"(target: two election times of the profile, {2 * bench.profile_elect_s:.1f} s), "
+        f"the station connected to all {_s(res.recovery_s)} after it"
+    )
     bench.agents[lead].start_agent()  # back for the next fault
     return res
+
+
+def _s(v: float | None) -> str:
+    return "never" if v is None else f"{v:.1f} s"
 
 
 def leader_stop(bench: FaultBench, stop_s: float = 10.0) -> FaultResult:
@@ -70,7 +85,13 @@ def leader_stop(bench: FaultBench, stop_s: float = 10.0) -> FaultResult:
     time.sleep(stop_s)
     os.killpg(a.agent.proc.pid, signal.SIGCONT)
     a.stopped = False
-    return bench.measure(f"leader SIGSTOP {stop_s:g} s", t, time.monotonic(), stopped=f"agent{lead}")
+    return bench.measure(
+        f"leader SIGSTOP {stop_s:g} s",
+        t,
+        time.monotonic(),
+        injected=f"SIGSTOP to the leader, agent{lead}, SIGCONT {stop_s:g} s later",
+        stopped=f"agent{lead}",
+    )
 
 
 def member_restart(bench: FaultBench, uptime_s: float = 90.0) -> FaultResult:
@@ -89,7 +110,12 @@ def member_restart(bench: FaultBench, uptime_s: float = 90.0) -> FaultResult:
     restart = time.monotonic()  # recovery counts from here: the new process's start-up included
     a.start_agent()
     return bench.measure(
-        f"member kill -9 and restart after {uptime_s:g} s", t, restart, restarted=f"agent{k}"
+        f"member kill -9 and restart after {uptime_s:g} s",
+        t,
+        restart,
+        injected=f"SIGKILL to member agent{k} after {uptime_s:g} s of everyone's uptime, started again "
+        "at once (recovery counts from the new process's start)",
+        restarted=f"agent{k}",
     )
 
 
@@ -102,7 +128,89 @@ def station_restart(bench: FaultBench) -> FaultResult:
     bench.station.stop()
     restart = time.monotonic()
     bench.start_station()
-    return bench.measure("station kill -9 and restart", t, restart)
+    return bench.measure(
+        "station kill -9 and restart", t, restart, injected="SIGKILL to the station, started again at once"
+    )
+
+
+def station_restart_in_command(
+    bench: FaultBench, after_s: float = 0.3, heading: float = 123.0
+) -> FaultResult:
+    """The station killed ``after_s`` into a swarm FOLLOW sent through its API, and
+    started again. Nothing may be lost or done twice: the operator's request either
+    answers truthfully or fails (never a false result); no agent carries the command out
+    twice; after the restart the station shows the task the leader really flies."""
+    import threading
+
+    from swarm.cli.bench.commands import _AGENT_RE
+
+    bench.settled("station restart during a command")
+    assert bench.station is not None
+    marks = {k: len(a.agent.lines) for k, a in bench.agents.items() if a.agent is not None}
+    box: dict[str, Any] = {}
+
+    def post() -> None:
+        try:
+            box["answer"] = bench.command(
+                {"target": "swarm", "kind": "follow", "heading": heading}, timeout=40
+            )
+        except OSError as exc:  # the station died under the request
+            box["error"] = type(exc).__name__
+
+    sender = threading.Thread(target=post, name="fault-command", daemon=True)
+    t = time.monotonic()
+    sender.start()
+    time.sleep(after_s)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(bench.station.proc.pid, signal.SIGKILL)
+    bench.station.stop()
+    restart = time.monotonic()
+    bench.start_station()
+    sender.join(45)
+    res = bench.measure(
+        "station kill -9 during a command, and restart",
+        t,
+        restart,
+        injected=f"a swarm FOLLOW (heading {heading:g}) posted to the station's API, the station killed "
+        f"{after_s:g} s later and started again",
+    )
+    time.sleep(3.0)  # the leader's next heartbeats carry the task to the new station
+    done: dict[int, dict[int, int]] = {}  # agent -> seq -> times carried out
+    for k, a in bench.agents.items():
+        for e in json_events(a.agent.lines[marks.get(k, 0) :] if a.agent else [], "pilot"):
+            m = _AGENT_RE.match(str(e.get("text", "")))
+            if m and m.group(1) == "FOLLOW" and m.group(4) == "ACCEPTED" and int(m.group(3)) >= 251:
+                seqs = done.setdefault(k, {})
+                seqs[int(m.group(2))] = seqs.get(int(m.group(2)), 0) + 1
+    twice = sum(n - 1 for seqs in done.values() for n in seqs.values() if n > 1)
+    carried = bool(done)
+    status, body = box.get("answer", (None, {}))
+    answered = [r for r in (body.get("results") or []) if r.get("result") == "ACCEPTED"]
+    false_results = sum(1 for r in answered if r.get("agent") not in done)  # an ACCEPTED never logged
+    st = bench.station_state() or {}
+    task = st.get("task") or {}
+    shown = task.get("heading")
+    wrong_view = carried and (shown is None or abs((float(shown) - heading + 180.0) % 360.0 - 180.0) > 1.0)
+    res.commands_lost = twice + false_results + int(wrong_view)
+    res.detail.update(
+        {
+            "http_status": status,
+            "http_error": box.get("error"),
+            "carried_out_by": sorted(done),
+            "carried_out_twice": twice,
+            "false_results": false_results,
+            "station_task_heading_after": shown,
+        }
+    )
+    res.observed += (
+        "; the operator's request "
+        + (f"answered {status}" if status is not None else f"failed ({box.get('error', 'no answer')})")
+        + f"; FOLLOW carried out by {sorted(done) or 'no agent'}, {twice} times twice; "
+        + f"{false_results} results claimed that no agent logged; the restarted station shows the task "
+        + f"heading {shown} (flown: {heading:g} if carried out)"
+    )
+    bench.command({"target": "swarm", "kind": "follow", "heading": 0})  # the V as before
+    return res
 
 
 def vehicle_restart(bench: FaultBench, down_s: float = 5.0) -> FaultResult:
@@ -115,7 +223,13 @@ def vehicle_restart(bench: FaultBench, down_s: float = 5.0) -> FaultResult:
     a.sim.stop()
     time.sleep(down_s)
     a.start_sim()
-    res = bench.measure("vehicle simulator killed and restarted", t, time.monotonic(), vehicle=f"agent{k}")
+    res = bench.measure(
+        "vehicle simulator killed and restarted",
+        t,
+        time.monotonic(),
+        injected=f"agent{k}'s vehicle simulator stopped, started again {down_s:g} s later",
+        vehicle=f"agent{k}",
+    )
     res.detail["agent_events"] = [e.get("text", "") for e in a.events("vehicle")][-4:]
     return res
 
@@ -126,6 +240,7 @@ def garbage(bench: FaultBench, size: int = 1 << 20) -> FaultResult:
     k = next(k for k in sorted(bench.agents) if k != lead)
     rnd = random.Random(bench.seed)
     data = rnd.randbytes(size)
+    paused_before = len([e for e in bench.agents[k].events("radio") if e.get("state") == "paused"])
     t = time.monotonic()
     fd = os.open(bench.agents[k].radio, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
     written = 0
@@ -137,9 +252,19 @@ def garbage(bench: FaultBench, size: int = 1 << 20) -> FaultResult:
                 time.sleep(0.01)
     finally:
         os.close(fd)
-    return bench.measure(
-        f"{size // 1024} KiB of garbage into a member's radio", t, time.monotonic(), radio=f"agent{k}"
+    end = time.monotonic()
+    res = bench.measure(
+        f"{size // 1024} KiB of garbage into a member's radio",
+        t,
+        end,
+        injected=f"{size // 1024} KiB of random bytes written into member agent{k}'s radio port "
+        f"(taken in {end - t:.0f} s: the radio sends them on the air in its own slots)",
+        radio=f"agent{k}",
     )
+    checks = [e for e in bench.agents[k].events("radio") if e.get("state") == "paused"][paused_before:]
+    res.detail["radio_checks_during"] = len(checks)
+    res.observed += f"; agent{k}'s radio checked {len(checks)} times (it still heard the swarm)"
+    return res
 
 
 def garbage_small(bench: FaultBench) -> FaultResult:
@@ -158,10 +283,67 @@ def radio_unplug(bench: FaultBench, down_s: float = 3.0) -> FaultResult:
         f"the leader's radio unplugged for {down_s:g} s and plugged back",
         t,
         time.monotonic(),
+        injected=f"the leader agent{lead}'s radio device removed for {down_s:g} s (the emulator's unplug)",
         radio=f"agent{lead}",
     )
     res.detail["agent_alive"] = bench.agents[lead].live
     if not bench.agents[lead].live:
+        res.survived = False
+    return res
+
+
+def radio_swap(bench: FaultBench, down_s: float = 3.0) -> FaultResult:
+    """The leader's radio unplugged and another device put at its path meanwhile (a
+    fresh pty the bench holds: a reassigned /dev/ttyUSB0), then its own radio back. The
+    agent must write nothing to the stranger, say so once, and take its radio back."""
+    import pty
+    import select
+    import tty
+
+    bench.settled("radio swap")
+    lead = bench.leader()
+    agent = bench.agents[lead]
+    path = agent.radio
+    before = len([e for e in agent.events("radio") if e.get("state") == "refused"])
+    t = time.monotonic()
+    bench.control(f"unplug {lead - 1}")
+    deadline = time.monotonic() + 10
+    while os.path.lexists(path) and time.monotonic() < deadline:  # the emulator removes the link
+        time.sleep(0.05)
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    other = os.ttyname(slave)
+    os.close(slave)
+    written = 0
+    try:
+        os.symlink(other, path)
+        end = time.monotonic() + down_s
+        while (left := end - time.monotonic()) > 0:
+            if select.select([master], [], [], left)[0]:
+                try:
+                    written += len(os.read(master, 4096))
+                except OSError:  # nobody holds it open
+                    time.sleep(0.05)
+        os.unlink(path)
+    finally:
+        os.close(master)
+    bench.control(f"replug {lead - 1}")
+    res = bench.measure(
+        f"the leader's radio unplugged and another device at its path for {down_s:g} s",
+        t,
+        time.monotonic(),
+        injected=f"the leader agent{lead}'s radio unplugged, a fresh pty put at its path ({path}) for "
+        f"{down_s:g} s, then its own radio plugged back",
+        radio=f"agent{lead}",
+    )
+    refused = [e for e in agent.events("radio") if e.get("state") == "refused"][before:]
+    res.detail.update(bytes_to_other_device=written, refused_lines=len(refused), agent_alive=agent.live)
+    res.frames_accepted_from_rogue += written > 0
+    res.observed += (
+        f"; {written} bytes written to the other device, {len(refused)} 'refused' line(s) from the agent, "
+        + ("the agent alive" if agent.live else "the agent DEAD")
+    )
+    if written or len(refused) != 1 or not agent.live:
         res.survived = False
     return res
 
@@ -191,7 +373,13 @@ def commands(bench: FaultBench, count: int = 20, loss: float = 0.2) -> FaultResu
     judged = _judge(_Lines(bench.station.lines[station_mark:]), agents, camp.pop("_bodies"))
     # the swarm commands leave the V stopped or following: FOLLOW again for the next fault
     bench.command({"target": "swarm", "kind": "follow", "heading": 0})
-    res = bench.measure(f"{count} swarm commands at {loss:.0%} loss", t, end)
+    res = bench.measure(
+        f"{count} swarm commands at {loss:.0%} loss",
+        t,
+        end,
+        injected=f"{count} swarm commands (FOLLOW with a new heading and STOP in turn) through the "
+        f"station's API with {loss:.0%} loss on every radio",
+    )
     res.commands_lost = int(judged["silently_lost"]) + int(judged["wrongly_reported"])
     res.detail.update(
         {
@@ -209,6 +397,12 @@ def commands(bench: FaultBench, count: int = 20, loss: float = 0.2) -> FaultResu
         }
     )
     res.detail.update({k: camp[k] for k in ("refused_at_station", "command_s_p50", "command_s_max")})
+    res.observed += (
+        f"; per addressee: {judged['accepted']} accepted, {judged['carried_out_unacked']} carried out "
+        f"without an answer, {judged['refused']} refused, {judged['no_answer']} without answer; "
+        f"{judged['silently_lost']} lost silently, {judged['wrongly_reported']} reported wrongly "
+        "(each checked against the agents' own logs)"
+    )
     return res
 
 
@@ -241,9 +435,16 @@ def _pose_stats(bench: FaultBench, start_wall: float, end_wall: float) -> dict[i
     return out
 
 
+#: forged RADIO_STATUS: the longest pose gap may grow by at most this factor over the
+#: quiet window's just before (the pose streams are what separation rests on)
+POSE_GAP_RATIO_MAX = 1.5
+
+
 def rogue_radio_status(bench: FaultBench, seconds: float = 20.0, hz: float = 10.0) -> FaultResult:
-    """Forged RADIO_STATUS (sysid 51, compid 68, txbuf 0) from the rogue at ``hz``: the
-    pose streams may slow by at most 20 %."""
+    """Forged RADIO_STATUS (sysid 51, compid 68, txbuf 0) from the rogue at ``hz``, judged
+    by the pose streams as put on the air: the longest gap between two poses of any agent
+    may be at most :data:`POSE_GAP_RATIO_MAX` times the longest of the quiet window just
+    before, of the same length (a rate kept on average can still hide a stall)."""
     import struct
 
     from radios.link import open_link
@@ -277,19 +478,34 @@ def rogue_radio_status(bench: FaultBench, seconds: float = 20.0, hz: float = 10.
     base = _pose_stats(bench, before_start, before_end)
     during = _pose_stats(bench, start_wall, end_wall)
     res = bench.measure(
-        f"rogue radio: forged RADIO_STATUS at {hz:g} Hz, txbuf 0", t, time.monotonic(), rogue_frames=sent
+        f"rogue radio: forged RADIO_STATUS at {hz:g} Hz, txbuf 0",
+        t,
+        time.monotonic(),
+        injected=f"{sent} RADIO_STATUS frames as the local radio's (sysid 51, txbuf 0 %) from a rogue "
+        f"radio at {hz:g} Hz for {seconds:g} s",
+        rogue_frames=sent,
     )
     rates = {k: (during[k][0] / base[k][0]) if base[k][0] else None for k in base}
     worst = min((r for r in rates.values() if r is not None), default=None)
+    gap_before = max(g for _n, g in base.values())
+    gap_during = max(g for _n, g in during.values())
+    ratio = gap_during / gap_before if gap_before > 0 else float("inf")
     res.detail.update(
         {
             "pose_rate_ratio_min": None if worst is None else round(worst, 3),
-            "longest_pose_gap_s_before": round(max(g for _n, g in base.values()), 2),
-            "longest_pose_gap_s_during": round(max(g for _n, g in during.values()), 2),
+            "longest_pose_gap_s_before": round(gap_before, 2),
+            "longest_pose_gap_s_during": round(gap_during, 2),
+            "longest_pose_gap_ratio": round(ratio, 2),
         }
     )
-    if worst is None or worst < 0.8:
-        res.frames_accepted_from_rogue = sent  # the forgeries slowed the swarm
+    res.observed += (
+        f"; longest pose gap {gap_during:.2f} s during against {gap_before:.2f} s in the quiet "
+        f"{seconds:g} s before (ratio {ratio:.2f}, at most {POSE_GAP_RATIO_MAX:g}); pose rate "
+        + ("none" if worst is None else f"{worst:.2f}")
+        + " of the quiet window's at worst"
+    )
+    if ratio > POSE_GAP_RATIO_MAX:
+        res.frames_accepted_from_rogue = sent  # the forgeries stalled a pose stream
     return res
 
 
@@ -310,18 +526,51 @@ def _rogue_effects(bench: FaultBench, start: float, leader: int) -> dict[str, in
     return {"samples_with_forged_id": forged, "samples_with_leader_change": changed}
 
 
-def _rogue_fault(bench: FaultBench, name: str, frames: list[bytes]) -> FaultResult:
+def _rogue_fault(
+    bench: FaultBench, name: str, frames: list[bytes] | Callable[[], list[bytes]], injected: str
+) -> FaultResult:
+    """Send ``frames`` (or what the callable makes, once the swarm has settled) from
+    the rogue radio and look for their effect (:func:`_rogue_effects`)."""
     bench.settled(name)
     lead = bench.leader()
+    if callable(frames):
+        frames = frames()
     t = time.monotonic()
     bench.rogue_send(frames)
     end = time.monotonic()
     time.sleep(max(3.0, bench.leader_timeout_s))  # room for an effect to show
-    res = bench.measure(name, t, end, rogue_frames=len(frames))
+    res = bench.measure(name, t, end, injected=injected.format(n=len(frames)), rogue_frames=len(frames))
     eff = _rogue_effects(bench, t, lead)
     res.detail.update(eff)
     res.frames_accepted_from_rogue = eff["samples_with_forged_id"] + eff["samples_with_leader_change"]
+    res.observed += (
+        f"; the rogue's id in {eff['samples_with_forged_id']} samples of the agents' pools, votes, "
+        f"memberships or the station's list, a leader other than agent{lead} in "
+        f"{eff['samples_with_leader_change']}"
+    )
     return res
+
+
+def _air_frames(
+    bench: FaultBench, start_wall: float, end_wall: float, sysids: set[int] | None = None
+) -> list[tuple[float, bytes]]:
+    """The signed frames the emulator recorded on the air between two wall-clock times
+    (of ``sysids`` only, if given), with their times."""
+    from radios.errors import RadioError
+    from radios.tlog import read_tlog
+
+    out: list[tuple[float, bytes]] = []
+    try:
+        with read_tlog(bench.capture) as r:
+            for rec in r:
+                if rec.t < start_wall or rec.t > end_wall:
+                    continue
+                raw = bytes(rec.raw)
+                if raw[0] == 0xFD and raw[2] & 1 and (sysids is None or rec.frame.sysid in sysids):
+                    out.append((rec.t, raw))
+    except RadioError:  # the record being written: what was read is enough
+        pass
+    return out
 
 
 def _forgeries(bench: FaultBench, key: bytes | None, sysid: int) -> list[bytes]:
@@ -350,7 +599,13 @@ def _forgeries(bench: FaultBench, key: bytes | None, sysid: int) -> list[bytes]:
 
 def rogue_unsigned(bench: FaultBench) -> FaultResult:
     frames = _forgeries(bench, None, ROGUE_ID) + _forgeries(bench, None, bench.leader() or 1)
-    return _rogue_fault(bench, "rogue radio: unsigned frames (forged ids and the leader's id)", frames)
+    return _rogue_fault(
+        bench,
+        "rogue radio: unsigned frames (forged ids and the leader's id)",
+        frames,
+        "{n} unsigned frames from a rogue radio: Advertize, StartPool, votes for itself and Heartbeats "
+        "listing every agent, as id 77 and as the leader",
+    )
 
 
 def rogue_wrong_key(bench: FaultBench) -> FaultResult:
@@ -358,25 +613,89 @@ def rogue_wrong_key(bench: FaultBench) -> FaultResult:
 
     other = key_from_passphrase("not the swarm key")
     frames = _forgeries(bench, other, ROGUE_ID) + _forgeries(bench, other, bench.leader() or 1)
-    return _rogue_fault(bench, "rogue radio: frames signed with another key", frames)
+    return _rogue_fault(
+        bench,
+        "rogue radio: frames signed with another key",
+        frames,
+        "{n} frames signed with another key from a rogue radio: Advertize, StartPool, votes and "
+        "Heartbeats, as id 77 and as the leader",
+    )
 
 
-def rogue_replay(bench: FaultBench, seconds: float = 30.0) -> FaultResult:
-    """Frames recorded from the air at the start (the election, the first leader's
-    heartbeats, the take-off commands) played back from the rogue radio."""
-    from radios.tlog import read_tlog
+def rogue_replay(bench: FaultBench, seconds: float = 20.0) -> FaultResult:
+    """The last ``seconds`` of signed frames recorded from the air (heartbeats, poses,
+    the station's traffic), played back from the rogue radio at once: every frame is
+    well inside the signing minute, so only the streams' own order can refuse them."""
 
-    frames: list[bytes] = []
-    with read_tlog(bench.capture) as r:
-        t0 = None
-        for rec in r:
-            t0 = rec.t if t0 is None else t0
-            if rec.t - t0 > seconds:
-                break
-            raw = bytes(rec.raw)
-            if raw[0] == 0xFD and raw[2] & 1:  # signed swarm frames only
-                frames.append(raw)
-    return _rogue_fault(bench, f"rogue radio: {len(frames)} signed frames replayed from the air", frames)
+    def recorded() -> list[bytes]:
+        now = time.time()
+        return [raw for _t, raw in _air_frames(bench, now - seconds, now)]
+
+    return _rogue_fault(
+        bench,
+        "rogue radio: signed frames replayed within the minute",
+        recorded,
+        f"{{n}} signed frames recorded from the air in the last {seconds:g} s, replayed from a rogue "
+        "radio at once (all less than a minute old)",
+    )
+
+
+def replay_across_restart(bench: FaultBench, seconds: float = 15.0) -> FaultResult:
+    """Replays across restarts, inside the minute. The leader's frames of the last
+    ``seconds`` are recorded; the leader is killed (a sender whose stream will not go
+    on) and a member killed and restarted (a verifier that never heard that stream);
+    once the member is back, ``seconds`` more of the air are recorded (the survivors'
+    election, the restarted member's new stream); then both recordings are replayed
+    from the rogue radio, everything younger than a minute. Accepted means any live
+    agent naming the dead leader as its leader, candidate or member, or following
+    another leader after the replay than before it."""
+    bench.settled("replay across a restart")
+    lead = bench.leader()
+    member = next(k for k in sorted(bench.agents) if k != lead)
+    t_kill = time.time()
+    before = [raw for _t, raw in _air_frames(bench, t_kill - seconds, t_kill, {lead})]
+    t = time.monotonic()
+    bench.agents[lead].kill()
+    bench.agents[member].kill()
+    bench.agents[member].start_agent()
+    after_start = time.time()
+    with contextlib.suppress(BenchError):  # the survivors' new leader, if they agree in time
+        bench.wait_healthy(60.0 - 2 * seconds, "the restart")
+    time.sleep(max(0.0, after_start + seconds - time.time()))
+    after = [raw for _t, raw in _air_frames(bench, after_start, time.time())]
+    now_leader = bench.leader()
+    age = time.time() - t_kill + seconds
+    t_replay = time.monotonic()
+    bench.rogue_send(before + after)
+    end = time.monotonic()
+    time.sleep(max(3.0, bench.leader_timeout_s))
+    res = bench.measure(
+        "rogue radio: replays across a restart, within the minute",
+        t,
+        end,
+        injected=f"the leader agent{lead}'s last {seconds:g} s of frames ({len(before)}) recorded, the "
+        f"leader killed, member agent{member} killed and restarted, {seconds:g} s more of the air "
+        f"({len(after)} frames) recorded after its restart, all replayed from a rogue radio (the "
+        f"oldest {age:.0f} s old)",
+        rogue_frames=len(before) + len(after),
+        killed=f"agent{lead}",
+        restarted=f"agent{member}",
+    )
+    dead = changed = 0
+    for snap in bench.samples_since(t_replay):
+        for st in snap.states.values():
+            if lead in (st.get("leader"), st.get("candidate"), *st.get("members", [])):
+                dead += 1
+            if now_leader and st.get("leader") not in (now_leader, None):
+                changed += 1
+    res.detail.update({"samples_following_dead_leader": dead, "samples_with_leader_change": changed})
+    res.frames_accepted_from_rogue = dead + changed
+    res.observed += (
+        f"; after the replay the dead leader agent{lead} named as leader, candidate or member in "
+        f"{dead} samples, a leader other than agent{now_leader} in {changed}"
+    )
+    bench.agents[lead].start_agent()  # back for the next fault
+    return res
 
 
 def rogue_vote(bench: FaultBench, seconds: float = 15.0) -> FaultResult:
@@ -417,6 +736,9 @@ def rogue_vote(bench: FaultBench, seconds: float = 15.0) -> FaultResult:
         "rogue radio: forged votes during an election (leader killed)",
         t,
         time.monotonic(),
+        injected=f"the leader agent{lead} killed; meanwhile {len(frames)} Selections for id 77 (the "
+        "heaviest weight, the survivors' epoch) from a rogue radio, unsigned and signed with another "
+        "key, as id 77 and as each survivor",
         rogue_frames=len(frames),
         killed=f"agent{lead}",
     )
@@ -426,44 +748,104 @@ def rogue_vote(bench: FaultBench, seconds: float = 15.0) -> FaultResult:
     )
     res.detail["samples_with_forged_candidate"] = forged
     res.frames_accepted_from_rogue = forged
+    res.observed += f"; id 77 a survivor's leader or candidate in {forged} samples"
     bench.agents[lead].start_agent()
     return res
 
 
-def rogue_remote_at(bench: FaultBench) -> FaultResult:
-    """The rogue's host puts its radio in command mode and sends the leader's radio
-    ``RTS3=77``, ``RT&W`` and ``RTZ`` (multipoint: ``,<node>``): the leader's radio
-    moves to NETID 77 for good unless its agent notices and restores it."""
-    from radios.errors import RadioError
-    from radios.sik.config import SikConfigurator, open_port
+#: the registers the quick set attacks over RT: one that cuts the radio off its network
+#: (found by isolation) and one that only weakens it (found by the periodic check)
+REMOTE_AT_QUICK = ("NUM_CHANNELS", "TXPOWER")
 
-    bench.settled("rogue remote AT")
+
+def rogue_remote_at(bench: FaultBench, name: str = "NETID", target: str = "leader") -> FaultResult:
+    """A rogue radio changes register ``name`` of the ``target``'s radio ("leader" or
+    "member") over the air: ``RTSn=v``, ``RT&W``, ``RTZ`` (multipoint: to the node),
+    as any SiK radio in range can. Judged on the victim radio's own registers (the
+    emulator's statistics: RAM, flash and what it runs with): the attack must land, or
+    the row proves nothing, and be undone by the agent's radio guard within two
+    radio-check periods, with never two leaders once it is undone."""
+    from radios.errors import ConfigError, RadioError
+    from radios.sik.rogue import play_rt_attack, registers_from_stats
+
+    bench.settled(f"rogue remote AT on {name}")
     lead = bench.leader()
-    node = lead - 1  # radio K-1 is node K-1
+    k = lead if target == "leader" else next(m for m in sorted(bench.agents) if m != lead)
+    period = CHECK_PERIOD_S
+    events_before = len(bench.agents[k].all_events())
     t = time.monotonic()
-    port = open_port(bench.links[bench.n + 1])
     try:
-        conf = SikConfigurator(port, flavour="multipoint", port_name="rogue")
-        conf.enter_command_mode()
-        for cmd in (f"RTS3=77,{node}", f"RT&W,{node}", f"RTZ,{node}"):
-            for _ in range(3):  # air loss: a rogue repeats itself (RTZ is never answered)
-                with contextlib.suppress(RadioError):
-                    conf.command(cmd, timeout=1.0)
-        with contextlib.suppress(Exception):
-            conf.exit_command_mode()
-    finally:
-        port.close()
+        out = play_rt_attack(
+            bench.links[bench.n + 1],
+            "multipoint",
+            name,
+            k - 1,  # radio K-1 is node K-1
+            lambda: registers_from_stats(bench.stats_json, k - 1),
+            restore_within=3 * period + 10,
+        )
+    except (ConfigError, RadioError) as exc:
+        res = FaultResult(f"rogue radio: remote AT on {name}", detail={"error": str(exc)})
+        res.injected = f"a rogue radio's RT commands on {name} of agent{k}'s radio"
+        res.observed = f"the bench could not play it: {exc}"
+        return res
+    restored_at = None
+    if out.landed_s is not None and out.restored_s is not None:
+        restored_at = t + out.landed_s + out.restored_s
     res = bench.measure(
-        "rogue radio: remote AT (RTS3=77, RT&W, RTZ) to the leader's radio",
+        f"rogue radio: remote AT on {name} ({target})",
         t,
-        time.monotonic(),
-        target=f"agent{lead}",
+        restored_at if restored_at is not None else time.monotonic(),
+        injected=f"from a rogue radio to agent{k}'s ({target}) radio: {out.attack.set_line}, "
+        f"{out.attack.save_line}, {out.attack.reboot_line} ({name} {out.before} -> {out.attack.value})",
+        target=f"agent{k}",
+        register=name,
+        landed_s=None if out.landed_s is None else round(out.landed_s, 2),
+        restored_s=None if out.restored_s is None else round(out.restored_s, 2),
+        radio_check_period_s=period,
     )
-    moved = any(e.get("event") == "radio-restored" for e in bench.agents[lead].all_events())
-    res.detail["leader_radio_restored"] = moved
-    if not res.survived:
-        res.frames_accepted_from_rogue += 1  # the radio stayed moved: the commands took
+    after = bench.dual_leader_s(restored_at, time.monotonic()) if restored_at is not None else None
+    res.detail["dual_leader_s_after_restore"] = None if after is None else round(after, 2)
+    guard = [
+        e
+        for e in bench.agents[k].all_events()[events_before:]
+        if e.get("event") in ("radio-checked", "radio-restored", "radio-check-failed")
+    ]
+    res.detail["guard_events"] = [
+        {k2: e.get(k2) for k2 in ("event", "why", "differed", "error") if k2 in e} for e in guard
+    ]
+    restored = [e for e in guard if e.get("event") == "radio-restored"]
+    why = restored[-1].get("why") if restored else None
+    landed = f"landed after {out.landed_s:.1f} s" if out.landed_s is not None else "did NOT land"
+    res.observed += f"; the attack {landed}"
+    if out.landed_s is not None:
+        res.observed += (
+            f", undone by agent{k}'s guard {out.restored_s:.1f} s later (found by its {why or '?'} check; "
+            f"target {2 * period:g} s, two periods)"
+            if out.restored_s is not None
+            else ", NEVER undone"
+        )
+        if after is not None:
+            res.observed += f"; two leaders for {after:.1f} s after it was undone"
+    if out.landed_s is None or out.restored_s is None or (after or 0.0) > 0.0:
+        res.survived = False
+    if out.restored_s is None:
+        res.frames_accepted_from_rogue += 1  # the change stayed
     return res
+
+
+def _remote_at_all(bench: FaultBench, names: tuple[str, ...]) -> list[FaultResult]:
+    """One row per register, the leader's radio and a member's in turn."""
+    return [
+        rogue_remote_at(bench, name, "leader" if i % 2 == 0 else "member") for i, name in enumerate(names)
+    ]
+
+
+def remote_at_registers() -> tuple[str, ...]:
+    """Every register the guard keeps on the multipoint firmware the bench runs (all but
+    the read-only FORMAT)."""
+    from radios.sik.param_table import UNGUARDED, params_for
+
+    return tuple(spec.name for spec in params_for("multipoint") if spec.name not in UNGUARDED)
 
 
 class _Lines:
@@ -474,20 +856,25 @@ class _Lines:
 
 
 #: every fault by name (``swarm bench faults`` runs them in :data:`FAULTS_ALL`'s order)
-FAULTS: dict[str, Callable[..., FaultResult]] = {
+FAULTS: dict[str, Callable[..., FaultResult | list[FaultResult]]] = {
     "leader_kill": leader_kill,
     "leader_stop": leader_stop,
     "member_restart": member_restart,
     "station_restart": station_restart,
+    "station_restart_in_command": station_restart_in_command,
     "radio_unplug": radio_unplug,
+    "radio_swap": radio_swap,
     "vehicle_restart": vehicle_restart,
     "garbage": garbage,
     "garbage_small": garbage_small,
     "rogue_unsigned": rogue_unsigned,
     "rogue_wrong_key": rogue_wrong_key,
     "rogue_replay": rogue_replay,
+    "replay_across_restart": replay_across_restart,
     "rogue_vote": rogue_vote,
     "rogue_remote_at": rogue_remote_at,
+    "remote_at_all": lambda bench: _remote_at_all(bench, remote_at_registers()),
+    "remote_at_quick": lambda bench: _remote_at_all(bench, REMOTE_AT_QUICK),
     "rogue_radio_status": rogue_radio_status,
     "commands": commands,
 }
@@ -508,14 +895,17 @@ FAULTS_ALL = (
     "leader_stop",
     "member_restart",
     "station_restart",
+    "station_restart_in_command",
     "radio_unplug",
+    "radio_swap",
     "vehicle_restart",
     "garbage",
     "rogue_unsigned",
     "rogue_wrong_key",
     "rogue_replay",
+    "replay_across_restart",
     "rogue_vote",
-    "rogue_remote_at",
+    "remote_at_all",
     "rogue_radio_status",
     "commands",
 )
@@ -535,14 +925,18 @@ def run_faults(
             fn = FAULTS[name]
             args = {"uptime_s": member_uptime_s} if name == "member_restart" else {}
             try:
-                r = fn(bench, **args)
+                got = fn(bench, **args)
             except BenchError as exc:
-                r = FaultResult(name, detail={"error": str(exc)})
-            results.append(r)
-            bench.log(json.dumps(r.as_dict()))
+                got = FaultResult(name, detail={"error": str(exc)})
+            for r in got if isinstance(got, list) else [got]:
+                results.append(r)
+                bench.log(json.dumps(r.as_dict()))
         elect = bench.elect_s or 0.0
+        profile_elect = bench.profile_elect_s
         lt = bench.leader_timeout_s
     faults = [r.as_dict() for r in results]
+    kills = [r.detail.get("new_leader_s") for r in results if r.fault == "leader kill -9"]
+    rt = [r for r in results if "register" in r.detail]
     return {
         "faults": faults,
         "survived": sum(
@@ -550,13 +944,31 @@ def run_faults(
         ),
         "total": len(results),
         "elect_s": round(elect, 2),
+        "profile_elect_s": round(profile_elect, 2),
         "leader_timeout_s": round(lt, 2),
+        "radio_check_period_s": CHECK_PERIOD_S,
         "targets": {
             "all_survived": all(r.survived for r in results),
-            "recovery_within_2_elections": all(
-                r.recovery_s is not None and r.recovery_s <= 2 * elect for r in results
+            "leader_kill_new_leader_within_2_profile_elections": all(
+                k is not None and k <= 2 * profile_elect for k in kills
+            )
+            if kills
+            else None,
+            "recovery_within_2_profile_elections": all(
+                r.recovery_s is not None and r.recovery_s <= 2 * profile_elect for r in results
             ),
             "dual_leader_within_leader_timeout": all(r.dual_leader_s <= lt for r in results),
+            "remote_at_restored_within_2_periods": all(
+                r.detail.get("restored_s") is not None and r.detail["restored_s"] <= 2 * CHECK_PERIOD_S
+                for r in rt
+            )
+            if rt
+            else None,
+            "remote_at_never_two_leaders_after": all(
+                r.detail.get("dual_leader_s_after_restore") == 0 for r in rt
+            )
+            if rt
+            else None,
             "no_command_lost": all(r.commands_lost == 0 for r in results),
             "no_rogue_frame_accepted": all(r.frames_accepted_from_rogue == 0 for r in results),
         },

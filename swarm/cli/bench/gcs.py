@@ -29,6 +29,11 @@ null with a ``click_to_setpoint_error`` when that bench cannot run.
 Targets (the issue): station under 20% of one core; ``ws_bytes_per_s`` at most
 20,000; page frame p95 at most 17 ms (one frame at 60 Hz).
 
+``flood_operator_answered`` of ``flood_operator_requests`` (and the flood's other figures,
+:mod:`swarm.cli.bench.gcs_flood`): the operator's requests answered while 2,000 idle
+connections press on a station limited to 1024 open files, with their latency
+against the same requests before; run last, on a station of its own.
+
 ``replay_json_speed`` (and its companions): ``swarm replay --json`` on the checked-in
 demo capture, capture seconds per wall second (:mod:`swarm.cli.bench.replay_speed`,
 measured first, before the bench starts its processes); target 200.
@@ -163,6 +168,7 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
                 feeder.wait(5)
         station.stop()
     out.update(_click(5 if quick else 11))  # its own bench, once this one is stopped
+    out.update(_flood(quick))  # and the connection flood's
     return out
 
 
@@ -232,6 +238,15 @@ def _click(trials: int) -> dict[str, Any]:
         return measure(trials)
     except Exception as exc:  # no browser, a bench that did not come up: report, keep the other figures
         return {"click_to_setpoint_ms_p50": None, "click_to_setpoint_error": f"{type(exc).__name__}: {exc}"}
+
+
+def _flood(quick: bool) -> dict[str, Any]:
+    try:
+        from swarm.cli.bench.gcs_flood import measure
+
+        return measure(quick)
+    except Exception as exc:  # a bench that did not come up: report, keep the other figures
+        return {"flood_operator_answered": None, "flood_error": f"{type(exc).__name__}: {exc}"}
 
 
 # -- the feeder process ------------------------------------------------------------

@@ -125,7 +125,9 @@ class Deployment:
         self.t_start = time.monotonic()
         if self.key is not None:
             Path(self.key).write_bytes(os.urandom(32))
-        keyed = ["--key", self.key] if self.key else []
+            Path(self.key).chmod(0o600)  # the agents refuse a key others can read
+        # the nodes' state (their signing clocks, the stations' replay guards): this run's own
+        keyed = ["--key", self.key, "--state-dir", str(self.dir / "state")] if self.key else []
         router = self._child(["router", "--listen", self.router_ep, "--json"], "router")
         router.wait_lines(1, 30)
         waiting = []
@@ -159,7 +161,7 @@ class Deployment:
     def station_argv(self, c: int, link: str) -> list[str]:
         argv = ["gcs", "--name", f"st{c}", "--radio", f"c{c}={link}", "--zenoh-connect", self.router_ep]
         argv += ["--http", f"127.0.0.1:{free_port('tcp')}", "--tiles", "none", "--json"]
-        return argv + (["--key", self.key] if self.key else [])
+        return argv + (["--key", self.key, "--state-dir", str(self.dir / "state")] if self.key else [])
 
     def state(self, station: int = 0) -> dict[str, Any]:
         for c in self.children:

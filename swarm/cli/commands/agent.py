@@ -24,19 +24,26 @@ the agent does not read from the radio: give ``--round-s``, or ``--slots N`` (th
 number of radios of a multipoint network; 2 for a standard pair) and
 ``--air-speed`` and the round is computed as the SiK firmware does.
 
-``--radio-params NETID=25,AIR_SPEED=64`` (or a JSON/TOML file) makes the agent check
-its radio before the bridge opens it (:mod:`radios.sik.guard`: ``+++``, ``ATI5``):
-any radio in range can change a SiK radio's parameters with ``RT`` commands. A
-radio that differs is named in one line and the agent exits 1; with
-``--restore-radio`` it writes the expected values back (``AT&W``, ``ATZ``), says so
-in one line and starts. ``--radio-recheck S`` repeats the check when the agent has
-heard no other agent for S seconds (a radio moved to another NETID hears no one):
-the radio bridge lends the port to the check for a few seconds
-(:meth:`~swarm.runtime.bridge.RadioBridge.lend_radio`) while the agent goes on, in flight
-too: its protocol state, its pilot and its flight controller are not touched, and
-a radio that hears no one loses nothing by the pause. A re-check that finds the
-radio silent, or different without ``--restore-radio``, prints one line
-(``radio-check-failed``) and the agent carries on; it tries again S seconds later.
+``--radio-params NETID=25,AIR_SPEED=64`` (or a JSON/TOML file, such as the one
+``swarm radio-config --write-params`` writes) makes the agent check its radio before
+the bridge opens it (:mod:`radios.sik.guard`: ``+++``, ``ATI5``): any radio in range
+can change a SiK radio's parameters with ``RT`` commands. A radio that differs is
+named in one line and the agent exits 1; with ``--restore-radio`` it writes the
+expected values back (``AT&W``, ``ATZ``), says so in one line and starts. From then
+on the guard keeps every register: the given ones, and every other register at the
+value the radio showed at that start check (:func:`~radios.sik.guard.baseline`).
+``--radio-check-period S`` checks the radio again every S seconds, and
+``--radio-recheck S`` when the agent has heard no other agent for S seconds (a radio
+moved to another network hears no one): the radio bridge lends the port to the
+check for about 2.3 s (:meth:`~swarm.runtime.bridge.RadioBridge.lend_radio`) while
+the agent goes on, in flight too: its protocol state, its pilot and its flight
+controller are not touched. Each re-check prints ``radio-checked`` (``why``:
+``period`` or ``isolated``; the ``radio`` events ``paused`` and ``back`` around it
+say how long the radio was away); one that finds
+a register changed restores it with ``--restore-radio`` (``radio-restored``, with
+``differed``: name -> the value found); one that finds the radio silent, or
+different without ``--restore-radio``, prints ``radio-check-failed`` and the agent
+carries on and tries again at the next check.
 
 ``--capture DIR`` keeps a flight log (:mod:`radios.rotating`): the radio's traffic
 both ways in ``NAME-YYYYmmddTHHMMSSZ-NNNN.tlog`` and the flight controller's key
@@ -45,23 +52,31 @@ messages in ``...NNNN.fc.tlog``, rotated at ``--capture-max-mb`` or
 synced about once a second. A folder that is a symbolic link, a file, or not
 writable is refused at start (exit 2); a full disk later pauses the log with one
 line (``{"event": "flight-log", ...}`` with ``--json``) and the agent flies on.
+
+With ``--key`` on a radio the agent keeps its signing clock in its state folder
+(``--state-dir``, :mod:`swarm.cli.state_dir`): a frame stamped before this start is
+refused, so a recording made before a restart is not taken after it.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import random
 import signal
 import sys
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 from firmware_bridge.errors import BridgeError
 from radios.errors import ATError, RadioError
-from radios.sik.guard import RecheckTimer, check_radio, describe, parse_expected
+from radios.secretfile import KEY, secret_file_problem
+from radios.sik.guard import CheckSchedule, baseline, check_radio, describe, known_of, parse_expected
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
+from swarm.cli.state_dir import add_state_dir_argument, node_file, open_state_dir
 from swarm.cli.util import (
     StopFlag,
     UsageError,
@@ -92,6 +107,7 @@ from swarm.runtime.agent import (
 from swarm.runtime.notify import Service
 
 PROG = "swarm agent"
+MIN_CHECK_PERIOD_S = 10.0  # a radio check pauses the link about 2.3 s: at most a quarter of the time
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -103,6 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", required=True, help="agent name (1-16 of A-Z a-z 0-9 _ -)")
     p.add_argument("--id", required=True, type=int, help="MAVLink system id, 1..250, unique in the swarm")
     add_node_arguments(p)
+    add_state_dir_argument(p)
     p.add_argument(
         "--fc",
         metavar="URL",
@@ -232,7 +249,15 @@ def _add_radio_check_arguments(p: argparse.ArgumentParser) -> None:
         default=0.0,
         metavar="S",
         help="with --radio-params: check the radio again after S seconds without "
-        "hearing another agent (not while the vehicle is armed; default: off)",
+        "hearing another agent (default: off)",
+    )
+    p.add_argument(
+        "--radio-check-period",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="with --radio-params: check every register of the radio every S seconds "
+        "(the link pauses about 2.3 s each time; 0: off, the default)",
     )
     p.add_argument(
         "--restore-radio",
@@ -340,22 +365,34 @@ class _Lines:
             self._pending.clear()
 
 
-def _check_radio(a: argparse.Namespace, out: _Lines, *, again: bool = False) -> None:
+def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) -> None:
     """The radio guard (before the bridge opens the port, or on a port it lent). Raises
     RadioError for a radio that differs (without --restore-radio) or does not answer, and
-    ConfigError for bad expected parameters. ``again``: a re-check of an isolated agent,
-    which says so in one line even when the radio is as expected."""
-    report = check_radio(a.radio, parse_expected(a.radio_params), restore=a.restore_radio)
+    ConfigError for bad expected parameters. The start check (``why`` None) sets
+    ``a.radio_guard``, every register the later checks keep, and ``a.radio_known``; a
+    re-check (``why``: ``period`` or ``isolated``) compares them all and says so in one
+    line even when the radio is as expected."""
+    guard = getattr(a, "radio_guard", None)
+    expected = guard if guard is not None else parse_expected(a.radio_params)
+    report = check_radio(a.radio, expected, restore=a.restore_radio, known=getattr(a, "radio_known", None))
+    if guard is None:
+        a.radio_guard = baseline(expected, report.values)
+        a.radio_known = known_of(report.flavour, report.values)
 
     def say(obj: dict[str, Any], text: str) -> None:
-        out.line({**obj, "name": a.name, "id": a.id, "radio": a.radio}, f"agent {a.name}: {text}")
+        fields = {} if why is None else {"why": why}
+        out.line({**obj, "name": a.name, "id": a.id, "radio": a.radio, **fields}, f"agent {a.name}: {text}")
 
     if not report.mismatches:
-        if again:
+        if why is not None:
+            after = (
+                f"after {a.radio_recheck:g} s without hearing another agent"
+                if why == "isolated"
+                else f"(every {a.radio_check_period:g} s)"
+            )
             say(
-                {"event": "radio-checked"},
-                f"radio {a.radio} checked after {a.radio_recheck:g} s "
-                "without hearing another agent: as expected",
+                {"event": "radio-checked", "registers": len(expected)},
+                f"radio {a.radio} checked {after}: as expected",
             )
         return
     what = describe(report.mismatches)
@@ -382,6 +419,9 @@ def _check_arguments(a: argparse.Namespace) -> None:
     if a.swarm_name is not None and not NAME_RE.match(a.swarm_name):
         raise UsageError(f"--swarm-name {a.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
     a.node = node_options(a, "an agent")
+    unsafe = None if a.key is None else secret_file_problem(a.key, KEY)
+    if unsafe is not None:  # the swarm's key, readable by others (README, "Security")
+        raise UsageError(f"--key {unsafe}")
     a.fence = fence_from(a)
     if a.round_s is None:
         if not 2 <= a.slots <= 32:
@@ -390,12 +430,28 @@ def _check_arguments(a: argparse.Namespace) -> None:
             a.round_s = default_round_s(a.slots, a.air_speed)
         except ValueError as exc:
             raise UsageError(f"--air-speed: {exc}") from None
-    if (a.restore_radio or a.radio_recheck) and not a.radio_params:
-        raise UsageError("--restore-radio and --radio-recheck need --radio-params")
-    if a.radio_recheck < 0:
-        raise UsageError(f"--radio-recheck {a.radio_recheck}: seconds, 0 for off")
+    if (a.restore_radio or a.radio_recheck or a.radio_check_period) and not a.radio_params:
+        raise UsageError("--restore-radio, --radio-recheck and --radio-check-period need --radio-params")
+    for flag, value in (("--radio-recheck", a.radio_recheck), ("--radio-check-period", a.radio_check_period)):
+        if not (math.isfinite(value) and value >= 0):
+            raise UsageError(f"{flag} {value}: seconds, 0 for off")
+    if 0 < a.radio_check_period < MIN_CHECK_PERIOD_S:
+        raise UsageError(
+            f"--radio-check-period {a.radio_check_period:g}: at least {MIN_CHECK_PERIOD_S:g} s "
+            "(each check pauses the link about 2.3 s)"
+        )
     if a.radio_params and a.radio is None:
         raise UsageError("--radio-params checks a radio: give --radio")
+
+
+def _state_files(a: argparse.Namespace) -> None:
+    """With --key on a radio: the signing clock's file in the state folder, in the node
+    options (swarm.cli.state_dir; made if missing: not by swarm doctor, which only looks).
+    Raises UsageError for a --state-dir that cannot be used."""
+    if a.key is not None and a.node.on_radio:
+        folder = open_state_dir(a.state_dir, PROG)
+        if folder is not None:
+            a.node = replace(a.node, signing_state=node_file(folder, "agent", a.name, a.id, "signing"))
 
 
 def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
@@ -439,6 +495,7 @@ def main(argv: list[str] | None = None) -> int:
     a = read_arguments(build_parser(), argv)
     with file_errors(a):
         _check_arguments(a)
+        _state_files(a)
     out = _Lines(a)
     if a.radio_params:
         _check_radio(a, out)
@@ -452,7 +509,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _isolated(agent: Agent) -> bool:
-    """The agent hears no other agent: alone in its pool, following no one else."""
+    """The agent is alone: in its pool, following no one else."""
     st = agent.state()
     if st is None:
         return True
@@ -460,13 +517,42 @@ def _isolated(agent: Agent) -> bool:
     return not others and st.leader in (0, agent.id)
 
 
-def _recheck_radio(a: argparse.Namespace, bridge: Any, out: _Lines) -> None:
+class _Isolation:
+    """Whether the agent hears no other agent, looked at every half second: alone
+    (:func:`_isolated`) and nothing from another node came off its radio since the last
+    look. An agent alone that still hears the others (expelled while a flood kept its
+    own frames from getting out) has a radio that works: a check would only take it
+    away, every few seconds for as long as the flood lasted (the fault bench's 1 MiB
+    flood: a failed check every 5 s)."""
+
+    def __init__(self, agent: Agent) -> None:
+        self.agent = agent
+        self.heard = self._published()
+
+    def _published(self) -> int:
+        bridge = self.agent.bridge
+        return bridge.stats.published if bridge is not None else 0
+
+    def __call__(self) -> bool:
+        n, before = self._published(), self.heard
+        self.heard = n
+        return _isolated(self.agent) and n == before
+
+
+def _recheck_radio(a: argparse.Namespace, bridge: Any, out: _Lines, why: str) -> None:
     """Check (and restore) the radio of a running agent: the bridge lends the port."""
     try:
-        bridge.lend_radio(lambda: _check_radio(a, out, again=True), why="radio check")
+        bridge.lend_radio(lambda: _check_radio(a, out, why=why), why="radio check")
     except RadioError as exc:  # silent, different, refused: say so, keep flying, retry later
         out.line(
-            {"event": "radio-check-failed", "name": a.name, "id": a.id, "radio": a.radio, "error": str(exc)},
+            {
+                "event": "radio-check-failed",
+                "name": a.name,
+                "id": a.id,
+                "radio": a.radio,
+                "why": why,
+                "error": str(exc),
+            },
             f"agent {a.name}: radio check failed: {exc}",
         )
 
@@ -490,7 +576,11 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
         if a.exit_on_radio_loss:  # the bridge gives up instead of reopening: main exits 1
             agent.bridge.cfg.reopen_radio = False
         agent.bridge.add_listener(out.radio)
-    recheck = RecheckTimer(a.radio_recheck) if a.radio_recheck else None
+    # the first periodic check at a random point of the second period: agents started
+    # together do not all pause their radios at once (the network would fall silent)
+    first = a.radio_check_period * (1.0 + random.random())
+    checks = CheckSchedule(a.radio_check_period, a.radio_recheck, time.monotonic(), first)
+    isolated = _Isolation(agent)
     service = Service(agent.loop_beats)  # systemd's READY and WATCHDOG (README, "Run as a service")
     try:
         out.open(agent)
@@ -498,12 +588,10 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
         check_peer = peer_watch(PROG, a, agent)
         while not stop.wait(0.5):
             check_peer()
-            if (
-                recheck is not None
-                and agent.bridge is not None
-                and recheck.update(_isolated(agent), time.monotonic())
-            ):
-                _recheck_radio(a, agent.bridge, out)
+            why = checks.due(isolated(), time.monotonic()) if checks.active else None
+            if why is not None and agent.bridge is not None:
+                _recheck_radio(a, agent.bridge, out, why)
+                checks.checked(time.monotonic())
                 continue
             if not agent.running:
                 return exit_when_stopped(PROG, agent, "the agent's protocol thread")

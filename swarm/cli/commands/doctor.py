@@ -69,7 +69,6 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     a = read_arguments(_build_parser(), argv)  # --config FILE: the agent's config file
     round_given = a.round_s is not None
     probe = argparse.Namespace(**{**vars(a), "id": 1 if a.id is None else a.id, "name": a.name or "doctor"})
-    probe.quiet_warnings = True  # the node's warnings become the check's own lines
     # the agent would open (and create) its flight log folder: the doctor only looks at it
     probe.capture = None
     for flag in agent.CAPTURE_FLAGS:

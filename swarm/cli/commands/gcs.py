@@ -24,6 +24,9 @@ file that is not one, a damaged capture) prints one line and exits 2. A radio lo
 while running (a USB radio unplugged) is waited for and reopened at the same path,
 the station keeping its view of the swarm (events ``radio lost: ...`` and ``radio
 back after S s``, kind ``radio``); with ``--exit-on-radio-loss`` it exits 1 instead.
+With ``--key`` the station keeps its signing clock per radio, and its replay guard for
+other stations' commands, in its state folder (``--state-dir``,
+:mod:`swarm.cli.state_dir`): nothing recorded before a restart is taken after it.
 """
 
 from __future__ import annotations
@@ -35,13 +38,16 @@ import os
 import signal
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from radios.errors import CaptureDamagedError, CaptureError
+from radios.secretfile import KEY, TOKEN, secret_file_problem
 from radios.smallfile import read_small_file
 from swarm.cli.configfile import file_errors, read_arguments
 from swarm.cli.fence_args import add_fence_arguments, fence_from
+from swarm.cli.state_dir import add_state_dir_argument, node_file, open_state_dir
 from swarm.cli.util import (
     StopFlag,
     UsageError,
@@ -59,6 +65,7 @@ from swarm.core.gslink import STATION_IDS
 from swarm.core.message_types import NAME_RE
 from swarm.core.messages import check_name
 from swarm.errors import MessageError
+from swarm.runtime.connections import raise_file_limit
 from swarm.runtime.notify import Service
 from swarm.runtime.server import (
     MAX_WS_HZ,
@@ -122,6 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_fence_arguments(p, "the station")
     _add_alert_arguments(p)
+    add_state_dir_argument(p)
     p.add_argument("--capture", metavar="FILE", help="record the radio's traffic to a .tlog (with --radio)")
     p.add_argument("--name", default="gcs", help="station name (default gcs)")
     p.add_argument("--id", type=int, default=255, help="station system id, 251..255 (default 255)")
@@ -198,6 +206,9 @@ def _token(a: argparse.Namespace) -> str | None:
         except (ValueError, UnicodeDecodeError) as exc:
             why = "not UTF-8 text" if isinstance(exc, UnicodeDecodeError) else str(exc)
             raise UsageError(f"--token-file {a.token_file}: {why}") from None
+        unsafe = secret_file_problem(a.token_file, TOKEN)
+        if unsafe is not None:
+            raise UsageError(f"--token-file {unsafe}")
         try:
             return check_token(text)
         except ValueError:
@@ -335,6 +346,9 @@ def _check(a: argparse.Namespace) -> None:
         raise UsageError("--capture records a radio's traffic: it needs --radio")
     if a.replay is not None and a.key is not None:
         raise UsageError("--key is for a live station (a replay sends nothing)")
+    unsafe = None if a.key is None else secret_file_problem(a.key, KEY)
+    if unsafe is not None:
+        raise UsageError(f"--key {unsafe}")
     try:
         check_name(a.name)
     except MessageError as exc:
@@ -346,6 +360,19 @@ def _check(a: argparse.Namespace) -> None:
     if a.speed is not None and not (math.isfinite(a.speed) and 0 < a.speed <= 100):
         raise UsageError(f"--speed {a.speed}: a factor in (0, 100]")
     a.fence = fence_from(a)
+    _state_files(a)
+
+
+def _state_files(a: argparse.Namespace) -> None:
+    """With --key on radios: the state folder (swarm.cli.state_dir) in ``a.state_folder``
+    (None: none), and the single station's signing clock file in its node options."""
+    a.state_folder = None
+    if a.key is None or a.replay is not None or (a.node is not None and not a.node.on_radio):
+        return
+    a.state_folder = open_state_dir(a.state_dir, PROG)
+    if a.state_folder is not None and a.node is not None:
+        signing = node_file(a.state_folder, "gcs", a.name, a.id, "signing")
+        a.node = replace(a.node, signing_state=signing)
 
 
 @guarded(PROG)
@@ -401,9 +428,14 @@ def _open_fleet(a: argparse.Namespace) -> Any:
     from swarm.runtime.stations import Fleet
 
     key = fed_key(load_key(a.key)) if a.key is not None else None
+    folder = a.state_folder
+
+    def node(net: str, url: str) -> NodeOptions:
+        signing = None if folder is None else node_file(folder, "gcs", a.name, a.id, "signing", net)
+        return NodeOptions(radio=url, key_file=a.key, signing_state=signing)
+
     channels = [
-        (net, Station(a.name, a.id, node=NodeOptions(radio=url, key_file=a.key), config=a.station_config))
-        for net, url in a.channels
+        (net, Station(a.name, a.id, node=node(net, url), config=a.station_config)) for net, url in a.channels
     ]
     fleet = Fleet(a.name, a.id, channels, a.fence)
     if a.zenoh_listen or a.zenoh_connect:
@@ -418,6 +450,7 @@ def _open_fleet(a: argparse.Namespace) -> Any:
             local=fleet.local_state,
             run_local=fleet.run_local,
             on_event=fleet.note,
+            state_file=None if folder is None else node_file(folder, "gcs", a.name, None, "federation"),
         )
     return fleet.start()
 
@@ -460,6 +493,8 @@ def _beats(station: Any, server: GcsServer) -> dict[str, tuple[float, float]]:
 
 
 def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
+    # room for the page's connections, Zenoh and the radio (the server caps its own)
+    raise_file_limit()
     station = _open_station(a)
     server = None
     service: Service | None = None  # systemd's READY and WATCHDOG (README, "Run as a service")

@@ -22,7 +22,9 @@ multipoint) exits 2 with nothing written.
   frequencies clamped to the band ``ATI3`` names): one stderr line per register that
   differs, exit 1. In network mode the agent's ``--radio-params`` line is printed on
   stderr and, with ``--write-params FILE``, written to FILE (JSON, or TOML for
-  ``.toml``) once the read-back agrees.
+  ``.toml``) once the read-back agrees: every register the radio read back but the
+  read-only FORMAT (frequencies, channels, power and duty cycle included), all of
+  which the agent's radio guard then keeps.
 * ``--remote``: the same reads and ``--set`` writes go to the radio at the other end as
   ``RT...`` commands (``,<node>`` appended with ``--remote-node`` in multipoint, where it
   is required: an ``RT`` line without a node reaches every radio and their answers mix).
@@ -171,7 +173,11 @@ def _arguments() -> argparse.ArgumentParser:
         "--serial-speed", type=int, default=57600, metavar="BAUD", help="the agent's baud (default 57600)"
     )
     net.add_argument("--ecc", type=int, default=0, choices=(0, 1), help="ECC (default 0)")
-    net.add_argument("--write-params", metavar="FILE", help="write the agent's --radio-params file")
+    net.add_argument(
+        "--write-params",
+        metavar="FILE",
+        help="write the agent's --radio-params file: every register the radio reads back, but FORMAT",
+    )
     ap.add_argument(
         "--remote", action="store_true", help="configure the radio at the other end of the link (RT commands)"
     )

@@ -109,8 +109,9 @@ def open_router(
 
 
 def _tls(a: argparse.Namespace) -> TlsFiles | None:
-    """The router's TLS files once the rules allow them (UsageError otherwise); warns
-    (one line) of plain TCP beyond loopback and of TLS without an ACL."""
+    """The router's TLS files once the rules allow them (UsageError otherwise); its
+    warnings (plain TCP beyond loopback, TLS without an ACL) in ``a.warnings``, said
+    once it runs."""
     from swarm.core.zenoh_edge import CERTS_HINT, endpoint_kind, tls_needed
     from swarm.runtime.options import TlsFiles
 
@@ -123,12 +124,13 @@ def _tls(a: argparse.Namespace) -> TlsFiles | None:
     if a.acl is not None and not a.tls_ca:
         raise UsageError("--acl needs TLS (--tls-ca, --tls-cert, --tls-key): certificates name who is who")
     plain = [ep for ep in a.listen if endpoint_kind(ep) == "plain"]
+    a.warnings = []
     if plain:
-        log.warning(
-            "warning: %s lets anyone who reaches it into the key space; %s", ", ".join(plain), CERTS_HINT
+        a.warnings.append(
+            f"warning: {', '.join(plain)} lets anyone who reaches it into the key space; {CERTS_HINT}"
         )
     if a.tls_ca and a.acl is None:
-        log.warning("warning: no --acl: any certificate of the swarm's CA may publish anything here")
+        a.warnings.append("warning: no --acl: any certificate of the swarm's CA may publish anything here")
     return TlsFiles(a.tls_ca, a.tls_cert, a.tls_key, role="router") if a.tls_ca else None
 
 
@@ -192,6 +194,8 @@ def _serve(a: argparse.Namespace, tls: TlsFiles | None, stop: StopFlag) -> int:
         session = open_router(a.listen, a.connect, tls, a.acl)
     except TransportError as exc:
         raise UsageError(str(exc)) from None
+    for text in a.warnings:
+        log.warning("%s", text)
     try:
         zid = str(session.info.zid())  # type: ignore[attr-defined]
         if a.json:

@@ -7,8 +7,8 @@
  * "alerts": [{id, kind, agent, level, text, raised, cleared, acked, count}]. This file
  * shows every unacknowledged one in a banner under the top bar, most severe and
  * newest first, with an "Acknowledge" button each and "Acknowledge all"; an
- * acknowledgement is POST /api/alerts/ack {"id": N} (the page's cookie carries the
- * token), hidden at once and confirmed by the next snapshot. A refused
+ * acknowledgement is POST /api/alerts/ack {"id": N} (with the page's token,
+ * token.js), hidden at once and confirmed by the next snapshot. A refused
  * acknowledgement lands in the banner's own status line. The alerts' lines in the
  * event log are the station's events (app.js draws them).
  *
@@ -125,7 +125,7 @@
     let r;
     const body = station ? { id, station } : { id };
     try {
-      r = await fetch("/api/alerts/ack", {
+      r = await window.gcsToken.fetch("/api/alerts/ack", {
         method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
       });
     } catch (err) {

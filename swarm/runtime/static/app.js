@@ -12,11 +12,12 @@
  * "command_result" with the same id) or, while it is down, POST /api/command; every
  * answer, and every refusal with its reason, lands in the event log.
  *
- * Token (a station beyond loopback, or started with --token): the operator opens
- * /?token=...; the station answers with the page and an HttpOnly cookie that every
- * later request and the socket carry. The page drops the token from the address
- * bar at once (history.replaceState), so it is not in the history, a bookmark or a
- * copied link. A 401 (a restarted station with a new token) lands in the log.
+ * Token (a station beyond loopback, or started with --token): token.js keeps it
+ * (from the printed /?token=... address, out of the address bar at once) in the
+ * page's own origin's storage; every request here goes through gcsToken.fetch (the
+ * token as "Authorization: Bearer"), the socket offers it as a subprotocol, and the
+ * station's own tiles are fetched with it. A 401 (no token, or a restarted station
+ * with a new one) lands in the log and shows the form asking for it.
  *
  * Fleet table (#agents): one row per agent, its colour (a fixed palette by id: the
  * same on the marker, the trail and the row; the leader keeps its colour and is
@@ -98,15 +99,10 @@
     confirming: false,    // the confirmation dialog is open
   };
 
-  // the station has set the URL's token as a cookie: keep it out of the address bar
-  (function dropToken() {
-    const u = new URL(location.href);
-    if (!u.searchParams.has("token")) return;
-    u.searchParams.delete("token");
-    history.replaceState(history.state, "", u.pathname + u.search + u.hash);
-  })();
+  const api = window.gcsToken.fetch;  // fetch with the station's token (token.js)
 
   function tokenRefused(what) {
+    window.gcsToken.ask();
     if (S.tokenWarned) return;
     S.tokenWarned = true;
     log("error", what + ": the station wants its token: open the address it printed (…/?token=…)", "error");
@@ -186,13 +182,38 @@
   }
 
   // ---------------------------------------------------------------- map
+  // a tile layer whose tiles are fetched with the token and shown from their bytes
+  const TokenTiles = L.TileLayer.extend({
+    createTile(coords, done) {
+      const img = document.createElement("img");
+      img.alt = "";
+      img.setAttribute("role", "presentation");
+      const url = this.getTileUrl(coords);
+      img.dataset.tile = url;
+      const fail = (err) => {
+        if (this.options.errorTileUrl) img.src = this.options.errorTileUrl;
+        done(err, img);
+      };
+      api(url).then((r) => (r.ok ? r.blob() : Promise.reject(new Error("HTTP " + r.status)))).then((blob) => {
+        const src = URL.createObjectURL(blob);
+        img.onload = () => { URL.revokeObjectURL(src); done(null, img); };
+        img.onerror = () => { URL.revokeObjectURL(src); img.onerror = null; fail(new Error("not an image")); };
+        img.src = src;
+      }, fail);
+      return img;
+    },
+  });
+  const tokenTileLayer = (url, options) => new TokenTiles(url, options);
+
   function initMap(cfg) {
     const map = L.map("map", { zoomControl: true, attributionControl: true, worldCopyJump: true });
     S.map = map;
     S.trailRenderer = L.canvas({ padding: 0.3 });
     let tiles = null; // its credit only once a tile has loaded; a grid under it (grid.js)
     if (cfg.tiles) {
-      tiles = L.tileLayer(cfg.tiles, {
+      // the station's own tiles need its token, which an <img> cannot send
+      const layer = cfg.tiles.startsWith("/") && window.gcsToken.present ? tokenTileLayer : L.tileLayer;
+      tiles = layer(cfg.tiles, {
         maxZoom: 21, maxNativeZoom: cfg.tiles_max_zoom || 19, zIndex: 1,
         errorTileUrl: "data:image/gif;base64,R0lGODlhAQABAAAAACH5BAEKAAEALAAAAAABAAEAAAICTAEAOw==",
       }).addTo(map);
@@ -657,7 +678,7 @@
     const url = (location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws";
     let ws;
     try {
-      ws = new WebSocket(url);
+      ws = new WebSocket(url, window.gcsToken.protocols());
     } catch (err) {
       scheduleReconnect();
       return;
@@ -703,7 +724,7 @@
     if (S.pollTimer) return;
     const poll = async () => {
       try {
-        const r = await fetch("/api/state", { cache: "no-store" });
+        const r = await api("/api/state", { cache: "no-store" });
         if (r.ok) onState(await r.json());
         else if (r.status === 401) tokenRefused("GET /api/state");
       } catch (err) { /* station unreachable: keep trying */ }
@@ -779,7 +800,7 @@
         S.ws.send(JSON.stringify(Object.assign({ type: "command", id }, cmd)));
       });
     }
-    return fetch("/api/command", {
+    return api("/api/command", {
       method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(cmd),
     }).then(async (r) => {
       let body = {};
@@ -1010,7 +1031,7 @@
   async function replayAction(action, value) {
     try {
       const body = value === undefined ? { action } : { action, value };
-      const r = await fetch("/api/replay", {
+      const r = await api("/api/replay", {
         method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
       });
       const data = await r.json();
@@ -1034,7 +1055,7 @@
     const poll = async () => {
       if (performance.now() - S.replayAt < 2 * POLL_MS) return;  // pushed over the socket
       try {
-        const r = await fetch("/api/replay", { cache: "no-store" });
+        const r = await api("/api/replay", { cache: "no-store" });
         if (r.ok) drawReplay(await r.json());
       } catch (err) { /* keep trying */ }
     };
@@ -1088,7 +1109,7 @@
   async function start() {
     let cfg = { tiles: null, attribution: "", station: null, replay: false, center: null };
     try {
-      const r = await fetch("/api/config", { cache: "no-store" });
+      const r = await api("/api/config", { cache: "no-store" });
       if (r.ok) cfg = Object.assign(cfg, await r.json());
       else if (r.status === 401) tokenRefused("GET /api/config");
       else log("error", "GET /api/config: " + r.status, "error");

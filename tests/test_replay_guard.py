@@ -205,6 +205,7 @@ def test_the_default_folder_that_cannot_be_used_is_one_warning(
 def test_state_dir_from_the_flag_or_the_config_file_names_a_file_per_node(tmp_path: Path) -> None:
     key = tmp_path / "swarm.key"
     key.write_text("k\n")
+    key.chmod(0o600)  # a key others may read is refused
     conf = tmp_path / "a1.toml"
     conf.write_text('name = "a1"\nid = 3\nradio = "/dev/null"\nkey = "swarm.key"\nstate_dir = "st"\n')
     a = read_arguments(agent_cmd.build_parser(), ["--config", str(conf)])

@@ -573,6 +573,78 @@ def _air_frames(
     return out
 
 
+def ip_attacker(bench: FaultBench) -> FaultResult:
+    """An attacker on the IP side (a laptop on the field's Wi-Fi): every socket a
+    process of the bench listens on, found from the process itself (``/proc``), is tried
+    as Zenoh, plainly and with TLS but no certificate: subscribe to everything, put a
+    station's ARM and TAKEOFF to every agent (on its inbox and its command key), a
+    phantom leader's Advertize and Heartbeats, and ask the stations' command keys.
+    Nothing may be executed, followed or learnt; the only listeners are the station's
+    page (its own security: README, "The ground station's API") and the vehicle
+    simulators' MAVLink ports (the simulator's, not the swarm's)."""
+    from swarm.cli.bench.ip_attack import attack, executed, listeners
+
+    bench.settled("an IP attacker")
+    lead = bench.leader()
+    names = {f"agent{k}": k for k in bench.agents}
+    procs: dict[str, int] = {}
+    for k, a in bench.agents.items():
+        if a.agent is not None and a.agent.proc.poll() is None:
+            procs[f"agent{k}"] = a.agent.proc.pid
+        if a.sim is not None and a.sim.proc.poll() is None:
+            procs[f"vehicle{k}"] = a.sim.proc.pid
+    if bench.station is not None:
+        procs["station"] = bench.station.proc.pid
+    if bench.emu is not None:
+        procs["emulator"] = bench.emu.proc.pid
+    marks = {k: len(a.agent.lines) for k, a in bench.agents.items() if a.agent is not None}
+    t = time.monotonic()
+    found: dict[str, list[str]] = {}
+    reports = []
+    for who, pid in procs.items():
+        socks = listeners(pid)
+        found[who] = [x.describe() for x in socks]
+        reports += [(who, attack(x, names, phantom_id=ROGUE_ID)) for x in socks]
+    end = time.monotonic()
+    time.sleep(max(3.0, bench.leader_timeout_s))  # room for an effect to show
+    opened = [f"{who}: {ep}" for who, r in reports for ep in r.opened]
+    learnt = sum(len(r.received) for _who, r in reports)
+    sent = sum(r.sent for _who, r in reports)
+    done = [
+        text
+        for k, a in bench.agents.items()
+        if a.agent is not None
+        for text in executed(json_events(a.agent.lines[marks.get(k, 0) :], "pilot"))
+    ]
+    res = bench.measure(
+        "IP attacker on every listener",
+        t,
+        end,
+        injected=f"{sent} Zenoh puts (ARM, TAKEOFF to every agent on its inbox and command key, a phantom "
+        f"leader's Advertize and Heartbeats) and queries of gcs/**, from a client without a certificate, "
+        f"at each of {sum(len(v) for v in found.values())} listening sockets found in /proc of "
+        f"{len(procs)} processes",
+        listeners=found,
+        zenoh_sessions_opened=opened,
+        samples_learnt=learnt,
+        ip_commands_executed=len(done),
+    )
+    eff = _rogue_effects(bench, t, lead)
+    res.detail.update(eff)
+    res.frames_accepted_from_rogue = learnt + eff["samples_with_forged_id"] + eff["samples_with_leader_change"]
+    res.commands_lost += len(done)  # a command executed for nobody who may command is worse than lost
+    res.observed += (
+        "; listening: "
+        + "; ".join(f"{who} {', '.join(v)}" for who, v in found.items() if v)
+        + f"; Zenoh sessions opened {len(opened)}, samples learnt {learnt}, attacker commands executed "
+        f"{len(done)}, the phantom in {eff['samples_with_forged_id']} samples, a leader change in "
+        f"{eff['samples_with_leader_change']}"
+    )
+    if opened or learnt or done:
+        res.survived = False
+    return res
+
+
 def _forgeries(bench: FaultBench, key: bytes | None, sysid: int) -> list[bytes]:
     """Advertize, StartPool, a vote for the rogue and a Heartbeat claiming every agent."""
     from radios.mavlink import FrameBuilder
@@ -876,6 +948,7 @@ FAULTS: dict[str, Callable[..., FaultResult | list[FaultResult]]] = {
     "remote_at_all": lambda bench: _remote_at_all(bench, remote_at_registers()),
     "remote_at_quick": lambda bench: _remote_at_all(bench, REMOTE_AT_QUICK),
     "rogue_radio_status": rogue_radio_status,
+    "ip_attacker": ip_attacker,
     "commands": commands,
 }
 
@@ -907,6 +980,7 @@ FAULTS_ALL = (
     "rogue_vote",
     "remote_at_all",
     "rogue_radio_status",
+    "ip_attacker",
     "commands",
 )
 

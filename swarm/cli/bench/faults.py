@@ -631,7 +631,8 @@ def ip_attacker(bench: FaultBench) -> FaultResult:
     )
     eff = _rogue_effects(bench, t, lead)
     res.detail.update(eff)
-    res.frames_accepted_from_rogue = learnt + eff["samples_with_forged_id"] + eff["samples_with_leader_change"]
+    forged = eff["samples_with_forged_id"] + eff["samples_with_leader_change"]
+    res.frames_accepted_from_rogue = learnt + forged
     res.commands_lost += len(done)  # a command executed for nobody who may command is worse than lost
     res.observed += (
         "; listening: "

@@ -42,6 +42,15 @@ LIGHT = frozenset(
         "test_fleet_view.py",  # two stations' sessions in one process: the merged view
         "test_fleet_stations_page.py",  # 3 stations, a router, a browser: what they show
         "test_fleet_processes.py",  # 2 channels, 2 stations, a router: what the API shows and answers
+        # the IP edge: routers, TLS and the ACL, attacks: what gets in, not how fast
+        "test_ip_edge_deployment.py",
+        "test_ip_edge_attack.py",
+        "test_zenoh_tls.py",
+        "test_zenoh_tls_agents.py",
+        "test_federation_restart.py",
+        "test_federation_future.py",
+        "test_secret_files.py",  # refused at start: one line and the exit code
+        "test_gcs_connections.py",
         # pages and stations checked for what they show and answer, not for how fast
         "test_fleet_page.py",
         "test_altitude_page.py",

@@ -844,7 +844,9 @@ def rogue_remote_at(bench: FaultBench, name: str = "NETID", target: str = "leade
     bench.settled(f"rogue remote AT on {name}")
     lead = bench.leader()
     k = lead if target == "leader" else next(m for m in sorted(bench.agents) if m != lead)
-    period = CHECK_PERIOD_S
+    period = bench.check_period
+    if not period:
+        raise BenchError("the remote-AT faults need a bench with a radio-check period (NEEDS_CHECK_PERIOD)")
     events_before = len(bench.agents[k].all_events())
     t = time.monotonic()
     try:
@@ -953,6 +955,9 @@ FAULTS: dict[str, Callable[..., FaultResult | list[FaultResult]]] = {
     "commands": commands,
 }
 
+#: the faults played on a bench whose agents check their radio every CHECK_PERIOD_S
+NEEDS_CHECK_PERIOD = frozenset({"rogue_remote_at", "remote_at_all", "remote_at_quick"})
+
 #: the bounded set the test suite runs (``--quick``): ordered so that the member restart
 #: needs no extra wait for the others' uptime
 FAULTS_QUICK = (
@@ -994,21 +999,31 @@ def run_faults(
     **kw: Any,
 ) -> dict[str, Any]:
     results: list[FaultResult] = []
-    with FaultBench(log=log, **kw) as bench:
-        bench.fly()
-        for name in names:
-            fn = FAULTS[name]
-            args = {"uptime_s": member_uptime_s} if name == "member_restart" else {}
-            try:
-                got = fn(bench, **args)
-            except BenchError as exc:
-                got = FaultResult(name, detail={"error": str(exc)})
-            for r in got if isinstance(got, list) else [got]:
-                results.append(r)
-                bench.log(json.dumps(r.as_dict()))
-        elect = bench.elect_s or 0.0
-        profile_elect = bench.profile_elect_s
-        lt = bench.leader_timeout_s
+    # the faults that need the agents' periodic radio check run on a bench of their own
+    # (FaultBench's check_period): the others run as agents run by default, without it
+    groups = [
+        (0.0, [n for n in names if n not in NEEDS_CHECK_PERIOD]),
+        (CHECK_PERIOD_S, [n for n in names if n in NEEDS_CHECK_PERIOD]),
+    ]
+    elect = profile_elect = lt = 0.0
+    for period, group in groups:
+        if not group:
+            continue
+        with FaultBench(log=log, check_period=period, **kw) as bench:
+            bench.fly()
+            for name in group:
+                fn = FAULTS[name]
+                args = {"uptime_s": member_uptime_s} if name == "member_restart" else {}
+                try:
+                    got = fn(bench, **args)
+                except BenchError as exc:
+                    got = FaultResult(name, detail={"error": str(exc)})
+                for r in got if isinstance(got, list) else [got]:
+                    results.append(r)
+                    bench.log(json.dumps(r.as_dict()))
+            elect = elect or bench.elect_s or 0.0
+            profile_elect = bench.profile_elect_s
+            lt = bench.leader_timeout_s
     faults = [r.as_dict() for r in results]
     kills = [r.detail.get("new_leader_s") for r in results if r.fault == "leader kill -9"]
     rt = [r for r in results if "register" in r.detail]

@@ -601,9 +601,11 @@ def ip_attacker(bench: FaultBench) -> FaultResult:
     t = time.monotonic()
     found: dict[str, list[str]] = {}
     reports = []
+    tried = 0
     for who, pid in procs.items():
         socks = listeners(pid)
         found[who] = [x.describe() for x in socks]
+        tried += sum(len(x.zenoh_endpoints()) for x in socks)
         reports += [(who, attack(x, names, phantom_id=ROGUE_ID)) for x in socks]
     end = time.monotonic()
     time.sleep(max(3.0, bench.leader_timeout_s))  # room for an effect to show
@@ -620,10 +622,11 @@ def ip_attacker(bench: FaultBench) -> FaultResult:
         "IP attacker on every listener",
         t,
         end,
-        injected=f"{sent} Zenoh puts (ARM, TAKEOFF to every agent on its inbox and command key, a phantom "
-        f"leader's Advertize and Heartbeats) and queries of gcs/**, from a client without a certificate, "
-        f"at each of {sum(len(v) for v in found.values())} listening sockets found in /proc of "
-        f"{len(procs)} processes",
+        injected=f"a Zenoh client without a certificate (plain and TLS) at each of "
+        f"{sum(len(v) for v in found.values())} listening sockets found in /proc of {len(procs)} processes "
+        f"({tried} endpoints tried), to subscribe to everything and put ARM and TAKEOFF to every agent "
+        f"(inbox and command key), a phantom leader's Advertize and Heartbeats, and ask gcs/** "
+        f"({sent} puts made where a session opened)",
         listeners=found,
         zenoh_sessions_opened=opened,
         samples_learnt=learnt,
@@ -863,9 +866,35 @@ def rogue_remote_at(bench: FaultBench, name: str = "NETID", target: str = "leade
         res.injected = f"a rogue radio's RT commands on {name} of agent{k}'s radio"
         res.observed = f"the bench could not play it: {exc}"
         return res
-    restored_at = None
-    if out.landed_s is not None and out.restored_s is not None:
-        restored_at = t + out.landed_s + out.restored_s
+    victim = bench.agents[k]
+
+    def guard_events() -> list[dict[str, Any]]:
+        return [
+            e
+            for e in victim.all_events()[events_before:]
+            if e.get("event") in ("radio-checked", "radio-restored", "radio-check-failed")
+        ]
+
+    def undid(e: dict[str, Any]) -> bool:
+        return e.get("event") == "radio-restored" and (e.get("differed") or {}).get(name) == out.attack.value
+
+    # the guard's own word: it reports once it has read the restored radio back, which may
+    # come after the registers are back; and it may undo a change before the rogue's RT&W
+    # saved it (the change was in RAM: it landed, and was undone before it was saved)
+    wait_until = time.monotonic() + 15.0
+    while not any(undid(e) for e in guard_events()) and time.monotonic() < wait_until:
+        time.sleep(0.2)
+    guard = guard_events()
+    found = [e for e in guard if undid(e)]
+    regs = registers_from_stats(bench.stats_json, k - 1)
+    back = regs is not None and all(copy.get(name) == out.before for copy in regs)
+    saved = out.landed_s is not None
+    undone = (out.restored_s is not None or (not saved and back)) and bool(found)
+    restored_at: float | None = None
+    if saved and out.restored_s is not None:
+        restored_at = t + out.landed_s + out.restored_s  # type: ignore[operator]
+    elif undone:
+        restored_at = time.monotonic()
     res = bench.measure(
         f"rogue radio: remote AT on {name} ({target})",
         t,
@@ -876,35 +905,37 @@ def rogue_remote_at(bench: FaultBench, name: str = "NETID", target: str = "leade
         register=name,
         landed_s=None if out.landed_s is None else round(out.landed_s, 2),
         restored_s=None if out.restored_s is None else round(out.restored_s, 2),
+        undone_before_saved=not saved and undone,
         radio_check_period_s=period,
     )
     after = bench.dual_leader_s(restored_at, time.monotonic()) if restored_at is not None else None
     res.detail["dual_leader_s_after_restore"] = None if after is None else round(after, 2)
-    guard = [
-        e
-        for e in bench.agents[k].all_events()[events_before:]
-        if e.get("event") in ("radio-checked", "radio-restored", "radio-check-failed")
-    ]
     res.detail["guard_events"] = [
         {k2: e.get(k2) for k2 in ("event", "why", "differed", "error") if k2 in e} for e in guard
     ]
-    restored = [e for e in guard if e.get("event") == "radio-restored"]
-    why = restored[-1].get("why") if restored else None
-    landed = f"landed after {out.landed_s:.1f} s" if out.landed_s is not None else "did NOT land"
-    res.observed += f"; the attack {landed}"
-    if out.landed_s is not None:
+    why = found[-1].get("why") if found else None
+    if saved and out.restored_s is not None:
         res.observed += (
-            f", undone by agent{k}'s guard {out.restored_s:.1f} s later (found by its {why or '?'} check; "
-            f"target {2 * period:g} s, two periods)"
-            if out.restored_s is not None
-            else ", NEVER undone"
+            f"; the attack landed (saved in the radio's flash) after {out.landed_s:.1f} s and was "
+            f"undone {out.restored_s:.1f} s later"
+            + (f" by agent{k}'s guard ({why} check)" if found else ", but NOT by the guard (no report)")
+            + f"; target {2 * period:g} s, two periods"
         )
-        if after is not None:
-            res.observed += f"; two leaders for {after:.1f} s after it was undone"
-    if out.landed_s is None or out.restored_s is None or (after or 0.0) > 0.0:
+    elif saved:
+        res.observed += f"; the attack landed after {out.landed_s:.1f} s and was NEVER undone"
+    elif undone:
+        res.observed += (
+            f"; the attack landed in the radio's RAM and agent{k}'s guard ({why} check) undid it before the "
+            f"rogue's RT&W saved it, within 30 s of the first RT line (target {2 * period:g} s)"
+        )
+    else:
+        res.observed += "; the attack did NOT land (neither saved nor found by the guard)"
+    if after is not None:
+        res.observed += f"; two leaders for {after:.1f} s after it was undone"
+    if not undone or (after or 0.0) > 0.0:
         res.survived = False
-    if out.restored_s is None:
-        res.frames_accepted_from_rogue += 1  # the change stayed
+    if (saved or found) and not undone:
+        res.frames_accepted_from_rogue += 1  # the change stayed, or went away without the guard
     return res
 
 
@@ -1049,7 +1080,8 @@ def run_faults(
             ),
             "dual_leader_within_leader_timeout": all(r.dual_leader_s <= lt for r in results),
             "remote_at_restored_within_2_periods": all(
-                r.detail.get("restored_s") is not None and r.detail["restored_s"] <= 2 * CHECK_PERIOD_S
+                (r.detail.get("restored_s") is not None and r.detail["restored_s"] <= 2 * CHECK_PERIOD_S)
+                or r.detail.get("undone_before_saved")
                 for r in rt
             )
             if rt

@@ -351,3 +351,36 @@ def test_without_a_radio_for_longer_than_a_timeout_the_swarm_still_moves_on_once
     live = [k for k in air.nodes if k != lead]
     assert len(air.leaders()) == 1 and air.leaders()[0] in live
     assert all(air.nodes[k].core.phase in (Phase.LEADER, Phase.MEMBER) for k in live)
+
+
+def test_a_leader_cut_off_by_a_rogue_steps_down_once_its_radio_is_put_back() -> None:
+    """A rogue moved the leader's radio off the network (NETID, AIR_SPEED, ECC... over
+    RT): its members expelled for silence, the others elected a new leader; once its
+    radio guard put the radio back, it claimed to lead beside the new leader until the
+    merge rule absorbed it (the fault bench: two leaders for 2-5 s after each such attack
+    was undone). A leader left with no member now steps down and joins; one that kept its
+    members stays."""
+    from swarm.core.node import RadioAway, RadioBack, RadioRestored
+
+    air = Air(3, profile=PAPER)
+    air.run(30.0)
+    [lead] = air.leaders()
+    air.down.add(lead)  # cut off: it hears no one and no one hears it
+    air.run(air.clock.now + 20.0)
+    others = [k for k in air.nodes if k != lead]
+    [new] = [k for k in others if air.nodes[k].core.phase == Phase.LEADER]
+    old = air.nodes[lead]
+    # the old leader, alone on its wrong network, expelled its members
+    old.tick(air.clock.now)
+    assert old.core.phase == Phase.LEADER and not old.core.members
+    air.down.discard(lead)
+    for ev in (RadioAway(), RadioBack(), RadioRestored()):  # the check lent the radio and fixed it
+        air.deliver(lead, old.handle(ev, air.clock.now))
+    assert old.core.phase == Phase.IDLE  # at once: not a second leader
+    air.run(air.clock.now + 15.0)
+    assert air.leaders() == [new]
+    assert old.core.phase == Phase.MEMBER and old.core.leader == new
+    # a leader that kept its members is not moved by a restore
+    nd = air.nodes[new]
+    air.deliver(new, nd.handle(RadioRestored(), air.clock.now))
+    assert nd.core.phase == Phase.LEADER and nd.core.members

@@ -19,7 +19,9 @@ virtual-time flight simulator (:mod:`swarm.sim.flightsim`) drive the same code:
   :class:`PositionFix` (the flight controller's position became valid or stopped
   being one); :class:`CallDone` (a vehicle call finished); :class:`AutopilotText`
   (a STATUSTEXT of the flight controller); :class:`RadioAway` and :class:`RadioBack`
-  (the radio lent or lost, and back: "Deaf" below).
+  (the radio lent or lost, and back: "Deaf" below); :class:`RadioRestored` (the radio
+  guard put back a radio a rogue had moved off the swarm: a leader left with no member
+  steps down and rejoins, :meth:`~swarm.core.protocol.Core.rejoin`).
 * **Outputs**: :class:`Send` (a message to an agent or station id, with the name the
   node learnt for it, or to everyone: ``to`` 0 for Advertize and GSAdvertize);
   :class:`PublishState` (when the election state changed, and as a keep-alive:
@@ -169,6 +171,12 @@ class RadioAway:
 @dataclass(frozen=True)
 class RadioBack:
     """The radio link is back after :class:`RadioAway`."""
+
+
+@dataclass(frozen=True)
+class RadioRestored:
+    """The radio guard found the radio off the swarm's settings (a rogue's RT commands)
+    and put it back: the agent was cut off from the swarm meanwhile."""
 
 
 @dataclass(frozen=True)
@@ -389,6 +397,8 @@ class AgentNode:
                 self._deaf_total += max(0.0, now - self._deaf_since)
                 self._deaf_since = None
                 return self._outs(core.resume(self._core_time(now)))  # heard from at once
+        elif isinstance(ev, RadioRestored):
+            return self._outs(core.rejoin(self._core_time(now)))  # cut off: no swarm of one to lead
         elif isinstance(ev, PositionFix):
             return self._tell(self._position_fix(ev), now)
         elif isinstance(ev, AutopilotText):
@@ -565,6 +575,7 @@ __all__ = [
     "RadioAway",
     "RadioBack",
     "RadioInfo",
+    "RadioRestored",
     "Send",
     "SetTask",
     "SetpointOut",

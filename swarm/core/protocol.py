@@ -365,6 +365,21 @@ class Core:
             out.append(Out(self.leader, HeartbeatAck(self.me, self.heard_seq, self.pose or NO_POSE)))
         return out
 
+    def rejoin(self, now: float) -> list[Out]:
+        """The node's radio had been moved off the swarm's network (a rogue radio's RT
+        commands) and was put back by the radio guard: it was cut off, and the swarm went
+        on without it. A leader left with no member (all expelled while it was cut off)
+        leads nobody the others can hear: it steps down and asks to join (IDLE: it asks
+        the leaders it hears, and leads a swarm of one again only after a whole alone
+        timeout of hearing none), instead of claiming to lead beside the swarm's new
+        leader until the merge rule absorbs it (the fault bench: two leaders for 2-5 s
+        after each isolating attack was undone). A leader that kept members stays."""
+        if self.phase != Phase.LEADER or self.members:
+            return []
+        self.counters.step_downs += 1
+        self.go_idle(now)
+        return self.tick(now)  # its Advertize at once
+
     def set_task(self, task: Task) -> None:
         """The leader's task; it rides on the next Heartbeats."""
         self.task = task

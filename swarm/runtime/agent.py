@@ -118,6 +118,7 @@ from swarm.core.node import (
     RadioAway,
     RadioBack,
     RadioInfo,
+    RadioRestored,
     Send,
     SetpointOut,
     SetTask,
@@ -328,6 +329,11 @@ class Agent(StartOnce):
         if self.vehicle is not None:
             self._spawn(self._pose_loop, "pose")
             self._spawn(self._vehicle_loop, "vehicle")
+
+    def radio_restored(self) -> None:
+        """The radio guard found the radio off the swarm's settings and put it back: it
+        was cut off from the swarm (:class:`swarm.core.node.RadioRestored`)."""
+        self.loop.put(RadioRestored())
 
     def _radio_event(self, what: str, _text: str) -> None:
         """The bridge's radio events: the election core stands still while the radio is

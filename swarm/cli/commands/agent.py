@@ -365,13 +365,14 @@ class _Lines:
             self._pending.clear()
 
 
-def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) -> None:
-    """The radio guard (before the bridge opens the port, or on a port it lent). Raises
-    RadioError for a radio that differs (without --restore-radio) or does not answer, and
-    ConfigError for bad expected parameters. The start check (``why`` None) sets
-    ``a.radio_guard``, every register the later checks keep, and ``a.radio_known``; a
-    re-check (``why``: ``period`` or ``isolated``) compares them all and says so in one
-    line even when the radio is as expected."""
+def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) -> bool:
+    """The radio guard (before the bridge opens the port, or on a port it lent); True when
+    it found the radio off the swarm's settings and put it back. Raises RadioError for a
+    radio that differs (without --restore-radio) or does not answer, and ConfigError for
+    bad expected parameters. The start check (``why`` None) sets ``a.radio_guard``, every
+    register the later checks keep, and ``a.radio_known``; a re-check (``why``:
+    ``period`` or ``isolated``) compares them all and says so in one line even when the
+    radio is as expected."""
     guard = getattr(a, "radio_guard", None)
     expected = guard if guard is not None else parse_expected(a.radio_params)
     report = check_radio(a.radio, expected, restore=a.restore_radio, known=getattr(a, "radio_known", None))
@@ -394,7 +395,7 @@ def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) 
                 {"event": "radio-checked", "registers": len(expected)},
                 f"radio {a.radio} checked {after}: as expected",
             )
-        return
+        return False
     what = describe(report.mismatches)
     if not report.restored:
         raise ATError(
@@ -406,6 +407,7 @@ def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) 
         {"event": "radio-restored", "differed": {m.name: m.actual for m in report.mismatches}},
         f"radio {a.radio} differed from the swarm's parameters ({what}): restored",
     )
+    return True
 
 
 def _check_arguments(a: argparse.Namespace) -> None:
@@ -539,10 +541,13 @@ class _Isolation:
         return _isolated(self.agent) and n == before
 
 
-def _recheck_radio(a: argparse.Namespace, bridge: Any, out: _Lines, why: str) -> None:
-    """Check (and restore) the radio of a running agent: the bridge lends the port."""
+def _recheck_radio(a: argparse.Namespace, agent: Agent, out: _Lines, why: str) -> None:
+    """Check (and restore) the radio of a running agent: the bridge lends the port. A
+    radio found off the swarm's settings and put back had cut the agent off: it is told
+    (:meth:`Agent.radio_restored`)."""
     try:
-        bridge.lend_radio(lambda: _check_radio(a, out, why=why), why="radio check")
+        if agent.bridge.lend_radio(lambda: _check_radio(a, out, why=why), why="radio check"):
+            agent.radio_restored()
     except RadioError as exc:  # silent, different, refused: say so, keep flying, retry later
         out.line(
             {
@@ -590,7 +595,7 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
             check_peer()
             why = checks.due(isolated(), time.monotonic()) if checks.active else None
             if why is not None and agent.bridge is not None:
-                _recheck_radio(a, agent.bridge, out, why)
+                _recheck_radio(a, agent, out, why)
                 checks.checked(time.monotonic())
                 continue
             if not agent.running:

@@ -274,3 +274,39 @@ def test_close_twice_and_subscribe_after_close() -> None:
 def test_bad_endpoint_is_a_transport_error() -> None:
     with pytest.raises(TransportError):
         open_session(listen=["nonsense-endpoint"])
+
+
+def test_a_client_sessions_callback_threads_end_before_close_returns() -> None:
+    """A connect-only node's subscribers are declared on the thread that opens its client
+    session (a daemon thread), and Zenoh runs each Python callback on a thread of its own
+    started there: a daemon too, so nothing waited for it at exit and the interpreter
+    killed it mid-callback as it shut down ("FATAL: exception not rethrown", the process
+    aborted: a connect-only agent stopped by systemd was reported as a core dump). Once
+    close() returns, no callback of the session may still be running."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    peer = open_session(listen=[ep])
+    client = open_session(connect=[ep])
+    started = threading.Event()
+
+    def slow(_sample: Any) -> None:  # still busy when close() is called
+        started.set()
+        time.sleep(0.5)
+
+    try:
+        others = set(threading.enumerate())  # other tests' sessions have callback threads too
+        client.declare_subscriber("t/**", slow)  # before it opened: declared by the open loop
+        wait_until(lambda: client.opened, "the client session opened", 30.0)
+
+        def put_until_heard() -> bool:
+            peer.put("t/x", b"x")
+            return started.wait(0.1)
+
+        wait_until(put_until_heard, "a sample at the client", 30.0)
+        callback_threads = [t for t in set(threading.enumerate()) - others if "pyo3" in t.name]  # Zenoh's name
+        assert callback_threads, [t.name for t in threading.enumerate()]
+        client.close()
+        alive = [t.name for t in callback_threads if t.is_alive()]
+        assert not alive, f"callback threads still running after close(): {alive}"
+    finally:
+        client.close()
+        peer.close()

@@ -41,6 +41,7 @@ import json
 import logging
 import re
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -186,22 +187,65 @@ class _NoInfo:
         return []
 
 
+#: how long closing waits for a callback still running to return, s
+CALLBACK_END_S = 2.0
+
+
 class _Declared:
     """A subscriber or queryable declared on a :class:`ClientSession`: declared again on
-    each session it opens; :meth:`undeclare` as Zenoh's."""
+    each session it opens; :meth:`undeclare` as Zenoh's.
+
+    Zenoh runs a Python callback on a thread of its own, started by the thread that
+    declares, whose daemon flag it inherits. A client session declares from its open
+    loop, a daemon thread, so those callback threads were daemons too: nothing waited
+    for them at exit, and the interpreter killed one mid-callback as it shut down (the
+    process aborted, "FATAL: exception not rethrown"). So a plain callable is wrapped
+    with a drop hook that names its thread, and undeclaring (or closing the session)
+    returns only once that thread has ended (at most :data:`CALLBACK_END_S`)."""
 
     def __init__(self, owner: ClientSession, method: str, args: tuple[Any, ...], kw: dict[str, Any]) -> None:
         self.owner, self.method, self.args, self.kw = owner, method, args, kw
         self.real: Any = None
+        self._ends: list[tuple[threading.Event, list[threading.Thread]]] = []
 
     def attach(self, session: Any) -> None:
-        self.real = getattr(session, self.method)(*self.args, **self.kw)
+        args, kw = list(self.args), dict(self.kw)
+        if len(args) > 1:
+            args[1] = self._watched(args[1])
+        elif "handler" in kw:
+            kw["handler"] = self._watched(kw["handler"])
+        self.real = getattr(session, self.method)(*args, **kw)
+
+    def _watched(self, handler: Any) -> Any:
+        if not callable(handler) or type(handler).__module__.startswith("zenoh"):
+            return handler  # Zenoh's own handlers (channels, Callback) as given
+        ended = threading.Event()
+        thread: list[threading.Thread] = []
+
+        def drop() -> None:
+            thread.append(threading.current_thread())
+            ended.set()
+
+        self._ends.append((ended, thread))
+        return zenoh.handlers.Callback(handler, drop)
+
+    def wait_ended(self, deadline: float) -> None:
+        """Wait (until ``deadline``, monotonic) for every callback thread to end."""
+        ends, self._ends = self._ends, []
+        for ended, thread in ends:
+            if not ended.wait(max(0.0, deadline - time.monotonic())):
+                log.debug("client session: a callback did not end in time")
+                continue
+            for t in thread:
+                if t is not threading.current_thread():
+                    t.join(max(0.0, deadline - time.monotonic()))
 
     def undeclare(self) -> None:
         self.owner._forget(self)
         real, self.real = self.real, None
         if real is not None:
             real.undeclare()
+            self.wait_ended(time.monotonic() + CALLBACK_END_S)
 
 
 class ClientSession:
@@ -299,9 +343,12 @@ class ClientSession:
         with self._lock:
             self._closed.set()
             session, self._session = self._session, None
-            self._declared.clear()
+            declared, self._declared = self._declared, []
         if session is not None:
             session.close()
+            deadline = time.monotonic() + CALLBACK_END_S
+            for d in declared:
+                d.wait_ended(deadline)
         if self._thread is not threading.current_thread():
             self._thread.join(CLIENT_ATTEMPT_MS / 1000 + 1.0)  # an attempt under way ends
 

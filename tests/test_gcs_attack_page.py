@@ -365,7 +365,18 @@ def test_the_stations_own_tiles_come_with_the_token(swarm: Swarm, ctx: Any, tmp_
             "Array.from(document.querySelectorAll('img.leaflet-tile-loaded'))"
             ".filter(i => (i.dataset.tile || '').startsWith('/tiles/17/')).length"
         )
-        wait_until(lambda: page.evaluate(loaded) > 0, "the station's tiles drawn", DEADLINE, 0.2)
+        seen = (  # what the map holds, should the tiles never come
+            "(() => { const m = window.gcs.map; const imgs = Array.from(document.querySelectorAll('#map img'))"
+            ".slice(0, 6).map(i => [i.dataset.tile || i.src.slice(0, 40), i.className]);"
+            " return {zoom: m.getZoom(), size: m.getSize(), imgs}; })()"
+        )
+        wait_until(  # at zoom 18 too (the page zooms to the agents): the folder's 17 enlarged
+            lambda: page.evaluate(loaded) > 0,
+            "the station's tiles drawn",
+            DEADLINE,
+            0.2,
+            detail=lambda: (page.evaluate(seen), page.errors, dict(server.stats)),
+        )
         assert page.evaluate("fetch('/tiles/17/1/1.png').then(r => r.status)") == 401
         assert page.errors == []
         page.close()

@@ -237,3 +237,20 @@ def test_config_key_takes_a_path_beside_the_file(tmp_path: Path, capsys: pytest.
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f'tiles_mbtiles = "{tmp_path / "bad.mbtiles"}"' in err[0], err
     assert "not an SQLite database" in err[0], err
+
+
+def test_a_tile_folder_says_its_deepest_zoom(tmp_path: Path) -> None:
+    """Tiles saved to a folder up to zoom 17: the page must enlarge zoom 17 beyond it,
+    not ask for zoom 18 tiles the folder does not have (the map went blank when the
+    page zoomed to the agents, at 18: an operator in a field without internet saw no
+    map at all)."""
+    for z in (15, 16, 17):
+        (tmp_path / str(z) / "1").mkdir(parents=True)
+        (tmp_path / str(z) / "1" / "1.png").write_bytes(tile_png(196))
+    (tmp_path / "notes").mkdir()  # not a zoom level
+    (tmp_path / "99").write_text("a file, not a zoom level")
+    assert ServerConfig(tiles_dir=tmp_path).tiles_max_zoom == 17
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert ServerConfig(tiles_dir=empty).tiles_max_zoom == 19  # nothing there yet: the page's usual depth
+    assert ServerConfig(tiles="https://tile.example/{z}/{x}/{y}.png").tiles_max_zoom == 19

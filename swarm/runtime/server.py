@@ -212,8 +212,19 @@ class ServerConfig:
 
     @property
     def tiles_max_zoom(self) -> int:
-        """The deepest zoom the tile source has (the page enlarges it beyond)."""
-        return self.tiles_mbtiles.meta.max_zoom if self.tiles_mbtiles is not None else 19
+        """The deepest zoom the tile source has (the page enlarges it beyond): an MBTiles
+        file's own, a tile folder's deepest zoom folder (0-30), else 19."""
+        if self.tiles_mbtiles is not None:
+            return self.tiles_mbtiles.meta.max_zoom
+        if self.tiles_dir is not None:
+            try:
+                zooms = [int(p.name) for p in self.tiles_dir.iterdir() if p.name.isdigit() and p.is_dir()]
+            except OSError:
+                zooms = []
+            zooms = [z for z in zooms if z <= 30]
+            if zooms:
+                return max(zooms)
+        return 19
 
 
 class GcsServer:

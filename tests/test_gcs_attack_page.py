@@ -366,8 +366,9 @@ def test_the_stations_own_tiles_come_with_the_token(swarm: Swarm, ctx: Any, tmp_
             ".filter(i => (i.dataset.tile || '').startsWith('/tiles/17/')).length"
         )
         seen = (  # what the map holds, should the tiles never come
-            "(() => { const m = window.gcs.map; const imgs = Array.from(document.querySelectorAll('#map img'))"
-            ".slice(0, 6).map(i => [i.dataset.tile || i.src.slice(0, 40), i.className]);"
+            "(() => { const m = window.gcs.map;"
+            " const imgs = Array.from(document.querySelectorAll('#map img')).slice(0, 6)"
+            ".map(i => [i.dataset.tile || i.src.slice(0, 40), i.className]);"
             " return {zoom: m.getZoom(), size: m.getSize(), imgs}; })()"
         )
         wait_until(  # at zoom 18 too (the page zooms to the agents): the folder's 17 enlarged

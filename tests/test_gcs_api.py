@@ -178,10 +178,10 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         wait_until(
             lambda: (
                 station.snapshot()["leader"] == 1
-                and all(a["connected"] for a in station.snapshot()["agents"])
+                and all(a["connected"] and a["mode"] is not None for a in station.snapshot()["agents"])
                 and len(station.snapshot()["agents"]) == 3
             ),
-            "three connected agents and leader 1",
+            "three connected agents, their telemetry, and leader 1",  # a pose can come before it
             30,
         )
         yield {"base": base, "station": station, "server": server, "agents": agents, "png": png}

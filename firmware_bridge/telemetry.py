@@ -50,6 +50,7 @@ __all__ = [
     "TelemetryFolder",
     "VehicleState",
     "arming_problems",
+    "interruption",
     "is_autopilot_heartbeat",
     "position_problem",
 ]
@@ -152,10 +153,64 @@ class VehicleState:
         return self.armed and self.rel_alt is not None and self.rel_alt > 0.5
 
 
+def interruption(before: VehicleState, now: VehicleState, hold_mode: str | None = None) -> str | None:
+    """Why a flight step that started in ``before`` can no longer complete in ``now``
+    (None: it still can): the vehicle disarmed although it was armed, or, with
+    ``hold_mode``, its autopilot is in another mode (a failsafe, a landing, RC)."""
+    if before.armed and not now.armed:
+        return f"the vehicle disarmed (mode {now.mode or 'unknown'})"
+    if hold_mode is not None and now.mode and now.mode != hold_mode:
+        return f"the autopilot left {hold_mode} by itself (now {now.mode})"
+    return None
+
+
 def _text(raw: Any) -> str:
     if isinstance(raw, bytes):
         raw = raw.decode("utf-8", "replace")
     return str(raw).rstrip("\x00").strip()
+
+
+CHUNK = 50  # characters in one STATUSTEXT
+CHUNK_WAIT_S = 1.0  # a text's next chunk comes within this, or the text is given as cut
+MAX_PENDING_TEXTS = 8  # texts being joined at once (the oldest given up beyond)
+MAX_CHUNKS = 40  # chunks of one text kept (2,000 characters)
+
+
+class TextJoiner:
+    """Joins a MAVLink 2 STATUSTEXT sent in chunks (``id`` not 0, ``chunk_seq`` 0, 1...;
+    the last chunk shorter than 50 characters). A text whose next chunk does not come
+    within :data:`CHUNK_WAIT_S` is given as far as it came, marked ``[cut]``."""
+
+    def __init__(self) -> None:
+        # (component, id) -> (severity, chunks, last heard)
+        self._pending: dict[tuple[int, int], tuple[int, dict[int, str], float]] = {}
+
+    def add(self, component: int, text_id: int, seq: int, severity: int, raw: Any, now: float) -> str | None:
+        """A chunk heard at ``now``: the whole text once complete, else None."""
+        chunk = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
+        chunk = chunk.split("\x00", 1)[0]
+        if text_id == 0:
+            return chunk.strip()
+        key = (component, text_id)
+        _sev, chunks, _t = self._pending.get(key, (severity, {}, now))
+        if len(chunks) < MAX_CHUNKS:
+            chunks[seq] = chunk
+        if len(chunk) < CHUNK:
+            self._pending.pop(key, None)
+            return "".join(chunks[i] for i in sorted(chunks)).strip()
+        self._pending[key] = (severity, chunks, now)
+        while len(self._pending) > MAX_PENDING_TEXTS:
+            self._pending.pop(next(iter(self._pending)))
+        return None
+
+    def overdue(self, now: float) -> list[tuple[int, str]]:
+        """(severity, text) of the texts whose next chunk is overdue at ``now``."""
+        out = []
+        for key, (sev, chunks, heard) in list(self._pending.items()):
+            if now - heard > CHUNK_WAIT_S:
+                del self._pending[key]
+                out.append((sev, "".join(chunks[i] for i in sorted(chunks)).strip() + " [cut]"))
+        return out
 
 
 _Updates = dict[str, Any]
@@ -178,6 +233,7 @@ class TelemetryFolder:
         self.own_system = own_system
         self.state = VehicleState(autopilot=autopilot, system_id=target_system, component_id=target_component)
         self.texts: deque[StatusText] = deque(maxlen=texts)
+        self._joiner = TextJoiner()
         self.seen: dict[int, float] = {}  # message id -> when last heard
         self._gps_fix: int | None = None
         self._attitude_time = 0.0
@@ -194,9 +250,20 @@ class TelemetryFolder:
         if mtype == "BAD_DATA" or msg.get_srcSystem() != self.target_system:
             return Heard()
         text = None
+        for severity, cut in self._joiner.overdue(now):
+            self.texts.append(StatusText(now, severity, cut))
         if mtype == "STATUSTEXT":
-            text = StatusText(now, msg.severity, _text(msg.text))
-            self.texts.append(text)
+            whole = self._joiner.add(
+                msg.get_srcComponent(),
+                getattr(msg, "id", 0),
+                getattr(msg, "chunk_seq", 0),
+                msg.severity,
+                msg.text,
+                now,
+            )
+            if whole is not None:
+                text = StatusText(now, msg.severity, whole)
+                self.texts.append(text)
         if msg.get_srcComponent() != self.target_component:
             return Heard(text=text)
         self.seen[msg.get_msgId()] = now

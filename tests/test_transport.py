@@ -302,7 +302,9 @@ def test_a_client_sessions_callback_threads_end_before_close_returns() -> None:
             return started.wait(0.1)
 
         wait_until(put_until_heard, "a sample at the client", 30.0)
-        callback_threads = [t for t in set(threading.enumerate()) - others if "pyo3" in t.name]  # Zenoh's name
+        callback_threads = [
+            t for t in set(threading.enumerate()) - others if "pyo3" in t.name
+        ]  # Zenoh's name
         assert callback_threads, [t.name for t in threading.enumerate()]
         client.close()
         alive = [t.name for t in callback_threads if t.is_alive()]

@@ -44,8 +44,9 @@ __all__ = ["KINDS", "Sitl", "SitlError", "find_sitl", "script", "start"]
 Kind = Literal["ardupilot", "px4"]
 KINDS: tuple[Kind, ...] = ("ardupilot", "px4")
 SCRIPTS = {"ardupilot": "run-arducopter", "px4": "run-px4"}
-#: instance numbers tried, per kind: PX4's 14540+N must stay below its GCS port 14550
-INSTANCES = {"ardupilot": range(0, 60), "px4": range(0, 10)}
+#: instance numbers tried, per kind (0, the scripts' default, is left to a SITL of the user's own;
+#: PX4's 14540+N must stay below its GCS port 14550)
+INSTANCES = {"ardupilot": range(1, 60), "px4": range(1, 10)}
 STOP_S = 10.0  # SIGTERM, then SIGKILL after this long
 LOCK_DIR = Path(tempfile.gettempdir()) / "swarm-sitl-locks"
 

@@ -27,6 +27,7 @@ import contextlib
 import functools
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 
@@ -50,6 +51,7 @@ from firmware_bridge.errors import (
     SetpointError,
 )
 from firmware_bridge.modes import canonical_mode, encode_mode
+from firmware_bridge.px4_metadata import find_metadata, load_catalog
 from firmware_bridge.session import NotReady, Options, Session, WaitTimeout, check_timeout
 from firmware_bridge.setpoints import (
     GlobalTarget,
@@ -133,7 +135,21 @@ class Vehicle(Session):
             CommandTimeout: never acknowledged.
         """
         magic = 0 if not force else (FORCE_MAGIC_PX4 if self.autopilot == "px4" else FORCE_ARM_ARDUPILOT)
-        self.command(MAV_CMD_COMPONENT_ARM_DISARM, (1, magic))
+        try:
+            self.command(MAV_CMD_COMPONENT_ARM_DISARM, (1, magic))
+        except CommandRejected as e:
+            said = e.text.split("; ") if e.text else []
+            checks = tuple(c for c in self.state.checks if c not in said)
+            if not checks or e.result == MAV_RESULT_ACCEPTED:
+                raise
+            # PX4's refusal says only "Resolve system health failures first": the
+            # failing checks are in its latest arming check report (its events)
+            raise CommandRejected(
+                f"{e} [arming checks: {', '.join(checks)}]",
+                command=e.command,
+                result=e.result,
+                text="; ".join([*said, *checks]),
+            ) from None
         self._verify(lambda s: s.armed, "armed", MAV_CMD_COMPONENT_ARM_DISARM)
 
     def disarm(self, force: bool = False) -> None:
@@ -374,6 +390,7 @@ def connect(
     telemetry_rate_hz: float = 10.0,
     mode_timeout: float = 3.0,
     request_telemetry: bool = True,
+    px4_events: str | os.PathLike[str] | None = None,
 ) -> Vehicle:
     """Open ``url``, wait for the autopilot's heartbeat and return the :class:`Vehicle`.
 
@@ -381,14 +398,19 @@ def connect(
     and ``source_component`` (191). ``signing_key`` (32 bytes) signs everything sent
     and accepts only signed messages (and unsigned RADIO_STATUS). With
     ``request_telemetry`` false the vehicle's own stream rates are left alone
-    (ArduPilot then sends nothing but heartbeats).
+    (ArduPilot then sends nothing but heartbeats). ``px4_events`` is PX4's event
+    metadata (``all_events.json[.xz]``; else ``$PX4_EVENTS``, else the SITL folder's:
+    :mod:`firmware_bridge.px4_metadata`): PX4's reasons, sent as events, in words.
 
     Raises:
-        ConnectError: malformed URL, missing device, unresolvable host, bad arguments.
+        ConnectError: malformed URL, missing device, unresolvable host, bad arguments,
+            an unreadable ``px4_events`` file.
         HeartbeatTimeout: no autopilot heartbeat within ``timeout`` s.
     """
     ep = parse_url(url)
     _check_arguments(signing_key, setpoint_rate_hz, timeout, link_timeout)
+    metadata = find_metadata(px4_events)
+    events = load_catalog(metadata) if metadata is not None else None  # before anything is opened
     conn, hb = open_link(
         ep,
         timeout=timeout,
@@ -405,6 +427,7 @@ def connect(
         command_timeout=command_timeout,
         telemetry_rate_hz=telemetry_rate_hz,
         mode_timeout=mode_timeout,
+        events=events,
     )
     vehicle = Vehicle(conn, ep, hb, opts, source_system, source_component)
     try:

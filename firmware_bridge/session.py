@@ -62,6 +62,7 @@ from firmware_bridge.connection import (
 )
 from firmware_bridge.errors import BridgeError, FlightInterrupted
 from firmware_bridge.modes import autopilot_name
+from firmware_bridge.px4_events import EventCatalog
 from firmware_bridge.setpoints import GlobalTarget, LocalTarget, setpoint_message
 from firmware_bridge.streamer import SetpointStreamer
 from firmware_bridge.telemetry import (
@@ -126,6 +127,7 @@ class Options:
     telemetry_rate_hz: float = 10.0
     mode_timeout: float = 3.0
     interval_history: int = 2000
+    events: EventCatalog | None = None  # PX4's event metadata (px4_events), if any
 
 
 # --- the session ---------------------------------------------------------------------
@@ -159,7 +161,11 @@ class Session:
         self._closed = False
         # the pure cores, used under self._lock
         self._telemetry = TelemetryFolder(
-            self.autopilot, self.target_system, self.target_component, own_system=conn.mav.srcSystem
+            self.autopilot,
+            self.target_system,
+            self.target_component,
+            own_system=conn.mav.srcSystem,
+            events=opts.events,
         )
         self._exchange: CommandExchange | None = None
         self._link = LinkWatch(opts.link_timeout)

@@ -141,6 +141,30 @@ def _px4_alive(n: int) -> bool:
         return True
 
 
+def _px4_aliases(bin_dir: Path, path_dir: Path) -> None:
+    """PX4's start script runs its modules through ``px4-<module>`` aliases, links to
+    the ``px4`` binary. A copy that lost its links (stored as files holding the word
+    ``px4``, as git stores a link) cannot boot: every ``px4-param`` fails, no airframe
+    starts and no heartbeat ever comes. Such aliases are linked again in the working
+    folder's ``path`` (first on the script's PATH)."""
+    binary = bin_dir / "px4"
+    if not binary.is_file():
+        return
+    path_dir.mkdir(parents=True, exist_ok=True)
+    for alias in bin_dir.glob("px4-*"):
+        if alias.is_symlink() or alias.suffix == ".sh" or os.access(alias, os.X_OK):
+            continue
+        try:
+            if alias.stat().st_size > 64 or alias.read_bytes().strip() != b"px4":
+                continue
+        except OSError:
+            continue
+        link = path_dir / alias.name
+        if not link.is_symlink():
+            with contextlib.suppress(FileExistsError):
+                link.symlink_to(binary)
+
+
 @dataclass
 class Sitl:
     """One running autopilot (made by :func:`start`)."""
@@ -221,6 +245,8 @@ def start(
     n, lock = _claim(kind, instance)
     try:
         workdir.mkdir(parents=True, exist_ok=True)
+        if kind == "px4":
+            _px4_aliases(path.parent / "px4" / "bin", workdir / "path")
         log_path = workdir / f"{kind}-{n}.log"
         args = [str(path), str(workdir), "--instance", str(n)]
         if home is not None:

@@ -39,6 +39,7 @@ from firmware_bridge.modes import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     decode_mode,
 )
+from firmware_bridge.px4_events import MSG_EVENT, EventCatalog, parse_event
 from firmware_bridge.setpoints import wrap_yaw
 
 __all__ = [
@@ -69,6 +70,10 @@ EKF_POS_HORIZ_ABS = 16  # EKF_STATUS_REPORT.flags: the EKF has an absolute horiz
 MAV_STATE_UNINIT, MAV_STATE_BOOT = 0, 1
 GPS_FIX_3D = 3
 NO_POSITION_YET = "no position yet"
+UNKNOWN_EVENT = f"UNKNOWN_{MSG_EVENT}"
+MAV_SEVERITY_WARNING = 4
+CHECK_REPORT_S = 1.0  # PX4's arming check events of one report come within this
+MAX_CHECKS = 8  # pymavlink's name for an EVENT: its dialect lacks it
 
 HOME_REQUEST = -1  # StreamRequests' key for the one-shot REQUEST_MESSAGE(HOME_POSITION)
 REQUEST_AGAIN_S = 3.0  # at most one request per message per 3 s
@@ -144,6 +149,8 @@ class VehicleState:
     last_message_time: float = 0.0
     position_time: float = 0.0  # when the last GLOBAL_POSITION_INT arrived (monotonic)
     last_heartbeat_time: float = 0.0
+    checks: tuple[str, ...] = ()  # PX4: the failing arming checks of its latest report (its events)
+    checks_time: float = 0.0  # when that report came (monotonic)
 
     @property
     def in_air(self) -> bool:
@@ -225,7 +232,13 @@ class TelemetryFolder:
     """
 
     def __init__(
-        self, autopilot: str, target_system: int, target_component: int, own_system: int, texts: int = 32
+        self,
+        autopilot: str,
+        target_system: int,
+        target_component: int,
+        own_system: int,
+        texts: int = 32,
+        events: EventCatalog | None = None,
     ) -> None:
         self.autopilot = autopilot
         self.target_system = target_system
@@ -234,6 +247,8 @@ class TelemetryFolder:
         self.state = VehicleState(autopilot=autopilot, system_id=target_system, component_id=target_component)
         self.texts: deque[StatusText] = deque(maxlen=texts)
         self._joiner = TextJoiner()
+        self.events = events if events is not None else EventCatalog()
+        self._checks: list[tuple[float, str]] = []  # PX4's latest failing arming checks, heard when
         self.seen: dict[int, float] = {}  # message id -> when last heard
         self._gps_fix: int | None = None
         self._attitude_time = 0.0
@@ -247,6 +262,8 @@ class TelemetryFolder:
         """Fold ``msg`` (a pymavlink message) heard at ``now``; never raises on a
         message of the autopilot's dialect (BAD_DATA and strangers are ignored)."""
         mtype = msg.get_type()
+        if mtype == UNKNOWN_EVENT:
+            return self._event(msg, now)
         if mtype == "BAD_DATA" or msg.get_srcSystem() != self.target_system:
             return Heard()
         text = None
@@ -284,6 +301,23 @@ class TelemetryFolder:
             state = replace(state, position_valid=not reason, position_reason=reason)
         self.state = state
         return Heard(ack=ack, text=text)
+
+    def _event(self, msg: Any, now: float) -> Heard:
+        """PX4's events protocol (its reasons: :mod:`firmware_bridge.px4_events`): an
+        EVENT of the autopilot's system for everyone or for us, as a text at its level.
+        pymavlink hands it over as an unknown frame, header unparsed: read from the bytes."""
+        raw = bytes(getattr(msg, "data", b""))
+        ev = parse_event(raw)
+        if ev is None or raw[5] != self.target_system or ev.destination_system not in (0, self.own_system):
+            return Heard()
+        text = StatusText(now, ev.level, self.events.text(ev))
+        self.texts.append(text)
+        if self.events.group(ev) == "arming_check" and ev.level <= MAV_SEVERITY_WARNING:
+            # one report's failing checks come together: a new report starts after a pause
+            fresh = [(t, c) for t, c in self._checks if now - t <= CHECK_REPORT_S and c != text.text]
+            self._checks = [*fresh, (now, text.text)][-MAX_CHECKS:]
+            self.state = replace(self.state, checks=tuple(c for _t, c in self._checks), checks_time=now)
+        return Heard(text=text)
 
     # one function per telemetry message: the fields it sets in the next state
     def _heartbeat(self, msg: Any, now: float) -> _Updates:
@@ -383,11 +417,15 @@ def _on_earth(lat: float, lon: float) -> bool:
 
 def arming_problems(s: VehicleState, *, position: bool = True) -> list[str]:
     """What keeps ``s``'s vehicle from being armable ([] = nothing known against it):
-    still booting, and with ``position`` (position control: GUIDED, OFFBOARD) no valid
+    still booting (PX4: its arming checks failing, with the checks its events named),
+    and with ``position`` (position control: GUIDED, OFFBOARD) no valid
     position or no local position, then the pre-arm check bit of SYS_STATUS when the
     autopilot reports it (ArduPilot and PX4 set it when their checks pass)."""
     out = []
-    if s.system_status in (MAV_STATE_UNINIT, MAV_STATE_BOOT):
+    if s.autopilot == "px4" and s.system_status == MAV_STATE_UNINIT:
+        # PX4 says "uninitialised" whenever its arming checks fail, booted or not
+        out.append("arming checks failing" + (f" ({', '.join(s.checks)})" if s.checks else ""))
+    elif s.system_status in (MAV_STATE_UNINIT, MAV_STATE_BOOT):
         out.append("autopilot still booting")
     if position and not s.position_valid:
         out.append(s.position_reason)

@@ -29,7 +29,9 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
-from radios.mavlink import STX_V2, x25_crc
+from pymavlink.generator.mavcrc import x25crc
+
+STX_V2 = 0xFD
 
 __all__ = ["CRC_EXTRA", "MSG_EVENT", "Event", "EventCatalog", "parse_event"]
 
@@ -87,7 +89,9 @@ def parse_event(frame: bytes) -> Event | None:
     end = _HEADER_V2 + n
     if msgid != MSG_EVENT or len(frame) < end + 2 or n > _EVENT.size:
         return None
-    if x25_crc(frame[1:end], CRC_EXTRA[MSG_EVENT]) != frame[end] | frame[end + 1] << 8:
+    crc = x25crc(bytes(frame[1:end]))
+    crc.accumulate(bytes([CRC_EXTRA[MSG_EVENT]]))
+    if crc.crc != frame[end] | frame[end + 1] << 8:
         return None
     payload = bytes(frame[_HEADER_V2:end]).ljust(_EVENT.size, b"\0")  # MAVLink 2 trims trailing zeros
     return Event(*_EVENT.unpack(payload))

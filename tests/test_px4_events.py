@@ -24,7 +24,10 @@ META: dict[str, Any] = {
                 "navigation_mode_group_t": {
                     "type": "uint32_t",
                     "is_bitfield": True,
-                    "entries": {"1": {"name": "manual", "description": "Manual"}, "4": {"description": "Position"}},
+                    "entries": {
+                        "1": {"name": "manual", "description": "Manual"},
+                        "4": {"description": "Position"},
+                    },
                 },
                 "arm_disarm_reason_t": {"type": "uint8_t", "entries": {"3": {"description": "command"}}},
             },
@@ -79,7 +82,9 @@ def test_an_event_is_unpacked_and_written_in_pxs_words() -> None:
     assert ev is not None and ev.level == 4 and ev.sequence == 7
     assert cat.text(ev) == "No valid global position estimate"
     ev = parse_event(event_frame(1 << 24 | 500, 3, struct.pack("<fBI", 14.87, 3, 5)))
-    assert ev is not None and cat.text(ev) == "Battery at 14.9V (BAT_LOW_THR), command, modes Manual, Position"
+    assert (
+        ev is not None and cat.text(ev) == "Battery at 14.9V (BAT_LOW_THR), command, modes Manual, Position"
+    )
     # an id the metadata lacks, or no metadata at all: still an event, at its level
     ev = parse_event(event_frame(2 << 24 | 99, 2))
     assert ev is not None and ev.level == 2 and EventCatalog().text(ev) == "PX4 event 0x02000063"
@@ -97,7 +102,9 @@ def test_a_frame_that_is_not_a_good_event_is_none() -> None:
             EventCatalog(meta)
         except (AttributeError, TypeError):
             raise AssertionError(f"raised on {meta}") from None
-    cut = EventCatalog({"components": {"1": {"event_groups": {"g": {"events": {"500": {"message": "v={1}"}}}}}}})
+    cut = EventCatalog(
+        {"components": {"1": {"event_groups": {"g": {"events": {"500": {"message": "v={1}"}}}}}}}
+    )
     assert cut.text(Event(1 << 24 | 500, 0, 0, 0, 0, 4, b"")) == "v={1}"  # no argument: left as written
 
 

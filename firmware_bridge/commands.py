@@ -14,9 +14,11 @@ The whole machine, per state:
   result -> ``explaining``; the try's deadline -> the next try goes out
   (confirmation 1, 2 ...) or, after ``tries`` tries, done, :class:`TimedOut`.
 * ``explaining`` (the refusal's reason): done, :class:`Rejected` with the
-  autopilot's STATUSTEXTs since half a second before the first try, as soon as
-  there is one or after a 0.3 s grace (autopilots send the text just before or
-  after the ACK).
+  autopilot's STATUSTEXTs since half a second before the first try that explain a
+  refusal (:func:`is_reason`: a warning or worse, "PreArm:", "Arm:"...), as soon as
+  there is one, or after a 0.3 s grace with whatever texts there are (autopilots
+  send the reason just before or after the ACK: ArduCopter after, so an INFO boot
+  text heard just before is not taken for it).
 * ``done``: :attr:`~CommandExchange.outcome` is set; nothing more is sent.
 
 ACKs of other commands are not this exchange's. No I/O, no clock: ``now`` comes
@@ -81,6 +83,17 @@ _CMD_NAMES = {
 IN_PROGRESS_EXTENSION_S = 5.0  # an IN_PROGRESS ACK buys at least this long
 TEXT_BEFORE_S = 0.5  # a STATUSTEXT this long before the first try still explains a refusal
 TEXT_GRACE_S = 0.3  # how long a refusal waits for its STATUSTEXT
+
+
+#: STATUSTEXT openings that give an autopilot's reasons for refusing to arm
+ARMING_TEXTS = ("PreArm:", "Arm:", "Preflight Fail", "Arming denied")
+MAV_SEVERITY_WARNING = 4
+
+
+def is_reason(text: StatusText) -> bool:
+    """A text that explains a refusal: a warning or worse, or a refusal's own opening
+    (an INFO "ArduPilot Ready" or "AHRS: DCM active" heard meanwhile does not)."""
+    return text.severity <= MAV_SEVERITY_WARNING or text.text.startswith(ARMING_TEXTS)
 
 
 def command_name(command: int) -> str:
@@ -151,7 +164,7 @@ class CommandExchange:
         self.state = "waiting"
         self.outcome: Outcome | None = None
         self.attempt = 0
-        self._texts = [t.text for t in texts if t.time >= now - TEXT_BEFORE_S]
+        self._texts = [t for t in texts if t.time >= now - TEXT_BEFORE_S]
         self._deadline = now + per_try
         self._hard_deadline = now + in_progress_timeout
         self._result = 0
@@ -177,9 +190,9 @@ class CommandExchange:
         """Feed an ACK or a STATUSTEXT from the autopilot, heard at ``now``."""
         if isinstance(event, StatusText):
             if event.time >= self.started - TEXT_BEFORE_S:
-                self._texts.append(event.text)
-            if self.state == "explaining":
-                self._finish(Rejected(self._result, "; ".join(self._texts)))
+                self._texts.append(event)
+            if self.state == "explaining" and is_reason(event):
+                self._finish(Rejected(self._result, self._reason()))
             return
         if self.state != "waiting" or event.command != self.command:
             return
@@ -191,15 +204,15 @@ class CommandExchange:
             self._result = event.result
             self.state = "explaining"
             self._deadline = now + TEXT_GRACE_S
-            if self._texts:
-                self._finish(Rejected(self._result, "; ".join(self._texts)))
+            if any(is_reason(t) for t in self._texts):
+                self._finish(Rejected(self._result, self._reason()))
 
     def tick(self, now: float) -> list[Any]:
         """Act on the deadlines due at ``now``; return the messages to send (a retry)."""
         if self.outcome is not None or now < self._deadline:
             return []
         if self.state == "explaining":
-            self._finish(Rejected(self._result, ""))
+            self._finish(Rejected(self._result, self._reason()))
             return []
         self.attempt += 1
         if self.attempt >= self.tries:
@@ -208,6 +221,12 @@ class CommandExchange:
         self._deadline = now + self.per_try
         self._hard_deadline = now + self.in_progress_timeout
         return [self._message()]
+
+    def _reason(self) -> str:
+        """The texts that explain the refusal (warnings and worse, the autopilots' own
+        refusal openings); none of those: every text heard, as it was."""
+        reasons = [t.text for t in self._texts if is_reason(t)]
+        return "; ".join(reasons or [t.text for t in self._texts])
 
     def _finish(self, outcome: Outcome) -> None:
         self.outcome = outcome

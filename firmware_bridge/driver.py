@@ -24,7 +24,10 @@ offboard checks) and mavlink_receiver, ArduCopter's GCS_MAVLink_Copter and mode_
 from __future__ import annotations
 
 import contextlib
+import functools
+import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 
@@ -40,8 +43,15 @@ from firmware_bridge.commands import (
     command_name,
 )
 from firmware_bridge.connection import COMPANION_COMPONENT, Endpoint, open_link, parse_url, signing_timestamp
-from firmware_bridge.errors import BridgeError, CommandRejected, ConnectError, SetpointError
+from firmware_bridge.errors import (
+    BridgeError,
+    CommandRejected,
+    ConnectError,
+    FlightInterrupted,
+    SetpointError,
+)
 from firmware_bridge.modes import canonical_mode, encode_mode
+from firmware_bridge.px4_metadata import find_metadata, load_catalog
 from firmware_bridge.session import NotReady, Options, Session, WaitTimeout, check_timeout
 from firmware_bridge.setpoints import (
     GlobalTarget,
@@ -51,7 +61,7 @@ from firmware_bridge.setpoints import (
     validate_local,
     validate_takeoff_altitude,
 )
-from firmware_bridge.telemetry import LANDED_ON_GROUND, StatusText, VehicleState
+from firmware_bridge.telemetry import LANDED_ON_GROUND, StatusText, VehicleState, interruption
 
 __all__ = [  # the public names stay importable from here (swarm and the README use them)
     "COMPANION_COMPONENT",
@@ -79,6 +89,9 @@ __all__ = [  # the public names stay importable from here (swarm and the README 
 
 
 ARM_RETRY_S = 2.0  # the least time between two tries of a refused arm (takeoff)
+ON_GROUND_M = 1.0  # below this height above home a vehicle not reported in the air is on the ground
+
+log = logging.getLogger("firmware_bridge.driver")
 
 
 # --- the vehicle -----------------------------------------------------------------------
@@ -122,7 +135,21 @@ class Vehicle(Session):
             CommandTimeout: never acknowledged.
         """
         magic = 0 if not force else (FORCE_MAGIC_PX4 if self.autopilot == "px4" else FORCE_ARM_ARDUPILOT)
-        self.command(MAV_CMD_COMPONENT_ARM_DISARM, (1, magic))
+        try:
+            self.command(MAV_CMD_COMPONENT_ARM_DISARM, (1, magic))
+        except CommandRejected as e:
+            said = e.text.split("; ") if e.text else []
+            checks = tuple(c for c in self.state.checks if c not in said)
+            if not checks or e.result == MAV_RESULT_ACCEPTED:
+                raise
+            # PX4's refusal says only "Resolve system health failures first": the
+            # failing checks are in its latest arming check report (its events)
+            raise CommandRejected(
+                f"{e} [arming checks: {', '.join(checks)}]",
+                command=e.command,
+                result=e.result,
+                text="; ".join([*said, *checks]),
+            ) from None
         self._verify(lambda s: s.armed, "armed", MAV_CMD_COMPONENT_ARM_DISARM)
 
     def disarm(self, force: bool = False) -> None:
@@ -177,11 +204,39 @@ class Vehicle(Session):
             NotReady: not armable within ``ready_timeout``.
             CommandRejected, CommandTimeout: from the mode change, arming or takeoff.
             WaitTimeout: the altitude is not reached in ``timeout``.
+            FlightInterrupted: the vehicle disarmed in the air, or twice on the ground
+                (once is tried again: PX4 disarms by itself just after a landing).
         """
         alt = validate_takeoff_altitude(rel_alt_m)
         ready_by = time.monotonic() + check_timeout(ready_timeout, "ready_timeout")
+        self._takeoff_once(alt, ready_by)
+        if not wait:
+            return
+        tol = max(0.5, 0.05 * alt)
+        for again in (False, True):
+            before = self.state  # armed: the take-off was accepted
+            try:
+                self.wait_for(
+                    lambda s: s.rel_alt is not None and s.rel_alt >= alt - tol,
+                    timeout,
+                    f"takeoff altitude {alt:g} m",
+                    interrupt=functools.partial(interruption, before),
+                )
+                return
+            except FlightInterrupted as e:
+                s = e.state if isinstance(e.state, VehicleState) else self.state
+                on_ground = not s.in_air and (s.rel_alt is None or s.rel_alt < ON_GROUND_M)
+                if again or s.armed or not on_ground:
+                    raise
+                # PX4 disarms by itself about a second after a landing (COM_DISARM_LAND):
+                # a take-off sent in that second is accepted, then the motors stop.
+                log.info("takeoff: %s before leaving the ground; arming again", e)
+                self._takeoff_once(alt, ready_by)
+
+    def _takeoff_once(self, alt: float, ready_by: float) -> None:
+        """Arm if needed (waiting until armable, until ``ready_by``) and send the take-off."""
         if not self.state.armed:
-            self.wait_ready(ready_timeout)
+            self.wait_ready(max(0.0, ready_by - time.monotonic()))
         if self.autopilot == "ardupilot":
             self.set_mode("GUIDED")
             if not self.state.armed:
@@ -193,13 +248,6 @@ class Vehicle(Session):
                 self._arm_by(ready_by)
             nan = math.nan
             self.command(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, nan, nan, nan, amsl))
-        if wait:
-            tol = max(0.5, 0.05 * alt)
-            self.wait_for(
-                lambda s: s.rel_alt is not None and s.rel_alt >= alt - tol,
-                timeout,
-                f"takeoff altitude {alt:g} m",
-            )
 
     def _arm_by(self, deadline: float) -> None:
         """Arm; while the autopilot refuses (its pre-arm checks lag its reports by up to
@@ -342,6 +390,7 @@ def connect(
     telemetry_rate_hz: float = 10.0,
     mode_timeout: float = 3.0,
     request_telemetry: bool = True,
+    px4_events: str | os.PathLike[str] | None = None,
 ) -> Vehicle:
     """Open ``url``, wait for the autopilot's heartbeat and return the :class:`Vehicle`.
 
@@ -349,14 +398,19 @@ def connect(
     and ``source_component`` (191). ``signing_key`` (32 bytes) signs everything sent
     and accepts only signed messages (and unsigned RADIO_STATUS). With
     ``request_telemetry`` false the vehicle's own stream rates are left alone
-    (ArduPilot then sends nothing but heartbeats).
+    (ArduPilot then sends nothing but heartbeats). ``px4_events`` is PX4's event
+    metadata (``all_events.json[.xz]``; else ``$PX4_EVENTS``, else the SITL folder's:
+    :mod:`firmware_bridge.px4_metadata`): PX4's reasons, sent as events, in words.
 
     Raises:
-        ConnectError: malformed URL, missing device, unresolvable host, bad arguments.
+        ConnectError: malformed URL, missing device, unresolvable host, bad arguments,
+            an unreadable ``px4_events`` file.
         HeartbeatTimeout: no autopilot heartbeat within ``timeout`` s.
     """
     ep = parse_url(url)
     _check_arguments(signing_key, setpoint_rate_hz, timeout, link_timeout)
+    metadata = find_metadata(px4_events)
+    events = load_catalog(metadata) if metadata is not None else None  # before anything is opened
     conn, hb = open_link(
         ep,
         timeout=timeout,
@@ -373,6 +427,7 @@ def connect(
         command_timeout=command_timeout,
         telemetry_rate_hz=telemetry_rate_hz,
         mode_timeout=mode_timeout,
+        events=events,
     )
     vehicle = Vehicle(conn, ep, hb, opts, source_system, source_component)
     try:

@@ -35,6 +35,16 @@ class CommandRejected(BridgeError):
         self.text = text
 
 
+class FlightInterrupted(BridgeError):
+    """The vehicle stopped doing what it was told while the driver waited for it: it
+    disarmed, or its autopilot left the commanded mode by itself (a failsafe, a
+    landing, the pilot's RC). ``state`` is the vehicle's state then."""
+
+    def __init__(self, message: str, *, state: object = None) -> None:
+        super().__init__(message)
+        self.state = state
+
+
 class CommandTimeout(BridgeError, TimeoutError):
     """The autopilot never acknowledged a command, after all retries."""
 

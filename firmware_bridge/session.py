@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from typing import Any, Self
 
 from firmware_bridge.commands import (
+    ARMING_TEXTS,
     MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MAV_RESULT_ACCEPTED,
@@ -59,8 +60,9 @@ from firmware_bridge.connection import (
     companion_heartbeat,
     signing_timestamp,
 )
-from firmware_bridge.errors import BridgeError
+from firmware_bridge.errors import BridgeError, FlightInterrupted
 from firmware_bridge.modes import autopilot_name
+from firmware_bridge.px4_events import EventCatalog
 from firmware_bridge.setpoints import GlobalTarget, LocalTarget, setpoint_message
 from firmware_bridge.streamer import SetpointStreamer
 from firmware_bridge.telemetry import (
@@ -78,14 +80,17 @@ from firmware_bridge.telemetry import (
     TelemetryFolder,
     VehicleState,
     arming_problems,
+    interruption,
 )
 
 log = logging.getLogger("firmware_bridge.driver")  # one logger for the driver, as before the split
 
 __all__ = ["NotReady", "Session", "WaitTimeout"]
 
-#: STATUSTEXT openings that give an autopilot's reasons for refusing to arm
-ARMING_TEXTS = ("PreArm:", "Arm:", "Preflight Fail", "Arming denied")
+TEXT_FRESH_S = 5.0  # an arming text older than this is quoted with its age
+
+#: the modes in which the vehicle follows the companion's setpoints
+SETPOINT_MODES = frozenset({"OFFBOARD", "GUIDED"})
 
 
 def check_timeout(value: float, what: str) -> float:
@@ -122,6 +127,7 @@ class Options:
     telemetry_rate_hz: float = 10.0
     mode_timeout: float = 3.0
     interval_history: int = 2000
+    events: EventCatalog | None = None  # PX4's event metadata (px4_events), if any
 
 
 # --- the session ---------------------------------------------------------------------
@@ -155,7 +161,11 @@ class Session:
         self._closed = False
         # the pure cores, used under self._lock
         self._telemetry = TelemetryFolder(
-            self.autopilot, self.target_system, self.target_component, own_system=conn.mav.srcSystem
+            self.autopilot,
+            self.target_system,
+            self.target_component,
+            own_system=conn.mav.srcSystem,
+            events=opts.events,
         )
         self._exchange: CommandExchange | None = None
         self._link = LinkWatch(opts.link_timeout)
@@ -249,12 +259,19 @@ class Session:
         return self._streamer.sent
 
     def wait_for(
-        self, predicate: Callable[[VehicleState], bool], timeout: float, what: str = "condition"
+        self,
+        predicate: Callable[[VehicleState], bool],
+        timeout: float,
+        what: str = "condition",
+        *,
+        interrupt: Callable[[VehicleState], str | None] | None = None,
     ) -> VehicleState:
-        """Wait until ``predicate(state)`` is true; return that state.
+        """Wait until ``predicate(state)`` is true; return that state. ``interrupt``
+        says why it never will (a reason, else None): then the wait ends at once.
 
         Raises:
             WaitTimeout: not true within ``timeout`` s.
+            FlightInterrupted: ``interrupt`` gave a reason.
             BridgeError: the vehicle was closed meanwhile.
         """
         deadline = time.monotonic() + timeout
@@ -263,6 +280,9 @@ class Session:
                 s = self._telemetry.state
                 if predicate(s):
                     return s
+                why = interrupt(s) if interrupt is not None else None
+                if why is not None:
+                    raise FlightInterrupted(f"{what} not reached: {why}", state=s)
                 if self._closed:
                     raise BridgeError("vehicle connection closed")
                 left = deadline - time.monotonic()
@@ -301,24 +321,44 @@ class Session:
 
     def arming_texts(self, since: float, most: int = 4) -> list[str]:
         """The autopilot's latest distinct pre-arm/arm refusal texts heard at ``since``
-        or later (newest last, at most ``most``)."""
+        or later (newest last, at most ``most``); one older than :data:`TEXT_FRESH_S`
+        says how old it is ("... (25 s ago)": ArduPilot repeats its PreArm texts only
+        every 30 s, so an old one may no longer hold)."""
+        now = time.monotonic()
         with self._lock:
-            texts = [t for t in self._telemetry.texts_since(since) if t.startswith(ARMING_TEXTS)]
+            texts = [t for t in self._telemetry.texts if t.time >= since and t.text.startswith(ARMING_TEXTS)]
         out: list[str] = []
+        seen: set[str] = set()
         for t in reversed(texts):
-            if t not in out:
-                out.append(t)
+            if t.text in seen:
+                continue
+            seen.add(t.text)
+            age = now - t.time
+            out.append(t.text if age <= TEXT_FRESH_S else f"{t.text} ({age:.0f} s ago)")
             if len(out) == most:
                 break
         return out[::-1]
 
     def wait_altitude(self, rel_alt: float, *, tolerance: float = 0.5, timeout: float = 60.0) -> VehicleState:
-        """Wait until the altitude above home is within ``tolerance`` of ``rel_alt``."""
+        """Wait until the altitude above home is within ``tolerance`` of ``rel_alt``.
+
+        Raises:
+            WaitTimeout: not within ``timeout`` s.
+            FlightInterrupted: the vehicle disarmed or left the setpoint mode it was in.
+        """
         return self.wait_for(
             lambda s: s.rel_alt is not None and abs(s.rel_alt - rel_alt) <= tolerance,
             timeout,
             f"altitude {rel_alt:g} m",
+            interrupt=self._held(),
         )
+
+    def _held(self) -> Callable[[VehicleState], str | None]:
+        """What ends a wait for a point: the vehicle disarms, or leaves the setpoint
+        mode (OFFBOARD, GUIDED) it is in now."""
+        before = self.state
+        hold = before.mode if before.mode in SETPOINT_MODES else None
+        return lambda s: interruption(before, s, hold)
 
     def wait_ned(
         self,
@@ -329,7 +369,12 @@ class Session:
         tolerance: float = 0.5,
         timeout: float = 60.0,
     ) -> VehicleState:
-        """Wait until the local position is within ``tolerance`` m of the point."""
+        """Wait until the local position is within ``tolerance`` m of the point.
+
+        Raises:
+            WaitTimeout: not within ``timeout`` s.
+            FlightInterrupted: the vehicle disarmed or left the setpoint mode it was in.
+        """
 
         def near(s: VehicleState) -> bool:
             if s.ned is None:
@@ -337,7 +382,7 @@ class Session:
             dz = 0.0 if down is None else s.ned[2] - down
             return math.hypot(s.ned[0] - north, s.ned[1] - east, dz) <= tolerance
 
-        return self.wait_for(near, timeout, f"position ({north:g}, {east:g})")
+        return self.wait_for(near, timeout, f"position ({north:g}, {east:g})", interrupt=self._held())
 
     # -- sending
     def _send(self, msg: Any) -> None:

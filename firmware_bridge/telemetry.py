@@ -39,6 +39,7 @@ from firmware_bridge.modes import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     decode_mode,
 )
+from firmware_bridge.px4_events import MSG_EVENT, EventCatalog, parse_event
 from firmware_bridge.setpoints import wrap_yaw
 
 __all__ = [
@@ -50,6 +51,7 @@ __all__ = [
     "TelemetryFolder",
     "VehicleState",
     "arming_problems",
+    "interruption",
     "is_autopilot_heartbeat",
     "position_problem",
 ]
@@ -68,6 +70,10 @@ EKF_POS_HORIZ_ABS = 16  # EKF_STATUS_REPORT.flags: the EKF has an absolute horiz
 MAV_STATE_UNINIT, MAV_STATE_BOOT = 0, 1
 GPS_FIX_3D = 3
 NO_POSITION_YET = "no position yet"
+UNKNOWN_EVENT = f"UNKNOWN_{MSG_EVENT}"
+MAV_SEVERITY_WARNING = 4
+CHECK_REPORT_S = 1.0  # PX4's arming check events of one report come within this
+MAX_CHECKS = 8  # pymavlink's name for an EVENT: its dialect lacks it
 
 HOME_REQUEST = -1  # StreamRequests' key for the one-shot REQUEST_MESSAGE(HOME_POSITION)
 REQUEST_AGAIN_S = 3.0  # at most one request per message per 3 s
@@ -143,6 +149,8 @@ class VehicleState:
     last_message_time: float = 0.0
     position_time: float = 0.0  # when the last GLOBAL_POSITION_INT arrived (monotonic)
     last_heartbeat_time: float = 0.0
+    checks: tuple[str, ...] = ()  # PX4: the failing arming checks of its latest report (its events)
+    checks_time: float = 0.0  # when that report came (monotonic)
 
     @property
     def in_air(self) -> bool:
@@ -152,10 +160,64 @@ class VehicleState:
         return self.armed and self.rel_alt is not None and self.rel_alt > 0.5
 
 
+def interruption(before: VehicleState, now: VehicleState, hold_mode: str | None = None) -> str | None:
+    """Why a flight step that started in ``before`` can no longer complete in ``now``
+    (None: it still can): the vehicle disarmed although it was armed, or, with
+    ``hold_mode``, its autopilot is in another mode (a failsafe, a landing, RC)."""
+    if before.armed and not now.armed:
+        return f"the vehicle disarmed (mode {now.mode or 'unknown'})"
+    if hold_mode is not None and now.mode and now.mode != hold_mode:
+        return f"the autopilot left {hold_mode} by itself (now {now.mode})"
+    return None
+
+
 def _text(raw: Any) -> str:
     if isinstance(raw, bytes):
         raw = raw.decode("utf-8", "replace")
     return str(raw).rstrip("\x00").strip()
+
+
+CHUNK = 50  # characters in one STATUSTEXT
+CHUNK_WAIT_S = 1.0  # a text's next chunk comes within this, or the text is given as cut
+MAX_PENDING_TEXTS = 8  # texts being joined at once (the oldest given up beyond)
+MAX_CHUNKS = 40  # chunks of one text kept (2,000 characters)
+
+
+class TextJoiner:
+    """Joins a MAVLink 2 STATUSTEXT sent in chunks (``id`` not 0, ``chunk_seq`` 0, 1...;
+    the last chunk shorter than 50 characters). A text whose next chunk does not come
+    within :data:`CHUNK_WAIT_S` is given as far as it came, marked ``[cut]``."""
+
+    def __init__(self) -> None:
+        # (component, id) -> (severity, chunks, last heard)
+        self._pending: dict[tuple[int, int], tuple[int, dict[int, str], float]] = {}
+
+    def add(self, component: int, text_id: int, seq: int, severity: int, raw: Any, now: float) -> str | None:
+        """A chunk heard at ``now``: the whole text once complete, else None."""
+        chunk = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
+        chunk = chunk.split("\x00", 1)[0]
+        if text_id == 0:
+            return chunk.strip()
+        key = (component, text_id)
+        _sev, chunks, _t = self._pending.get(key, (severity, {}, now))
+        if len(chunks) < MAX_CHUNKS:
+            chunks[seq] = chunk
+        if len(chunk) < CHUNK:
+            self._pending.pop(key, None)
+            return "".join(chunks[i] for i in sorted(chunks)).strip()
+        self._pending[key] = (severity, chunks, now)
+        while len(self._pending) > MAX_PENDING_TEXTS:
+            self._pending.pop(next(iter(self._pending)))
+        return None
+
+    def overdue(self, now: float) -> list[tuple[int, str]]:
+        """(severity, text) of the texts whose next chunk is overdue at ``now``."""
+        out = []
+        for key, (sev, chunks, heard) in list(self._pending.items()):
+            if now - heard > CHUNK_WAIT_S:
+                del self._pending[key]
+                out.append((sev, "".join(chunks[i] for i in sorted(chunks)).strip() + " [cut]"))
+        return out
 
 
 _Updates = dict[str, Any]
@@ -170,7 +232,13 @@ class TelemetryFolder:
     """
 
     def __init__(
-        self, autopilot: str, target_system: int, target_component: int, own_system: int, texts: int = 32
+        self,
+        autopilot: str,
+        target_system: int,
+        target_component: int,
+        own_system: int,
+        texts: int = 32,
+        events: EventCatalog | None = None,
     ) -> None:
         self.autopilot = autopilot
         self.target_system = target_system
@@ -178,6 +246,9 @@ class TelemetryFolder:
         self.own_system = own_system
         self.state = VehicleState(autopilot=autopilot, system_id=target_system, component_id=target_component)
         self.texts: deque[StatusText] = deque(maxlen=texts)
+        self._joiner = TextJoiner()
+        self.events = events if events is not None else EventCatalog()
+        self._checks: list[tuple[float, str]] = []  # PX4's latest failing arming checks, heard when
         self.seen: dict[int, float] = {}  # message id -> when last heard
         self._gps_fix: int | None = None
         self._attitude_time = 0.0
@@ -191,12 +262,25 @@ class TelemetryFolder:
         """Fold ``msg`` (a pymavlink message) heard at ``now``; never raises on a
         message of the autopilot's dialect (BAD_DATA and strangers are ignored)."""
         mtype = msg.get_type()
+        if mtype == UNKNOWN_EVENT:
+            return self._event(msg, now)
         if mtype == "BAD_DATA" or msg.get_srcSystem() != self.target_system:
             return Heard()
         text = None
+        for severity, cut in self._joiner.overdue(now):
+            self.texts.append(StatusText(now, severity, cut))
         if mtype == "STATUSTEXT":
-            text = StatusText(now, msg.severity, _text(msg.text))
-            self.texts.append(text)
+            whole = self._joiner.add(
+                msg.get_srcComponent(),
+                getattr(msg, "id", 0),
+                getattr(msg, "chunk_seq", 0),
+                msg.severity,
+                msg.text,
+                now,
+            )
+            if whole is not None:
+                text = StatusText(now, msg.severity, whole)
+                self.texts.append(text)
         if msg.get_srcComponent() != self.target_component:
             return Heard(text=text)
         self.seen[msg.get_msgId()] = now
@@ -217,6 +301,23 @@ class TelemetryFolder:
             state = replace(state, position_valid=not reason, position_reason=reason)
         self.state = state
         return Heard(ack=ack, text=text)
+
+    def _event(self, msg: Any, now: float) -> Heard:
+        """PX4's events protocol (its reasons: :mod:`firmware_bridge.px4_events`): an
+        EVENT of the autopilot's system for everyone or for us, as a text at its level.
+        pymavlink hands it over as an unknown frame, header unparsed: read from the bytes."""
+        raw = bytes(getattr(msg, "data", b""))
+        ev = parse_event(raw)
+        if ev is None or raw[5] != self.target_system or ev.destination_system not in (0, self.own_system):
+            return Heard()
+        text = StatusText(now, ev.level, self.events.text(ev))
+        self.texts.append(text)
+        if self.events.group(ev) == "arming_check" and ev.level <= MAV_SEVERITY_WARNING:
+            # one report's failing checks come together: a new report starts after a pause
+            fresh = [(t, c) for t, c in self._checks if now - t <= CHECK_REPORT_S and c != text.text]
+            self._checks = [*fresh, (now, text.text)][-MAX_CHECKS:]
+            self.state = replace(self.state, checks=tuple(c for _t, c in self._checks), checks_time=now)
+        return Heard(text=text)
 
     # one function per telemetry message: the fields it sets in the next state
     def _heartbeat(self, msg: Any, now: float) -> _Updates:
@@ -316,11 +417,15 @@ def _on_earth(lat: float, lon: float) -> bool:
 
 def arming_problems(s: VehicleState, *, position: bool = True) -> list[str]:
     """What keeps ``s``'s vehicle from being armable ([] = nothing known against it):
-    still booting, and with ``position`` (position control: GUIDED, OFFBOARD) no valid
+    still booting (PX4: its arming checks failing, with the checks its events named),
+    and with ``position`` (position control: GUIDED, OFFBOARD) no valid
     position or no local position, then the pre-arm check bit of SYS_STATUS when the
     autopilot reports it (ArduPilot and PX4 set it when their checks pass)."""
     out = []
-    if s.system_status in (MAV_STATE_UNINIT, MAV_STATE_BOOT):
+    if s.autopilot == "px4" and s.system_status == MAV_STATE_UNINIT:
+        # PX4 says "uninitialised" whenever its arming checks fail, booted or not
+        out.append("arming checks failing" + (f" ({', '.join(s.checks)})" if s.checks else ""))
+    elif s.system_status in (MAV_STATE_UNINIT, MAV_STATE_BOOT):
         out.append("autopilot still booting")
     if position and not s.position_valid:
         out.append(s.position_reason)

@@ -81,15 +81,16 @@ def frame_length(buf: bytes | bytearray, start: int = 0) -> int | None:
     return None
 
 
+def frame_msgid(raw: bytes) -> int:
+    """The message id in the header of the whole frame ``raw`` (v1 or v2)."""
+    return raw[7] | (raw[8] << 8) | (raw[9] << 16) if raw[0] == STX_V2 else raw[5]
+
+
 def frame_problem(raw: bytes) -> str | None:
     """Why the whole frame ``raw`` cannot be trusted, or None if its CRC checks out.
     A frame of an unknown message id cannot have its CRC checked."""
-    if raw[0] == STX_V2:
-        msgid = raw[7] | (raw[8] << 8) | (raw[9] << 16)
-        end = HEADER_V2 + raw[1]
-    else:
-        msgid = raw[5]
-        end = HEADER_V1 + raw[1]
+    msgid = frame_msgid(raw)
+    end = (HEADER_V2 if raw[0] == STX_V2 else HEADER_V1) + raw[1]
     extra = CRC_EXTRA.get(msgid)
     if extra is None:
         return f"unknown message id {msgid}, its CRC cannot be checked"

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from typing import BinaryIO
 
 from radios.errors import CaptureDamagedError, CaptureError, FrameError
-from radios.mavlink import STX_V1, STX_V2, Frame, frame_length, frame_problem
+from radios.mavlink import CRC_EXTRA, STX_V1, STX_V2, Frame, frame_length, frame_msgid, frame_problem
 
 TIMESTAMP = struct.Struct(">Q")
 TIMESTAMP_LEN = TIMESTAMP.size  # 8
@@ -213,6 +213,7 @@ class TlogReader:
             raise CaptureError(_describe_open_error(self.path, exc, "read")) from exc
         self.records = 0
         self.offset = 0
+        self.unknown: dict[int, int] = {}  # message id -> frames skipped: no dialect here knows it
         self._last_t: float | None = None
         self._done = False
 
@@ -220,6 +221,15 @@ class TlogReader:
         return self
 
     def __next__(self) -> TlogRecord:
+        while True:
+            rec = self._next()
+            if rec is not None:
+                return rec
+
+    def _next(self) -> TlogRecord | None:
+        """The next record, or None for a frame of a message id nobody here knows
+        (skipped and counted in :attr:`unknown`: its CRC cannot be checked, its
+        length still frames it; a real PX4 sends several such ids)."""
         if self._done or self._file is None:
             raise StopIteration
         f = self._file
@@ -250,6 +260,12 @@ class TlogReader:
             self._damaged("truncated frame")
         raw = hdr + rest
         problem = frame_problem(raw)
+        msgid = frame_msgid(raw)
+        if problem and msgid not in CRC_EXTRA:
+            self._last_t = t
+            self.unknown[msgid] = self.unknown.get(msgid, 0) + 1
+            self.offset = start + TIMESTAMP_LEN + total
+            return None
         if problem:
             self._damaged(problem)
         self._last_t = t
@@ -302,9 +318,13 @@ def read_tlog(path: str | os.PathLike[str]) -> TlogReader:
         CaptureError: the file cannot be opened (missing, a directory, no
             permission).
 
+    A frame of a message id that no dialect here knows (its CRC cannot be checked)
+    is skipped and counted in the reader's ``unknown`` (message id -> frames): a real
+    PX4 sends several (its events protocol).
+
     Iterating raises:
         CaptureDamagedError: at the first damaged record (truncated timestamp or
-            frame, no MAVLink start byte, unknown message id, bad CRC, timestamp
+            frame, no MAVLink start byte, bad CRC, timestamp
             before 2000, after 2100 or more than a day from the previous record),
             after every good record before it was yielded. Its ``offset`` and
             ``records`` say where and after how many.

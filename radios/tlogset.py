@@ -82,6 +82,7 @@ class FlightLogReader:
         self.paths = paths
         self.path = name
         self.torn: list[tuple[str, int]] = []
+        self.unknown: dict[int, int] = {}  # message id -> frames skipped (see TlogReader)
         self.records = 0
         self._it = self._records()
 
@@ -104,6 +105,8 @@ class FlightLogReader:
                 self.torn.append((path, exc.offset))
             finally:
                 reader.close()
+                for msgid, n in reader.unknown.items():
+                    self.unknown[msgid] = self.unknown.get(msgid, 0) + n
 
     def close(self) -> None:
         self._it.close()

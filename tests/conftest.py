@@ -84,6 +84,37 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.light)
 
 
+class _SitlGate:
+    """Without a SITL folder (``$SITL_DIR``, else ``../shared/sitl``) the tests against
+    real autopilots (marker ``sitl``) cannot run: they are left out after ``-m`` chose
+    the session's tests, and the session says so at its end (never silently). A
+    ``$SITL_DIR`` that is set but wrong fails them instead."""
+
+    def __init__(self) -> None:
+        self.left_out = 0
+
+    @pytest.hookimpl(trylast=True)
+    def pytest_collection_modifyitems(self, config: pytest.Config, items: list[pytest.Item]) -> None:
+        from firmware_bridge.sitl import find_sitl
+
+        sitl = [i for i in items if i.get_closest_marker("sitl") is not None]
+        if sitl and find_sitl() is None:
+            config.hook.pytest_deselected(items=sitl)
+            items[:] = [i for i in items if i.get_closest_marker("sitl") is None]
+            self.left_out = len(sitl)
+
+    def pytest_terminal_summary(self, terminalreporter: pytest.TerminalReporter) -> None:
+        if self.left_out:
+            terminalreporter.write_line(
+                f"real autopilots: none found (SITL_DIR unset, no ../shared/sitl): {self.left_out} tests "
+                "against real ArduCopter and PX4 not run (README: 'Real autopilots' says how to build them)"
+            )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.pluginmanager.register(_SitlGate(), "sitl-gate")
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _state_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """Signed nodes the tests start (in process or as children, which inherit it) keep

@@ -200,6 +200,29 @@ def test_statustexts_and_acks_are_heard() -> None:
     assert f.state.last_message_time == 8.0
 
 
+def test_a_long_statustext_in_chunks_is_joined() -> None:
+    """MAVLink 2 cuts a text longer than 50 characters into chunks of one ``id``,
+    numbered by ``chunk_seq``; the last is shorter than 50 (ArduPilot's long PreArm
+    texts). Each chunk used to be a text of its own: the reason arrived cut."""
+    f, ap = folder(), Wire()
+    whole = "PreArm: Compass not healthy; " + "x" * 60 + " and the end"
+    parts = [whole[i : i + 50] for i in range(0, len(whole), 50)]
+    assert len(parts) == 3
+
+    def chunk(seq: int, id_: int = 7, severity: int = 2) -> Any:
+        return ap(mavlink.MAVLink_statustext_message(severity, parts[seq].encode(), id_, seq))
+
+    assert f.fold(chunk(0), 1.0).text is None and f.fold(chunk(1), 1.01).text is None
+    heard = f.fold(chunk(2), 1.02)
+    assert heard.text == StatusText(1.02, 2, whole) and f.texts_since(0) == [whole]
+    # a chunk lost: what came is kept, said to be cut, once the rest is overdue
+    f.fold(chunk(0, id_=8), 2.0)
+    f.fold(ap.heartbeat(), 4.0)
+    assert f.texts_since(2.0) == [parts[0] + " [cut]"]
+    # an id of 0 is a whole text, as before
+    assert f.fold(ap.text("short"), 5.0).text == StatusText(5.0, 3, "short")
+
+
 def test_texts_are_bounded() -> None:
     f, ap = folder(), Wire()
     for i in range(100):
@@ -331,6 +354,28 @@ def test_rejection_waits_a_moment_for_its_text() -> None:
     assert str(ex2.error("ardupilot")) == "COMPONENT_ARM_DISARM rejected by ardupilot: DENIED"
     feed(ex2, f, ap.ack(400, 0), clock.advance(0.1))  # too late to change its mind
     assert ex2.outcome == Rejected(2, "")
+
+
+def test_a_refusal_is_explained_by_the_autopilots_reason_not_by_chatter() -> None:
+    """ArduCopter sends "Arm: ..." just after its COMMAND_ACK; texts heard just before
+    the command (boot messages at INFO) used to be taken as the reason at once."""
+    clock, f, ap = Clock(), folder("ardupilot"), Wire()
+    f.fold(ap.text("ArduPilot Ready", 6), clock.t - 0.3)
+    f.fold(ap.text("AHRS: DCM active", 6), clock.t - 0.1)
+    ex = exchange(clock, texts=f.texts)
+    ex.start()
+    feed(ex, f, ap.ack(400, 4), clock.advance(0.1))
+    assert ex.outcome is None  # chatter is no reason: it waits for one
+    feed(ex, f, ap.text("EKF3 IMU0 initialised", 6), clock.advance(0.02))
+    assert ex.outcome is None
+    feed(ex, f, ap.text("Arm: Need Position Estimate", 2), clock.advance(0.05))
+    assert ex.outcome == Rejected(4, "Arm: Need Position Estimate")
+    # with no reason within the grace, the chatter is all there is: said as it was
+    ex2 = exchange(clock, texts=[StatusText(clock.t, 6, "GPS 1: detected")])
+    ex2.start()
+    feed(ex2, f, ap.ack(400, 4), clock.advance(0.1))
+    ex2.tick(clock.advance(0.3))
+    assert ex2.outcome == Rejected(4, "GPS 1: detected")
 
 
 def test_unknown_result_codes_are_refusals() -> None:

@@ -216,6 +216,42 @@ def test_too_close_agents_both_hold_and_report_it() -> None:
     assert not a.too_close and a.mode == Mode.HOLD
 
 
+def test_two_agents_at_one_point_do_not_hold_each_other_for_ever() -> None:
+    """Two copters started at one point (a real SITL pair: no sensor noise) used to hold
+    each other for good: a setpoint may lead only away from a too-close agent, and at
+    0 m no direction is away. There the higher id goes; the lower one too, unless it
+    would follow the other's motion."""
+    role = Role(Phase.MEMBER, 1)
+    # the follower on its leader's very spot, its slot 10 m behind and 5 m to the side
+    m = member_following(2)
+    m.set_own(at(0, 0, alt=528.0), True)
+    sp, _ = m.step(0.1, role)
+    assert m.too_close and sp is not None
+    assert ne_between(HOME.lat, HOME.lon, sp.lat, sp.lon) == pytest.approx((-10.0, 5.0), abs=0.05)
+    # two members on one spot, each with a slot elsewhere
+    a, b = member_following(2), member_following(3)
+    for p in (a, b):
+        p.set_own(at(-10, 5, alt=528.0), True)
+    b.on_task(Task(TaskKind.FOLLOW, 0.0, 10, 5, (Assignment(3, 1, Side.LEFT),), gen=1), 0.0)
+    a.on_pose(3, b.own, 0.0)  # type: ignore[arg-type]
+    b.on_pose(2, a.own, 0.0)  # type: ignore[arg-type]
+    sp_b, _ = b.step(0.1, role)
+    assert sp_b is not None and ne_between(HOME.lat, HOME.lon, sp_b.lat, sp_b.lon) == pytest.approx(
+        (-10.0, -5.0), abs=0.05
+    )  # the higher id goes to its slot
+    sp_a, _ = a.step(0.1, role)
+    assert sp_a is not None and ne_between(HOME.lat, HOME.lon, sp_a.lat, sp_a.lon) == pytest.approx(
+        (-10.0, 5.0), abs=0.05
+    )  # the other is still: going anywhere parts them
+    # the lower id does not follow the other's own way out (it would stay beside it)
+    c = member_following(2)  # its slot 5 m east of here
+    c.set_own(at(-10, 0, alt=528.0), True)
+    c.on_pose(3, at(-10, 0.2, alt=528.0, ve=2.0, t=0.2), 0.2)  # agent 3, leaving east
+    sp_c, _ = c.step(0.3, role)
+    assert c.too_close and sp_c is not None
+    assert ne_between(HOME.lat, HOME.lon, sp_c.lat, sp_c.lon) == pytest.approx((-10.0, 0.0), abs=0.05)
+
+
 def test_swarm_stop_holds_everyone_and_a_new_follow_brings_members_back() -> None:
     lead = flying(1)
     role = Role(Phase.LEADER, 1, frozenset({2}))

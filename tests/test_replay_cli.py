@@ -110,6 +110,25 @@ def test_stats_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert sum(sy["airtime_share"] for sy in s["systems"]) == pytest.approx(1.0)
 
 
+def test_frames_of_unknown_message_ids_are_skipped_counted_and_said(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A real PX4 capture holds 411 (its events protocol), which the dialect here
+    lacks: replay stopped there with "damaged record" and exit 2."""
+    path = tmp_path / "px4.tlog"
+    frames = make_capture(path, n=3)
+    event_seq = bytes([0xFD, 3, 0, 0, 0, 1, 1, 0x9B, 0x01, 0x00, 7, 0, 1, 0x55, 0xAA])  # 411
+    with TlogWriter(path) as w:  # the file again, with two of them between known frames
+        for i, raw in enumerate([frames[0], event_seq, frames[1], event_seq, frames[2]]):
+            w.write(raw, T0 + i)
+    code, out, err = run(capsys, str(path))
+    assert code == 0 and len(out.splitlines()) == 3
+    assert err.strip() == "swarm replay: note: skipped 2 frames of message ids not known here (411 x2)"
+    code, out, _ = run(capsys, str(path), "--stats", "--json")
+    s = json.loads(out)
+    assert code == 0 and s["frames"] == 3 and s["unknown_ids"] == {"411": 2} and s["damage"] is None
+
+
 # -- damage and bad input ---------------------------------------------------------------------
 
 

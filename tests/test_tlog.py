@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import struct
@@ -223,11 +224,18 @@ def test_every_flipped_frame_byte_in_the_middle_is_caught(tmp_path: Path) -> Non
     bad = tmp_path / "bad.tlog"
     # the frame bytes, and the high timestamp bytes (a change of a day or more)
     positions = list(range(start + 8, end)) + list(range(start, start + 4))
+    msgid_bytes = range(start + 8 + 7, start + 8 + 10)
     for pos in positions:
         corrupt = bytearray(data)
         corrupt[pos] ^= 0xFF
         bad.write_bytes(bytes(corrupt))
+        reader = read_tlog(bad)
         records, damage = read_all(bad)
+        if pos in msgid_bytes and damage is None:  # now an id nobody knows: skipped, counted
+            rest = list(reader)
+            assert [r.raw for r in rest] == frames[:k] + frames[k + 1 :], pos
+            assert sum(reader.unknown.values()) == 1, pos
+            continue
         assert [r.raw for r in records] == frames[:k], pos
         assert damage is not None, pos
         assert (damage.offset, damage.records) == (start, k), pos
@@ -255,14 +263,20 @@ def test_damage_reasons(tmp_path: Path, mutate: Callable[[bytes], bytes], reason
     assert damage.records == 2
 
 
-def test_unknown_message_id_is_damage(tmp_path: Path) -> None:
-    # a well-formed MAVLink 2 header naming a message id no dialect knows
-    raw = bytes([0xFD, 1, 0, 0, 0, 1, 1, 0x34, 0x12, 0x0F, 0, 0, 0])
+def test_a_message_id_nobody_here_knows_is_skipped_and_counted(tmp_path: Path) -> None:
+    """A real PX4 capture holds message ids the dialect here lacks (411, its events
+    protocol): reading stopped at the first one as if the file were damaged."""
+    frames = sample_frames(3)
+    # well-formed MAVLink 2 frames naming ids no dialect here knows (411, and 0x0F1234)
+    px4 = bytes([0xFD, 1, 0, 0, 0, 1, 1, 0x9B, 0x01, 0x00, 7, 0x55, 0xAA])
+    odd = bytes([0xFD, 1, 0, 0, 0, 1, 1, 0x34, 0x12, 0x0F, 0, 0, 0])
     path = tmp_path / "u.tlog"
-    path.write_bytes(struct.pack(">Q", int(T0 * 1e6)) + raw)
-    records, damage = read_all(path)
-    assert records == []
-    assert damage is not None and "unknown message id" in str(damage)
+    with TlogWriter(path) as w:
+        for i, raw in enumerate([frames[0], px4, px4, frames[1], odd, frames[2]]):
+            w.write(raw, T0 + i)
+    reader = read_tlog(path)
+    assert [r.raw for r in reader] == frames
+    assert reader.unknown == {411: 2, 0x0F1234: 1}
 
 
 @pytest.mark.parametrize(
@@ -350,4 +364,8 @@ def test_only_damage_errors_escape(
         assert parse_one(rec.raw).raw == rec.raw  # every yielded frame is whole and valid
     if damage is not None:
         assert damage.records == len(records)
-        assert damage.offset == sum(r.size for r in records)
+        skipped = read_tlog(path)
+        with contextlib.suppress(CaptureDamagedError):
+            list(skipped)
+        if not skipped.unknown:  # else frames of unknown ids were skipped before it
+            assert damage.offset == sum(r.size for r in records)

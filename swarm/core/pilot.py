@@ -48,7 +48,9 @@ Rules (each stated once, here):
   hold, report it, resume when beyond the minimum plus ``separation_clear_m``. Both
   agents see the same distance, so both hold; a setpoint that leads away from
   every agent too close is still flown (so that two holding agents cannot lock
-  each other for ever while re-forming). An individual GOTO or STOP from the
+  each other for ever while re-forming); beside another agent (closer than
+  ``CO_LOCATED_M`` across, as two copters started at one point) no direction is
+  away: the higher id goes, the lower one too unless it would follow the other. An individual GOTO or STOP from the
   operator clears it (the operator is resolving it) and that agent is not checked
   again until it has been clear once or 10 s passed.
 * **Geofence** (:mod:`swarm.core.geofence`): a command's altitude is metres above
@@ -92,6 +94,7 @@ from swarm.core.messages import LEGACY_KINDS, AckResult, Command, CommandKind, P
 MAX_GOTO_M = 5000.0
 MIN_TAKEOFF_M = 1.0
 SEPARATION_WAIVER_S = 10.0
+CO_LOCATED_M = 1.0  # closer than this across, no direction is away from another agent
 
 
 class Mode(StrEnum):
@@ -531,7 +534,7 @@ class Pilot:
             return sp
         f = self.cfg.formation
         close: dict[int, float] = {}
-        near: list[Pose] = []
+        near: list[tuple[int, Pose]] = []
         for a, h in self._heard.items():
             if h.age_at(now) > f.stale_s:
                 continue
@@ -544,7 +547,7 @@ class Pilot:
             limit = f.min_separation_m + (f.separation_clear_m if a in self.too_close else 0.0)
             if d < limit:
                 close[a] = round(d, 1)
-                near.append(h.pose)
+                near.append((a, h.pose))
         if close and not self.too_close:
             self.events.append(
                 "holding: too close to "
@@ -557,12 +560,20 @@ class Pilot:
         if not close:
             return sp
         gn, ge = ne_between(self.own.lat, self.own.lon, sp.lat, sp.lon)
-        if math.hypot(gn, ge) > 0.5 and all(
-            gn * -dn + ge * -de > 0
-            for dn, de in (ne_between(self.own.lat, self.own.lon, q.lat, q.lon) for q in near)
-        ):
+        if math.hypot(gn, ge) > 0.5 and all(self._leads_away(gn, ge, a, q) for a, q in near):
             return sp  # moving away from all of them
         return self.sep_hold
+
+    def _leads_away(self, gn: float, ge: float, other: int, q: Pose) -> bool:
+        """Whether going (``gn``, ``ge``) from here parts us from agent ``other`` at
+        ``q``. Beside it (within :data:`CO_LOCATED_M` across: two copters started at
+        one point) no direction is away from it: the higher id goes, and the lower
+        one too unless that would follow the other's own motion."""
+        assert self.own is not None
+        dn, de = ne_between(self.own.lat, self.own.lon, q.lat, q.lon)
+        if math.hypot(dn, de) >= CO_LOCATED_M:
+            return gn * -dn + ge * -de > 0
+        return self.me > other or gn * q.vn + ge * q.ve <= 0
 
     # -- reporting -----------------------------------------------------------------------
     @property

@@ -21,7 +21,7 @@ modes (each its own function below; only one runs):
   ``--json`` fast (``swarm bench gcs``: ``replay_json_speed``);
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
-  object;
+  object (``unknown_ids``: the frames skipped per message id);
 * ``--plot FILE.png``: the formation: a map of every agent's track from its pose
   stream (start, end, direction, turns, slots) and each member's slot error over
   time (:mod:`swarm.sim.trackplot`; matplotlib is imported only here), and the
@@ -33,7 +33,9 @@ modes (each its own function below; only one runs):
   (:class:`radios.replay.Player`), then a summary is printed. SIGINT or SIGTERM
   stops it before the next frame (exit 130 for SIGINT, 0 for SIGTERM).
 
-``--plot`` reads one file. The capture is streamed, never loaded whole. A damaged
+Frames of a message id no dialect here knows (a real PX4 sends several) are
+skipped and counted; one note on stderr says how many of which ids (exit code
+unchanged). ``--plot`` reads one file. The capture is streamed, never loaded whole. A damaged
 capture is used up to the damage: every whole record is printed (or counted, or
 sent), then the damage message goes to stderr and the exit code is 2: a damaged
 file, a file that is not a capture and a missing file are all bad input (exit 2,
@@ -152,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         reader.close()
         _torn_notes(reader)
+        _unknown_note(reader)
 
 
 def _open(path: str, args: argparse.Namespace) -> TlogReader | FlightLogReader:
@@ -185,6 +188,21 @@ def _torn_notes(reader: TlogReader | FlightLogReader) -> None:
             file=sys.stderr,
             flush=True,
         )
+
+
+def unknown_summary(unknown: dict[int, int]) -> str:
+    """``"3 frames of message ids not known here (411 x2, 410 x1)"``, or ``""``."""
+    if not unknown:
+        return ""
+    n = sum(unknown.values())
+    ids = ", ".join(f"{mid} x{k}" for mid, k in sorted(unknown.items(), key=lambda x: (-x[1], x[0])))
+    return f"{n} frame{'' if n == 1 else 's'} of message ids not known here ({ids})"
+
+
+def _unknown_note(reader: TlogReader | FlightLogReader) -> None:
+    text = unknown_summary(getattr(reader, "unknown", {}))
+    if text:
+        print(f"{PROG}: note: skipped {text}", file=sys.stderr, flush=True)
 
 
 def _damaged(exc: CaptureDamagedError) -> int:
@@ -283,6 +301,8 @@ def _stats(reader: TlogReader | FlightLogReader, path: str, *, as_json: bool) ->
     except CaptureDamagedError as exc:
         damage = exc
     stats = acc.as_dict()
+    unknown = getattr(reader, "unknown", {})
+    stats["unknown_ids"] = {str(mid): n for mid, n in sorted(unknown.items())}
     if as_json:
         print_json({"file": path, **stats, "damage": str(damage) if damage else None})
     else:

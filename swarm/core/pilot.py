@@ -50,9 +50,10 @@ Rules (each stated once, here):
   every agent too close is still flown (so that two holding agents cannot lock
   each other for ever while re-forming); beside another agent (closer than
   ``CO_LOCATED_M`` across, as two copters started at one point) no direction is
-  away: the higher id goes, the lower one too unless it would follow the other. An individual GOTO or STOP from the
-  operator clears it (the operator is resolving it) and that agent is not checked
-  again until it has been clear once or 10 s passed.
+  away: the higher id goes, the lower one too unless it would follow the other.
+  An individual GOTO or STOP from the operator clears it (the operator is
+  resolving it) and that agent is not checked again until it has been clear once
+  or 10 s passed.
 * **Geofence** (:mod:`swarm.core.geofence`): a command's altitude is metres above
   home (the vehicle's, else where it last stood); a take-off or a go-to below the
   fence's floor, above its ceiling or beyond its radius from home is refused

@@ -66,11 +66,13 @@ def trio() -> Iterator[tuple[list[Agent], dict[str, AgentState], dict[str, Agent
     agents: list[Agent] = []
     observer: Transport | None = None
     try:
-        agents.append(Agent("agent1", 1, NodeOptions(zenoh_listen=[ep]), on_state=hook("agent1")).start())
-        observer = Transport.open("observer", connect=[ep])
+        # the hub every agent connects to (as a `swarm router` over IP): a node that only
+        # connects is a Zenoh client, which reaches the others through it alone, so an
+        # agent as the hub would take the survivors' link with it when it stops
+        observer = Transport.open("observer", listen=[ep])
         observer.on_state("*", observe)
         t0 = time.monotonic()
-        for i in (2, 3):
+        for i in (1, 2, 3):
             node = NodeOptions(zenoh_connect=[ep])
             agents.append(Agent(f"agent{i}", i, node, on_state=hook(f"agent{i}")).start())
         yield agents, own, seen, t0

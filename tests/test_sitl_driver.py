@@ -97,7 +97,7 @@ def test_a_failsafe_is_noticed_at_once_and_control_taken_back(autopilot: sitl.Si
             try:
                 v.wait_ned(60, 0, -10, timeout=120)
                 outcome.append(None)
-            except BaseException as exc:  # noqa: BLE001 - the test reads it
+            except BaseException as exc:
                 outcome.append(exc)
 
         waiter = threading.Thread(target=wait, daemon=True)

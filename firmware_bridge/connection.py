@@ -19,6 +19,8 @@ us first). On any failure the connection is closed again before the error leaves
 from __future__ import annotations
 
 import contextlib
+import errno
+import logging
 import os
 import socket
 import time
@@ -40,6 +42,7 @@ if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # pragma: no cover - importe
     mavutil.set_dialect(mavutil.current_dialect)
 
 mavlink: Any = mavutil.mavlink
+log = logging.getLogger("firmware_bridge.driver")
 
 __all__ = [
     "Endpoint",
@@ -79,6 +82,71 @@ def _resolve(ep: Endpoint, kind: socket.SocketKind) -> str:
     except (socket.gaierror, UnicodeError) as e:
         raise ConnectError(f"{ep}: cannot resolve host {ep.host!r}: {e}") from None
     return str(infos[0][4][0])
+
+
+class UdpInLink(mavutil.mavudp):
+    """``udpin:``: pymavlink's UDP server, kept to one autopilot. pymavlink's own reads
+    every sender on the port and writes to every one it heard: with a second vehicle
+    sending there, every command went to both. Once :meth:`lock` names the address
+    of the autopilot whose heartbeat was taken, datagrams from any other address are
+    dropped (counted in :attr:`strangers`, each new one said once in the log) and
+    everything is written to that address only."""
+
+    def __init__(self, device: str, **kw: Any) -> None:
+        super().__init__(device, input=True, **kw)
+        self.last_from: tuple[str, int] | None = None  # the sender of the last datagram read
+        self.locked: tuple[str, int] | None = None
+        self.locked_system = 0
+        self.strangers: dict[tuple[str, int], int] = {}
+        self.systems: dict[tuple[str, int], int] = {}  # before the lock: who sent from where
+
+    def lock(self, address: tuple[str, int], system: int) -> None:
+        self.locked, self.locked_system = address, system
+        self.clients = {address}
+        self.clients_last_alive = {address: time.time()}
+
+    def recv(self, n: int | None = None) -> Any:
+        try:
+            data, addr = self.port.recvfrom(mavutil.UDP_MAX_PACKET_LEN)
+        except OSError as e:
+            if e.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                return ""
+            raise
+        if self.locked is not None and addr != self.locked:
+            if addr not in self.strangers:
+                system = _first_system(data)
+                log.warning(
+                    "%s: another MAVLink sender at %s:%d (system %d) ignored: this link is locked to "
+                    "the autopilot at %s:%d (system %d); give each vehicle a port of its own",
+                    self.address,
+                    *addr,
+                    system,
+                    *self.locked,
+                    self.locked_system,
+                )
+            self.strangers[addr] = self.strangers.get(addr, 0) + 1
+            return ""
+        self.last_from = addr
+        if self.locked is None:
+            self.clients.add(addr)
+            self.clients_last_alive[addr] = time.time()
+            self.systems[addr] = _first_system(data)
+        return data
+
+    def sender_of(self, system: int) -> tuple[str, int] | None:
+        """The address a datagram of ``system`` came from (the last datagram's first)."""
+        if self.last_from is not None and self.systems.get(self.last_from) == system:
+            return self.last_from
+        return next((a for a, sy in self.systems.items() if sy == system), self.last_from)
+
+
+def _first_system(data: bytes) -> int:
+    """The system id in the header of a datagram's first frame (0 if none)."""
+    if data[:1] == b"\xfd" and len(data) > 5:
+        return data[5]
+    if data[:1] == b"\xfe" and len(data) > 3:
+        return data[3]
+    return 0
 
 
 class TcpLink(mavutil.mavtcp):
@@ -146,7 +214,9 @@ def _open(ep: Endpoint, deadline: float, source_system: int) -> Any:
             if not os.path.exists(ep.device):
                 raise ConnectError(f"{ep}: serial device {ep.device} does not exist")
             return mavutil.mavlink_connection(ep.device, baud=ep.baud, autoreconnect=False, **kw)
-        if ep.scheme in ("udpin", "udpout"):
+        if ep.scheme == "udpin":
+            return UdpInLink(f"{_resolve(ep, socket.SOCK_DGRAM)}:{ep.port}", **kw)
+        if ep.scheme == "udpout":
             ip = _resolve(ep, socket.SOCK_DGRAM)
             return mavutil.mavlink_connection(f"{ep.scheme}:{ip}:{ep.port}", **kw)
         ip = _resolve(ep, socket.SOCK_STREAM)
@@ -190,7 +260,12 @@ def open_link(
                 sign_outgoing=True,
                 allow_unsigned_callback=lambda _mav, msg_id: msg_id == MSG_RADIO_STATUS,
             )
-        return conn, _wait_heartbeat(conn, ep, deadline, timeout, source_component)
+        hb = _wait_heartbeat(conn, ep, deadline, timeout, source_component)
+        if isinstance(conn, UdpInLink):
+            sender = conn.sender_of(hb.get_srcSystem())
+            if sender is not None:
+                conn.lock(sender, hb.get_srcSystem())
+        return conn, hb
     except BaseException:
         close_link(conn)
         raise

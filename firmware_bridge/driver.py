@@ -342,6 +342,36 @@ class Vehicle(Session):
         """Stop the setpoint stream (PX4 then leaves OFFBOARD after COM_OF_LOSS_T)."""
         self._streamer.stop()
 
+    def take_control(self, *, stream_first: float = 1.0) -> None:
+        """Take the vehicle back under setpoint control after its autopilot left it by
+        itself (PX4's setpoint-loss failsafe: AUTO.LOITER or AUTO.LAND; RC; a landing):
+        hold where it is now (a fresh setpoint stream at its current position, never an
+        older target), then OFFBOARD (PX4, after ``stream_first`` s of stream) or GUIDED
+        (ArduPilot), verified on the heartbeat.
+
+        Raises:
+            FlightInterrupted: on the ground or disarmed (take off instead), or no local
+                position to hold.
+            CommandRejected, CommandTimeout: the autopilot refused the mode.
+        """
+        s = self.state
+        if not s.armed or not s.in_air:
+            raise FlightInterrupted("cannot take control back: the vehicle is not flying (take off)", state=s)
+        if s.ned is None:
+            raise FlightInterrupted("cannot take control back: no local position to hold", state=s)
+        self.set_target_ned(*s.ned, yaw=s.yaw)  # here, now: not a target from before the failsafe
+        if self.autopilot == "px4":
+            started = time.monotonic()
+            sent = self.setpoints_sent
+            self.wait_for(
+                lambda _s: time.monotonic() - started >= stream_first and self.setpoints_sent >= sent + 3,
+                stream_first + 5.0,
+                "setpoint stream",
+            )
+            self.set_mode("OFFBOARD")
+        else:
+            self.set_mode("GUIDED")
+
     def start_offboard(
         self, *, takeoff_alt: float = 2.5, stream_first: float = 1.0, timeout: float = 60.0
     ) -> None:

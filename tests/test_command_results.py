@@ -235,6 +235,50 @@ def test_evidence_still_counts_for_a_command_in_progress() -> None:
     assert req.pending[0].result == CARRIED_OUT
 
 
+# -- after a failsafe: "accepted" must not mean "nothing will happen" -----------------------
+
+
+def flying_after_a_failsafe(b: Bench) -> None:
+    """The vehicle flies 20 m up under setpoint control, then its autopilot lets go
+    (PX4's setpoint-loss failsafe: AUTO.LOITER)."""
+    from swarm.core.messages import Pose
+    from swarm.core.node import OwnPose
+
+    here = Pose(47.397742, 8.545594, 508.0)
+    b._from_node(b.node.handle(OwnPose(here, False), b.now))  # home: where it stood
+    b._from_node(b.node.handle(OwnPose(Pose(here.lat, here.lon, 528.0), True), b.now))
+    b.node.pilot._hold("test")
+    b._from_node(b.node.handle(VehicleInfo("OFFBOARD", True, True, 80, controlled=True), b.now))
+    for _ in range(2):
+        b._from_node(b.node.handle(VehicleInfo("AUTO.LOITER", True, True, 80, controlled=False), b.now))
+    assert b.node.pilot.control_lost == "AUTO.LOITER"
+
+
+def test_a_go_to_after_a_failsafe_takes_control_back_and_is_answered_with_what_the_vehicle_did() -> None:
+    """After PX4's failsafe a Go from the station was answered ACCEPTED and the vehicle
+    moved 0 m. Now the agent takes control back first and the station hears the
+    vehicle's result: the refusal with its reason, or ACCEPTED once it is back."""
+    b = Bench(refused("mode OFFBOARD refused: no position", after=1.0))
+    flying_after_a_failsafe(b)
+    req, seq = b.submit(CommandKind.GOTO, lat=47.3979, lon=8.5456, alt=20.0)
+    b.run(b.now + 10.0)
+    assert [c.kind for c in b.calls] == ["control"]
+    assert (
+        b.answers(seq)[0][0] == "IN_PROGRESS"
+        and "taking control back from AUTO.LOITER" in b.answers(seq)[0][1]
+    )
+    assert "ACCEPTED" not in {r for r, _ in b.answers(seq)}
+    assert req.body()["results"][0]["result"] == "REJECTED"
+    assert "OFFBOARD refused" in req.body()["results"][0]["reason"]
+    # the vehicle lets the companion take over: the same go-to is accepted once it is back
+    b.vehicle = done(0.5)
+    req, seq = b.submit(CommandKind.GOTO, lat=47.3979, lon=8.5456, alt=20.0)
+    b.run(b.now + 5.0)
+    assert req.body()["ok"] is True and b.answers(seq)[-1] == ("ACCEPTED", "")
+    b._from_node(b.node.handle(VehicleInfo("OFFBOARD", True, True, 80, controlled=True), b.now))
+    assert b.node.pilot.control_lost == ""
+
+
 # -- hostile or odd results ----------------------------------------------------------------
 
 

@@ -559,3 +559,27 @@ def test_setpoint_with_velocity_feed_forward() -> None:
     for bad in ((math.nan, 0, 0), (0, 0), (40.0, 0, 0)):
         with pytest.raises(drv.SetpointError):
             drv.validate_global(47.0, 8.0, 10, 0.0, velocity=bad)
+
+
+def test_udpin_locks_onto_one_autopilot_and_says_so_when_another_appears(
+    fake_factory, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``udpin:`` takes datagrams from every sender on its port. With a second vehicle
+    sending there, the driver sent every command to both (pymavlink writes to every
+    client it heard) and read the other's telemetry too; now it keeps to the
+    autopilot whose heartbeat it took, and says once that another one is there."""
+    port = free_udp_port()
+    first = fake_factory(port, sysid=1, ack=lambda m: 0)
+    with drv.connect(f"udpin:127.0.0.1:{port}", timeout=5) as v:
+        second = fake_factory(port, sysid=2, ack=lambda m: 0, custom_mode=custom_mode_of("px4", "AUTO.LAND"))
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not any("another" in r.getMessage() for r in caplog.records):
+            time.sleep(0.05)
+        v.send_command_nowait(176, (1, 1, 0))  # a DO_SET_MODE: only the locked autopilot may get it
+        v.command(512, (242,))  # REQUEST_MESSAGE, acknowledged
+        time.sleep(0.5)
+        assert v.target_system == 1 and v.state.system_id == 1
+        assert first.of_type("COMMAND_LONG") and not second.of_type("COMMAND_LONG")
+        assert not second.of_type("HEARTBEAT")  # not even the companion's heartbeat
+    said = [r.getMessage() for r in caplog.records if "another" in r.getMessage()]
+    assert len(said) == 1 and "system 2" in said[0] and "locked" in said[0], said

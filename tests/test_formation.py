@@ -252,6 +252,57 @@ def test_two_agents_at_one_point_do_not_hold_each_other_for_ever() -> None:
     assert ne_between(HOME.lat, HOME.lon, sp_c.lat, sp_c.lon) == pytest.approx((-10.0, 0.0), abs=0.05)
 
 
+def test_a_failsafe_is_reported_and_a_command_takes_control_back_or_says_why_not() -> None:
+    """After PX4's setpoint-loss failsafe the vehicle sat in AUTO.LOITER: a go-to was
+    reported accepted and it moved 0 m, a take-off said "already flying". Now the
+    pilot says the autopilot let go, and a go-to, stop or take-off takes control back
+    first (a vehicle call, so the station hears the vehicle's result, not "accepted")."""
+    role = Role(Phase.IDLE)
+    p = flying(2, 0, 0)
+    p.set_own(at(0, 0, alt=528.0), True, (HOME.lat, HOME.lon, 508.0))
+    p.set_control(True, "OFFBOARD")
+    assert p.control_lost == "" and not p.take_events()
+    p.set_control(False, "AUTO.LOITER")  # the failsafe: one report may predate a switch just made
+    assert p.control_lost == "" and not p.take_events()
+    p.set_control(False, "AUTO.LOITER")
+    assert p.control_lost == "AUTO.LOITER"
+    said = " ".join(p.take_events())
+    assert "left setpoint control by itself (now AUTO.LOITER)" in said and "takes control back" in said
+    p.set_control(False, "AUTO.LOITER")
+    assert not p.take_events()  # said once
+    assert p.status()["control_lost"] == "AUTO.LOITER"
+    goto = Command(255, 5, 2, CommandKind.GOTO, lat=HOME.lat + 2e-4, lon=HOME.lon, alt=20.0)
+    res, why, calls = p.command(goto, role, 1.0)
+    assert res == AckResult.ACCEPTED and [c.kind for c in calls] == ["control"] and "AUTO.LOITER" in why
+    assert p.mode == Mode.GOTO  # the route is set; it flies once control is back
+    p.call_done(calls[0], False, "mode OFFBOARD refused")
+    assert p.control_lost == "AUTO.LOITER" and "failed" in " ".join(p.take_events())
+    # a take-off in the air takes control back too, instead of "already flying"
+    res, why, calls = p.command(Command(255, 6, 2, CommandKind.TAKEOFF, alt=10.0), role, 2.0)
+    assert res == AckResult.ACCEPTED and [c.kind for c in calls] == ["control"], why
+    p.call_done(calls[0], True)
+    p.set_control(True, "OFFBOARD")
+    assert p.control_lost == "" and "back under setpoint control" in " ".join(p.take_events())
+    res, _, calls = p.command(goto, role, 3.0)
+    assert res == AckResult.ACCEPTED and calls == []  # under control: nothing to take back
+    # a landing asked for, or a take-off under way, is not a failsafe
+    q = flying(3, 0, 0)
+    q.set_control(True, "OFFBOARD")
+    q.command(Command(255, 7, 3, CommandKind.LAND), role, 4.0)
+    q.set_control(False, "AUTO.LAND")
+    q.set_control(False, "AUTO.LAND")
+    assert q.control_lost == "" and "left setpoint control" not in " ".join(q.take_events())
+    # on the ground there is nothing to take back: a take-off is a take-off
+    g = Pilot(4)
+    g.set_own(at(0, 0), False)
+    g.set_control(False, "AUTO.LOITER")
+    g.set_control(False, "AUTO.LOITER")
+    assert g.control_lost == ""
+    assert [c.kind for c in g.command(Command(255, 8, 4, CommandKind.TAKEOFF, alt=10.0), role, 5.0)[2]] == [
+        "takeoff"
+    ]
+
+
 def test_swarm_stop_holds_everyone_and_a_new_follow_brings_members_back() -> None:
     lead = flying(1)
     role = Role(Phase.LEADER, 1, frozenset({2}))

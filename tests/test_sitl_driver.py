@@ -13,6 +13,8 @@ time: the autopilots run faster than real time where that is all a test needs.
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,7 +23,7 @@ from net_helpers import wait_until
 
 from firmware_bridge import sitl
 from firmware_bridge.driver import Vehicle, connect
-from firmware_bridge.errors import CommandRejected
+from firmware_bridge.errors import CommandRejected, FlightInterrupted
 
 pytestmark = [pytest.mark.processes, pytest.mark.sitl]
 
@@ -77,3 +79,44 @@ def test_an_early_arm_is_refused_with_the_autopilots_reasons(autopilot: sitl.Sit
             assert "No valid global position estimate" in parts, e.text  # a check its events named
             assert len(parts) == len(set(parts)), e.text
             assert not any(p.startswith("PX4 event 0x") for p in parts), e.text  # all in words
+
+
+def test_a_failsafe_is_noticed_at_once_and_control_taken_back(autopilot: sitl.Sitl) -> None:
+    """PX4 leaves OFFBOARD by itself when the setpoints stop (its default: descend and
+    land); an ArduCopter pilot's RC switch leaves GUIDED. A wait for a point ends at
+    once, saying so (it used to wait out its timeout), and ``take_control`` brings the
+    vehicle back under setpoint control where it is: it holds there, no longer
+    descending."""
+    with connect(autopilot.url, timeout=CONNECT_S) as v:
+        v.takeoff(10, ready_timeout=READY_S, timeout=120)
+        v.start_offboard()
+        v.set_target_ned(60, 0, -10)  # far: not reached before the failsafe
+        outcome: list[BaseException | None] = []
+
+        def wait() -> None:
+            try:
+                v.wait_ned(60, 0, -10, timeout=120)
+                outcome.append(None)
+            except BaseException as exc:
+                outcome.append(exc)
+
+        waiter = threading.Thread(target=wait, daemon=True)
+        waiter.start()
+        time.sleep(1.0)
+        setpoint_mode = "OFFBOARD" if autopilot.kind == "px4" else "GUIDED"
+        if autopilot.kind == "px4":
+            v.stop_setpoints()  # the stream is lost: PX4's failsafe
+        else:
+            v.set_mode("BRAKE")  # the pilot's RC switch
+        waiter.join(60)
+        assert outcome and isinstance(outcome[0], FlightInterrupted), outcome
+        assert f"left {setpoint_mode} by itself" in str(outcome[0]), outcome[0]
+        assert v.state.mode != setpoint_mode
+        v.take_control()
+        taken = v.state
+        assert taken.mode == setpoint_mode and taken.rel_alt is not None
+        time.sleep(4.0)
+        s = v.state
+        assert s.mode == setpoint_mode and s.armed, s
+        assert s.rel_alt is not None and abs(s.rel_alt - taken.rel_alt) < 2.0, (taken.rel_alt, s.rel_alt)
+        v.land(wait=True, timeout=180)

@@ -103,6 +103,21 @@ class ArduPilot(Flavour):
     text_disarmed = "Disarming motors"
     text_battery_low = "Battery 1 is low"
     text_battery_critical = "Battery 1 is critical"
+    params = (  # ArduCopter 4.7 SITL's names, types and defaults (GUID_TIMEOUT is read by GUIDED)
+        ("FORMAT_VERSION", 120, 4),
+        ("PILOT_TKOFF_ALT", 0.0, 9),
+        ("RTL_ALT", 1500, 6),
+        ("FS_GCS_ENABLE", 0, 2),
+        ("LAND_SPEED", 50, 4),
+        ("ARMING_CHECK", 1, 6),
+        ("DISARM_DELAY", 10, 2),
+        ("WPNAV_SPEED", 1000.0, 9),
+        ("WPNAV_SPEED_UP", 250.0, 9),
+        ("WPNAV_SPEED_DN", 150.0, 9),
+        ("MOT_THST_HOVER", 0.39, 9),
+        ("GUID_TIMEOUT", GUID_TIMEOUT, 9),
+        ("MAV_SYSID", 1, 4),
+    )
     refusal_severity = 2
     heartbeat_on_mode_change = True
     gps_fix_type = 6  # as SITL reports
@@ -328,7 +343,8 @@ class ArduPilot(Flavour):
         self.target_time = ap.t
 
     def check_timeouts(self, ap: Autopilot) -> None:
-        if ap.mode == "GUIDED" and self.sub == "vel" and ap.t - self.target_time > GUID_TIMEOUT:
+        timeout = ap.params.get("GUID_TIMEOUT", GUID_TIMEOUT)
+        if ap.mode == "GUIDED" and self.sub == "vel" and ap.t - self.target_time > timeout:
             # velocity / acceleration target timed out: decelerate to a stop
             self.sub = "hold"
             self.target = Target(vel=(0.0, 0.0, 0.0), yaw=ap.body.yaw)

@@ -51,6 +51,7 @@ from firmware_bridge.sim.flavour import (
     Reply,
     finite,
 )
+from firmware_bridge.sim.params import ParamTable
 from firmware_bridge.sim.px4 import MIS_TAKEOFF_ALT, Px4
 
 FORCE_MAGIC = 21196  # arm param 2: force (disarm in the air)
@@ -112,6 +113,13 @@ class Autopilot:
         if not (math.isfinite(battery_drain) and 0.0 <= battery_drain <= 6000.0):
             raise ValueError(f"battery_drain {battery_drain!r}: 0..6000 percent per minute")
         self.flavour = make_flavour(profile, offboard_loss_action, boot_time)
+        fl = self.flavour
+        self.params = ParamTable(
+            tuple((n, sysid if n in ("MAV_SYS_ID", "MAV_SYSID") else v, t) for n, v, t in fl.params),
+            bytewise=fl.param_bytewise,
+            read_index=fl.param_read_index,
+            hash_first=fl.param_hash_first,
+        )
         self.profile = profile
         self.sysid = sysid
         self.origin = origin
@@ -161,10 +169,29 @@ class Autopilot:
             self._on_command(msg, src)
         elif t == "SET_MODE":
             self._on_set_mode_msg(msg, src)
+        elif t in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
+            if self._for_me(msg):
+                self._on_param(t, msg)
         elif t in ("SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT", "REQUEST_DATA_STREAM"):
             if self._for_me(msg):
                 self._on_flavour_message(t, msg)
         return self._flush()
+
+    def _on_param(self, t: str, msg: Msg) -> None:
+        """The parameter protocol (:mod:`.params`): PARAM_VALUE for a read, a set or a
+        list; nothing for a name it does not have, as the real autopilots."""
+        if t == "PARAM_REQUEST_LIST":
+            answers = self.params.listing()
+        else:
+            raw = msg.param_id
+            name = (raw.decode("ascii", "replace") if isinstance(raw, bytes) else str(raw)).split("\x00")[0]
+            if t == "PARAM_SET":
+                one = self.params.set(name, msg.param_value, msg.param_type)
+            else:
+                one = self.params.read(name, msg.param_index)
+            answers = [] if one is None else [one]
+        for a in answers:
+            self.out(self.mav.param_value_encode(a.name.encode(), a.value, a.type, a.count, a.index))
 
     def tick(self, now: float) -> list[Msg]:
         """Advance to simulated time ``now``; return the telemetry that fell due."""

@@ -111,6 +111,12 @@ class Flavour(ABC):
     heartbeat_on_mode_change: ClassVar[bool] = False  # one more HEARTBEAT with the ACK
     gps_fix_type: ClassVar[int] = 3  # GPS_RAW_INT fix_type with a fix
     rtl_loiter: ClassVar[float] = 0.0  # s a return hovers over home before it lands
+    #: the parameters it answers the MAVLink parameter protocol with: (name, default,
+    #: MAV_PARAM_TYPE), the real autopilot's names and defaults (:mod:`.params`)
+    params: ClassVar[tuple[tuple[str, float, int], ...]] = ()
+    param_bytewise: ClassVar[bool] = False  # integers as their bits in the float (PX4)
+    param_read_index: ClassVar[bool] = False  # a read by name reports the index (PX4), else 65535
+    param_hash_first: ClassVar[bool] = False  # a list starts with _HASH_CHECK (PX4)
 
     # ------------------------------------------- boot (default: none, booted)
     def position_valid(self, ap: Autopilot) -> bool:

@@ -81,6 +81,24 @@ class Px4(Flavour):
     text_disarmed = "Disarmed by external command"
     text_battery_low = "Low battery level! Return advised"
     text_battery_critical = "Critical battery level! Land now"
+    params = (  # v1.15 SITL's names, types and defaults (COM_OF_LOSS_T is read by the loss rule)
+        ("COM_DISARM_LAND", 2.0, 9),
+        ("COM_OBL_RC_ACT", 0, 6),
+        ("COM_OF_LOSS_T", COM_OF_LOSS_T, 9),
+        ("COM_RC_IN_MODE", 1, 6),
+        ("MAV_SYS_ID", 1, 6),
+        ("MIS_TAKEOFF_ALT", 2.5, 9),
+        ("MPC_LAND_SPEED", 0.7, 9),
+        ("MPC_TKO_SPEED", 1.5, 9),
+        ("MPC_XY_CRUISE", 5.0, 9),
+        ("MPC_XY_VEL_MAX", 12.0, 9),
+        ("MPC_Z_VEL_MAX_UP", 3.0, 9),
+        ("NAV_RCL_ACT", 2, 6),
+        ("SYS_AUTOSTART", 10040, 6),
+    )
+    param_bytewise = True
+    param_read_index = True
+    param_hash_first = True
 
     def __init__(self, loss_action: str = "hold") -> None:
         self.loss_action = loss_action
@@ -88,7 +106,7 @@ class Px4(Flavour):
         self.setpoint_time = -math.inf  # when the last valid setpoint arrived
 
     def stream_fresh(self, ap: Autopilot) -> bool:
-        return ap.t - self.setpoint_time <= COM_OF_LOSS_T
+        return ap.t - self.setpoint_time <= ap.params.get("COM_OF_LOSS_T", COM_OF_LOSS_T)
 
     # ---------------------------------------------------------------- status
     def heartbeat(self, ap: Autopilot) -> Msg:
@@ -202,7 +220,7 @@ class Px4(Flavour):
 
     # ------------------------------------------------------- OFFBOARD and take-off
     def check_timeouts(self, ap: Autopilot) -> None:
-        if ap.mode != "OFFBOARD" or not ap.armed or ap.t - self.setpoint_time <= COM_OF_LOSS_T:
+        if ap.mode != "OFFBOARD" or not ap.armed or self.stream_fresh(ap):
             return
         action = LOSS_MODES[self.loss_action]
         if action != "AUTO.LOITER" and not ap.gps_ok:

@@ -145,6 +145,7 @@ class VehicleInfo:
     battery: int = -1  # percent, -1 unknown
     groundspeed: float = 0.0
     link_ok: bool = True
+    controlled: bool | None = None  # under the companion's setpoints (OFFBOARD, GUIDED); None: unknown
 
 
 @dataclass(frozen=True)
@@ -378,6 +379,7 @@ class AgentNode:
             self.pilot.set_own(ev.pose, ev.airborne, ev.home)
         elif isinstance(ev, VehicleInfo):
             self.vehicle = ev
+            self.pilot.set_control(ev.controlled, ev.mode)
         elif isinstance(ev, RadioInfo):
             self.radio = ev
         elif isinstance(ev, SetTask):

@@ -96,6 +96,8 @@ MAX_GOTO_M = 5000.0
 MIN_TAKEOFF_M = 1.0
 SEPARATION_WAIVER_S = 10.0
 CO_LOCATED_M = 1.0  # closer than this across, no direction is away from another agent
+#: the commands that need the vehicle under setpoint control (taken back first)
+TAKE_BACK = frozenset({CommandKind.GOTO, CommandKind.WAYPOINT, CommandKind.FOLLOW, CommandKind.TAKEOFF})
 
 
 class Mode(StrEnum):
@@ -194,6 +196,8 @@ class Pilot:
     _swarm_rate: float = 0.0
     _ground_alt: float | None = None  # AMSL altitude last seen on the ground (take-off height base)
     home: tuple[float, float, float] | None = None  # lat, lon, metres AMSL: what altitudes are above
+    control_lost: str = ""  # the mode the autopilot took by itself, in the air ("": none)
+    _uncontrolled: int = 0  # vehicle reports in a row not under setpoint control
     _last_step: float | None = None
     _left_gen: int | None = None  # the FOLLOW gen we left for an individual command
     _applied_task: tuple[TaskKind, int] = (TaskKind.NONE, -1)
@@ -216,6 +220,42 @@ class Pilot:
         elif pose is not None and not airborne:
             self.home = (pose.lat, pose.lon, pose.alt)
 
+    def set_control(self, controlled: bool | None, mode: str) -> None:
+        """Whether the vehicle follows the companion's setpoints (its autopilot in
+        OFFBOARD or GUIDED), from its heartbeat; None: not known. In the air, in a mode
+        that streams setpoints, a vehicle its autopilot let go of (PX4's setpoint-loss
+        failsafe, an RC switch) is said once (two reports in a row: one may predate a
+        mode switch just made) and kept in :attr:`control_lost`, which a go-to, stop,
+        take-off or follow then takes back (a ``control`` call)."""
+        if controlled is None:
+            return
+        if controlled:
+            self._uncontrolled = 0
+            if self.control_lost:
+                self.events.append(f"back under setpoint control ({mode})")
+                self.control_lost = ""
+            return
+        if not self.airborne or self.mode in (Mode.IDLE, Mode.TAKEOFF, Mode.LAND, Mode.RETURN):
+            self._uncontrolled = 0
+            return
+        self._uncontrolled += 1
+        if self._uncontrolled < 2:
+            return
+        if not self.control_lost:
+            self.events.append(
+                f"the autopilot left setpoint control by itself (now {mode or 'unknown'}): not following "
+                "the swarm; a go-to, stop, take-off or follow takes control back"
+            )
+        self.control_lost = mode or "unknown"
+
+    def _take_back(self, result: AckResult, why: str, calls: list[Call]) -> tuple[AckResult, str, list[Call]]:
+        """An accepted command that needs the vehicle under setpoint control: take it
+        back first when its autopilot let go (the station hears the vehicle's result)."""
+        if result != AckResult.ACCEPTED or not self.control_lost or not self.airborne:
+            return result, why, calls
+        back = f"taking control back from {self.control_lost}"
+        return result, f"{why}: {back}" if why else back, [*calls, Call("control")]
+
     def on_pose(self, sender: int, pose: Pose, now: float) -> None:
         if sender == self.me:
             return
@@ -230,6 +270,9 @@ class Pilot:
         self.task = task
 
     def call_done(self, call: Call, ok: bool, error: str = "") -> None:
+        if call.kind == "control":
+            self.events.append("took control back: holding" if ok else f"taking control back failed: {error}")
+            return
         if not ok:
             self.events.append(f"{call.kind} failed: {error}")
             if call.kind == "takeoff" and self.mode == Mode.TAKEOFF:
@@ -250,7 +293,20 @@ class Pilot:
 
     # -- commands -------------------------------------------------------------------
     def command(self, cmd: Command, role: Role, now: float) -> tuple[AckResult, str, list[Call]]:
-        """Answer a command: (result, reason, vehicle calls to make now)."""
+        """Answer a command: (result, reason, vehicle calls to make now). A go-to,
+        waypoint, stop, follow or take-off in the air takes control back first when the
+        autopilot let go of the vehicle (:meth:`set_control`)."""
+        result, why, calls = self._decide(cmd, role, now)
+        if cmd.kind in (CommandKind.LAND, CommandKind.RETURN):
+            self.control_lost, self._uncontrolled = "", 0  # the autopilot flies it now, as asked
+            return result, why, calls
+        if cmd.kind in TAKE_BACK or (cmd.kind == CommandKind.STOP and cmd.target != 0):
+            return self._take_back(result, why, calls)
+        if cmd.kind == CommandKind.STOP and self.control_lost and result == AckResult.ACCEPTED:
+            return self._take_back(result, why, calls)  # the swarm stop: the leader holds too
+        return result, why, calls
+
+    def _decide(self, cmd: Command, role: Role, now: float) -> tuple[AckResult, str, list[Call]]:
         k = cmd.kind
         swarm = cmd.target == 0
         if swarm and k not in (CommandKind.FOLLOW, CommandKind.STOP):
@@ -596,6 +652,7 @@ class Pilot:
             "holding": self.holding,
             "hold_reason": self.hold_reason,
             "too_close": dict(self.too_close),
+            "control_lost": self.control_lost,
             "follows": a.follows if a else 0,
             "side": a.side.name if a else "",
             "task": self.task.kind.name,

@@ -530,6 +530,8 @@ class Agent(StartOnce):
         elif c.kind == "takeoff":  # not armable within seconds: refused with the reasons, never late
             v.takeoff(c.alt, wait=True, timeout=60.0, ready_timeout=TAKEOFF_READY_S)
             v.start_offboard()  # hold here under setpoint control
+        elif c.kind == "control":  # the autopilot let go (a failsafe, RC): hold here under setpoints
+            v.take_control()
         elif c.kind == "land":
             v.land()
         elif c.kind == "return":

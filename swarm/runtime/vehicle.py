@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from firmware_bridge.session import SETPOINT_MODES
 from swarm.core.messages import AgentState, MessageError, Pose
 from swarm.core.node import VehicleInfo
 
@@ -33,6 +34,7 @@ def vehicle_info(s: Any, link_ok: bool) -> VehicleInfo:
         battery=int(s.battery_remaining),
         groundspeed=speed,
         link_ok=link_ok,
+        controlled=(s.mode in SETPOINT_MODES) if s.mode else None,
     )
 
 

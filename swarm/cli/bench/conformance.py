@@ -48,7 +48,11 @@ def _met(r: dict[str, Any]) -> bool:
     return whole and all(lo <= x <= hi for x in ratios)
 
 
-def run(quick: bool = False, traces: Path = TRACES) -> dict[str, Any]:
+def run(quick: bool = False, traces: Path = TRACES, real: bool = False) -> dict[str, Any]:
+    if real:  # the simulator against the real autopilots, live (conformance_real)
+        from swarm.cli.bench.conformance_real import run_real
+
+        return run_real(quick)
     files = sorted(traces.glob("*.tlog")) if traces.is_dir() else []
     if not files:
         raise SwarmError(f"no recorded traces (*.tlog) in {traces}: run from a source checkout")

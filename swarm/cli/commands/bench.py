@@ -13,7 +13,7 @@ import signal
 from typing import Any
 
 from swarm.cli.progress import Ticker
-from swarm.cli.util import guarded, parser, print_json
+from swarm.cli.util import UsageError, guarded, parser, print_json
 
 PROG = "swarm bench"
 AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
@@ -39,7 +39,11 @@ AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
         "ip_edge",
         "stations on two machines, a router over mutual TLS with an ACL, an attacker on every listener",
     ),
-    "conformance": ("conformance", "simulated ArduCopter vs recorded SITL traces: milestones, acks, timings"),
+    "conformance": (
+        "conformance",
+        "simulated ArduCopter vs recorded SITL traces: milestones, acks, timings; "
+        "--real: the simulator vs real ArduCopter and PX4 SITL, live",
+    ),
 }
 
 
@@ -53,12 +57,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("area", choices=sorted(AREAS), help="; ".join(f"{k}: {v[1]}" for k, v in AREAS.items()))
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quick", action="store_true", help="shorter runs (CI): same fields, wider noise")
+    p.add_argument(
+        "--real",
+        action="store_true",
+        help="conformance: fly the real autopilots ($SITL_DIR) beside the simulator, live",
+    )
     args = p.parse_args(argv)
+    if args.real and args.area != "conformance":
+        raise UsageError(f"--real is for the conformance bench, not {args.area}")
+    kw = {"real": True} if args.real else {}
     # SIGTERM as Ctrl-C: the benches stop the processes they started on the way out
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         with Ticker(f"{PROG} {args.area}", as_json=args.json):
-            result = importlib.import_module(f"swarm.cli.bench.{AREAS[args.area][0]}").run(quick=args.quick)
+            result = importlib.import_module(f"swarm.cli.bench.{AREAS[args.area][0]}").run(
+                quick=args.quick, **kw
+            )
     finally:
         signal.signal(signal.SIGTERM, previous)
     if args.json:

@@ -260,6 +260,9 @@ def test_a_go_to_after_a_failsafe_takes_control_back_and_is_answered_with_what_t
     vehicle's result: the refusal with its reason, or ACCEPTED once it is back."""
     b = Bench(refused("mode OFFBOARD refused: no position", after=1.0))
     flying_after_a_failsafe(b)
+    b.run(b.now + 3.0)  # the station sees it in the agent's Telemetry (and its API state)
+    assert b.station.agents[AGENT].control_lost is True
+    assert b.station.agents[AGENT].as_dict(b.now)["control_lost"] is True
     req, seq = b.submit(CommandKind.GOTO, lat=47.3979, lon=8.5456, alt=20.0)
     b.run(b.now + 10.0)
     assert [c.kind for c in b.calls] == ["control"]
@@ -277,6 +280,8 @@ def test_a_go_to_after_a_failsafe_takes_control_back_and_is_answered_with_what_t
     assert req.body()["ok"] is True and b.answers(seq)[-1] == ("ACCEPTED", "")
     b._from_node(b.node.handle(VehicleInfo("OFFBOARD", True, True, 80, controlled=True), b.now))
     assert b.node.pilot.control_lost == ""
+    b.run(b.now + 3.0)
+    assert b.station.agents[AGENT].control_lost is False
 
 
 # -- hostile or odd results ----------------------------------------------------------------

@@ -102,6 +102,7 @@ FLAG_ARMED = 0x01
 FLAG_AIRBORNE = 0x02
 FLAG_FC_OK = 0x04
 FLAG_HOLDING = 0x08  # holding position: stale pose, separation, or a stop command
+FLAG_CONTROL_LOST = 0x10  # the autopilot left setpoint control by itself (a failsafe, RC)
 
 
 def mode_code(name: str) -> int:
@@ -385,6 +386,7 @@ __all__ = [
     "ACK_REPEATS",
     "FLAG_AIRBORNE",
     "FLAG_ARMED",
+    "FLAG_CONTROL_LOST",
     "FLAG_FC_OK",
     "FLAG_HOLDING",
     "MODES",

@@ -363,7 +363,7 @@ class Telemetry(Message):
     sender: int
     pose: Pose
     mode: int = 0
-    flags: int = 0  # bit0 armed, bit1 airborne, bit2 fc link ok, bit3 holding
+    flags: int = 0  # bit0 armed, bit1 airborne, bit2 fc link ok, bit3 holding, bit4 control lost
     phase: Phase = Phase.IDLE
     leader: int = 0
     battery: int = 255

@@ -76,6 +76,7 @@ from dataclasses import dataclass, replace
 from swarm.core.gslink import (
     FLAG_AIRBORNE,
     FLAG_ARMED,
+    FLAG_CONTROL_LOST,
     FLAG_FC_OK,
     FLAG_HOLDING,
     CommandLog,
@@ -542,6 +543,7 @@ class AgentNode:
             if math.isfinite(v.groundspeed):
                 groundspeed = max(0.0, min(63.75, v.groundspeed))
             flags |= FLAG_HOLDING if self.pilot.holding else 0
+            flags |= FLAG_CONTROL_LOST if self.pilot.control_lost else 0
         leader = core.leader if core.phase in (Phase.LEADER, Phase.MEMBER) else 0
         return Telemetry(
             self.id,

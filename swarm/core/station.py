@@ -70,6 +70,7 @@ from typing import Any
 from swarm.core.gslink import (
     FLAG_AIRBORNE,
     FLAG_ARMED,
+    FLAG_CONTROL_LOST,
     FLAG_FC_OK,
     FLAG_HOLDING,
     is_station,
@@ -506,6 +507,7 @@ class StationCore:
         a.armed = bool(msg.flags & FLAG_ARMED) if fc else None
         a.airborne = bool(msg.flags & FLAG_AIRBORNE) if fc else None
         a.holding = bool(msg.flags & FLAG_HOLDING)
+        a.control_lost = bool(msg.flags & FLAG_CONTROL_LOST) if fc else None
         a.battery = None if msg.battery > 100 else msg.battery
         a.rssi, a.remrssi = msg.rssi, msg.remrssi
         a.groundspeed = msg.groundspeed if fc else a.groundspeed

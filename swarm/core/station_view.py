@@ -120,6 +120,8 @@ class AgentView:
     armed: bool | None = None
     airborne: bool | None = None
     holding: bool | None = None
+    #: the agent's autopilot left setpoint control by itself (a failsafe): a command takes it back
+    control_lost: bool | None = None
     #: the agent's link to its flight controller: None until one was seen, then
     #: whether Telemetry says it is up (FLAG_FC_OK)
     vehicle_link: bool | None = None
@@ -182,6 +184,7 @@ class AgentView:
             "armed": self.armed,
             "airborne": self.airborne,
             "holding": self.holding,
+            "control_lost": self.control_lost,
             "vehicle_link": self.vehicle_link,
             "battery": self.battery,
             "rssi": self.rssi,

@@ -285,6 +285,13 @@ def test_a_failsafe_is_reported_and_a_command_takes_control_back_or_says_why_not
     assert p.control_lost == "" and "back under setpoint control" in " ".join(p.take_events())
     res, _, calls = p.command(goto, role, 3.0)
     assert res == AckResult.ACCEPTED and calls == []  # under control: nothing to take back
+    # the failsafe lands it: on the ground there is nothing left to take back
+    p.set_control(False, "AUTO.LOITER")
+    p.set_control(False, "AUTO.LAND")
+    assert p.control_lost == "AUTO.LAND"
+    p.set_own(at(0, 0, alt=508.0), False)
+    p.set_control(False, "AUTO.LAND")
+    assert p.control_lost == "" and "landed under the autopilot's control" in " ".join(p.take_events())
     # a landing asked for, or a take-off under way, is not a failsafe
     q = flying(3, 0, 0)
     q.set_control(True, "OFFBOARD")

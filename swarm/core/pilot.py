@@ -237,6 +237,9 @@ class Pilot:
             return
         if not self.airborne or self.mode in (Mode.IDLE, Mode.TAKEOFF, Mode.LAND, Mode.RETURN):
             self._uncontrolled = 0
+            if self.control_lost and not self.airborne:  # it landed by itself: nothing left to take back
+                self.events.append(f"landed under the autopilot's control ({mode or 'unknown'})")
+                self.control_lost = ""
             return
         self._uncontrolled += 1
         if self._uncontrolled < 2:

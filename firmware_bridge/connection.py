@@ -57,6 +57,7 @@ __all__ = [
 COMPANION_COMPONENT = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_STATE_ACTIVE = 4
+RELOCK_SILENCE_S = 3.0  # the locked autopilot silent this long: its system id from elsewhere is it
 TCP_RETRY_S = 0.25  # between tries of a refused TCP connect, within connect()'s timeout
 
 
@@ -90,7 +91,10 @@ class UdpInLink(mavutil.mavudp):
     sending there, every command went to both. Once :meth:`lock` names the address
     of the autopilot whose heartbeat was taken, datagrams from any other address are
     dropped (counted in :attr:`strangers`, each new one said once in the log) and
-    everything is written to that address only."""
+    everything is written to that address only. The same system id from a new address
+    after :data:`RELOCK_SILENCE_S` of silence from the locked one is the autopilot
+    restarted (a simulator or a UDP bridge sends from a new port each start): followed,
+    and said."""
 
     def __init__(self, device: str, **kw: Any) -> None:
         super().__init__(device, input=True, **kw)
@@ -99,9 +103,11 @@ class UdpInLink(mavutil.mavudp):
         self.locked_system = 0
         self.strangers: dict[tuple[str, int], int] = {}
         self.systems: dict[tuple[str, int], int] = {}  # before the lock: who sent from where
+        self.locked_heard = 0.0  # when the locked address last sent (monotonic)
 
     def lock(self, address: tuple[str, int], system: int) -> None:
         self.locked, self.locked_system = address, system
+        self.locked_heard = time.monotonic()
         self.clients = {address}
         self.clients_last_alive = {address: time.time()}
 
@@ -112,6 +118,22 @@ class UdpInLink(mavutil.mavudp):
             if e.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
                 return ""
             raise
+        now = time.monotonic()
+        if self.locked is not None and addr != self.locked:
+            system = _first_system(data)
+            if system == self.locked_system and now - self.locked_heard > RELOCK_SILENCE_S:
+                # the same autopilot from a new address after a silence: it restarted
+                # (a simulator or a UDP bridge sends from a new port each start)
+                log.warning(
+                    "%s: the autopilot (system %d) is now at %s:%d, silent at %s:%d for %.0f s: following it",
+                    self.address,
+                    system,
+                    *addr,
+                    *self.locked,
+                    now - self.locked_heard,
+                )
+                self.strangers.pop(addr, None)
+                self.lock(addr, system)
         if self.locked is not None and addr != self.locked:
             if addr not in self.strangers:
                 system = _first_system(data)
@@ -127,6 +149,7 @@ class UdpInLink(mavutil.mavudp):
             self.strangers[addr] = self.strangers.get(addr, 0) + 1
             return ""
         self.last_from = addr
+        self.locked_heard = now
         if self.locked is None:
             self.clients.add(addr)
             self.clients_last_alive[addr] = time.time()

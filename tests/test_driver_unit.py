@@ -583,3 +583,25 @@ def test_udpin_locks_onto_one_autopilot_and_says_so_when_another_appears(
         assert not second.of_type("HEARTBEAT")  # not even the companion's heartbeat
     said = [r.getMessage() for r in caplog.records if "another" in r.getMessage()]
     assert len(said) == 1 and "system 2" in said[0] and "locked" in said[0], said
+
+
+def test_udpin_follows_its_autopilot_restarted_from_a_new_port(fake_factory, caplog) -> None:
+    """A simulator (or a UDP bridge) restarted sends from a new port: after a silence
+    of the locked address, the same system id from elsewhere is the autopilot again
+    (the lock above kept a restarted simulator out for good); another system id still
+    is not."""
+    port = free_udp_port()
+    first = fake_factory(port, sysid=1, ack=lambda m: 0)
+    with drv.connect(f"udpin:127.0.0.1:{port}", timeout=5, link_timeout=1.0) as v:
+        first.close()  # killed
+        time.sleep(4.0)  # longer than the silence that allows a new address
+        stranger = fake_factory(port, sysid=2, ack=lambda m: 0)
+        again = fake_factory(port, sysid=1, ack=lambda m: 0, custom_mode=custom_mode_of("px4", "AUTO.LAND"))
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and v.state.mode != "AUTO.LAND":
+            time.sleep(0.05)
+        assert v.state.mode == "AUTO.LAND" and v.link_ok
+        v.command(512, (242,))
+        time.sleep(0.3)
+        assert again.of_type("COMMAND_LONG") and not stranger.of_type("COMMAND_LONG")
+    assert any("is now at" in r.getMessage() for r in caplog.records)

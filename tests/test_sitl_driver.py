@@ -122,6 +122,7 @@ def test_a_failsafe_is_noticed_at_once_and_control_taken_back(autopilot: sitl.Si
         v.land(wait=True, timeout=180)
 
 
+@pytest.mark.timeout(900)  # four flights of about a minute each, on a busy machine longer
 def test_the_conformance_bench_flies_both_real_autopilots_beside_the_simulator() -> None:
     """``swarm bench conformance --real --quick``: the figures are measured, never
     judged here (the bench prints its misses); every milestone of the real flight is

@@ -28,7 +28,6 @@ import contextlib
 import fcntl
 import math
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -166,19 +165,6 @@ def _px4_aliases(bin_dir: Path, path_dir: Path) -> None:
                 link.symlink_to(binary)
 
 
-def _no_realtime() -> list[str]:
-    """The prefix that keeps the autopilot off real-time scheduling. PX4 SITL run as root
-    gives its threads SCHED_FIFO (25 of them), which starves every other program on a
-    busy machine (a browser test beside it timed out); without the capability to set
-    real-time priorities it runs them as ordinary threads. util-linux's ``setpriv``
-    drops that capability (CAP_SYS_NICE) from what the autopilot can have; not root or
-    no ``setpriv``: nothing to drop (a user's process cannot take real-time priority)."""
-    tool = shutil.which("setpriv")
-    if os.geteuid() != 0 or tool is None:
-        return []
-    return [tool, "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", "--"]
-
-
 @dataclass
 class Sitl:
     """One running autopilot (made by :func:`start`)."""
@@ -268,9 +254,7 @@ def start(
         if speed != 1.0:
             args += ["--speedup" if kind == "ardupilot" else "--speed", f"{speed:g}"]
         log = open(log_path, "ab")  # noqa: SIM115 - the autopilot writes it until stopped
-        proc = subprocess.Popen(
-            [*_no_realtime(), *args], stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
-        )
+        proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
     except BaseException:
         lock.close()
         raise

@@ -137,7 +137,12 @@ def refused_below_the_floors(page: Any, url: str, kids: list[Child]) -> None:
     page.fill("#goto-lat", f"{lat:.7f}")
     page.fill("#goto-lon", f"{lon:.7f}")
     page.fill("#goto-alt", "0.2")
-    poll(lambda: "584.2 m AMSL" in page.inner_text("#goto-amsl"), "the AMSL beside the altitude", 15, kids)
+    poll(
+        lambda: "584.2 m AMSL" in page.inner_text("#goto-amsl"),
+        "the AMSL beside the altitude",
+        DEADLINE,
+        kids,
+    )
     page.click("#goto-go")
     poll(lambda: "station's geofence" in status(page), "the station's refusal on the page", 30, kids)
     assert "refused" in status(page) and "below the floor (0.5 m above home)" in status(page)

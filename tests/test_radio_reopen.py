@@ -229,6 +229,9 @@ def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytes
         wait_until(lambda: b2.stats.radio_reopens == 1, "a2's radio reopened", AIR_DEADLINE + OUTAGE_S)
         away = time.monotonic() - t0
         assert not b2.link_lost and b2.stats.radio_losses == 1
+        wait_until(
+            lambda: len(heard) >= 2, "the listener told of both", AIR_DEADLINE
+        )  # it comes after the count
         assert heard[0][0] == "lost" and heard[1][0] == "back" and heard[1][1].startswith("after ")
         # traffic both ways again, and the name table survived (no new Advertize)
         t2.send("a1", Selection(2, 1, 8, 3))

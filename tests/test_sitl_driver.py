@@ -25,7 +25,7 @@ from firmware_bridge import sitl
 from firmware_bridge.driver import Vehicle, connect
 from firmware_bridge.errors import CommandRejected, FlightInterrupted
 
-pytestmark = [pytest.mark.processes, pytest.mark.sitl]
+pytestmark = [pytest.mark.processes, pytest.mark.sitl, pytest.mark.timeout(600)]  # boots and flights
 
 SPEED = {"ardupilot": 4.0, "px4": 2.0}  # faster than real time: no test here judges time
 CONNECT_S = 60.0

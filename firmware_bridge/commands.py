@@ -34,7 +34,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega
 
 from firmware_bridge.errors import CommandRejected, CommandTimeout
-from firmware_bridge.telemetry import CommandAck, StatusText
+from firmware_bridge.telemetry import MAV_SEVERITY_WARNING, CommandAck, StatusText
 
 mavlink: Any = ardupilotmega
 
@@ -87,7 +87,6 @@ TEXT_GRACE_S = 0.3  # how long a refusal waits for its STATUSTEXT
 
 #: STATUSTEXT openings that give an autopilot's reasons for refusing to arm
 ARMING_TEXTS = ("PreArm:", "Arm:", "Preflight Fail", "Arming denied")
-MAV_SEVERITY_WARNING = 4
 
 
 def is_reason(text: StatusText) -> bool:

@@ -156,7 +156,9 @@ class EventCatalog:
             if not isinstance(spec, dict):
                 break
             typ = spec.get("type")
-            enum = self._enums.get(comp, {}).get(typ) if isinstance(typ, str) else None
+            # PX4 names its enums with the component's namespace: "px4::arm_disarm_reason_t"
+            name = typ.rpartition("::")[2] if isinstance(typ, str) else None
+            enum = self._enums.get(comp, {}).get(name) if name else None
             base = enum.get("type") if isinstance(enum, dict) else typ
             fmt = _TYPES.get(base) if isinstance(base, str) else None
             if fmt is None:

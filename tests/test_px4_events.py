@@ -85,6 +85,28 @@ def test_an_event_is_unpacked_and_written_in_pxs_words() -> None:
     assert (
         ev is not None and cat.text(ev) == "Battery at 14.9V (BAT_LOW_THR), command, modes Manual, Position"
     )
+    # PX4's real metadata names an enum with its namespace ("px4::arm_disarm_reason_t"):
+    # the value is still written by its description, not left as "{1}"
+    meta = {
+        "components": {
+            "1": {
+                "namespace": "px4",
+                "enums": META["components"]["1"]["enums"],
+                "event_groups": {
+                    "default": {
+                        "events": {
+                            "9482995": {
+                                "message": "Armed by {1}",
+                                "arguments": [{"name": "arg0", "type": "px4::arm_disarm_reason_t"}],
+                            }
+                        }
+                    }
+                },
+            }
+        }
+    }
+    ev = parse_event(event_frame(1 << 24 | 9482995, 6, b"\x03"))
+    assert ev is not None and EventCatalog(meta).text(ev) == "Armed by command"
     # an id the metadata lacks, or no metadata at all: still an event, at its level
     ev = parse_event(event_frame(2 << 24 | 99, 2))
     assert ev is not None and ev.level == 2 and EventCatalog().text(ev) == "PX4 event 0x02000063"

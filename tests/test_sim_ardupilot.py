@@ -161,10 +161,15 @@ def test_takeoff_refused_when_disarmed_and_outside_guided(sim: VehicleSim, conn:
 
 
 def test_arm_rejected_without_gps_and_guided_needs_position(sim: VehicleSim, conn: mavutil.mavfile) -> None:
+    assert command(conn, 176, *GUIDED) == 0
     sim.vehicle(0).fail_gps(True)
     texts: list[str] = []
     assert command(conn, 400, 1, texts=texts) == 4
     assert any(t == "Arm: Need Position Estimate" for t in texts), texts
+    # STABILIZE needs no position: real ArduCopter arms in it without one
+    assert command(conn, 176, 1, 0) == 0
+    assert command(conn, 400, 1) == 0
+    assert command(conn, 400, 0) == 0
     assert command(conn, 176, *GUIDED, texts=texts) == 4
     conn.mav.set_mode_send(1, 1, 4)  # SET_MODE is acked as command 11
     ack = wait_msg(conn, "COMMAND_ACK", lambda m: m.command == 11)

@@ -12,7 +12,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_bridge.errors import ConnectError
-from firmware_bridge.sim import Autopilot, SimConfig, modes
+from firmware_bridge.px4_events import parse_event
+from firmware_bridge.sim import Autopilot, SimConfig, modes, px4_boot
 from firmware_bridge.sim.ardupilot import ArduPilot
 from firmware_bridge.sim.autopilot import make_flavour
 from firmware_bridge.sim.flavour import IN_AIR, LANDING, ON_GROUND, TAKEOFF
@@ -72,6 +73,11 @@ class Pilot:
     def texts(self) -> list[str]:
         return [m.text for m in self.heard if m.get_type() == "STATUSTEXT"]
 
+    def events(self) -> list[tuple[int, bytes]]:
+        """PX4's EVENTs heard (pymavlink's UNKNOWN_410): (id, arguments without the trailing zeros)."""
+        evs = [parse_event(bytes(m.data)) for m in self.heard if m.get_type() == "UNKNOWN_410"]
+        return [(e.id, e.arguments.rstrip(b"\0")) for e in evs if e is not None]
+
 
 def test_make_flavour_gives_each_vehicle_its_own_object_and_refuses_unknown_values() -> None:
     assert isinstance(make_flavour("px4", "land"), Px4) and make_flavour("px4", "land").loss_action == "land"
@@ -117,6 +123,9 @@ def test_set_mode_message_is_acked_as_each_autopilot_does(profile: str, custom: 
 @pytest.mark.parametrize(("profile", "refusal"), [("px4", TEMPORARILY_REJECTED), ("ardupilot", FAILED)])
 def test_each_flavour_refuses_with_its_own_result_code(profile: str, refusal: int) -> None:
     p = Pilot(profile)
+    assert (
+        p.command(176, 1, *((4,) if profile == "ardupilot" else (4, 3))).result == ACCEPTED
+    )  # GUIDED / LOITER
     p.ap.set_gps(False)
     assert p.command(400, 1).result == refusal  # no position: arming refused
     assert p.command(22, 0, 0, 0, 0, 0, 0, 10).result == refusal  # take-off refused
@@ -172,7 +181,12 @@ def test_one_flight_in_each_flavour_px4_offboard() -> None:
     assert p.command(21).result == ACCEPTED
     p.run(20.0)
     assert p.landed_seen == [ON_GROUND, TAKEOFF, IN_AIR, LANDING, ON_GROUND]
-    assert "Landing detected, disarmed" in p.texts() and not p.ap.armed and p.ap.mode == "AUTO.LAND"
+    # as PX4 v1.15: said in EVENTs, none in STATUSTEXT; disarmed, back in the mode it was
+    # last put in that allows arming (OFFBOARD), not AUTO.LAND
+    said = [e for e, _a in p.events()]
+    assert said.index(px4_boot.LANDING_DETECTED[0]) < said.index(px4_boot.DISARMED_AUTO_LAND[0])
+    assert px4_boot.TAKEOFF_DETECTED[0] in said and p.texts() == []
+    assert not p.ap.armed and p.ap.mode == "OFFBOARD"
 
 
 def test_one_flight_in_each_flavour_ardupilot_guided() -> None:

@@ -13,12 +13,12 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
-from mav_helpers import command, wait_msg
+from mav_helpers import EVENT, command, event_id, event_text, wait_msg
 from net_helpers import free_port_range
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_bridge.sim import Autopilot, SimConfig, VehicleSim
+from firmware_bridge.sim import Autopilot, SimConfig, VehicleSim, px4_boot
 
 pytestmark = pytest.mark.processes  # the vehicle simulator, in real time
 
@@ -120,7 +120,8 @@ def test_arm_rejected_without_gps(sim: VehicleSim) -> None:
     sim.vehicle(0).fail_gps(True)
     texts: list[str] = []
     assert command(c, 400, 1, texts=texts) == 1  # TEMPORARILY_REJECTED
-    assert any("Preflight Fail" in t for t in texts), texts
+    # as PX4 v1.15: no STATUSTEXT for the refusal, its EVENT (and the checks' report)
+    assert event_text(px4_boot.ARMING_DENIED[0]) in texts, texts
     assert not sim.vehicle(0).state.armed
     sim.vehicle(0).fail_gps(False)
     assert command(c, 400, 1) == 0
@@ -160,14 +161,14 @@ def test_offboard_rules_flight_and_failsafe(slow_sim: VehicleSim) -> None:
     # 20 m north
     s.sp = (20.0, 0.0, -10.0)
     settle(sim, (20.0, 0.0, -10.0), 0.5, tick=s.tick, conn=c)
-    # stream stops: failsafe to Hold (default) with a STATUSTEXT within COM_OF_LOSS_T + margin
+    # stream stops: failsafe to Position mode (PX4's default) with its EVENT within
+    # COM_OF_LOSS_T + margin
     s.on = False
     t0 = sim.vehicle(0).state.time
-    txt = wait_msg(c, "STATUSTEXT", lambda m: "Failsafe" in m.text)
-    assert "offboard" in txt.text
-    hb = wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 50593792)
+    wait_msg(c, EVENT, lambda m: event_id(m) == px4_boot.FAILSAFE_DISENGAGED)
+    hb = wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 3 << 16)
     assert hb.system_status == 5  # CRITICAL: armed + failsafe
-    assert sim.vehicle(0).state.mode == "AUTO.LOITER"
+    assert sim.vehicle(0).state.mode == "POSCTL"
     assert sim.vehicle(0).state.time - t0 < 1.0 + 2.0
     # disarm in the air refused without force
     assert command(c, 400, 0) == 1
@@ -185,7 +186,7 @@ def test_frames_7_and_9_dropped_with_statustext(sim: VehicleSim) -> None:
     assert command(c, 176, *OFFBOARD, tick=s.tick) == 0
     texts: list[str] = []
     assert command(c, 400, 1, tick=s.tick, texts=texts) == 1
-    assert any("offboard" in t for t in texts)
+    assert event_text(px4_boot.ARMING_DENIED[0]) in texts, texts
 
 
 def test_auto_disarm_without_takeoff(sim: VehicleSim) -> None:
@@ -201,8 +202,8 @@ def test_nav_takeoff_amsl_then_land(sim: VehicleSim) -> None:
     assert command(c, 400, 1) == 0
     assert command(c, 22, 0, 0, 0, math.nan, math.nan, math.nan, 488.0 + 6.0) == 0
     wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 33816576)  # AUTO.TAKEOFF
-    wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 50593792)  # then AUTO.LOITER
-    assert abs(sim.vehicle(0).state.position[2] + 6.0) < 0.3
+    wait_msg(c, "HEARTBEAT", lambda m: m.custom_mode == 50593792)  # then AUTO.LOITER within 0.8 m
+    assert abs(sim.vehicle(0).state.position[2] + 6.0) < 0.8
     assert command(c, 21) == 0
     wait_msg(c, "HEARTBEAT", lambda m: not m.base_mode & 128, timeout=DEADLINE * 2)
     assert sim.vehicle(0).state.landed_state == 1
@@ -361,4 +362,5 @@ def test_offboard_loss_action_land() -> None:
             ap.handle(_roundtrip(cl, cl.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)), t)
     out = ap.tick(t + 1.5)
     assert ap.mode == "AUTO.LAND" and ap.failsafe
-    assert any(m.get_type() == "STATUSTEXT" and "Land" in m.text for m in out)
+    failsafe = [m for m in out if m.get_type() == "EVENT" and m.id == px4_boot.FAILSAFE_DISENGAGED]
+    assert [m.arguments[-1] for m in failsafe] == [px4_boot.FAILSAFE_ACTIONS["AUTO.LAND"]]

@@ -11,6 +11,14 @@ or :mod:`~firmware_bridge.sim.ardupilot`) whatever differs between the two autop
 """
 
 from firmware_bridge.sim.autopilot import Autopilot, VehicleState
-from firmware_bridge.sim.runner import REALISTIC_BOOT, SimConfig, Vehicle, VehicleSim
+from firmware_bridge.sim.runner import REALISTIC_BOOT, REALISTIC_BOOTS, SimConfig, Vehicle, VehicleSim
 
-__all__ = ["REALISTIC_BOOT", "Autopilot", "SimConfig", "Vehicle", "VehicleSim", "VehicleState"]
+__all__ = [
+    "REALISTIC_BOOT",
+    "REALISTIC_BOOTS",
+    "Autopilot",
+    "SimConfig",
+    "Vehicle",
+    "VehicleSim",
+    "VehicleState",
+]

@@ -60,6 +60,7 @@ if TYPE_CHECKING:
     from firmware_bridge.sim.autopilot import Autopilot
 
 GUID_TIMEOUT = 3.0  # guided velocity/accel target timeout, s
+EKF_UNINITIALISED, EKF_NO_GPS, EKF_USING_GPS = 1024, 167, 831  # EKF_STATUS_REPORT.flags, recorded
 AP_FORCE_ARM = 2989  # arm param 2: skip the pre-arm checks
 SPOOL_UP = 3.1  # s from an accepted NAV_TAKEOFF to the climb (recorded lift-off 3.1 s)
 #: modes whose position controller runs while disarmed (HEARTBEAT base_mode bit 8)
@@ -125,6 +126,7 @@ class ArduPilot(Flavour):
     def __init__(self, boot_time: float = 0.0) -> None:
         self.boot = BootTimeline(boot_time)
         self.home_wanted = False  # a REQUEST_MESSAGE HOME_POSITION waits for home
+        self.last_t = 0.0  # the time of the previous boot step
         self.takeoff_time = 0.0
         self.sub = "idle"  # GUIDED sub-mode: idle | takeoff | pos | vel | hold
         self.target = Target()
@@ -164,6 +166,14 @@ class ArduPilot(Flavour):
     def unknown_stream(self, mid: int) -> Reply:
         return DENIED, f"No ap_message for mavlink id ({mid})"
 
+    def ekf_flags(self, ap: Autopilot) -> int | None:
+        """As recorded: 1024 (uninitialised) until the EKF starts, 167 (attitude,
+        velocities, vertical position, constant position mode) until it uses GPS, then
+        831 (with the absolute horizontal position the driver waits for); GPS lost: 167."""
+        if not self.boot.ekf_started(ap.t):
+            return EKF_UNINITIALISED
+        return EKF_USING_GPS if self.boot.using_gps(ap.t) and ap.gps_ok else EKF_NO_GPS
+
     def on_arm(self, ap: Autopilot) -> None:
         self._send(ap, 49)  # GPS_GLOBAL_ORIGIN at each arm
 
@@ -177,7 +187,8 @@ class ArduPilot(Flavour):
 
     def _boot_events(self, ap: Autopilot) -> None:
         """What the boot timeline, TIMESYNC and the parameters announce in the last step."""
-        t0, t1, bt = ap.t - ap.dt, ap.t, self.boot
+        t0, t1, bt = self.last_t, ap.t, self.boot
+        self.last_t = t1  # the previous step's own time: a moment falls in exactly one step
         for sev, text in bt.texts_between(t0, t1, ap.origin[2]):
             ap.text(sev, text)
         if bt.crossed(0.11, t0, t1):
@@ -222,9 +233,11 @@ class ArduPilot(Flavour):
         if int(p[1]) == AP_FORCE_ARM:
             return ()
         booting = self.boot.arm_refusal(ap.t)
+        if ap.mode not in modes.NEEDS_POSITION:  # STABILIZE, ALT_HOLD...: no position needed
+            booting = tuple(r for r in booting if r != "Arm: Need Position Estimate")
         if booting:
             return booting
-        if not ap.gps_ok:
+        if not ap.gps_ok and ap.mode in modes.NEEDS_POSITION:
             return ("Arm: Need Position Estimate",)
         if ap.mode in modes.AP_NOT_ARMABLE:
             return (f"Arm: {ap.mode} mode not armable",)

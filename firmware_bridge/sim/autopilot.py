@@ -82,16 +82,19 @@ class VehicleState:
     failsafe: bool
 
 
-def make_flavour(profile: str, offboard_loss_action: str = "hold", boot_time: float = 0.0) -> Flavour:
+LOSS_ACTIONS = ("position", "hold", "land", "rtl")  # PX4 COM_OBL_RC_ACT 0, 5, 4, 3
+
+
+def make_flavour(profile: str, offboard_loss_action: str = "position", boot_time: float = 0.0) -> Flavour:
     """The flavour object of one vehicle. Raises ValueError for an unknown value.
 
-    ``boot_time``: ArduPilot's recorded boot scaled to these seconds (0: booted; see
-    :mod:`firmware_bridge.sim.boot`); PX4 has no boot phase yet."""
+    ``boot_time``: the autopilot's recorded boot scaled to these seconds (0: booted; see
+    :mod:`firmware_bridge.sim.boot` and :mod:`firmware_bridge.sim.px4_boot`)."""
     if profile not in FLAVOURS:
         raise ValueError(f"unknown profile {profile!r} (px4 or ardupilot)")
-    if offboard_loss_action not in ("hold", "land", "rtl"):
-        raise ValueError(f"unknown offboard_loss_action {offboard_loss_action!r} (hold, land, rtl)")
-    return Px4(offboard_loss_action) if profile == "px4" else ArduPilot(boot_time)
+    if offboard_loss_action not in LOSS_ACTIONS:
+        raise ValueError(f"unknown offboard_loss_action {offboard_loss_action!r} ({', '.join(LOSS_ACTIONS)})")
+    return Px4(offboard_loss_action, boot_time) if profile == "px4" else ArduPilot(boot_time)
 
 
 class Autopilot:
@@ -104,7 +107,7 @@ class Autopilot:
         origin: tuple[float, float, float],
         *,
         rng: random.Random | None = None,
-        offboard_loss_action: str = "hold",
+        offboard_loss_action: str = "position",
         dt: float = 0.02,
         noise: float = 0.01,
         boot_time: float = 0.0,
@@ -265,6 +268,11 @@ class Autopilot:
         self._out.append(msg)
 
     def text(self, severity: int, text: str) -> None:
+        """Say ``text``: a STATUSTEXT, or what the flavour says it with (PX4: an EVENT)."""
+        ev = self.flavour.event_for(severity, text)
+        if ev is not None:
+            self.flavour.event(self, ev)
+            return
         self._out.append(self.mav.statustext_encode(severity, text.encode("ascii", "replace")[:50]))
 
     def set_stream(self, mid: int, interval: float) -> None:
@@ -292,17 +300,28 @@ class Autopilot:
         self.target = target
         b.step(target, self.lim, self.dt, powered=self.armed)
         if self.armed and not b.on_ground:
+            if not self.took_off:
+                self.flavour.on_lift_off(self)
             self.took_off = True
             self.touchdown_time = None
         elif self.armed and b.on_ground and not was_ground:
             self.touchdown_time = self.t
-        self.landed_state = self._compute_landed()
+        landed = self._compute_landed()
+        if landed == ON_GROUND and self.landed_state in (IN_AIR, LANDING) and self.armed:
+            self.flavour.on_landing_detected(self)
+        self.landed_state = landed
         self._after_step()
         self._drain()
 
     def _compute_landed(self) -> int:
         if self.body.on_ground:
-            return ON_GROUND
+            detecting = (
+                self.touchdown_time is not None
+                and self.t - self.touchdown_time < self.flavour.land_detect_delay
+            )
+            if not (self.armed and detecting):
+                return ON_GROUND
+            return self.landed_state  # the land detector has not decided yet
         kind = modes.behaviour(self.mode)
         if kind == "takeoff" or self.flavour.taking_off(self, kind):
             return TAKEOFF
@@ -378,7 +397,7 @@ class Autopilot:
         if kind in ("offboard", "guided"):
             return self.flavour.own_target(self)
         if kind == "takeoff":
-            return self.climb_target(self.flavour.takeoff_speed)
+            return self.flavour.takeoff_target(self)
         if kind == "land":
             return self._descent_target(self.hold_point[0], self.hold_point[1], self.hold_yaw)
         if kind == "rtl":
@@ -386,7 +405,7 @@ class Autopilot:
         return self.hold_target()
 
     def _descent_target(self, n: float, e: float, yaw: float) -> Target:
-        v = 1.5 if -self.body.pos[2] > 10.0 else self.flavour.land_speed_low
+        v = self.flavour.descent_speed(self, self.home[2] - self.body.pos[2])
         return Target(pos=(n, e, NAN), vel=(NAN, NAN, v), yaw=yaw, v_down=v)
 
     def _rtl_target(self) -> Target | None:
@@ -484,7 +503,7 @@ class Autopilot:
     def _set_interval(self, mid: int, us: float) -> Reply:
         if mid == 0:
             return ACCEPTED, None
-        if mid not in telemetry.STREAMABLE:
+        if mid not in telemetry.STREAMABLE or not self.flavour.can_stream(mid):
             return self.flavour.unknown_stream(mid)
         if us == 0:
             self.set_stream(mid, self.flavour.default_streams.get(mid, 0.0))

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 RECORDED_TOTAL = 41.52
 #: the recorded milestones, seconds after the first connection
 READY, GPS_DETECTED, POSITION_VALID, ORIGIN_SET = 2.35, 9.73, 9.94, 19.93
+EKF_STARTED = 4.35  # "EKF3 IMU0 initialised": EKF_STATUS_REPORT leaves "uninitialised"
 #: the boot's STATUSTEXTs (recorded second, severity, text)
 TEXTS: tuple[tuple[float, int, str], ...] = (
     (0.11, 7, "RCInput: decoding UDP (Pulses)"),
@@ -98,6 +99,9 @@ class BootTimeline:
     def origin_set(self, t: float) -> bool:
         """Home and EKF origin exist: HOME_POSITION answers."""
         return t >= self.at(ORIGIN_SET)
+
+    def ekf_started(self, t: float) -> bool:
+        return t >= self.at(EKF_STARTED)
 
     def using_gps(self, t: float) -> bool:
         """The EKF uses GPS: LOCAL_POSITION_NED flows and arming is allowed."""

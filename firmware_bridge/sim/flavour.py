@@ -117,6 +117,10 @@ class Flavour(ABC):
     param_bytewise: ClassVar[bool] = False  # integers as their bits in the float (PX4)
     param_read_index: ClassVar[bool] = False  # a read by name reports the index (PX4), else 65535
     param_hash_first: ClassVar[bool] = False  # a list starts with _HASH_CHECK (PX4)
+    #: s from touchdown until the land detector says so (landed state ON_GROUND)
+    land_detect_delay: ClassVar[float] = 0.0
+    #: before its fix, GLOBAL_POSITION_INT is sent with zeros (ArduPilot); else not at all
+    zero_position_before_fix: ClassVar[bool] = True
 
     # ------------------------------------------- boot (default: none, booted)
     def position_valid(self, ap: Autopilot) -> bool:
@@ -131,6 +135,10 @@ class Flavour(ABC):
         """HOME_POSITION can be answered."""
         return True
 
+    def gps_detected(self, ap: Autopilot) -> bool:
+        """GPS_RAW_INT has a fix (and SYS_STATUS a healthy GPS)."""
+        return self.position_valid(ap)
+
     def prearm_ok(self, ap: Autopilot) -> bool | None:
         """SYS_STATUS's pre-arm check bit (None: this autopilot does not report it)."""
         return None
@@ -138,6 +146,38 @@ class Flavour(ABC):
     def defer_request(self, ap: Autopilot, mid: int) -> bool:
         """True: REQUEST_MESSAGE ``mid`` that has no answer yet is accepted, answered later."""
         return False
+
+    def ekf_flags(self, ap: Autopilot) -> int | None:
+        """EKF_STATUS_REPORT.flags now (None: not sent)."""
+        return None
+
+    def can_stream(self, mid: int) -> bool:
+        """This autopilot sends message ``mid`` when asked (among those the simulator encodes)."""
+        return True
+
+    def event_for(self, severity: int, text: str) -> Any:
+        """What the autopilot sends instead of a STATUSTEXT ``text`` (PX4: an EVENT), or None."""
+        return None
+
+    def event(self, ap: Autopilot, ev: Any) -> None:
+        """Send ``ev``, a value :meth:`event_for` returned."""
+        return None
+
+    def takeoff_target(self, ap: Autopilot) -> Target:
+        """The controller's target in the take-off mode."""
+        return ap.climb_target(self.takeoff_speed)
+
+    def descent_speed(self, ap: Autopilot, alt: float) -> float:
+        """A landing's descent speed at ``alt`` m above home."""
+        return 1.5 if alt > 10.0 else self.land_speed_low
+
+    def on_lift_off(self, ap: Autopilot) -> None:
+        """The land detector saw the vehicle leave the ground."""
+        return None
+
+    def on_landing_detected(self, ap: Autopilot) -> None:
+        """The land detector says the vehicle is on the ground (after ``land_detect_delay``)."""
+        return None
 
     def unknown_stream(self, mid: int) -> Reply:
         """The reply to SET_MESSAGE_INTERVAL for a message this autopilot cannot stream."""

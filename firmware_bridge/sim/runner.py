@@ -43,11 +43,14 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_bridge.errors import BridgeError, ConnectError
-from firmware_bridge.sim.autopilot import FLAVOURS, Autopilot, Msg, VehicleState
+from firmware_bridge.sim import px4_boot
+from firmware_bridge.sim.autopilot import FLAVOURS, LOSS_ACTIONS, Autopilot, Msg, VehicleState
 from firmware_bridge.sim.boot import RECORDED_TOTAL
 
 MAX_VEHICLES = 250
 REALISTIC_BOOT = RECORDED_TOTAL  # s: ArduCopter SITL's recorded boot, to "EKF3 IMU0 is using GPS"
+#: s: each profile's recorded boot (PX4: until arming is allowed)
+REALISTIC_BOOTS = {"ardupilot": RECORDED_TOTAL, "px4": px4_boot.RECORDED_TOTAL}
 
 
 @dataclass(frozen=True)
@@ -63,9 +66,10 @@ class SimConfig:
     base_port: int | None = None  # px4: 14540, ardupilot: 5760
     serial: str | None = None  # vehicle 0 on a serial device, or "pty"
     host: str = "127.0.0.1"
-    offboard_loss_action: str = "hold"  # PX4 COM_OBL_RC_ACT: hold (5), land (4) or rtl (3)
-    #: ardupilot: the recorded boot scaled to these simulated seconds (0: booted already;
-    #: REALISTIC_BOOT: as recorded); px4: no boot phase
+    #: PX4 COM_OBL_RC_ACT: position (0, PX4's default), hold (5), land (4) or rtl (3)
+    offboard_loss_action: str = "position"
+    #: the profile's recorded boot scaled to these simulated seconds (0: booted already;
+    #: REALISTIC_BOOTS[profile]: as recorded)
     boot_time: float = 0.0
     #: percent per simulated minute every battery loses, armed or not (tests; 0: flight only)
     battery_drain: float = 0.0
@@ -88,9 +92,9 @@ class SimConfig:
             raise ConnectError(f"speedup must be 0.01..100, got {self.speedup}")
         if not 0.0 <= self.spacing <= 10000.0:
             raise ConnectError(f"spacing must be 0..10000 m, got {self.spacing}")
-        if self.offboard_loss_action not in ("hold", "land", "rtl"):
+        if self.offboard_loss_action not in LOSS_ACTIONS:
             raise ConnectError(
-                f"offboard_loss_action must be hold, land or rtl, got {self.offboard_loss_action!r}"
+                f"offboard_loss_action must be {', '.join(LOSS_ACTIONS)}, got {self.offboard_loss_action!r}"
             )
         if not (math.isfinite(self.boot_time) and 0.0 <= self.boot_time <= 600.0):
             raise ConnectError(f"boot_time must be 0..600 s, got {self.boot_time}")

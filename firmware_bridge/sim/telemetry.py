@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from firmware_bridge.sim.autopilot import Autopilot
 
 #: message ids a stream may carry (SET_MESSAGE_INTERVAL), and what REQUEST_MESSAGE answers
-STREAMABLE = frozenset({1, 24, 30, 32, 33, 49, 74, 85, 147, 242, 245})
+STREAMABLE = frozenset({1, 24, 30, 32, 33, 49, 74, 85, 147, 193, 242, 245})
 REQUESTABLE = STREAMABLE | {0, 148}
 
 
@@ -69,7 +69,9 @@ def _extended_sys_state(ap: Autopilot) -> Msg:
 def _global_position_int(ap: Autopilot) -> Msg | None:
     if not ap.gps_ok:
         return None
-    if not ap.flavour.position_valid(ap):  # booting ArduPilot: all zeros ("Null Island")
+    if not ap.flavour.position_valid(ap):  # booting ArduPilot: all zeros ("Null Island"); PX4: none
+        if not ap.flavour.zero_position_before_fix:
+            return None
         return ap.mav.global_position_int_encode(_boot_ms(ap), 0, 0, 0, 0, 0, 0, 0, 0)
     b = ap.body
     n, e, d = _noisy_pos(ap)
@@ -112,7 +114,7 @@ PREARM = 0x10000000  # MAV_SYS_STATUS_PREARM_CHECK
 
 def _sys_status(ap: Autopilot) -> Msg:
     sensors = 32 | 1 | 2 | 4 | 8  # GPS, gyro, accel, mag, baro
-    health = sensors if ap.gps_ok and ap.flavour.position_valid(ap) else sensors & ~32
+    health = sensors if ap.gps_ok and ap.flavour.gps_detected(ap) else sensors & ~32
     prearm = ap.flavour.prearm_ok(ap)
     if prearm is not None:  # the autopilot reports its pre-arm checks
         sensors |= PREARM
@@ -126,7 +128,7 @@ def _sys_status(ap: Autopilot) -> Msg:
 
 def _gps_raw_int(ap: Autopilot) -> Msg:
     b = ap.body
-    ok = ap.gps_ok and ap.flavour.position_valid(ap)
+    ok = ap.gps_ok and ap.flavour.gps_detected(ap)
     fix = ap.flavour.gps_fix_type if ok else 0
     lat, lon, alt = ap.geo(b.pos[0], b.pos[1], b.pos[2]) if ok else (0.0, 0.0, 0.0)
     return ap.mav.gps_raw_int_encode(
@@ -147,6 +149,13 @@ def _battery_status(ap: Autopilot) -> Msg:
     volt, cur = _battery_vi(ap)
     cells = [int(volt * 250)] * 4 + [65535] * 6
     return ap.mav.battery_status_encode(0, 1, 3, 32767, cells, int(cur * 100), -1, -1, int(ap.battery))
+
+
+def _ekf_status_report(ap: Autopilot) -> Msg | None:
+    flags = ap.flavour.ekf_flags(ap)
+    if flags is None:
+        return None
+    return ap.mav.ekf_status_report_encode(flags, 0.02, 0.05, 0.03, 0.04, 0.0, 0.0)
 
 
 def _home_position(ap: Autopilot) -> Msg | None:
@@ -220,6 +229,7 @@ ENCODERS: dict[int, Callable[[Autopilot], Msg | None]] = {
     74: _vfr_hud,
     85: _target_echo,
     147: _battery_status,
+    193: _ekf_status_report,
     148: _autopilot_version,
     242: _home_position,
     245: _extended_sys_state,

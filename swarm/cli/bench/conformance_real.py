@@ -36,7 +36,7 @@ from firmware_bridge import sitl
 from firmware_bridge.driver import Vehicle, connect
 from firmware_bridge.errors import BridgeError, CommandRejected
 from firmware_bridge.session import WaitTimeout
-from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
+from firmware_bridge.sim import REALISTIC_BOOTS, SimConfig, VehicleSim
 from radios.ports import free_port
 from swarm.errors import SwarmError
 
@@ -143,7 +143,7 @@ def _simulated(kind: str, speed: float) -> Iterator[str]:
         vehicles=1,
         base_port=port,
         speedup=speed,
-        boot_time=REALISTIC_BOOT if kind == "ardupilot" else 0.0,
+        boot_time=REALISTIC_BOOTS[kind],
         wait_for_client=kind == "ardupilot",
     )
     sim = VehicleSim(cfg)

@@ -4,11 +4,12 @@ Vehicle i has system id i+1. px4: it sends to 127.0.0.1:14540+i and answers whoe
 talks to it (client ``udpin:127.0.0.1:14540+i``); ardupilot: it listens on TCP
 5760+10*i (client ``tcp:127.0.0.1:5760+10i``). ``--serial pty`` puts vehicle 0 on a
 pseudo terminal and prints the client's side. All timers run on simulated time,
-``--speedup`` times faster than the wall clock. ``--boot-time S`` makes an ArduPilot
-vehicle boot as a real ArduCopter SITL was recorded to, scaled to S simulated seconds
-(``--realistic-boot``: the recorded 41.5 s; default 3 s on the bench; 0: booted when the
-link comes up). ``--wait-for-client`` (ardupilot, TCP): simulated time stands at 0
-until a client connects, as ArduPilot SITL waits for its SERIAL0 client.
+``--speedup`` times faster than the wall clock. ``--boot-time S`` makes a vehicle boot
+as the profile's real SITL was recorded to, scaled to S simulated seconds
+(``--realistic-boot``: the recorded 41.5 s of ArduCopter, 34 s of PX4; default 3 s on
+the bench; 0: booted when the link comes up). ``--wait-for-client`` (ardupilot, TCP):
+simulated time stands at 0 until a client connects, as ArduPilot SITL waits for its
+SERIAL0 client.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import sys
 from collections.abc import Sequence
 
 from firmware_bridge.errors import BridgeError
-from firmware_bridge.sim import REALISTIC_BOOT, SimConfig, VehicleSim
+from firmware_bridge.sim import REALISTIC_BOOTS, SimConfig, VehicleSim
+from firmware_bridge.sim.autopilot import LOSS_ACTIONS
 from swarm.cli.configfile import read_arguments
 from swarm.cli.util import StopFlag, UsageError, guarded, parser
 
@@ -129,9 +131,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--offboard-loss",
-        choices=("hold", "land", "rtl"),
-        default="hold",
-        help="PX4 action when the offboard stream is lost (default hold)",
+        choices=LOSS_ACTIONS,
+        default="position",
+        help="PX4 action when the offboard stream is lost (COM_OBL_RC_ACT; default position: "
+        "Position mode, as PX4's default)",
     )
     _add_battery_arguments(p)
     _add_boot_arguments(p)
@@ -152,14 +155,15 @@ def _add_boot_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=BENCH_BOOT,
         metavar="S",
-        help="ardupilot: boot as recorded on ArduCopter SITL, scaled to S simulated s "
-        f"(BOOT status, zero positions, late home, arming refused; default {BENCH_BOOT:g}; "
-        "0: already booted)",
+        help="boot as recorded on the profile's real SITL, scaled to S simulated s "
+        f"(no position yet, late home, arming refused; default {BENCH_BOOT:g}; 0: already booted)",
     )
     boot.add_argument(
         "--realistic-boot",
         action="store_true",
-        help=f"ardupilot: the recorded boot, {REALISTIC_BOOT:.1f} s to an armable vehicle",
+        help="the recorded boot: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in sorted(REALISTIC_BOOTS.items()))
+        + " to an armable vehicle",
     )
 
 
@@ -171,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     home = parse_home(args.home)
     if not 1 <= args.vehicles <= 250:
         raise UsageError(f"--vehicles must be 1..250, got {args.vehicles}")
-    boot_time = REALISTIC_BOOT if args.realistic_boot else args.boot_time
+    boot_time = REALISTIC_BOOTS[args.profile] if args.realistic_boot else args.boot_time
     if not (math.isfinite(boot_time) and 0.0 <= boot_time <= 600.0):
         raise UsageError(f"--boot-time must be 0..600 s, got {args.boot_time}")
     if not (math.isfinite(args.battery_drain) and 0.0 <= args.battery_drain <= 6000.0):

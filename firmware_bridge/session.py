@@ -312,11 +312,12 @@ class Session:
         except WaitTimeout:
             problems = arming_problems(self.state, position=position)
             texts = self.arming_texts(since=started - 30.0)
+            # the autopilot's own words first: a reason cut to fit a radio message keeps them
+            parts = [f"autopilot: {'; '.join(texts)}"] if texts else []
+            if problems:
+                parts.append(", ".join(problems))
             raise NotReady(
-                f"not armable after {timeout:g} s: {', '.join(problems) or 'refused'}"
-                + (f" (autopilot: {'; '.join(texts)})" if texts else ""),
-                problems,
-                texts,
+                f"not armable after {timeout:.3g} s: {'; '.join(parts) or 'refused'}", problems, texts
             ) from None
 
     def arming_texts(self, since: float, most: int = 4) -> list[str]:

@@ -226,10 +226,12 @@ def start(
     home: tuple[float, float, float] | tuple[float, float, float, float] | None = None,
     speed: float = 1.0,
     sitl_dir: Path | None = None,
+    sysid: int | None = None,
 ) -> Sitl:
     """Start one real autopilot of ``kind`` with its working folder ``workdir`` (made if
     needed; kept between starts for a warm boot). ``home`` is (lat, lon, alt AMSL[,
-    heading]); ``speed`` runs its clock faster (ArduPilot ``--speedup``, PX4 ``--speed``).
+    heading]); ``speed`` runs its clock faster (ArduPilot ``--speedup``, PX4 ``--speed``);
+    ``sysid`` (ArduCopter only: PX4's is its instance + 1) its MAVLink system id.
 
     Raises:
         SitlError: no SITL folder or script, bad arguments, no free instance, or the
@@ -241,6 +243,8 @@ def start(
         raise SitlError(f"speed {speed!r}: a number of 0.1..20")
     if home is not None and not all(isinstance(v, int | float) and math.isfinite(v) for v in home):
         raise SitlError(f"home {home!r}: finite numbers")
+    if sysid is not None and (kind != "ardupilot" or not (isinstance(sysid, int) and 1 <= sysid <= 250)):
+        raise SitlError(f"sysid {sysid!r}: 1..250, ArduCopter only (PX4's is its instance + 1)")
     path = script(kind, sitl_dir)
     n, lock = _claim(kind, instance)
     try:
@@ -253,13 +257,15 @@ def start(
             args += ["--home", ",".join(f"{v:.7f}".rstrip("0").rstrip(".") for v in home)]
         if speed != 1.0:
             args += ["--speedup" if kind == "ardupilot" else "--speed", f"{speed:g}"]
+        if sysid is not None:
+            args += ["--sysid", str(sysid)]
         log = open(log_path, "ab")  # noqa: SIM115 - the autopilot writes it until stopped
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
     except BaseException:
         lock.close()
         raise
     url = f"tcp:127.0.0.1:{5760 + 10 * n}" if kind == "ardupilot" else f"udpin:127.0.0.1:{14540 + n}"
-    sitl = Sitl(kind, n, n + 1, url, workdir, log_path, proc, float(speed), lock, log)
+    sitl = Sitl(kind, n, sysid or n + 1, url, workdir, log_path, proc, float(speed), lock, log)
     time.sleep(0.2)
     if proc.poll() is not None:
         sitl.stop()

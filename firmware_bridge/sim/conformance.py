@@ -1,13 +1,14 @@
-"""How closely the simulated ArduCopter answers like a recorded real one.
+"""How closely the simulated autopilot answers like a recorded real one.
 
 Theory of operation. A trace is a ``.tlog`` recorded on the link between a companion
-computer (component 191) and a real ArduCopter SITL (component 1), both directions, read
-back with pymavlink. :func:`replay` sends the companion's messages, at their recorded
-times, into the simulator's own autopilot core
-(:class:`~firmware_bridge.sim.autopilot.Autopilot`, the one ``swarm sim --profile
-ardupilot`` runs) on a virtual clock stepped like the runner's, with the recorded boot
-length; every message it answers is packed and parsed back as MAVLink 2 bytes, and
-stamped with its simulated time. :func:`compare` then reads the trace's and the
+computer (component 191) and a real ArduCopter or PX4 SITL (component 1), both
+directions, read back with pymavlink; which autopilot it is comes from its HEARTBEAT
+(``Trace.profile``), its system id too. :func:`replay` sends the companion's messages,
+at their recorded times, into the simulator's own autopilot core of that profile
+(:class:`~firmware_bridge.sim.autopilot.Autopilot`, the one ``swarm sim`` runs) on a
+virtual clock stepped like the runner's, with the profile's recorded boot length;
+every message it answers is packed and parsed back as MAVLink 2 bytes, and stamped
+with its simulated time. :func:`compare` then reads the trace's and the
 simulator's autopilot messages the same way:
 
 * milestones: the first BOOT heartbeat, first valid position, GPS origin, home, first
@@ -17,8 +18,9 @@ simulator's autopilot messages the same way:
 * STATUSTEXT texts (digits folded: "584m" and "585m" are one text), the set of message
   types and of HEARTBEAT (base_mode, custom_mode, system_status) triples;
 * timings as ratios simulator / trace: take-off (accepted NAV_TAKEOFF to 95 % of its
-  altitude), the 20 m move (first LOCAL_NED position setpoint to within 0.5 m) and the
-  landing (RTL or LAND to the disarmed heartbeat).
+  altitude above home; PX4's is AMSL), the 20 m move (the first LOCAL_NED position
+  setpoint 5 m or more from the one before, else the first, to within 0.5 m) and the
+  landing (RTL or LAND, command or mode, to the disarmed heartbeat).
 
 :func:`replay_live` does the same through the runner (``VehicleSim``) on a real TCP
 socket, ``speedup`` times faster than the recording, for the bench. Reading the files
@@ -43,7 +45,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.sim.autopilot import Autopilot
-from firmware_bridge.sim.boot import RECORDED_TOTAL
+from firmware_bridge.sim.runner import REALISTIC_BOOTS
 from radios.ports import free_port
 
 COMPANION, AUTOPILOT = 191, 1
@@ -66,6 +68,20 @@ class Trace:
 
     def side(self, comp: int) -> list[Record]:
         return [r for r in self.records if r.msg.get_srcComponent() == comp]
+
+    def _heartbeat(self) -> Msg | None:
+        return next((r.msg for r in self.side(AUTOPILOT) if r.msg.get_type() == "HEARTBEAT"), None)
+
+    @property
+    def profile(self) -> str:
+        """``px4`` or ``ardupilot``, from the autopilot's HEARTBEAT (MAV_AUTOPILOT)."""
+        hb = self._heartbeat()
+        return "px4" if hb is not None and hb.autopilot == 12 else "ardupilot"
+
+    @property
+    def sysid(self) -> int:
+        hb = self._heartbeat()
+        return int(hb.get_srcSystem()) if hb is not None else 1
 
     @property
     def duration(self) -> float:
@@ -105,15 +121,25 @@ def read_trace(path: Path) -> Trace:
 
 
 def _origin(trace: Trace) -> tuple[float, float, float]:
-    for r in trace.records:
-        if r.msg.get_type() == "GPS_GLOBAL_ORIGIN":
-            return r.msg.latitude / 1e7, r.msg.longitude / 1e7, r.msg.altitude / 1000.0
-    raise BridgeError(f"trace {trace.name}: no GPS_GLOBAL_ORIGIN")
+    """The EKF origin (GPS_GLOBAL_ORIGIN), else the first home (PX4 sends no origin unasked)."""
+    for kind in ("GPS_GLOBAL_ORIGIN", "HOME_POSITION"):
+        for r in trace.records:
+            if r.msg.get_type() == kind:
+                return r.msg.latitude / 1e7, r.msg.longitude / 1e7, r.msg.altitude / 1000.0
+    raise BridgeError(f"trace {trace.name}: no GPS_GLOBAL_ORIGIN or HOME_POSITION")
 
 
-def replay(trace: Trace, boot_time: float = RECORDED_TOTAL, dt: float = 0.02) -> list[Record]:
-    """The simulated ArduCopter's answers to the trace's companion messages."""
-    ap = Autopilot("ardupilot", 1, _origin(trace), boot_time=boot_time, dt=dt, noise=0.0)
+def replay(trace: Trace, boot_time: float | None = None, dt: float = 0.02) -> list[Record]:
+    """The simulated autopilot's answers to the trace's companion messages (its profile's
+    recorded boot unless ``boot_time`` is given)."""
+    profile = trace.profile
+    boot = REALISTIC_BOOTS[profile] if boot_time is None else boot_time
+    ap = Autopilot(profile, trace.sysid, _origin(trace), boot_time=boot, dt=dt, noise=0.0)
+    # its 1 Hz heartbeat in the recorded one's phase: the companion answers what it saw
+    # (an arm undone at the next armed heartbeat), so the replay must show it then too
+    beats = [r.t for r in trace.side(AUTOPILOT) if r.msg.get_type() == "HEARTBEAT"]
+    if beats:
+        ap.next_hb = beats[0] % 1.0
     enc, rx = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 0, 0)
     out: list[Record] = []
 
@@ -138,10 +164,19 @@ def _first(recs: Iterable[Record], kind: str, ok: Callable[[Msg], bool], after: 
     return next((r.t for r in recs if r.t > after and r.msg.get_type() == kind and ok(r.msg)), None)
 
 
-def _takeoff_alt(companion: list[Record], accepted: float) -> float | None:
-    """The altitude of the NAV_TAKEOFF that was accepted at ``accepted``."""
+def _takeoff_alt(companion: list[Record], accepted: float, recs: list[Record]) -> float | None:
+    """The altitude above home of the NAV_TAKEOFF that was accepted at ``accepted`` (PX4's
+    is AMSL: home's altitude, from the last HOME_POSITION before, taken off)."""
     cmd = next((r.msg for r in reversed(companion) if _command(r.msg) == 22 and r.t <= accepted), None)
-    return float(cmd.param7 if cmd.get_type() == "COMMAND_LONG" else cmd.z) if cmd is not None else None
+    if cmd is None:
+        return None
+    alt = float(cmd.param7 if cmd.get_type() == "COMMAND_LONG" else cmd.z)
+    hb = next((r.msg for r in recs if r.msg.get_type() == "HEARTBEAT"), None)
+    if hb is not None and hb.autopilot == 12:
+        homes = [r.msg for r in recs if r.t <= accepted and r.msg.get_type() == "HOME_POSITION"]
+        home = homes[-1] if homes else None
+        alt = alt - home.altitude / 1000.0 if home is not None else math.nan
+    return alt if math.isfinite(alt) else None
 
 
 def _command(m: Msg) -> int | None:
@@ -152,7 +187,7 @@ def milestones(recs: list[Record], companion: list[Record]) -> dict[str, float |
     """When each milestone first happened in ``recs`` (autopilot messages), or None."""
     armed = _first(recs, "HEARTBEAT", lambda m: m.base_mode & 128)
     took = _first(recs, "COMMAND_ACK", lambda m: m.command == 22 and m.result == 0)
-    alt = None if took is None else _takeoff_alt(companion, took)
+    alt = None if took is None else _takeoff_alt(companion, took, recs)
     reached = None
     if alt is not None and took is not None:
         reached = _first(recs, "GLOBAL_POSITION_INT", lambda m: m.relative_alt >= 950 * alt - 10, took)
@@ -165,9 +200,10 @@ def milestones(recs: list[Record], companion: list[Record]) -> dict[str, float |
         "arm_accepted": _first(recs, "COMMAND_ACK", lambda m: m.command == 400 and m.result == 0),
         "armed": armed,
         "takeoff_reached": reached,
+        # the disarm that ends the flight (an arm tried and undone before it is not it)
         "disarmed": None
         if armed is None
-        else _first(recs, "HEARTBEAT", lambda m: not m.base_mode & 128, armed),
+        else _first(recs, "HEARTBEAT", lambda m: not m.base_mode & 128, reached or armed),
     }
 
 
@@ -241,23 +277,29 @@ def _set_score(real: set[Any], sim: set[Any]) -> dict[str, Any]:
 
 # --------------------------------------------------------------------- timings
 def _step_start(companion: list[Record]) -> tuple[float, float, float] | None:
-    """(time, north, east) of the first LOCAL_NED position setpoint."""
+    """(time, north, east) of the first LOCAL_NED position setpoint 5 m or more from the
+    one before it (a step after a hold stream), else of the first one."""
+    first: tuple[float, float, float] | None = None
+    prev: tuple[float, float] | None = None
     for r in companion:
         m = r.msg
-        if (
-            m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"
-            and m.coordinate_frame == 1
-            and not m.type_mask & 7
-        ):
-            return r.t, float(m.x), float(m.y)
-    return None
+        local = m.get_type() == "SET_POSITION_TARGET_LOCAL_NED" and m.coordinate_frame == 1
+        if local and not m.type_mask & 7:
+            here = (float(m.x), float(m.y))
+            if prev is not None and math.dist(here, prev) >= 5.0:
+                return r.t, here[0], here[1]
+            first = first or (r.t, here[0], here[1])
+            prev = here
+    return first
 
 
 def _landing_start(companion: list[Record], armed: float | None) -> float | None:
     """The first RTL or LAND (command or mode) after arming."""
     for r in companion:
         cmd = _command(r.msg)
-        land_mode = cmd == 176 and int(r.msg.param2) in (6, 9)
+        land_mode = cmd == 176 and (
+            int(r.msg.param2) in (6, 9) or (int(r.msg.param2) == 4 and int(r.msg.param3) in (5, 6))
+        )  # ArduCopter RTL, LAND; PX4 AUTO.RTL, AUTO.LAND
         if armed is not None and r.t > armed and (cmd in (20, 21) or land_mode):
             return r.t
     return None
@@ -319,27 +361,32 @@ def compare(trace: Trace, sim: list[Record]) -> dict[str, Any]:
     }
 
 
-def conformance(path: Path, boot_time: float = RECORDED_TOTAL) -> dict[str, Any]:
+def conformance(path: Path, boot_time: float | None = None) -> dict[str, Any]:
     """Read, replay and compare one trace."""
     trace = read_trace(path)
     return compare(trace, replay(trace, boot_time))
 
 
 # ------------------------------------------------------- live, on real sockets
-def replay_live(trace: Trace, speedup: float = 10.0, boot_time: float = RECORDED_TOTAL) -> list[Record]:
-    """Like :func:`replay`, but through a :class:`VehicleSim` (``swarm sim --profile
-    ardupilot``) on a real TCP socket, the companion's frames sent at their recorded
-    times ``speedup`` times faster; answers stamped in simulated seconds."""
+def replay_live(trace: Trace, speedup: float = 10.0, boot_time: float | None = None) -> list[Record]:
+    """Like :func:`replay`, but through a :class:`VehicleSim` (``swarm sim``) on a real
+    socket (ArduCopter: TCP, its clock held until we connect; PX4: UDP, booting from its
+    start), the companion's frames sent at their recorded times ``speedup`` times faster;
+    answers stamped in simulated seconds. The simulated vehicle is system 1: so must the
+    recorded one be."""
     from firmware_bridge.sim.runner import SimConfig, VehicleSim
 
+    profile = trace.profile
+    if trace.sysid != 1:
+        raise BridgeError(f"trace {trace.name}: system {trace.sysid}; a live replay needs system 1")
     lat, lon, alt = _origin(trace)
     cfg = SimConfig(
-        profile="ardupilot",
+        profile=profile,
         home=(lat, lon, alt),
         speedup=speedup,
-        boot_time=boot_time,
-        base_port=free_port("tcp"),
-        wait_for_client=True,  # the boot starts at our connection, however late it comes
+        boot_time=REALISTIC_BOOTS[profile] if boot_time is None else boot_time,
+        base_port=free_port("tcp" if profile == "ardupilot" else "udp"),
+        wait_for_client=profile == "ardupilot",  # the boot starts at our connection, however late
     )
     out: list[Record] = []
     with VehicleSim(cfg) as sim:

@@ -92,4 +92,6 @@ def px4_base_flags(mode: str) -> int:
         return 64  # MANUAL_INPUT
     if mode in ("ALTCTL", "POSCTL", "STABILIZED"):
         return 64 | 16  # MANUAL_INPUT | STABILIZE
-    return 4 | 8 | 16  # AUTO | GUIDED | STABILIZE (auto modes, offboard)
+    if mode == "OFFBOARD":
+        return 16  # STABILIZE only (recorded from PX4 v1.15)
+    return 4 | 8 | 16  # AUTO | GUIDED | STABILIZE (auto modes)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, ClassVar
 
-from firmware_bridge.sim import modes, px4_boot
+from firmware_bridge.sim import modes, px4_boot, telemetry
 from firmware_bridge.sim.dynamics import NAN, Limits, Target
 from firmware_bridge.sim.flavour import (
     ACCEPTED,
@@ -84,10 +84,10 @@ class Px4(Flavour):
     initial_mode = "AUTO.LOITER"
     land_mode = "AUTO.LAND"
     rtl_mode = "AUTO.RTL"
-    # fitted to PX4 v1.15 SIH: a 20 m offboard step in 6.3 s, a 5 m climb in 5.4 s
-    # and a 90 degree turn in 1.1 s
+    # fitted to PX4 v1.15 SIH: a 20 m offboard step (its track; within 0.5 m in 4.1-4.4 s),
+    # a 5 m climb in 5.4 s, a 90 degree turn in 1.1 s
     limits: ClassVar[Limits] = Limits(
-        kp_xy=0.6, a_xy=4.0, kp_z=0.5, a_z=2.0, yaw_rate_max=math.radians(120.0)
+        kp_xy=0.6, a_xy=7.0, tau=0.6, kp_z=0.5, a_z=1.0, yaw_rate_max=math.radians(120.0)
     )
     default_streams = STREAMS
     refusal = TEMPORARILY_REJECTED
@@ -136,6 +136,7 @@ class Px4(Flavour):
         self.after_disarm = self.initial_mode  # the last mode set that allows arming
         self.event_seq = 0
         self.reported: list[px4_boot.Ev] | None = None  # the last arming check report
+        self.origin_sent = False  # GPS_GLOBAL_ORIGIN goes out once, early
 
     def stream_fresh(self, ap: Autopilot) -> bool:
         return ap.t - self.setpoint_time <= ap.params.get("COM_OF_LOSS_T", COM_OF_LOSS_T)
@@ -334,6 +335,11 @@ class Px4(Flavour):
             self._intend("AUTO.LOITER")
             ap.enter_mode("AUTO.LOITER")
             ap.hold_point = (ap.hold_point[0], ap.hold_point[1], ap.takeoff_z)  # goes on to the altitude
+        if not self.origin_sent and ap.t >= self.boot.at(px4_boot.ORIGIN_SENT):
+            self.origin_sent = True
+            m = telemetry.message(ap, 49)
+            if m is not None:
+                ap.out(m)
         if self.boot.reporting(ap.t):
             checks = self.checks(ap)
             if checks != self.reported:  # a report when the checks change

@@ -33,6 +33,7 @@ from firmware_bridge.px4_events import CRC_EXTRA, MSG_EVENT
 RECORDED_TOTAL = 34.0
 #: the recorded milestones
 FIRST_REPORT, ATTITUDE_VALID, POSITION_VALID = 0.75, 32.26, 32.35
+ORIGIN_SENT = 1.0  # the one GPS_GLOBAL_ORIGIN PX4 sends unasked (recorded at 1.0 s)
 
 #: one EVENT as recorded: (id, log_levels byte, arguments)
 Ev = tuple[int, int, bytes]

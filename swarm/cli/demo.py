@@ -59,6 +59,7 @@ from typing import TYPE_CHECKING, Any
 
 from radios.ports import free_port_range
 from swarm.cli.procs import Child, ChildError, start_emulator
+from swarm.cli.sitl_fleet import SitlFleet
 from swarm.core.messages import AckResult, CommandKind
 from swarm.core.profiles import PROFILE_NAMES
 from swarm.errors import SwarmError
@@ -68,6 +69,18 @@ if TYPE_CHECKING:
 
 DEMO_ID = 254
 DEMO_NAME = "demo"
+#: ``--autopilot``: the simulator, or real SITL autopilots (``mix``: ArduCopter for odd
+#: agents, PX4 for even ones: 3 + 2 of 5)
+AUTOPILOTS = ("sim", "sitl:ardupilot", "sitl:px4", "sitl:mix")
+#: where real autopilots start: the PX4 SITL's default home; agent K 8 m east of agent K-1
+SITL_HOME = (47.397742, 8.545594, 488.0)
+#: how long real autopilots may take to become armable (measured: PX4 about 34 s,
+#: ArduCopter about 42 s after its client connects) before a refused take-off is final
+BOOT_WAIT_S = 150.0
+#: the take-off is tried again this often while an autopilot is still booting
+BOOT_RETRY_S = 5.0
+#: the whole run's default limit with real autopilots (their boot and their pace)
+SITL_DURATION_S = 360.0
 #: how long the demo's station tries a command before it gives up on an agent
 COMMAND_GIVE_UP_S = 20.0
 #: how long a 409 from the demo's station (no leader, agent not connected) may last
@@ -99,6 +112,14 @@ class DemoConfig:
     gcs: bool = True
     http: str = "127.0.0.1:8080"
     seed: int = 0
+    autopilot: str = "sim"
+
+    def kinds(self) -> list[str]:
+        """Each agent's autopilot: ``sim``, ``ardupilot`` or ``px4``."""
+        kind = self.autopilot.removeprefix("sitl:")
+        if kind == "mix":
+            return ["ardupilot" if k % 2 else "px4" for k in range(1, self.agents + 1)]
+        return [kind] * self.agents
 
     def check(self) -> None:
         if not 2 <= self.agents <= 20:
@@ -111,6 +132,16 @@ class DemoConfig:
             raise ValueError("--duration: 20..3600 s")
         if not 10.0 <= self.leg_m <= 2000.0:
             raise ValueError("--leg: 10..2000 m")
+        if self.autopilot not in AUTOPILOTS:
+            raise ValueError(f"--autopilot: {', '.join(AUTOPILOTS)}")
+        if self.autopilot != "sim":
+            from firmware_bridge import sitl
+
+            if sitl.find_sitl() is None:
+                raise ValueError(
+                    f"--autopilot {self.autopilot}: no SITL folder found: build ArduCopter and PX4 SITL "
+                    "and set SITL_DIR to their folder (README, 'Real autopilots')"
+                )
 
 
 @dataclass
@@ -184,6 +215,8 @@ class _Demo:
         self.plot_path = cfg.plot or os.path.join(self.workdir, "formation.png")
         self.stats = os.path.join(self.workdir, "emulator.json")
         self.children: list[Child] = []
+        self.fleet: SitlFleet | None = None  # real autopilots (--autopilot sitl:...)
+        self.accepted: list[tuple[int, str]] = []  # (agent, outcome awaited) per accepted command
         self.station: Station | None = None
         self.watch = _Watch([])
         self.t0 = time.monotonic()
@@ -191,6 +224,8 @@ class _Demo:
             "agents": cfg.agents,
             "loss": cfg.loss,
             "profile": cfg.profile,
+            "autopilot": cfg.autopilot,
+            "autopilots": cfg.kinds(),
             "leader": 0,
             "elect_s": None,
             "formation_rms_m": None,
@@ -264,12 +299,23 @@ class _Demo:
 
     # -- the station's commands ----------------------------------------------------------
     def command(
-        self, target: int | None, kind: CommandKind, what: str, *, slow: bool = False, **args: float
-    ) -> None:
+        self,
+        target: int | None,
+        kind: CommandKind,
+        what: str,
+        *,
+        slow: bool = False,
+        outcome: str = "",
+        tolerate: bool = False,
+        **args: float,
+    ) -> list[dict[str, Any]]:
         """Send through the demo's station (``target`` None: the swarm) and wait until
         every addressee accepted it or shows it carried out; with ``slow`` (a take-off
         climbs for longer than the station's retry window) an agent still at it
         (IN_PROGRESS) is fine too: the caller then waits for the outcome itself.
+        ``outcome``: the pilot event each agent that accepted it must show later (counted
+        by :meth:`false_accepted`). Returns the results that were not accepted (only
+        with ``tolerate``: else they raise).
 
         Raises:
             DemoError: the station refused it, or an agent refused or did not answer.
@@ -300,9 +346,11 @@ class _Demo:
         _status, body = fut.result()
         done = (*DONE_RESULTS, AckResult.IN_PROGRESS.name) if slow else DONE_RESULTS
         bad = [r for r in body["results"] if r["result"] not in done]
-        if bad:
-            why = "; ".join(f"agent{r['agent']} {r['result']} {r['reason']}".rstrip() for r in bad)
-            raise DemoError(f"{what}: {why}")
+        if outcome:
+            self.accepted += [(int(r["agent"]), outcome) for r in body["results"] if r["result"] in done]
+        if bad and not tolerate:
+            raise DemoError(f"{what}: {_why(bad)}")
+        return bad
 
     # -- the processes -------------------------------------------------------------------
     def start(self) -> None:
@@ -321,7 +369,10 @@ class _Demo:
         )
         self.children.append(emu)
         fcs = self.start_vehicles()
-        self.out(f"   radio emulator: {radios} radios; vehicle simulator: {n} PX4 vehicles")
+        if self.fleet is not None:
+            self.out(f"   radio emulator: {radios} radios; real autopilots: {self.fleet.describe()}")
+        else:
+            self.out(f"   radio emulator: {radios} radios; vehicle simulator: {n} PX4 vehicles")
         slots = ["--slots", str(radios)] if cfg.profile != "paper" else []
         flight = ["--profile", cfg.profile, *slots, "--json", "--pose-hz", str(cfg.pose_hz)]
         flight += ["--speed", str(cfg.speed_mps)]
@@ -353,8 +404,15 @@ class _Demo:
             self.summary["gcs"] = _start_gcs(links[n + 1], cfg.http, self.children, self.out)
 
     def start_vehicles(self) -> list[str]:
-        """``swarm sim`` with N vehicles 8 m apart; their flight-controller URLs."""
+        """``swarm sim`` with N vehicles 8 m apart (or N real autopilots, ``--autopilot
+        sitl:...``); their flight-controller URLs."""
         n = self.cfg.agents
+        if self.cfg.autopilot != "sim":
+            self.fleet = SitlFleet(self.cfg.kinds(), os.path.join(self.workdir, "autopilots"), SITL_HOME, 8.0)
+            try:
+                return self.fleet.start()
+            except SwarmError as exc:
+                raise DemoError(str(exc)) from None
         base = _free_base_port(n)
         sim = Child(
             [
@@ -384,6 +442,10 @@ class _Demo:
             except Exception:
                 pass
         self.children = []
+        if self.fleet is not None:
+            self.summary["autopilot_cpu_pct"] = self.fleet.cpu()
+            self.fleet.stop()
+            self.fleet = None
         self.summary["gcs_running"] = False  # it stopped with the demo
 
     def close(self) -> None:
@@ -420,7 +482,12 @@ class _Demo:
         n = self.cfg.agents
         self.out(f"== take-off to {self.cfg.alt_m:g} m")
         self.phase = "take-off"
-        self.command(None, CommandKind.TAKEOFF, "take-off", slow=True, alt=self.cfg.alt_m)
+        if self.fleet is None:
+            self.command(
+                None, CommandKind.TAKEOFF, "take-off", slow=True, outcome="took off", alt=self.cfg.alt_m
+            )
+        else:
+            self.take_off_when_booted()
         self.wait_for(
             lambda: all(self.watch.has_event(k, "took off") for k in range(1, n + 1)),
             "every agent to take off",
@@ -430,6 +497,7 @@ class _Demo:
         leader = self.watch.leader() or leader
         self.phase = "forming the V"
         self.command(None, CommandKind.FOLLOW, "follow", heading=0.0)
+        self.accepted += [(k, "following") for k in range(1, n + 1) if k != leader]
         follow_t = self.elapsed()
         self.progress_until(
             lambda: self.elapsed() - follow_t >= self.cfg.settle_s, expect=(follow_t, self.cfg.settle_s)
@@ -451,11 +519,49 @@ class _Demo:
             self.command(
                 leader, kind, f"the leader's {kind.name}", lat=float(p[0]), lon=float(p[1]), alt=cfg.alt_m
             )
+        self.accepted.append((leader, "arrived"))
         expect = (self.elapsed(), 2 * cfg.leg_m / cfg.speed_mps + cfg.tail_s)
         self.progress_until(lambda: self.watch.has_event(leader, "arrived"), expect=expect)
         end_wait = self.elapsed() + cfg.tail_s
         self.progress_until(lambda: self.elapsed() >= end_wait, expect=expect)
         self.summary["air_utilisation"] = _utilisation(emu_before, _emu_stats(self.stats))
+
+    def take_off_when_booted(self) -> None:
+        """The take-off to every agent, tried again (every ``BOOT_RETRY_S``) for an agent
+        whose real autopilot refuses it while it boots, until ``BOOT_WAIT_S``."""
+        alt = self.cfg.alt_m
+        end = time.monotonic() + BOOT_WAIT_S
+        bad = self.command(
+            None, CommandKind.TAKEOFF, "take-off", slow=True, outcome="took off", tolerate=True, alt=alt
+        )
+        told: set[int] = set()
+        while bad:
+            for r in bad:
+                if int(r["agent"]) not in told:
+                    told.add(int(r["agent"]))
+                    why = r["reason"] or r["result"]
+                    self.out(f"   agent{r['agent']}: waiting for its autopilot to boot ({why})")
+            if time.monotonic() > end:
+                raise DemoError(f"take-off after {BOOT_WAIT_S:.0f} s of boot: {_why(bad)}")
+            self.progress_until(_after(BOOT_RETRY_S))
+            again: list[dict[str, Any]] = []
+            for r in bad:
+                k = int(r["agent"])
+                again += self.command(
+                    k,
+                    CommandKind.TAKEOFF,
+                    f"agent{k}'s take-off",
+                    slow=True,
+                    outcome="took off",
+                    tolerate=True,
+                    alt=alt,
+                )
+            bad = again
+        self.summary["boot_s"] = round(self.elapsed() - self.started, 1)
+
+    def false_accepted(self) -> list[str]:
+        """Commands an agent accepted whose outcome never showed (each: agent and outcome)."""
+        return [f"agent{k}: {what}" for k, what in self.accepted if not self.watch.has_event(k, what)]
 
     def land(self) -> None:
         self.out("== landing")
@@ -483,7 +589,17 @@ class _Demo:
             summary["plot"] = plot(an, self.plot_path, target_m=self.cfg.max_rms_m)
         except (OSError, ValueError) as exc:
             self.out(f"   no plot: {exc}")
+        summary["false_accepted"] = self.false_accepted()
         summary["missed"] = targets(summary, self.cfg.max_rms_m, self.cfg.max_turn_m)
+        if summary["false_accepted"]:
+            summary["missed"].append(
+                {
+                    "target": "false_accepted",
+                    "measured": len(summary["false_accepted"]),
+                    "limit": 0,
+                    "text": "accepted but never carried out: " + ", ".join(summary["false_accepted"]),
+                }
+            )
         summary["ok"] = not summary["missed"]
         summary["wall_s"] = round(self.elapsed(), 1)
 
@@ -519,6 +635,16 @@ def run_demo(
     finally:
         demo.close()
     return demo.summary
+
+
+def _after(seconds: float) -> Callable[[], bool]:
+    """True from ``seconds`` from now on."""
+    end = time.monotonic() + seconds
+    return lambda: time.monotonic() >= end
+
+
+def _why(bad: list[dict[str, Any]]) -> str:
+    return "; ".join(f"agent{r['agent']} {r['result']} {r['reason']}".rstrip() for r in bad)
 
 
 def _station(radio: str) -> Station:

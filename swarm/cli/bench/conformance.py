@@ -1,8 +1,8 @@
-"""Figures of the simulator's conformance to recorded ArduCopter traces.
+"""Figures of the simulator's conformance to recorded ArduCopter and PX4 traces.
 
 Each ``.tlog`` in the project's recorded traces (``tests/data/traces``: a real
-ArduCopter 4.7.0-dev SITL and a companion, both directions) is replayed into the
-simulated ArduCopter with the recorded boot length, on a virtual clock, by
+ArduCopter 4.7.0-dev or PX4 v1.15.4 SITL and a companion, both directions) is replayed
+into the simulated autopilot of its kind with the recorded boot length, on a virtual clock, by
 :mod:`firmware_bridge.sim.conformance`; the figures are, per trace, milestones, ACK
 results, texts, message types and HEARTBEAT triples matched / total, and the take-off,
 20 m move and landing times as ratios simulator / trace. The target: every milestone
@@ -65,7 +65,7 @@ def run(quick: bool = False, traces: Path = TRACES, real: bool = False) -> dict[
             lr = None if quick else compare(read_trace(f), replay_live(read_trace(f), LIVE_SPEEDUP))
         except BridgeError as exc:
             raise SwarmError(str(exc)) from None
-        out[f.stem] = _summary(r)
+        out[f.stem] = {**_summary(r), "met": _met(r)}
         met = met and _met(r)
         if lr is not None:
             live[f.stem] = _summary(lr)

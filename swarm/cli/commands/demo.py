@@ -28,7 +28,7 @@ import webbrowser
 from typing import TextIO
 
 from swarm.cli.configfile import read_arguments
-from swarm.cli.demo import DemoConfig, run_demo
+from swarm.cli.demo import AUTOPILOTS, SITL_DURATION_S, DemoConfig, run_demo
 from swarm.cli.demo_report import summary_lines
 from swarm.cli.util import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
 from swarm.core.profiles import PROFILE_NAMES
@@ -42,11 +42,18 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loss", type=float, default=0.1, metavar="P", help="radio packet loss (default 0.1)")
     p.add_argument("--profile", choices=PROFILE_NAMES, default="paper", help="election timing profile")
     p.add_argument(
+        "--autopilot",
+        choices=AUTOPILOTS,
+        default="sim",
+        help="the vehicles: the simulator (default), or real ArduCopter / PX4 SITL autopilots from "
+        "$SITL_DIR (sitl:mix: ArduCopter for odd agents, PX4 for even ones)",
+    )
+    p.add_argument(
         "--duration",
         type=float,
-        default=170.0,
+        default=None,
         metavar="S",
-        help="give up after this many seconds (default 170)",
+        help=f"give up after this many seconds (default 170; {SITL_DURATION_S:.0f} with real autopilots)",
     )
     p.add_argument("--leg", type=float, default=100.0, metavar="M", help="route leg length (default 100)")
     p.add_argument("--speed", type=float, default=5.0, metavar="M/S", help="leader speed (default 5)")
@@ -98,7 +105,10 @@ def _config(a: argparse.Namespace) -> DemoConfig:
         agents=a.agents,
         loss=a.loss,
         profile=a.profile,
-        duration=a.duration,
+        duration=a.duration
+        if a.duration is not None
+        else (170.0 if a.autopilot == "sim" else SITL_DURATION_S),
+        autopilot=a.autopilot,
         workdir=a.dir,
         capture=a.capture,
         plot=a.plot,

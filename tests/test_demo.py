@@ -127,11 +127,17 @@ def test_replay_plot_refuses_what_it_cannot_draw(tmp_path: Path, capsys: pytest.
     assert replay_main([str(empty), "--plot", str(tmp_path / "no" / "x.png")]) == 2
 
 
-def test_demo_bad_input_is_refused_cleanly() -> None:
+def test_demo_bad_input_is_refused_cleanly(monkeypatch: pytest.MonkeyPatch) -> None:
     p = run_swarm("demo", "--agents", "1", timeout=30)
     assert p.returncode == 2 and "--agents" in p.stderr and "Traceback" not in p.stderr
     p = run_swarm("demo", "--loss", "2", timeout=30)
     assert p.returncode == 2 and "Traceback" not in p.stderr
+    # real autopilots asked for where there are none: one line, before anything starts
+    monkeypatch.setenv("SITL_DIR", "/nonexistent-sitl")
+    p = run_swarm("demo", "--autopilot", "sitl:mix", "--headless", timeout=30)
+    assert p.returncode == 2 and "no run-" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    p = run_swarm("demo", "--autopilot", "gazebo", timeout=30)
+    assert p.returncode == 2 and "--autopilot" in p.stderr and "Traceback" not in p.stderr
 
 
 def test_a_step_that_did_not_happen_is_a_missed_target_and_keep_keeps_the_folder(tmp_path: Path) -> None:

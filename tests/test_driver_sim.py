@@ -1,7 +1,7 @@
 """The driver flying the vehicle simulator, in both profiles (issue 3 tests).
 
 The simulator runs sped up (SPEEDUP x real time), so the driver streams setpoints
-at 25 Hz to stay well inside PX4's COM_OF_LOSS_T (1 simulated second). Deadlines are
+at 25 Hz to stay well inside PX4's COM_OF_LOSS_T (0.5 simulated second). Deadlines are
 generous; nothing asserts tight timing.
 """
 

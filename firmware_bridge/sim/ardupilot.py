@@ -86,7 +86,10 @@ class ArduPilot(Flavour):
     land_mode = "LAND"
     rtl_mode = "RTL"
     # WPNAV speeds; kp_z, a_z and v_xy fitted to the recorded take-off and 20 m step
-    limits: ClassVar[Limits] = Limits(v_xy=6.0, v_up=2.5, v_down=1.5, a_xy=2.5, kp_z=0.8, a_z=1.0)
+    # and the yaw rate ATC_SLEW_YAW allows (6000 cdeg/s: a 90 degree turn in 1.7 s on the real one)
+    limits: ClassVar[Limits] = Limits(
+        v_xy=6.0, v_up=2.5, v_down=1.5, a_xy=2.5, kp_z=0.8, a_z=1.0, yaw_rate_max=math.radians(60.0)
+    )
     default_streams: ClassVar[dict[int, float]] = {}  # SRn_* rates default to 0
     refusal = FAILED
     takeoff_speed = 2.5

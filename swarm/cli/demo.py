@@ -142,6 +142,11 @@ class DemoConfig:
                     f"--autopilot {self.autopilot}: no SITL folder found: build ArduCopter and PX4 SITL "
                     "and set SITL_DIR to their folder (README, 'Real autopilots')"
                 )
+            for kind in sorted(set(self.kinds())):
+                try:
+                    sitl.script(kind)  # type: ignore[arg-type]
+                except sitl.SitlError as exc:
+                    raise ValueError(f"--autopilot {self.autopilot}: {exc}") from None
 
 
 @dataclass
@@ -544,20 +549,32 @@ class _Demo:
             if time.monotonic() > end:
                 raise DemoError(f"take-off after {BOOT_WAIT_S:.0f} s of boot: {_why(bad)}")
             self.progress_until(_after(BOOT_RETRY_S))
-            again: list[dict[str, Any]] = []
-            for r in bad:
-                k = int(r["agent"])
-                again += self.command(
-                    k,
-                    CommandKind.TAKEOFF,
-                    f"agent{k}'s take-off",
-                    slow=True,
-                    outcome="took off",
-                    tolerate=True,
-                    alt=alt,
-                )
-            bad = again
+            bad = self.take_off_each([int(r["agent"]) for r in bad], alt)
         self.summary["boot_s"] = round(self.elapsed() - self.started, 1)
+
+    def take_off_each(self, agents: list[int], alt: float) -> list[dict[str, Any]]:
+        """The take-off to each of ``agents`` at once (an autopilot still booting takes its
+        ``ready`` wait: one after the other they would add up); the results not accepted."""
+        from swarm.core.station import DONE_RESULTS, CommandRefused, CommandSpec
+
+        assert self.station is not None
+        futs, bad = [], []
+        for k in agents:
+            try:
+                futs.append(self.station.submit(CommandSpec(k, CommandKind.TAKEOFF, alt=alt)))
+            except CommandRefused as exc:  # a moment's view (not connected): tried again next round
+                bad.append({"agent": k, "result": "REFUSED", "reason": exc.reason})
+        while not all(f.done() for f in futs):
+            self.check_stop()
+            self.stop.wait(0.1)
+        done = (*DONE_RESULTS, AckResult.IN_PROGRESS.name)
+        for f in futs:
+            for r in f.result()[1]["results"]:
+                if r["result"] in done:
+                    self.accepted.append((int(r["agent"]), "took off"))
+                else:
+                    bad.append(r)
+        return bad
 
     def false_accepted(self) -> list[str]:
         """Commands an agent accepted whose outcome never showed (each: agent and outcome)."""

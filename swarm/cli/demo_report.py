@@ -54,6 +54,13 @@ def summary_lines(s: dict[str, Any]) -> list[str]:
         lines += [f"     {key}: {fmt(s[key])} ({LEGS[key]})" for key in LEGS]
     if s.get("heading_error_after_turn_deg") is not None:
         lines.append(f"   heading_error_after_turn_deg: {s['heading_error_after_turn_deg']}")
+    if s.get("autopilot_cpu_pct"):  # real autopilots: what each kind used of one core
+        cpu = ", ".join(f"{k} {fmt(v, ' %')}" for k, v in sorted(s["autopilot_cpu_pct"].items()))
+        lines.append(f"   autopilots: {' '.join(s.get('autopilots', []))}; CPU each (of one core): {cpu}")
+        if s.get("boot_s") is not None:
+            lines.append(
+                f"   take-off accepted by every autopilot {fmt(s['boot_s'], ' s')} after the agents started"
+            )
     util = s.get("air_utilisation")
     lines.append(f"   air_utilisation: {'n/a' if util is None else f'{util:.0%}'} (during the route)")
     gone = "removed with the working folder (--keep keeps it)"

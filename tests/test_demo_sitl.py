@@ -43,7 +43,7 @@ def test_a_mixed_swarm_of_real_autopilots_flies_the_demo(tmp_path: Path) -> None
     assert p.stdout.strip(), p.stderr[-3000:]
     s = json.loads(p.stdout)
     assert s["autopilots"] == ["ardupilot", "px4", "ardupilot"]
-    figures = ("formation_rms_m", "formation_max_m", "turn_max_m")
+    figures = ("formation_rms_m", "formation_max_m", "turn_max_m", "route_rms_m")
     steps = [m for m in s["missed"] if m["target"] not in figures]
     assert steps == [], s["missed"]  # elected, took off after the boot, followed, arrived, landed
     assert s["leader"] in (1, 2, 3) and s["false_accepted"] == []

@@ -388,6 +388,17 @@ _KEY_NAMES = st.sampled_from(sorted(keys(command_parser("gcs")))) | st.text(max_
 PROPS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
+def test_an_unknown_key_of_escaped_characters_stays_a_short_line() -> None:
+    """Found by the property below: ten characters outside the BMP are 120 once escaped,
+    and the known keys follow on the same line (600 characters and more)."""
+    with pytest.raises(UsageError) as info:
+        file_values(
+            command_parser("gcs"), "/etc/swarm/gcs.toml", {"0\x1f\x1f\x1f\x07" + "\U00010000" * 10: 0}
+        )
+    text = str(info.value)
+    assert text.startswith('/etc/swarm/gcs.toml: unknown key "0') and "..." in text and len(text) < 600
+
+
 @PROPS
 @given(table=st.dictionaries(_KEY_NAMES, _NUMBERS | _VALUES, max_size=4))
 def test_property_any_table_is_taken_or_refused_in_one_line(table: dict[str, Any]) -> None:

@@ -61,6 +61,7 @@ MAX_ARRAY = 64
 PATH_METAVARS = ("FILE", "DIR", "CAPTURE")
 #: how much of a value or key an error message shows
 SHOW_CHARS = 200
+KEY_SHOW_CHARS = 60  # an unknown key as quoted in its error
 #: the metavars of flags whose value is a secret: a file holding one is kept from others
 SECRET_METAVARS = ("TOKEN",)
 
@@ -286,8 +287,13 @@ def _toml_type(value: Any) -> str:
 
 
 def _show_key(name: str) -> str:
-    """A key as written in TOML: bare if it can be, else quoted (and cut)."""
-    return name if re.fullmatch(r"[A-Za-z0-9_-]{1,60}", name) else _show(name)
+    """A key as written in TOML: bare if it can be, else quoted and cut to
+    :data:`KEY_SHOW_CHARS` (the known keys follow it on the same line: escaped
+    characters such as ``\\ud800\\udc00`` took it past a line's length)."""
+    if re.fullmatch(r"[A-Za-z0-9_-]{1,60}", name):
+        return name
+    text = json.dumps(name[: KEY_SHOW_CHARS + 1])
+    return text if len(text) <= KEY_SHOW_CHARS else text[: KEY_SHOW_CHARS - 3] + "..."
 
 
 def _show(value: Any) -> str:

@@ -33,7 +33,7 @@ from pymavlink.generator.mavcrc import x25crc
 
 STX_V2 = 0xFD
 
-__all__ = ["CRC_EXTRA", "MSG_EVENT", "Event", "EventCatalog", "parse_event"]
+__all__ = ["CRC_EXTRA", "EVENT_PAYLOAD", "MSG_EVENT", "Event", "EventCatalog", "parse_event"]
 
 MSG_EVENT, MSG_CURRENT_EVENT_SEQUENCE, MSG_REQUEST_EVENT, MSG_RESPONSE_EVENT_ERROR = 410, 411, 412, 413
 #: CRC_EXTRA of the events protocol's messages (from their definitions in MAVLink's
@@ -44,7 +44,9 @@ CRC_EXTRA = {
     MSG_REQUEST_EVENT: 33,
     MSG_RESPONSE_EVENT_ERROR: 77,
 }
-_EVENT = struct.Struct("<IIHBBB40s")  # id, time_boot_ms, sequence, dest comp, dest sys, log levels, args
+EVENT_PAYLOAD = struct.Struct(
+    "<IIHBBB40s"
+)  # id, time_boot_ms, sequence, dest comp, dest sys, log levels, args
 _HEADER_V2 = 10
 _TYPES = {
     "uint8_t": "<B",
@@ -87,14 +89,14 @@ def parse_event(frame: bytes) -> Event | None:
     n = frame[1]
     msgid = frame[7] | frame[8] << 8 | frame[9] << 16
     end = _HEADER_V2 + n
-    if msgid != MSG_EVENT or len(frame) < end + 2 or n > _EVENT.size:
+    if msgid != MSG_EVENT or len(frame) < end + 2 or n > EVENT_PAYLOAD.size:
         return None
     crc = x25crc(bytes(frame[1:end]))
     crc.accumulate(bytes([CRC_EXTRA[MSG_EVENT]]))
     if crc.crc != frame[end] | frame[end + 1] << 8:
         return None
-    payload = bytes(frame[_HEADER_V2:end]).ljust(_EVENT.size, b"\0")  # MAVLink 2 trims trailing zeros
-    return Event(*_EVENT.unpack(payload))
+    payload = bytes(frame[_HEADER_V2:end]).ljust(EVENT_PAYLOAD.size, b"\0")  # MAVLink 2 trims trailing zeros
+    return Event(*EVENT_PAYLOAD.unpack(payload))
 
 
 class EventCatalog:

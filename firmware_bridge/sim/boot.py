@@ -19,6 +19,7 @@ is asked with the simulated time ``t``; nothing here reads a clock or does I/O.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 #: recorded seconds of "EKF3 IMU0 is using GPS" (the end of the boot)
 RECORDED_TOTAL = 41.52
@@ -75,9 +76,11 @@ TIMESYNC_FIRST = 9.9
 
 
 @dataclass(frozen=True)
-class BootTimeline:
-    """The recorded boot scaled to ``total`` seconds (0: booted before the link came up)."""
+class ScaledBoot:
+    """A recorded boot (``recorded_total`` seconds long) scaled to ``total`` seconds (0:
+    booted before the link came up); each autopilot's timeline adds its milestones."""
 
+    recorded_total: ClassVar[float]
     total: float = 0.0
 
     def __post_init__(self) -> None:
@@ -86,7 +89,14 @@ class BootTimeline:
 
     def at(self, recorded: float) -> float:
         """The simulated second of a recorded moment of the boot."""
-        return recorded * self.total / RECORDED_TOTAL
+        return recorded * self.total / self.recorded_total
+
+
+@dataclass(frozen=True)
+class BootTimeline(ScaledBoot):
+    """ArduCopter's recorded boot scaled to ``total`` seconds."""
+
+    recorded_total: ClassVar[float] = RECORDED_TOTAL
 
     def booting(self, t: float) -> bool:
         """True before "ArduPilot Ready": HEARTBEAT system_status BOOT."""

@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 from pymavlink.generator.mavcrc import x25crc
 
-from firmware_bridge.px4_events import CRC_EXTRA, MSG_EVENT
+from firmware_bridge.px4_events import CRC_EXTRA, EVENT_PAYLOAD, MSG_EVENT
+from firmware_bridge.sim.boot import ScaledBoot
 
 #: recorded seconds from the first heartbeat until arming is allowed (HEARTBEAT STANDBY)
 RECORDED_TOTAL = 34.0
@@ -73,21 +74,13 @@ SUMMARIES: dict[str, tuple[bytes, bytes]] = {
     "position": (bytes.fromhex("000000100080000000803b0180803b0180"), bytes.fromhex("0002080228")),
     "ready": (bytes.fromhex("000000100080000000b03b7f80b03b7f80"), bytes.fromhex("000a080228")),
 }
-_EVENT = struct.Struct("<IIHBBB40s")
 
 
 @dataclass(frozen=True)
-class Px4Boot:
-    """The recorded boot scaled to ``total`` seconds (0: booted before the link came up)."""
+class Px4Boot(ScaledBoot):
+    """PX4's recorded boot scaled to ``total`` seconds (0: booted before the link came up)."""
 
-    total: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.total <= 600.0:
-            raise ValueError(f"boot time must be 0..600 s, got {self.total}")
-
-    def at(self, recorded: float) -> float:
-        return recorded * self.total / RECORDED_TOTAL
+    recorded_total: ClassVar[float] = RECORDED_TOTAL
 
     def attitude_valid(self, t: float) -> bool:
         return t >= self.at(ATTITUDE_VALID)
@@ -152,7 +145,7 @@ class EventMsg:
         """The MAVLink 2 frame (trailing zeros trimmed), from ``mav``'s system, component
         and sequence, as pymavlink packs its own messages."""
         payload = (
-            _EVENT.pack(
+            EVENT_PAYLOAD.pack(
                 self.id & 0xFFFFFFFF,
                 self.time_boot_ms & 0xFFFFFFFF,
                 self.sequence & 0xFFFF,

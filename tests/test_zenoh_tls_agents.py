@@ -154,7 +154,10 @@ def test_a_station_listening_with_the_acl_is_the_agents_meeting_point(tmp_path: 
         finally:
             evil.close()
         agent2 = next(c for c in children if c.name == "agent2")
-        assert executed(json_events(agent2.lines, "pilot")) == []
+        # the attacker's own sequence numbers (the station's ARM has a random one, which
+        # fell in the bench's wider attack window once: 61312)
+        sent = {f"seq {q} " for q in range(ATTACK_SEQ, ATTACK_SEQ + 10)}
+        assert [t for t in executed(json_events(agent2.lines, "pilot")) if any(q in t for q in sent)] == []
         assert any(
             "command ARM" in e["text"] for e in json_events(agent2.lines, "pilot")
         )  # the station's did

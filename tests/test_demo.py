@@ -162,6 +162,10 @@ def test_a_step_that_did_not_happen_is_a_missed_target_and_keep_keeps_the_folder
     assert len(kept) == 1 and kept[0].startswith("swarm-demo-")  # --keep
     assert f"working folder: {tmp_path / kept[0]}\n" in p.stdout and "ok: false" in p.stdout
     assert "capture: " + str(tmp_path / kept[0] / "air.tlog") in p.stdout
+    # what every process said is kept beside the capture
+    logs = tmp_path / kept[0] / "logs"
+    assert {"agent1.log", "agent2.log", "radio-emulator.log"} <= set(os.listdir(logs))
+    assert '"event"' in (logs / "agent1.log").read_text()
 
 
 def test_demo_refuses_a_capture_or_plot_in_no_directory(tmp_path: Path) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from radios.tlog import TlogWriter, read_tlog
 from swarm.cli.commands.demo import _Lines, _open_page
 from swarm.cli.commands.replay import main as replay_main
 from swarm.cli.demo_report import summary_lines, targets
@@ -44,7 +45,9 @@ def test_figures_count_from_the_route_start_to_the_end_of_the_follow_task(an: An
     s = an.summary()
     straight = [e for _t, _m, e, turn in an.errors if not turn]
     turns = [e for _t, _m, e, turn in an.errors if turn]
-    assert s["formation_rms_m"] == _rms(straight) == 1.126
+    # 1.126 m before 2026-11-29: a turn counted from 0.01 degree, and the poses of agents
+    # whose delays straddled the 2.56 s wrap stamped with their air time
+    assert s["formation_rms_m"] == _rms(straight) == 0.795
     assert s["formation_max_m"] == round(max(straight), 2)
     assert s["turn_max_m"] == round(max(turns), 2)
     assert s["route_rms_m"] == _rms(straight + turns)
@@ -55,12 +58,30 @@ def test_figures_count_from_the_route_start_to_the_end_of_the_follow_task(an: An
     assert "straight legs" in FIGURES["formation_rms_m"] and s["figures"] == FIGURES
 
 
+@pytest.mark.parametrize("shift_s", [k * 0.32 + 0.05 for k in range(8)])
+def test_the_figures_do_not_depend_on_where_the_capture_clock_falls_in_the_wrap(
+    an: Analysis, tmp_path: Path, shift_s: float
+) -> None:
+    # the same flight captured by a clock shifted by any fraction of the 2.56 s wrap: the
+    # delays (air time - sample time, modulo 2.56) straddle the wrap for some shifts, and
+    # the poses of those agents were stamped with their bursty air time
+    shifted = tmp_path / "shifted.tlog"
+    with TlogWriter(shifted) as w:
+        for rec in read_tlog(DEMO):
+            w.write(rec.raw, rec.t + shift_s)
+    got = analyse(str(shifted))
+    for agent, track in an.tracks.items():
+        times = [t for t, _p in track]
+        assert [t - shift_s for t, _p in got.tracks[agent]] == pytest.approx(times, abs=1e-6), agent
+    assert got.summary()["formation_rms_m"] == an.summary()["formation_rms_m"]
+
+
 def test_replay_plot_reports_the_same_figures_with_their_definition(
     an: Analysis, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert replay_main([DEMO, "--plot", str(tmp_path / "p.png")]) == 0
     text = capsys.readouterr().out
-    assert "formation_rms_m: 1.126 m (RMS on the straight legs)" in text
+    assert "formation_rms_m: 0.795 m (RMS on the straight legs)" in text
     assert INTERVAL in text and "None" not in text
 
 
@@ -87,7 +108,7 @@ def test_the_plot_has_a_map_and_an_error_panel_with_their_legend(an: Analysis) -
         labels2 = set(ax2.get_legend_handles_labels()[1])
         assert {"agent 1", "agent 2", "agent 3", "agent 5", "turn", "target RMS 1.5 m"} <= labels2
         assert ax2.get_xlabel() == "time from the route's start (s)"
-        assert "formation_rms_m" in fig.texts[0].get_text() and "1.126 m" in fig.texts[0].get_text()
+        assert "formation_rms_m" in fig.texts[0].get_text() and "0.795 m" in fig.texts[0].get_text()
     finally:
         plt.close(fig)
 

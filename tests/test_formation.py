@@ -5,6 +5,7 @@ through a route; it re-forms after a member is lost and after the leader is lost
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -14,6 +15,8 @@ from swarm.core.formation import (
     Route,
     arms,
     assign,
+    carried_motion,
+    chain_of,
     chain_position,
     estimate_accel,
     follow_target,
@@ -123,7 +126,9 @@ def test_follow_law_predicts_and_feeds_forward() -> None:
     # turning right at 10 deg/s: a right-side slot behind swings west-to-north... its velocity
     turning = follow_target(at(0, 0), 0.0, 0.0, Side.RIGHT, cfg, turn_rate_dps=10.0)
     w = math.radians(10.0)
-    assert (turning.vn, turning.ve) == pytest.approx((-w * 5.0, w * -10.0))
+    # w x r, led by the centripetal -w^2 r over the velocity loop's lag (accel_lead_s)
+    c = w * w * cfg.accel_lead_s
+    assert (turning.vn, turning.ve) == pytest.approx((-w * 5.0 + c * 10.0, w * -10.0 - c * 5.0))
     # the setpoint's own delay is predicted too
     later = follow_target(lead, 0.4, 0.0, Side.RIGHT, FormationConfig(lead_s=0.1))
     assert ne_between(HOME.lat, HOME.lon, later.lat, later.lon)[0] == pytest.approx(-7.5, abs=0.01)
@@ -138,6 +143,19 @@ def test_pose_age_from_wrapped_sample_times() -> None:
         sample = 10.0 + k * 0.25
         age = est.age(4, (sample + clock_offset) % 2.56, sample + delay)
         assert age == pytest.approx(delay - 0.05 if k else 0.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("offset_s", [k * 0.16 + 0.03 for k in range(16)])
+def test_pose_age_whatever_the_two_clocks_are_modulo_the_wrap(offset_s: float) -> None:
+    # two drones' clocks differ by anything modulo 2.56 s: the delays seen then straddle
+    # the wrap for some offsets (2.45, then 0.14...); the ages must not depend on it
+    # (they were 0 or 0.3 s short for a fifth of the offsets: metres at 5 m/s)
+    est = AgeEstimator()
+    delays = [0.05, 0.30, 0.05, 0.55, 0.12, 0.80, 0.40]
+    for k, delay in enumerate(delays):
+        sample = 10.0 + k * 0.25
+        age = est.age(4, (sample + 1000.0 + offset_s) % 2.56, sample + delay)
+        assert age == pytest.approx(delay - 0.05 if k else 0.0, abs=1e-6), (offset_s, k)
 
 
 # -- the pilot's rules -----------------------------------------------------------------
@@ -428,6 +446,83 @@ def test_follow_law_feeds_the_followed_acceleration_forward() -> None:
     assert sp.vn == pytest.approx(2.0 + 1.0 * (dt + cfg.accel_lead_s))
     dn, _ = ne_between(plain.lat, plain.lon, sp.lat, sp.lon)
     assert dn == pytest.approx(0.5 * dt * dt, abs=0.01)
+
+
+def test_a_member_down_an_arm_feeds_forward_the_leaders_motion_not_the_one_aheads() -> None:
+    # chain 1 <- 3 <- 5 on the right arm: 5 follows 3's position but feeds forward the
+    # leader's velocity carried to 3's place in the V, so 3's corrections are not passed on
+    task = Task(
+        TaskKind.FOLLOW, 0.0, 10, 5, (Assignment(3, 1, Side.RIGHT), Assignment(5, 3, Side.RIGHT)), gen=1
+    )
+    assert chain_of(task, 5) == (1, 2) and chain_of(task, 3) == (1, 1) and chain_of(task, 1) == (1, 0)
+    p = flying(5, -20, 10)
+    p.on_task(task, 0.0)
+    p.on_pose(1, at(0, 0, alt=528.0, vn=5.0, t=0.0), 0.0)
+    p.on_pose(3, at(-10, 5, alt=528.0, vn=8.5, t=0.0), 0.0)  # overshooting its own slot's speed
+    sp, _ = p.step(0.0, Role(Phase.MEMBER, 1))
+    assert sp is not None and (sp.vn, sp.ve) == pytest.approx((5.0, 0.0))
+    # its position is still its slot behind 3 (3's position predicted at the leader's pace)
+    lead_s = FormationConfig().lead_s
+    n, e = ne_between(HOME.lat, HOME.lon, sp.lat, sp.lon)
+    assert (n, e) == pytest.approx((-20.0 + 5.0 * lead_s, 10.0), abs=0.02)
+    # the leader's pose stale: the one ahead's own motion, as before
+    q = flying(5, -20, 10)
+    q.on_task(task, 0.0)
+    q.on_pose(1, at(0, 0, alt=528.0, vn=5.0, t=0.0), 0.0)
+    q.on_pose(3, at(-10, 5, alt=528.0, vn=8.5, t=2.5), 2.5)
+    sp, _ = q.step(2.5, Role(Phase.MEMBER, 1))
+    assert sp is not None and sp.vn == pytest.approx(8.5)
+    # the first of an arm follows the leader itself: unchanged
+    m = flying(3, -10, 5)
+    m.on_task(task, 0.0)
+    m.on_pose(1, at(0, 0, alt=528.0, vn=5.0, t=0.0), 0.0)
+    sp, _ = m.step(0.0, Role(Phase.MEMBER, 1))
+    assert sp is not None and sp.vn == pytest.approx(5.0)
+
+
+def test_the_carried_motion_turns_with_the_v_about_the_leader() -> None:
+    # heading north, turning right at 10 deg/s: the point two slots down the right arm
+    # (20 m back, 10 m right) moves as the rigid V does about the leader
+    w = math.radians(10.0)
+    (vn, ve), (an, ae) = carried_motion(at(0, 0, vn=5.0), (0.5, 0.0), 0.0, 10.0, 0.0, Side.RIGHT, 10, 5, 2)
+    assert (vn, ve) == pytest.approx((5.0 - w * 10.0, w * -20.0))
+    assert (an, ae) == pytest.approx((0.5 + w * w * 20.0, -w * w * 10.0))  # centripetal, to the leader
+    assert carried_motion(at(0, 0, vn=5.0), (0.0, 0.0), 0.0, 0.0, 0.0, Side.LEFT, 10, 5, 1) == (
+        (5.0, 0.0),
+        (0.0, 0.0),
+    )
+    # the turn slowing at 3 deg/s^2: the tail's swing slows too
+    _v, (an, ae) = carried_motion(at(0, 0), (0.0, 0.0), 0.0, 0.0, -3.0, Side.RIGHT, 10, 5, 2)
+    al = math.radians(-3.0)
+    assert (an, ae) == pytest.approx((-al * 10.0, al * -20.0))
+
+
+def test_a_member_feeds_forward_the_turn_starting_and_stopping() -> None:
+    # Heartbeats 0.8 s apart with the turn rate slowing 12 -> 9.5 deg/s: the member leads
+    # its slot's swing by the velocity loop's lag; at rate 0 nothing more is fed forward
+    p = member_following()
+    role = Role(Phase.MEMBER, 1)
+    task = p.task
+    p.on_task(replace(task, turn_rate=12.0), 1.0)
+    p.on_task(replace(task, turn_rate=9.5), 1.8)
+    assert p._turn_accel == pytest.approx(-2.5 / 0.8)
+    p.on_pose(1, at(0, 0, alt=528.0, t=1.8), 1.8)
+    sp, _ = p.step(1.8, role)
+    cfg = FormationConfig()
+    plain = follow_target(at(0, 0, alt=528.0), 0.0, 0.0, Side.RIGHT, cfg, 10, 5, 9.5)
+    assert sp is not None and sp.vn != pytest.approx(plain.vn)
+    led = follow_target(
+        at(0, 0, alt=528.0), 0.0, 0.0, Side.RIGHT, cfg, 10, 5, 9.5, turn_accel_dps2=-2.5 / 0.8
+    )
+    assert (sp.vn, sp.ve) == pytest.approx((led.vn, led.ve))
+    # a duplicate Heartbeat 0.1 s later does not make an acceleration of quantisation steps
+    p.on_task(replace(task, turn_rate=9.0), 1.9)
+    assert p._turn_accel == pytest.approx(-2.5 / 0.8)
+    # the turn over: rate 0, nothing fed forward, and a slowing turn is never led past 0
+    p.on_task(replace(task, turn_rate=0.0), 2.6)
+    assert p._swarm_turn_accel(0.0) == 0.0
+    p._turn_accel = -20.0
+    assert p._swarm_turn_accel(1.0) == pytest.approx(-1.0 / cfg.accel_lead_s)
 
 
 def test_members_keep_their_slots_while_the_leader_speeds_up_and_slows_down() -> None:

@@ -87,6 +87,20 @@ COMMAND_GIVE_UP_S = 20.0
 REFUSED_WAIT_S = 30.0
 
 
+def _write_logs(children: list[Child], folder: str) -> str | None:
+    """Each process's output (stdout, then stderr) to ``folder/<name>.log``, so that a
+    kept working folder tells what every agent said; the folder (None: not writable)."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+        for ch in children:
+            name = ch.name.replace(" ", "-")
+            with open(os.path.join(folder, f"{name}.log"), "w", encoding="utf-8") as f:
+                f.writelines(line + "\n" for line in [*ch.lines, *ch.errors])
+    except OSError:
+        return None
+    return folder
+
+
 class DemoError(SwarmError):
     """The demo could not go on (a process failed, a step timed out)."""
 
@@ -446,6 +460,8 @@ class _Demo:
                 ch.stop()
             except Exception:
                 pass
+        if self.children and (self.cfg.keep or not self.made_workdir):
+            self.summary["logs"] = _write_logs(self.children, os.path.join(self.workdir, "logs"))
         self.children = []
         if self.fleet is not None:
             self.summary["autopilot_cpu_pct"] = self.fleet.cpu()

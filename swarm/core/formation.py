@@ -31,7 +31,8 @@ chain. Here:
   2.56 s in the sender's clock. Clocks differ between drones, so the age is
   estimated per sender as the delay beyond the smallest delay seen recently
   (the smallest is the radio's best case; its few tens of milliseconds are
-  ignored).
+  ignored), the smallest taken around the wrap (:func:`circular_floor`: for some
+  clock offsets the delays straddle it).
 * **Route** (:class:`Route`): the leader's path through waypoints at a set
   speed, corners rounded with ``turn_radius_m`` (a 90 degree corner becomes a
   quarter circle), sampled by distance: position, direction and velocity.
@@ -56,6 +57,8 @@ pymap3d (exact for formation distances).
 
 from __future__ import annotations
 
+import collections
+import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -237,13 +240,19 @@ def assignment_of(task: Task, me: int) -> Assignment | None:
 
 def chain_position(task: Task, me: int) -> int:
     """1 for a member that follows the leader, 2 for the next one, ... (0: none)."""
+    return chain_of(task, me)[1]
+
+
+def chain_of(task: Task, me: int) -> tuple[int, int]:
+    """(the agent at the head of ``me``'s chain, ``me``'s position in it: :func:`chain_position`);
+    (me, 0) for an agent that follows no one; a loop's head is where it closes."""
     follows = {a.member: a.follows for a in task.assignments}
     k, cur, seen = 0, me, set()
     while cur in follows and cur not in seen:
         seen.add(cur)
         cur = follows[cur]
         k += 1
-    return k
+    return cur, k
 
 
 # -- the follow law -------------------------------------------------------------------
@@ -269,6 +278,17 @@ def predict(pose: Pose, age_s: float, max_s: float) -> tuple[float, float]:
     return offset(pose.lat, pose.lon, pose.vn * dt, pose.ve * dt)
 
 
+def rotation_motion(
+    dn: float, de: float, rate_dps: float, accel_dps2: float
+) -> tuple[float, float, float, float]:
+    """Velocity and acceleration (vn, ve, an, ae) of the point at offset (``dn``, ``de``)
+    metres from a centre, as the V turns about it (clockwise, the heading growing) at
+    ``rate_dps`` with the rate changing at ``accel_dps2``: w x r, and alpha x r plus the
+    centripetal -w^2 r."""
+    w, al = math.radians(rate_dps), math.radians(accel_dps2)
+    return -w * de, w * dn, -al * de - w * w * dn, al * dn - w * w * de
+
+
 def follow_target(
     followed: Pose,
     age_s: float,
@@ -279,12 +299,16 @@ def follow_target(
     side_m: float | None = None,
     turn_rate_dps: float = 0.0,
     accel: tuple[float, float] = (0.0, 0.0),
+    turn_accel_dps2: float = 0.0,
 ) -> Setpoint:
     """The member's setpoint: the followed agent predicted to now, plus the slot offset;
     velocity feed-forward: the followed velocity plus the slot's rotation about the
     followed agent when the swarm heading turns (``turn_rate_dps``). ``accel``: the
     followed agent's estimated acceleration (:func:`estimate_accel`), carried into the
-    prediction and the feed-forward."""
+    prediction and the feed-forward; ``turn_accel_dps2``: how fast the turn rate changes,
+    so that the feed-forward also leads the slot's rotation as the V starts and stops
+    turning (the tail of a V swings out a few metres per second in a turn: an autopilot
+    that lags that change by its velocity loop's time falls metres behind)."""
     lat, lon = predict(followed, age_s + cfg.lead_s, cfg.max_predict_s)
     dt = max(0.0, min(age_s + cfg.lead_s, cfg.max_predict_s))
     an, ae = accel
@@ -295,14 +319,46 @@ def follow_target(
             vn=followed.vn + an * (dt + cfg.accel_lead_s),
             ve=followed.ve + ae * (dt + cfg.accel_lead_s),
         )
-    heading_deg = (heading_deg + turn_rate_dps * cfg.lead_s) % 360.0
-    dn, de = slot_offset(
-        heading_deg, side, cfg.back_m if back_m is None else back_m, cfg.side_m if side_m is None else side_m
-    )
+    back = cfg.back_m if back_m is None else back_m
+    across = cfg.side_m if side_m is None else side_m
+    lead = cfg.lead_s
+    heading_deg = (heading_deg + turn_rate_dps * lead + 0.5 * turn_accel_dps2 * lead * lead) % 360.0
+    dn, de = slot_offset(heading_deg, side, back, across)
     la, lo = offset(lat, lon, dn, de)
-    w = math.radians(turn_rate_dps)  # d/dt of the rotated offset: w x (dn, de), clockwise
-    vn, ve = followed.vn - w * de, followed.ve + w * dn
+    # the slot's rotation about the followed agent, fed forward as the velocity is
+    rvn, rve, ran, rae = rotation_motion(dn, de, turn_rate_dps, turn_accel_dps2)
+    ahead = cfg.accel_lead_s
+    vn, ve = followed.vn + rvn + ran * ahead, followed.ve + rve + rae * ahead
     return Setpoint(la, lo, followed.alt + cfg.stagger_m, heading_deg, vn, ve)
+
+
+def carried_motion(
+    head: Pose,
+    head_accel: tuple[float, float],
+    heading_deg: float,
+    turn_rate_dps: float,
+    turn_accel_dps2: float,
+    side: Side,
+    back_m: float,
+    side_m: float,
+    k: int,
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The velocity and acceleration ((vn, ve), (an, ae)) of the point ``k`` slots down
+    one arm of the V from ``head`` (the leader) if the V moved as one rigid body: the
+    head's motion plus the rotation of that point about it (:func:`rotation_motion`).
+
+    A member further down an arm than the first takes this as its followed agent's motion
+    instead of that agent's own reported velocity and acceleration (predecessor-leader
+    following): the position it flies to is still its slot behind the agent it follows,
+    but what it feeds forward is the leader's smooth motion, not the corrections of the
+    members between them. Fed the followed agent's own motion, every member passed on the
+    corrections of the one ahead, and an autopilot whose response overshoots its input
+    amplified them down the arm (a string instability: on real ArduCopters the second of
+    an arm flew 8.5 m/s behind a leader at 5.25 m/s; the simulator's well-damped vehicles
+    hid it)."""
+    dn, de = slot_offset(heading_deg, side, back_m, side_m)
+    vn, ve, an, ae = rotation_motion(dn * k, de * k, turn_rate_dps, turn_accel_dps2)
+    return (head.vn + vn, head.ve + ve), (head_accel[0] + an, head_accel[1] + ae)
 
 
 def slot_error(
@@ -355,23 +411,37 @@ class AccelEstimator:
         return estimate_accel(hist)
 
 
+def circular_floor(values: Sequence[float], wrap: float) -> float:
+    """The smallest of ``values`` (each in ``[0, wrap)``) taken around a circle of
+    circumference ``wrap``: the value just after the widest empty arc. Delays measured
+    modulo the wrap straddle it for some clock offsets (2.45, 2.50, then 0.14, 0.39...):
+    there the plain minimum (0.14) is not the smallest delay (2.45)."""
+    v = sorted(values)
+    if not v:
+        raise ValueError("circular_floor of nothing")
+    best, floor = v[0] + wrap - v[-1], v[0]  # the arc across the wrap
+    for a, b in itertools.pairwise(v):
+        if b - a > best:
+            best, floor = b - a, b
+    return floor
+
+
 @dataclass
 class AgeEstimator:
-    """Age of a sender's pose from its wrapped sample time (see the module docstring)."""
+    """Age of a sender's pose from its wrapped sample time (see the module docstring):
+    its delay (modulo the wrap) beyond the smallest of the last ``window_s``, the
+    smallest taken around the wrap (:func:`circular_floor`)."""
 
     window_s: float = 30.0
-    _min: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
+    _seen: dict[int, collections.deque[tuple[float, float]]] = field(default_factory=dict)
 
     def age(self, sender: int, t_wrapped: float, now: float) -> float:
         d = (now - t_wrapped) % POSE_T_WRAP
-        hist = self._min.setdefault(sender, [])
-        # a monotone deque of (time, delay) keeps the window's minimum
-        while hist and hist[-1][1] >= d:
-            hist.pop()
+        hist = self._seen.setdefault(sender, collections.deque())
         hist.append((now, d))
         while hist[0][0] < now - self.window_s:
-            hist.pop(0)
-        age = d - hist[0][1]
+            hist.popleft()
+        age = (d - circular_floor([x[1] for x in hist], POSE_T_WRAP)) % POSE_T_WRAP
         return age if age < POSE_T_WRAP / 2 else 0.0  # a wrap we cannot tell: trust it fresh
 
 
@@ -556,8 +626,11 @@ __all__ = [
     "arms",
     "assign",
     "assignment_of",
+    "carried_motion",
+    "chain_of",
     "chain_position",
     "chains_to_assignments",
+    "circular_floor",
     "distance",
     "estimate_accel",
     "follow_target",
@@ -566,6 +639,7 @@ __all__ = [
     "offset",
     "predict",
     "reconcile",
+    "rotation_motion",
     "slot_error",
     "slot_offset",
     "steer_heading",

@@ -82,6 +82,8 @@ from swarm.core.formation import (
     Setpoint,
     assign,
     assignment_of,
+    carried_motion,
+    chain_of,
     distance,
     follow_target,
     ne_between,
@@ -95,6 +97,10 @@ from swarm.core.messages import LEGACY_KINDS, AckResult, Command, CommandKind, P
 MAX_GOTO_M = 5000.0
 MIN_TAKEOFF_M = 1.0
 SEPARATION_WAIVER_S = 10.0
+#: the swarm's turn acceleration is estimated from Heartbeats at least this far apart (the
+#: turn rate on the air is in steps of 0.5 deg/s), and believed up to this (deg/s^2)
+TURN_ACCEL_SPAN_S = 0.3
+TURN_ACCEL_MAX = 20.0
 CO_LOCATED_M = 1.0  # closer than this across, no direction is away from another agent
 #: the commands that need the vehicle under setpoint control (taken back first)
 TAKE_BACK = frozenset({CommandKind.GOTO, CommandKind.WAYPOINT, CommandKind.FOLLOW, CommandKind.TAKEOFF})
@@ -202,6 +208,8 @@ class Pilot:
     _left_gen: int | None = None  # the FOLLOW gen we left for an individual command
     _applied_task: tuple[TaskKind, int] = (TaskKind.NONE, -1)
     _heading: tuple[float, float, float] | None = None  # (heading, at, rate deg/s)
+    _rate_ref: tuple[float, float] | None = None  # (at, turn rate) the turn's acceleration is from
+    _turn_accel: float = 0.0  # deg/s^2, from the turn rates of successive Heartbeats
     _waived: dict[int, float] = field(default_factory=dict)  # separation waived until
     _gen: int = 0
 
@@ -269,7 +277,17 @@ class Pilot:
         """The swarm task as a member heard it, on every Heartbeat: the heading and its
         turn rate, extrapolated from ``now`` until the next one."""
         if task.kind == TaskKind.FOLLOW:
+            ref = self._rate_ref
+            if ref is not None and TURN_ACCEL_SPAN_S <= now - ref[0] <= 2.0:
+                acc = (task.turn_rate - ref[1]) / (now - ref[0])
+                self._turn_accel = max(-TURN_ACCEL_MAX, min(TURN_ACCEL_MAX, acc))
+            elif ref is None or not 0.0 <= now - ref[0] <= 2.0:
+                self._turn_accel = 0.0  # nothing recent to tell it from
+            if ref is None or now - ref[0] >= TURN_ACCEL_SPAN_S or now < ref[0]:
+                self._rate_ref = (now, task.turn_rate)
             self._heading = (task.heading, now, task.turn_rate)
+        else:
+            self._rate_ref, self._turn_accel = None, 0.0
         self.task = task
 
     def call_done(self, call: Call, ok: bool, error: str = "") -> None:
@@ -558,6 +576,18 @@ class Pilot:
             return h, 0.0
         return (h + rate * max(0.0, dt)) % 360.0, rate
 
+    def _swarm_turn_accel(self, rate: float) -> float:
+        """How fast the swarm's turn rate changes (deg/s^2), for the feed-forward: 0 while
+        the rate heard is 0 (a turn starting shows in the next Heartbeat's rate), and a
+        slowing turn never fed forward past a rate of 0 (the leader's rate stops there)."""
+        acc = self._turn_accel
+        if rate == 0.0 or self._heading is None:
+            return 0.0
+        if rate * acc < 0.0:
+            cap = abs(rate) / max(self.cfg.formation.accel_lead_s, 0.1)
+            acc = max(-cap, min(cap, acc))
+        return acc
+
     def _follow(self, now: float, role: Role) -> Setpoint | None:
         a = assignment_of(self.task, self.me)
         if a is None:
@@ -574,8 +604,19 @@ class Pilot:
             self.events.append(f"pose of agent {a.follows} back: following")
             self.stale_hold = None
         heading, rate = self._swarm_heading(now)
+        turn_acc = self._swarm_turn_accel(rate)
+        followed, acc = heard.pose, heard.acc
+        head, k = chain_of(self.task, self.me)
+        lead = self._heard.get(head)
+        if k > 1 and lead is not None and lead.age_at(now) <= stale:
+            # further down an arm: the leader's motion, carried to the agent followed
+            t = self.task
+            (vn, ve), acc = carried_motion(
+                lead.pose, lead.acc, heading, rate, turn_acc, a.side, t.back_m, t.side_m, k - 1
+            )
+            followed = replace(followed, vn=vn, ve=ve)
         return follow_target(
-            heard.pose,
+            followed,
             heard.age_at(now),
             heading,
             a.side,
@@ -583,7 +624,8 @@ class Pilot:
             self.task.back_m,
             self.task.side_m,
             rate,
-            heard.acc,
+            acc,
+            turn_acc,
         )
 
     def _separation(self, now: float, sp: Setpoint) -> Setpoint | None:

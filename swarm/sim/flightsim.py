@@ -24,9 +24,10 @@ Metrics, sampled every 0.1 s from the true positions (not from what the radio
 delivered, nor from the GPS): each member's distance from its slot (the followed
 agent's true position plus the offset for the leader's current task heading); at
 the end, how far the leader's task heading is from the route's last heading
-(``heading_error_after_turn_deg``). A sample is in
-a *turn* while the task heading differs from its value ``turn_margin_s`` earlier
-or later; *straight* samples are the others once the route has started (the V had
+(``heading_error_after_turn_deg``). A sample is in a *turn* within
+``turn_margin_s`` of a change of the task heading (one of at least
+:data:`swarm.sim.tracks.TURN_MIN_DEG` from the last counted, as a capture's analysis
+counts); *straight* samples are the others once the route has started (the V had
 ``settle_s`` to form). Air utilisation is the share of air time used between the
 follow command and the end.
 """
@@ -60,6 +61,7 @@ from swarm.core.pilot import PilotConfig, Setpoint
 from swarm.core.protocol import ADVERTIZE, Out
 from swarm.core.tunnel import Kind
 from swarm.sim.simulate import Scenario, Sim, pct
+from swarm.sim.tracks import turn_changes
 from swarm.sim.weather import Environment, Weather
 
 HOME = (47.397742, 8.545594, 488.0)
@@ -377,8 +379,8 @@ class FlightSim(Sim):
         fs = self.fs
         heads = self.heading_log
         turning = set()
-        # a sample is "in a turn" within turn_margin_s of any heading change
-        changes = [heads[k][0] for k in range(1, len(heads)) if abs(heads[k][1] - heads[k - 1][1]) > 1e-6]
+        # a sample is "in a turn" within turn_margin_s of a heading change (as a capture's)
+        changes = turn_changes(heads)
         for tt, _ in heads:
             if any(abs(tt - c) <= fs.turn_margin_s for c in changes):
                 turning.add(round(tt, 3))

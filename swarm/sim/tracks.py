@@ -9,7 +9,8 @@ swarm task (heading, assignments). :func:`analyse` rebuilds from it:
 * each agent's **track**: its poses at their sample times. A pose carries its
   sample time modulo 2.56 s in the sender's clock; the capture stamps the air
   time. Per sender, the delay (air time - sample time) modulo 2.56 s is smallest
-  for the pose that waited least; the sample time of every pose is its air time
+  (taken around the wrap: :func:`swarm.core.formation.circular_floor`) for the pose
+  that waited least; the sample time of every pose is its air time
   minus its delay beyond that smallest one (the smallest, a few tens of
   milliseconds of serial and air time, is ignored);
 * the **task timeline**: which leader, heading and assignments held when;
@@ -21,9 +22,11 @@ swarm task (heading, assignments). :func:`analyse` rebuilds from it:
   it never moves, the first follow task + ``settle_s``) to the **end of the
   follow task** (the swarm STOP after the leader's arrival + tail). A sample is
   in a *turn* when the task heading changed within ``turn_margin_s`` of it; the
-  others are *straight*. :data:`FIGURES` names each figure with its legs and
-  interval, in the words every report uses (``swarm demo``, ``swarm replay
-  --plot``; ``swarm bench formation`` measures the same figures in virtual time);
+  others are *straight* (a change counts once the heading is :data:`TURN_MIN_DEG`
+  from the last counted: settling by hundredths of a degree is not turning).
+  :data:`FIGURES` names each figure with its legs and interval, in the words every
+  report uses (``swarm demo``, ``swarm replay --plot``; ``swarm bench formation``
+  measures the same figures in virtual time);
 * the **heading error after the turn** (when the task heading turned): the last
   follow task's heading against the leader's course over ground on its last
   straight stretch (its last ``course_s`` seconds faster than 1 m/s), which is the
@@ -52,7 +55,7 @@ from typing import Any
 from radios.errors import CaptureError
 from radios.mavlink import MSG_TUNNEL
 from radios.tlog import read_tlog
-from swarm.core.formation import POSE_T_WRAP, ne_between, slot_error
+from swarm.core.formation import POSE_T_WRAP, circular_floor, ne_between, slot_error
 from swarm.core.messages import Heartbeat, Pose, PoseReport, Task, TaskKind, decode
 from swarm.core.tunnel import Kind, unpack_tunnel
 from swarm.errors import DecodeError
@@ -61,6 +64,26 @@ KIND_P2P, KIND_POSE, KIND_MULTI = Kind.P2P, Kind.POSE, Kind.MULTI
 
 #: the leader moves faster than this once the route has started (it hovers while the V forms)
 MOVING_MPS = 1.0
+#: a change of the task heading counts as turning once it is this far from the heading last
+#: counted: the leader's heading settling by hundredths of a degree after a turn (or a
+#: 0.01 degree step at the route's start) is not a turn, and counted as one it turned a
+#: whole route into "turns" and left only the hover after arrival as "straight legs"
+TURN_MIN_DEG = 1.0
+
+
+def turn_changes(headings: list[tuple[float, float]]) -> list[float]:
+    """The times (ascending) at which a heading timeline ``(t, degrees)`` has turned by
+    :data:`TURN_MIN_DEG` or more since the last such time (or its start)."""
+    out: list[float] = []
+    ref: float | None = None
+    for t, h in headings:
+        if ref is None:
+            ref = h
+        elif abs((h - ref + 180.0) % 360.0 - 180.0) >= TURN_MIN_DEG:
+            out.append(t)
+            ref = h
+    return out
+
 
 #: each formation figure: which legs, which interval (the same words in every report)
 INTERVAL = "from the route's start to the end of the follow task (the leader's arrival + tail)"
@@ -177,11 +200,10 @@ def read_capture(path: str) -> Analysis:
         reader.close()
     for sender, samples in raw.items():
         delays = [(t - pose.t) % POSE_T_WRAP for t, pose in samples]
-        base = min(delays)
-        track = [
-            (t - (d - base if d - base < POSE_T_WRAP / 2 else 0.0), pose)
-            for (t, pose), d in zip(samples, delays, strict=True)
-        ]
+        base = circular_floor(delays, POSE_T_WRAP)  # around the wrap: they may straddle it
+        extra = [(d - base) % POSE_T_WRAP for d in delays]
+        pairs = zip(samples, extra, strict=True)
+        track = [(t - (x if x < POSE_T_WRAP / 2 else 0.0), pose) for (t, pose), x in pairs]
         track.sort(key=lambda x: x[0])
         an.tracks[sender] = track
     follows = [t for t, _l, task in an.tasks if task.kind == TaskKind.FOLLOW]
@@ -222,13 +244,14 @@ def analyse(
     t_from = an.t_from
     times = {a: [x[0] for x in tr] for a, tr in an.tracks.items()}
     task_t = [t for t, _l, _task in an.tasks]
-    changes = [
-        an.tasks[k][0]
-        for k in range(1, len(an.tasks))
-        if an.tasks[k][2].kind == TaskKind.FOLLOW
-        and an.tasks[k - 1][2].kind == TaskKind.FOLLOW
-        and an.tasks[k][2].heading != an.tasks[k - 1][2].heading
-    ]
+    changes: list[float] = []
+    run: list[tuple[float, float]] = []  # one unbroken run of follow tasks
+    for t, _l, task in [*an.tasks, (math.inf, 0, Task())]:
+        if task.kind == TaskKind.FOLLOW:
+            run.append((t, task.heading))
+            continue
+        changes += turn_changes(run)
+        run = []
     for c in changes:  # merged: one window per turn
         if an.turn_windows and c - turn_margin_s <= an.turn_windows[-1][1]:
             an.turn_windows[-1] = (an.turn_windows[-1][0], c + turn_margin_s)
@@ -318,4 +341,5 @@ __all__ = [
     "position_at",
     "read_capture",
     "route_start",
+    "turn_changes",
 ]

@@ -320,6 +320,24 @@ def test_the_page_holds_the_same_state_after_many_deltas_and_after_a_reconnect(l
         assert errors == []
 
 
+def test_deltas_before_the_page_has_its_delta_code_are_no_script_error(live: dict[str, Any]) -> None:
+    # on a loaded machine the socket's first pushes can beat a later script of the page
+    # ("Cannot read properties of undefined (reading 'next')" in CI): delta.js held back
+    # 3 s here while the station pushes deltas at its pace
+    def slow(route: Any) -> None:
+        time.sleep(3.0)
+        route.continue_()
+
+    with browser() as ctx:
+        page = ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.route("**/static/delta.js", slow)
+        page.goto(live["base"], wait_until="commit")
+        poll(lambda: page.evaluate("window.gcsDelta ? window.gcsDelta.applied : 0") >= 5, "deltas applied", 30)
+        assert errors == []
+
+
 def urllib_get(url: str) -> str:
     with urllib.request.urlopen(url, timeout=10) as r:
         return str(r.read().decode())

@@ -745,7 +745,8 @@
         onState(msg);
         break;
       case "delta": {  // what changed since the state the page holds (delta.js)
-        const st = window.gcsDelta.next(S.model, S.model ? S.model.seq : null, msg);
+        // (delta.js loads before this file; without it a delta is a gap: the whole state is asked)
+        const st = window.gcsDelta ? window.gcsDelta.next(S.model, S.model ? S.model.seq : null, msg) : null;
         if (st) {
           S.model = st;
           onState(st);

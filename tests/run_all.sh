@@ -13,11 +13,13 @@
 #     (AT commands over ptys, a wheel build, the pre-flight check: `light`, given by
 #     tests/conftest.py), one after another.
 # The last runs in the foreground; the two others' logs are shown once it is done, each
-# as it grows. Extra arguments go to every session. Exit status: the first session's
-# that failed.
+# as it grows. Each session ends with its 25 slowest tests (--durations), so that a CI log
+# says where the suite's time goes. Extra arguments go to every session. Exit status: the
+# first session's that failed.
 set -u
 cd "$(dirname "$0")/.."
 PYTEST=${PYTEST:-.venv/bin/pytest}
+set -- --durations=25 "$@"
 rt_log=$(mktemp "${TMPDIR:-/tmp}/pytest-processes.XXXXXX")
 wait_log=$(mktemp "${TMPDIR:-/tmp}/pytest-waits.XXXXXX")
 "$PYTEST" -p no:cacheprovider -m "processes and not light and not waits and not sitl and not slow and not hardware" "$@" >"$rt_log" 2>&1 &

@@ -334,7 +334,9 @@ def test_deltas_before_the_page_has_its_delta_code_are_no_script_error(live: dic
         page.on("pageerror", lambda exc: errors.append(str(exc)))
         page.route("**/static/delta.js", slow)
         page.goto(live["base"], wait_until="commit")
-        poll(lambda: page.evaluate("window.gcsDelta ? window.gcsDelta.applied : 0") >= 5, "deltas applied", 30)
+        poll(
+            lambda: page.evaluate("window.gcsDelta ? window.gcsDelta.applied : 0") >= 5, "deltas applied", 30
+        )
         assert errors == []
 
 

@@ -10,14 +10,14 @@ LEAFLET := swarm/runtime/vendor/leaflet
 CHROMIUM_PKGS := chromium fonts-dejavu-core
 CHROMIUM_BIN ?= chromium
 
-.PHONY: setup browser systemd-analyze demo test test-quick lint check clean leaflet
+.PHONY: setup browser systemd-analyze demo docs test test-quick lint check clean leaflet
 
 # Debian's own python3 makes a venv only with its python3-venv package.
 $(STAMP): pyproject.toml
 	@$(PY) -m venv $(VENV) || { rm -rf $(VENV); \
 	  echo "setup: $(PY) -m venv failed (on Debian: sudo apt-get install python3-venv)" >&2; exit 1; }
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -e '.[test,docs]'
 	touch $(STAMP)
 
 # Leaflet for the ground station page, pinned in package.json and package-lock.json,
@@ -82,10 +82,15 @@ check: setup
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
 
+# The documentation site (docs/, Sphinx with MyST): strict, a warning (a broken link or
+# reference, a page in no table of contents) fails it. The HTML lands in docs/_build/html.
+docs: setup
+	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+
 # Everything (what CI runs): three pytest sessions side by side, the real-time process
 # tests in one, the long ones that mostly wait in another, everything else in the third
 # (tests/run_all.sh says why).
-test: check
+test: check docs
 	PYTEST=$(BIN)/pytest tests/run_all.sh
 
 # The checks and the tests that need no processes, real-time radios, simulators or
@@ -94,4 +99,4 @@ test-quick: check
 	$(BIN)/pytest -m 'not slow and not hardware and not processes'
 
 clean:
-	rm -rf $(VENV) node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache docs/_build

@@ -8,6 +8,7 @@ Ctrl-C or SIGTERM stops it (exit 130); the benches stop what they started.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import signal
 from typing import Any
@@ -51,8 +52,7 @@ def _interrupt(_signum: int, _frame: Any) -> None:
     raise KeyboardInterrupt
 
 
-@guarded(PROG)
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = parser(PROG, "Run a benchmark; figures are printed as a table or one JSON object.")
     p.add_argument("area", choices=sorted(AREAS), help="; ".join(f"{k}: {v[1]}" for k, v in AREAS.items()))
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -62,7 +62,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="conformance: fly the real autopilots ($SITL_DIR) beside the simulator, live",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+@guarded(PROG)
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     if args.real and args.area != "conformance":
         raise UsageError(f"--real is for the conformance bench, not {args.area}")
     kw = {"real": True} if args.real else {}

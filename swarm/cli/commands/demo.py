@@ -36,7 +36,7 @@ from swarm.core.profiles import PROFILE_NAMES
 PROG = "swarm demo"
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     p = parser(PROG, "Run the whole swarm on this machine: radios, vehicles, agents, ground station.")
     p.add_argument("--agents", type=int, default=5, metavar="N", help="agents (2..20, default 5)")
     p.add_argument("--loss", type=float, default=0.1, metavar="P", help="radio packet loss (default 0.1)")
@@ -195,7 +195,7 @@ def _open_page(url: str, lines: _Lines) -> None:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    a = read_arguments(_build_parser(), argv, config=False)
+    a = read_arguments(build_parser(), argv, config=False)
     cfg = _config(a)
     lines = _Lines(sys.stdout, quiet=a.json)
     opened = False

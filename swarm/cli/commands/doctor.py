@@ -43,7 +43,7 @@ from swarm.runtime.doctor import Setup, examine
 PROG = "swarm doctor"
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     """The agent's parser, with --name and --id optional and --json meaning one report."""
     p = agent.build_parser()
     p.prog = PROG
@@ -66,7 +66,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     """The agent's flags, checked as the agent checks them (UsageError or ConfigError:
     exit 2). Sets ``a.node``, ``a.round_s``, ``a.expected`` (parsed --radio-params or
     None) and ``a.plan``."""
-    a = read_arguments(_build_parser(), argv)  # --config FILE: the agent's config file
+    a = read_arguments(build_parser(), argv)  # --config FILE: the agent's config file
     round_given = a.round_s is not None
     probe = argparse.Namespace(**{**vars(a), "id": 1 if a.id is None else a.id, "name": a.name or "doctor"})
     # the agent would open (and create) its flight log folder: the doctor only looks at it

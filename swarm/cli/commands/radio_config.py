@@ -151,7 +151,7 @@ def _complain(lines: list[str]) -> None:
         print(f"{PROG}: {line}", file=sys.stderr, flush=True)
 
 
-def _arguments() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     ap = parser(PROG, "Read and write a SiK radio's parameters with AT commands.")
     ap.add_argument("port", metavar="PORT", help="serial device of the radio, e.g. /dev/ttyUSB0")
     ap.add_argument("--baud", type=int, default=57600, help="serial speed to talk to it at (default 57600)")
@@ -229,7 +229,7 @@ def _request(args: argparse.Namespace) -> Request:
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     try:
-        args = _arguments().parse_args(argv)
+        args = build_parser().parse_args(argv)
     except SystemExit as exc:  # argparse already printed the message
         return int(exc.code or 0)
     req = _request(args)

@@ -88,7 +88,7 @@ PROG = "swarm replay"
 _dumps = json.JSONEncoder(check_circular=False).encode
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     p = parser(PROG, "Decode, summarise or re-feed a radio capture (.tlog).")
     p.add_argument("file", metavar="FILE", help="the capture (.tlog), or a flight log's folder")
     p.add_argument("--agent", metavar="NAME", help="with a folder: whose flight log (if it holds several)")
@@ -128,7 +128,7 @@ def _build_parser() -> argparse.ArgumentParser:
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     try:
-        args = _build_parser().parse_args(argv)
+        args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help, or a usage error argparse already printed
         return exc.code if isinstance(exc.code, int) else EXIT_FAILURE
     if args.to is None:

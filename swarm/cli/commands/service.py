@@ -76,7 +76,7 @@ def unit_text(kind: str, executable: str | None = None) -> str:
     return template.replace(MARK, swarm_command(executable))
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     p = parser(PROG, "Print or install the systemd unit of a swarm agent or of the ground station.")
     sub = p.add_subparsers(dest="action", required=True, metavar="print|install")
     pr = sub.add_parser("print", help="print the unit on stdout")
@@ -190,7 +190,7 @@ def _install(a: argparse.Namespace) -> int:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    a = _build_parser().parse_args(argv)
+    a = build_parser().parse_args(argv)
     if a.action == "print":
         sys.stdout.write(unit_text(a.kind))
         sys.stdout.flush()

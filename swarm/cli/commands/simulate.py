@@ -63,7 +63,7 @@ _FAULT_FLAGS = (
 )
 
 
-def _build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     p = parser(
         PROG,
         "Run K seeded scenarios of N protocol cores over the SiK air model in "
@@ -225,7 +225,7 @@ def _campaign(a: argparse.Namespace) -> int:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    a = _build_parser().parse_args(argv)
+    a = build_parser().parse_args(argv)
     if not 1 <= a.agents <= 250:
         raise UsageError("--agents: 1..250")
     if a.seeds < 1:

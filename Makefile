@@ -9,6 +9,9 @@ LEAFLET := swarm/runtime/vendor/leaflet
 # Debian's chromium drives the page tests and the page benchmark (headless).
 CHROMIUM_PKGS := chromium fonts-dejavu-core
 CHROMIUM_BIN ?= chromium
+# apt-get waits up to 5 minutes for a package lock another program holds (an unattended
+# upgrade at boot) instead of failing at once
+APT_WAIT := -o DPkg::Lock::Timeout=300
 
 .PHONY: setup browser systemd-analyze demo docs test test-quick lint check clean leaflet
 
@@ -48,8 +51,8 @@ browser:
 	    exit 0; fi; fi; \
 	echo "setup: installing Debian's chromium (headless browser for the page tests)"; \
 	log=$$(mktemp); \
-	if ! { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
-	       $$SUDO apt-get install -y -qq --no-install-recommends $(CHROMIUM_PKGS); } >"$$log" 2>&1; then \
+	if ! { $$SUDO apt-get $(APT_WAIT) update -qq && DEBIAN_FRONTEND=noninteractive \
+	       $$SUDO apt-get $(APT_WAIT) install -y -qq --no-install-recommends $(CHROMIUM_PKGS); } >"$$log" 2>&1; then \
 	  cat "$$log" >&2; rm -f "$$log"; echo "setup: installing chromium failed" >&2; exit 1; fi; \
 	rm -f "$$log"
 
@@ -65,14 +68,15 @@ systemd-analyze:
 	    exit 0; fi; fi; \
 	echo "setup: installing Debian's systemd (systemd-analyze verify for the unit files)"; \
 	log=$$(mktemp); \
-	if ! { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
-	       $$SUDO apt-get install -y -qq --no-install-recommends systemd; } >"$$log" 2>&1; then \
+	if ! { $$SUDO apt-get $(APT_WAIT) update -qq && DEBIAN_FRONTEND=noninteractive \
+	       $$SUDO apt-get $(APT_WAIT) install -y -qq --no-install-recommends systemd; } >"$$log" 2>&1; then \
 	  cat "$$log" >&2; rm -f "$$log"; echo "setup: installing systemd failed" >&2; exit 1; fi; \
 	rm -f "$$log"
 
 setup: $(STAMP) browser systemd-analyze
 
-demo: setup
+# The demo needs no browser (it opens the page only where there is a display): only the venv.
+demo: $(STAMP)
 	$(BIN)/swarm demo
 
 # Static checks, shared by both test targets.

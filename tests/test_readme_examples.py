@@ -180,6 +180,18 @@ def test_setup_statements_match_what_the_makefile_does() -> None:
     assert "the page tests then fail" in readme and "never skip" in readme
     assert 'pytest.fail("no chromium' in (ROOT / "tests" / "gcs_browser.py").read_text(encoding="utf-8")
     assert "python3-venv" in readme and "python3-venv" in makefile
+    # every apt-get waits for a package lock another program holds, and says so
+    apt = [line for line in makefile.splitlines() if re.search(r"SUDO apt-get", line)]  # what it runs
+    assert apt and all("$(APT_WAIT)" in line for line in apt), apt
+    assert "DPkg::Lock::Timeout=" in makefile and "waits up to 5 minutes for a package lock" in readme
+    # the demo needs no browser: a held or failing browser install cannot stop it
+    reached, todo = set(), ["demo"]
+    while todo:
+        target = todo.pop()
+        if target in rules and target not in reached:
+            reached.add(target)
+            todo.extend(rules[target][0])
+    assert "browser" not in reached and "the demo needs no browser" in readme
 
 
 def test_agents_on_the_emulator_are_told_its_slots() -> None:

@@ -278,12 +278,11 @@ class Pilot:
         turn rate, extrapolated from ``now`` until the next one."""
         if task.kind == TaskKind.FOLLOW:
             ref = self._rate_ref
-            if ref is not None and TURN_ACCEL_SPAN_S <= now - ref[0] <= 2.0:
+            if ref is None or not 0.0 <= now - ref[0] <= 2.0:  # nothing recent to tell it from
+                self._turn_accel, self._rate_ref = 0.0, (now, task.turn_rate)
+            elif now - ref[0] >= TURN_ACCEL_SPAN_S:  # (a Heartbeat closer than that: kept as it is)
                 acc = (task.turn_rate - ref[1]) / (now - ref[0])
                 self._turn_accel = max(-TURN_ACCEL_MAX, min(TURN_ACCEL_MAX, acc))
-            elif ref is None or not 0.0 <= now - ref[0] <= 2.0:
-                self._turn_accel = 0.0  # nothing recent to tell it from
-            if ref is None or now - ref[0] >= TURN_ACCEL_SPAN_S or now < ref[0]:
                 self._rate_ref = (now, task.turn_rate)
             self._heading = (task.heading, now, task.turn_rate)
         else:

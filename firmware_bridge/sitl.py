@@ -8,7 +8,7 @@ autopilot in the foreground (the PID started is the autopilot's) with its own fl
 code and built-in physics: ``run-arducopter WORKDIR --instance N [--sysid S]
 [--home LAT,LON,ALT,HDG] [--speedup F]`` serves MAVLink on TCP 127.0.0.1:5760+10N;
 ``run-px4 WORKDIR --instance N [--home LAT,LON,ALT] [--speed F]`` sends it to UDP
-127.0.0.1:14540+N (the driver listens there: ``udpin:``). The README's "Real
+127.0.0.1:14540+N (the driver listens there: ``udpin:``). The docs' "Real
 autopilots" section says how to build both from the upstream sources.
 
 :func:`start` picks an instance number nobody on this machine holds (a lock file per

@@ -107,7 +107,8 @@ class _SitlGate:
         if self.left_out:
             terminalreporter.write_line(
                 f"real autopilots: none found (SITL_DIR unset, no ../shared/sitl): {self.left_out} tests "
-                "against real ArduCopter and PX4 not run (README: 'Real autopilots' says how to build them)"
+                "against real ArduCopter and PX4 not run "
+                "(docs/autopilots.md, 'Real autopilots', says how to build them)"
             )
 
 

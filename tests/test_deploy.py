@@ -31,13 +31,14 @@ from swarm.cli.commands.agent import build_parser
 from swarm.cli.configfile import file_values, keys, prepare
 from swarm.cli.procs import Child, start_emulator
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+# the README's section, moved to the docs site
+README = Path(__file__).resolve().parent.parent / "docs" / "deployment.md"
 
 
 def _section() -> str:
     text = README.read_text(encoding="utf-8")
-    start = text.index("## Deploy on a companion computer")
-    return text[start : text.index("\n## ", start + 3)]
+    start = text.index("# Deploy on a companion computer")
+    return text[start : text.index("\n## Config files", start)]
 
 
 def _readme_agent_settings() -> dict[str, Any]:

@@ -1,7 +1,9 @@
-"""Every README example marked runnable runs exactly as written.
+"""Every example of the README and of the docs site marked runnable runs as written.
 
-A ``sh`` block of README.md is runnable when the line just before its fence is the HTML
-comment ``<!-- runnable -->`` (GitHub renders it as nothing), with options after a
+The pages read are README.md and every Markdown page under docs/ (not the generated
+command pages, not the built site). A ``sh`` block of a page is runnable when the line
+just before its fence is the HTML comment ``<!-- runnable -->`` (GitHub renders it as
+nothing), with options after a
 colon: ``timeout=S`` (seconds the block may take here; default 60) and
 ``covered-by=tests/FILE.py`` (a test of its own already runs it exactly as written, with
 checks of its results: it is not run twice). An example that needs real hardware,
@@ -34,6 +36,17 @@ pytestmark = pytest.mark.processes  # the examples start emulators, agents and s
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
+
+
+def pages() -> list[Path]:
+    """README.md and the docs site's own pages (generated and built ones left out)."""
+    docs = ROOT / "docs"
+    found = [
+        p for p in sorted(docs.rglob("*.md")) if not {"_build", "commands"} & set(p.relative_to(docs).parts)
+    ]
+    return [README, *found]
+
+
 DEFAULT_TIMEOUT = 60.0
 SLACK = 4.0  # a loaded machine (2 cores shared by many jobs) gets this factor on a block's timeout
 LINGER_S = 10.0  # how long a process may outlive the example's bash before it counts as left running
@@ -44,6 +57,7 @@ MARKER = re.compile(r"^<!-- (runnable|manual)(?::\s*(.*?))?\s*-->$")
 class Example:
     """One ``sh`` block: where it is, how it is marked and its text."""
 
+    page: str  # the page's path in the checkout (README.md, docs/radios.md...)
     line: int  # 1-based line of the opening fence
     heading: str
     kind: str  # "runnable", "manual" or "unmarked"
@@ -52,16 +66,19 @@ class Example:
 
     @property
     def name(self) -> str:
-        return f"L{self.line}-{re.sub(r'[^a-z0-9]+', '-', self.heading.lower()).strip('-')}"
+        stem = Path(self.page).stem
+        return f"{stem}-L{self.line}-{re.sub(r'[^a-z0-9]+', '-', self.heading.lower()).strip('-')}"
 
 
 def parse_options(raw: str) -> dict[str, str]:
     return dict(item.split("=", 1) for item in raw.split() if "=" in item)
 
 
-def examples(text: str | None = None) -> list[Example]:
-    """Every ``sh`` block of the README, with the marker on the line before it."""
-    lines = (README.read_text(encoding="utf-8") if text is None else text).splitlines()
+def examples(text: str | None = None, page: str = "README.md") -> list[Example]:
+    """Every ``sh`` block of every page (or of ``text``), with the marker on the line before it."""
+    if text is None:
+        return [e for p in pages() for e in examples(p.read_text(encoding="utf-8"), str(p.relative_to(ROOT)))]
+    lines = text.splitlines()
     found: list[Example] = []
     heading, i = "", 0
     while i < len(lines):
@@ -75,7 +92,9 @@ def examples(text: str | None = None) -> list[Example]:
                 kind = match.group(1) if match else "unmarked"
                 raw = (match.group(2) or "") if match else ""
                 options = parse_options(raw) if kind == "runnable" else {"reason": raw}
-                found.append(Example(i + 1, heading, kind, options, "\n".join(lines[i + 1 : end]) + "\n"))
+                found.append(
+                    Example(page, i + 1, heading, kind, options, "\n".join(lines[i + 1 : end]) + "\n")
+                )
             i = end
         i += 1
     return found
@@ -118,20 +137,20 @@ def test_coverage_of_the_readme_examples() -> None:
     found = examples()
     by_kind = {kind: [e for e in found if e.kind == kind] for kind in ("runnable", "manual", "unmarked")}
     counts = ", ".join(f"{kind} {len(items)}" for kind, items in by_kind.items())
-    print(f"\nREADME sh examples: {len(found)}: {counts} (runnable: run here or by the test named)")
+    print(f"\nREADME and docs sh examples: {len(found)}: {counts} (runnable: run here or by the test named)")
     for e in found:
         detail = e.options.get("reason") or e.options.get("covered-by", "")
-        print(f"  {e.kind:9} line {e.line:5} {e.heading[:40]:40} {detail}")
+        print(f"  {e.kind:9} {e.page:26} line {e.line:5} {e.heading[:40]:40} {detail}")
     assert len(by_kind["runnable"]) >= 6
     for e in by_kind["manual"]:
-        assert e.options["reason"], f"README line {e.line}: a manual example says why it cannot run here"
+        assert e.options["reason"], f"{e.page} line {e.line}: a manual example says why it cannot run here"
     for e in by_kind["runnable"]:
         assert set(e.options) <= {"timeout", "covered-by"}, (
-            f"README line {e.line}: unknown option {e.options}"
+            f"{e.page} line {e.line}: unknown option {e.options}"
         )
         covered = e.options.get("covered-by")
         if covered:
-            assert (ROOT / covered).is_file(), f"README line {e.line}: {covered} does not exist"
+            assert (ROOT / covered).is_file(), f"{e.page} line {e.line}: {covered} does not exist"
             assert "README" in (ROOT / covered).read_text(encoding="utf-8")
 
 
@@ -202,7 +221,7 @@ def test_agents_on_the_emulator_are_told_its_slots() -> None:
         agents = [line for line in e.text.splitlines() if "swarm agent " in line]
         if nodes and int(nodes.group(1)) > 2 and agents:
             for line in agents:
-                assert f"--slots {nodes.group(1)}" in line, f"README line {e.line}: {line.strip()}"
+                assert f"--slots {nodes.group(1)}" in line, f"{e.page} line {e.line}: {line.strip()}"
 
 
 @pytest.mark.waits  # the README's fixed ports (TCP 5760...): one session with test_readme_driver.py
@@ -230,7 +249,7 @@ def test_readme_example_runs_as_written(example: Example, tmp_path: Path) -> Non
         log.seek(0)
         out = log.read().decode(errors="replace")
     if proc.returncode == -signal.SIGKILL:
-        pytest.fail(f"README line {example.line} did not finish within {timeout:g} s:\n{out[-3000:]}")
+        pytest.fail(f"{example.page} line {example.line} did not finish within {timeout:g} s:\n{out[-3000:]}")
     # a helper that ends by itself once its parent has gone (multiprocessing's resource
     # tracker) is not left running: give the session a few seconds to empty
     deadline = time.monotonic() + LINGER_S
@@ -241,6 +260,8 @@ def test_readme_example_runs_as_written(example: Example, tmp_path: Path) -> Non
             os.kill(int(entry.split()[0]), signal.SIGKILL)
         except ProcessLookupError:
             pass
-    assert proc.returncode == 0, f"README line {example.line} exited {proc.returncode}:\n{out[-3000:]}"
-    assert "Traceback" not in out, f"README line {example.line} printed a traceback:\n{out[-3000:]}"
-    assert not left, f"README line {example.line} left processes running: {left}\n{out[-2000:]}"
+    assert proc.returncode == 0, (
+        f"{example.page} line {example.line} exited {proc.returncode}:\n{out[-3000:]}"
+    )
+    assert "Traceback" not in out, f"{example.page} line {example.line} printed a traceback:\n{out[-3000:]}"
+    assert not left, f"{example.page} line {example.line} left processes running: {left}\n{out[-2000:]}"

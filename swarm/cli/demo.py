@@ -154,7 +154,7 @@ class DemoConfig:
             if sitl.find_sitl() is None:
                 raise ValueError(
                     f"--autopilot {self.autopilot}: no SITL folder found: build ArduCopter and PX4 SITL "
-                    "and set SITL_DIR to their folder (README, 'Real autopilots')"
+                    "and set SITL_DIR to their folder (docs/autopilots.md, 'Real autopilots')"
                 )
             for kind in sorted(set(self.kinds())):
                 try:

@@ -71,7 +71,7 @@ class Verdict:
 
 
 #: where the user is sent for certificates
-CERTS_HINT = "use tls/ endpoints with certificates (swarm certs; README, Zenoh over IP)"
+CERTS_HINT = "use tls/ endpoints with certificates (swarm certs; docs/security.md, Zenoh over IP)"
 
 
 def key_over_ip(endpoints: Sequence[str], *, has_key: bool) -> Verdict | None:

@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 Every request passes :meth:`Guard.middleware` before any route, which checks, in
-this order (README, "Security"):
+this order (docs/security.md):
 
 1. ``Host`` must name this station: a localhost name, a loopback address, the
    listening address (any address when listening on all of them) or a name the

@@ -9,7 +9,7 @@ feed (``add_listener``). The server runs an asyncio loop on its own thread;
 :meth:`GcsServer.start` returns once the socket listens (or raises
 :class:`ServerError`, e.g. the port is taken).
 
-Routes (README, "Ground station", documents the bodies):
+Routes (docs/station.md documents the bodies):
 
 * ``GET /``, ``/static/<path>`` (``swarm/runtime/static``), ``/vendor/leaflet/<path>``
   (``swarm/runtime/vendor/leaflet``: the pinned Leaflet, vendored with its licence),
@@ -26,7 +26,7 @@ Routes (README, "Ground station", documents the bodies):
   commands and replay controls from the client. ``GET /api/state`` (the page's
   fallback while the socket is down) is always the whole state.
 
-Who may use it (README, "Security": Host, Origin, token) is checked by one
+Who may use it (docs/security.md: Host, Origin, token) is checked by one
 middleware before any route, :meth:`swarm.runtime.security.Guard.middleware`;
 bodies are read and parsed by the same module's :func:`~swarm.runtime.security.read_json`
 and :func:`~swarm.runtime.security.parse_json` (each refusal a status and a one-line

@@ -17,7 +17,7 @@ first)``, any other warning to ``on_warning(text)`` once per distinct text.
 set up once per process, so one watch per process: the router's
 (``swarm router``), started just before its session opens. The access control's
 decisions are ``TRACE`` lines, one or two per message the router passes: measured
-in the README ("Zenoh over IP"). Zenoh's threads wait on a full pipe, so the reader
+in the docs/security.md ("Zenoh over IP"). Zenoh's threads wait on a full pipe, so the reader
 must keep up: the pipe holds 1 MiB of lines for a burst.
 """
 

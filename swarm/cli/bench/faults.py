@@ -580,7 +580,7 @@ def ip_attacker(bench: FaultBench) -> FaultResult:
     station's ARM and TAKEOFF to every agent (on its inbox and its command key), a
     phantom leader's Advertize and Heartbeats, and ask the stations' command keys.
     Nothing may be executed, followed or learnt; the only listeners are the station's
-    page (its own security: README, "The ground station's API") and the vehicle
+    page (its own security: docs/security.md, "The ground station's API") and the vehicle
     simulators' MAVLink ports (the simulator's, not the swarm's)."""
     from swarm.cli.bench.ip_attack import attack, executed, listeners
 

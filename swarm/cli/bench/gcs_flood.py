@@ -17,7 +17,7 @@ accepted) are timed:
   ``flood_attacker_opened_during`` of them from the moment the station was full to
   the attacker's first report after the operator's requests (it reports once a
   second), ``flood_closed_by_station``: those the station closed (the oldest idle
-  ones, to make room: README, "The ground station's API");
+  ones, to make room: docs/security.md, "The ground station's API");
 * ``flood_station_cpu_percent`` (of one core) and ``flood_station_log_lines``: what
   the flood cost the station, and the lines it wrote about it.
 

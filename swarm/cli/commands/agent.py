@@ -422,7 +422,7 @@ def _check_arguments(a: argparse.Namespace) -> None:
         raise UsageError(f"--swarm-name {a.swarm_name!r}: 1 to 16 letters, digits, '_' or '-'")
     a.node = node_options(a, "an agent")
     unsafe = None if a.key is None else secret_file_problem(a.key, KEY)
-    if unsafe is not None:  # the swarm's key, readable by others (README, "Security")
+    if unsafe is not None:  # the swarm's key, readable by others (docs/security.md)
         raise UsageError(f"--key {unsafe}")
     a.fence = fence_from(a)
     if a.round_s is None:
@@ -586,7 +586,8 @@ def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> in
     first = a.radio_check_period * (1.0 + random.random())
     checks = CheckSchedule(a.radio_check_period, a.radio_recheck, time.monotonic(), first)
     isolated = _Isolation(agent)
-    service = Service(agent.loop_beats)  # systemd's READY and WATCHDOG (README, "Run as a service")
+    # systemd's READY and WATCHDOG (docs/deployment.md, "Run as a service")
+    service = Service(agent.loop_beats)
     try:
         out.open(agent)
         service.ready(f"agent {a.name} id={a.id} {agent.describe()} ready")

@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 Zenoh over IP is authenticated by mutual TLS and authorised by Zenoh's access control
-(README, "Zenoh over IP"); this command makes what both need, in one folder kept on
+(docs/security.md, "Zenoh over IP"); this command makes what both need, in one folder kept on
 the machine where certificates are made (the CA's private key never leaves it):
 
 * ``swarm certs ca DIR [--days N]``: the CA, ``DIR/ca.key`` (0600) and ``DIR/ca.pem``;

@@ -12,7 +12,7 @@ commands need the swarm key, or ``--allow-unsigned-remote``).
 The page and the API answer only their own page, under this machine's names
 (``--allow-host NAME`` adds one) and, beyond loopback, only with the station's token
 (``--token``, ``--token-file``, or one generated and printed once in the ready
-line's address ``.../?token=...``); README, "Security".
+line's address ``.../?token=...``); docs/security.md.
 
 It prints one ready line once the HTTP server listens (``--json``:
 ``{"event": "ready", "url", "name", "id", "link", "replay", "token", ...}``), then one line per
@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-# -- alerts (README, "Alerts and link health") -----------------------------------------
+# -- alerts (docs/station.md, "Alerts and link health") -----------------------------------------
 
 
 def _add_alert_arguments(p: argparse.ArgumentParser) -> None:
@@ -173,7 +173,7 @@ def _station_config(a: argparse.Namespace) -> Any:
     return StationConfig(alerts=alerts, fence=a.fence)
 
 
-# -- who may use the page and the API (README, "Security") ----------------------------
+# -- who may use the page and the API (docs/security.md) ----------------------------
 
 
 def _add_security_arguments(p: argparse.ArgumentParser) -> None:
@@ -497,7 +497,7 @@ def _run(a: argparse.Namespace, cfg: ServerConfig, stop: StopFlag) -> int:
     raise_file_limit()
     station = _open_station(a)
     server = None
-    service: Service | None = None  # systemd's READY and WATCHDOG (README, "Run as a service")
+    service: Service | None = None  # systemd's READY and WATCHDOG (docs/deployment.md, "Run as a service")
     lock = threading.Lock()
 
     def on_event(ev: dict[str, Any]) -> None:

@@ -5,7 +5,7 @@ Theory of operation
 Stations on radios join one Zenoh network over IP (``swarm gcs --radio ...
 --zenoh-connect tls/ROUTER:7447``): each connects to a router, and routers to each
 other (``--connect``), Zenoh's own routing carries the stations' ``gcs/...`` key space
-between them (README, "Several radios and stations"). This command is a Zenoh session
+between them (docs/station.md, "Several radios and stations"). This command is a Zenoh session
 in router mode that takes messages of at most 2 MiB (a station's envelope is at most 1
 MiB; Zenoh's own bound is 1 GiB): Eclipse's ``zenohd`` does the same job in the field
 (``zenohd -l tls/0.0.0.0:7447`` with ``transport.link.rx.max_message_size`` set so, and

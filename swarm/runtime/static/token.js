@@ -1,4 +1,4 @@
-/* Ground station page: the station's token (README, "The ground station's API").
+/* Ground station page: the station's token (docs/security.md, "The ground station's API").
  *
  * Theory of operation
  * -------------------

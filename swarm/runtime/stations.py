@@ -64,6 +64,10 @@ MAX_EVENTS = 200
 MAX_NOTES = 1000  # the fleet's own events (collisions) it says at most, each once
 
 
+#: tries of another station's alert acknowledgement left unanswered (it is idempotent)
+ACK_TRIES = 3
+
+
 class Fleet:
     """Channels (``(net name, Station)``) and the other stations' agents as one station."""
 
@@ -293,16 +297,23 @@ class Fleet:
             if not alive:
                 raise CommandRefused(409, f"station {station} is gone: acknowledge it there")
             assert fed is not None
-
-            def said(f: Future[Result]) -> None:
-                status, body = f.result()
-                if status != 200:
-                    why = body.get("error", status)
-                    self.note("federation", f"station {station} refused the ack of alert {alert_id}: {why}")
-
-            fed.request(station, {"kind": "ack_alert", "id": alert_id}).add_done_callback(said)
+            self._ack_there(fed, station, alert_id, 1)
             return {**alert, "station": station, "acked": True, "forwarded": True}
         raise CommandRefused(404, f"no station {text(station, 32)!r} heard here")
+
+    def _ack_there(self, fed: Federation, station: str, alert_id: int, attempt: int) -> None:
+        """Ask ``station`` to acknowledge its alert; unanswered (an idempotent ack), ask
+        again up to :data:`ACK_TRIES` times; refused or never answered: one log line."""
+
+        def said(f: Future[Result]) -> None:
+            status, body = f.result()
+            if status in (503, 504) and attempt < ACK_TRIES:
+                self._ack_there(fed, station, alert_id, attempt + 1)
+            elif status != 200:
+                why = body.get("error", status)
+                self.note("federation", f"station {station} refused the ack of alert {alert_id}: {why}")
+
+        fed.request(station, {"kind": "ack_alert", "id": alert_id}).add_done_callback(said)
 
     # -- commands -------------------------------------------------------------------------
     def _holder(self, agent_id: int) -> tuple[str, Station] | None:

@@ -81,8 +81,8 @@ demo: $(STAMP)
 
 # Static checks, shared by both test targets.
 check: setup
-	$(BIN)/ruff check radios firmware_bridge swarm tests
-	$(BIN)/ruff format --check radios firmware_bridge swarm tests
+	$(BIN)/ruff check radios firmware_bridge swarm tests tools docs/conf.py
+	$(BIN)/ruff format --check radios firmware_bridge swarm tests tools docs/conf.py
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
 

@@ -44,9 +44,10 @@ __all__ = ["KINDS", "Sitl", "SitlError", "find_sitl", "script", "start"]
 Kind = Literal["ardupilot", "px4"]
 KINDS: tuple[Kind, ...] = ("ardupilot", "px4")
 SCRIPTS = {"ardupilot": "run-arducopter", "px4": "run-px4"}
-#: instance numbers tried, per kind (0, the scripts' default, is left to a SITL of the user's own;
-#: PX4's 14540+N must stay below its GCS port 14550)
-INSTANCES = {"ardupilot": range(1, 60), "px4": range(1, 10)}
+#: instance numbers tried, per kind: the low ones are left to the user's own autopilots and
+#: simulators on their default ports (ArduPilot TCP 5760, 5770, 5790: instances 0, 1 and 3;
+#: PX4 UDP 14540-14542: `swarm sim --vehicles 3`); PX4's 14540+N stays below its GCS port 14550
+INSTANCES = {"ardupilot": range(4, 60), "px4": range(3, 10)}
 STOP_S = 10.0  # SIGTERM, then SIGKILL after this long
 LOCK_DIR = Path(tempfile.gettempdir()) / "swarm-sitl-locks"
 

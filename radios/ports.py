@@ -25,7 +25,6 @@ import os
 import random
 import socket
 import stat
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -40,7 +39,9 @@ LOWEST = 10000
 #: how long a drawn port is kept from every other draw (a child binds it long before)
 LEASE_S = 600.0
 #: the registry of drawn ports: "port expiry" lines (None: no registry)
-REGISTRY: Path | None = Path(tempfile.gettempdir()) / f"uav-swarm-ports-{os.getuid()}"
+#: (in /tmp whatever TMPDIR says: every process of the user must find the same file, and
+#: a program that cleans its own TMPDIR, as the demo does, must not find it there)
+REGISTRY: Path | None = Path("/tmp") / f"uav-swarm-ports-{os.getuid()}"
 _DEFAULT = Path("/")  # "the module's REGISTRY" (read when called: tests point it elsewhere)
 
 

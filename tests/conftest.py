@@ -5,83 +5,72 @@ can import them by name for their annotations.
 Markers (registered in pyproject.toml): ``processes`` marks the tests that start
 processes, radios emulated in real time, Zenoh sessions or a browser and take
 seconds each; ``make test-quick`` leaves them out, ``make test`` runs them all.
+``timing`` marks the tests that judge time: a rate, a duration, a latency, CPU, or an
+error measured while flying in real time.
 
-``make test`` runs three pytest sessions side by side (``tests/run_all.sh``). The
-process tests run in real time and some judge rates, formation errors or recovery on
-a shared machine, so they stay one after another in one session, as they always
-ran; the other session runs the tests that start no process, then the light process
-tests (:data:`LIGHT`, marked ``light`` here: AT commands over ptys, a wheel build,
-the pre-flight check, pages and stations checked for what they show: no rates or
-durations judged), balancing the two sessions' lengths. A third session runs the few
-long process tests marked ``waits`` in their modules: they mostly wait out a fixed
-stretch of real time (a recorded 41.5 s boot, a minute of uptime) with little CPU,
-and the README's runnable examples, which share the README's fixed ports.
+``make test`` (``tests/run_all.sh``) runs every test that judges no time in parallel
+pytest-xdist workers, then the ``timing`` tests one after another in a session of
+their own. In the workers, the tests of a module that starts processes stay together
+on one worker, in their order (:func:`pytest_collection_modifyitems`: they share
+module-wide benches, and some stop a part of one), and the tests that need fixed ports
+or the machine's real autopilots are grouped so that no two of them run at once.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from net_helpers import ManualClock
 
-#: process-test modules light enough to run beside the real-time ones (marked ``light``)
-LIGHT = frozenset(
+#: modules whose tests need the same fixed ports (TCP 5760, the docs' simulator example
+#: on 5760-5790 and 14540-14542): one worker runs them one after another
+FIXED_PORTS = frozenset({"test_readme_driver.py", "test_readme_examples.py"})
+
+
+#: the real autopilots' tests in two groups of about four minutes each: the conformance
+#: bench alone in one, every other in the other (PX4 SITL takes most of a core)
+SITL_ALONE = frozenset({"test_the_conformance_bench_flies_both_real_autopilots_beside_the_simulator"})
+#: tests of a minute or more outside those groups: started with the first, not last
+LONG = frozenset(
     {
-        "test_sik_guard.py",
-        "test_radio_config_readme.py",
-        "test_radio_config.py",
-        "test_sik_aes_config.py",
-        "test_sik_config.py",
-        "test_doctor_bench.py",
-        "test_packaging.py",
-        "test_readme_driver.py",  # one simulated vehicle, mostly waiting out its boot
-        "test_readme_examples.py",  # small emulators, agents and simulators for seconds each; no rates judged
-        "test_cold_start.py",  # the same, with an agent and a station
-        "test_federation.py",  # stations' Zenoh sessions in one process: what crosses, not how fast
-        "test_fleet_view.py",  # two stations' sessions in one process: the merged view
-        "test_fleet_stations_page.py",  # 3 stations, a router, a browser: what they show
-        "test_fleet_processes.py",  # 2 channels, 2 stations, a router: what the API shows and answers
-        # the IP edge: routers, TLS and the ACL, attacks: what gets in, not how fast
-        "test_ip_edge_deployment.py",
-        "test_ip_edge_attack.py",
-        "test_zenoh_tls.py",
-        "test_zenoh_tls_agents.py",
-        "test_federation_restart.py",
-        "test_federation_future.py",
-        "test_secret_files.py",  # refused at start: one line and the exit code
-        "test_gcs_connections.py",
-        # pages and stations checked for what they show and answer, not for how fast
-        "test_fleet_page.py",
-        "test_altitude_page.py",
-        "test_alerts_processes.py",
-        "test_command_results_processes.py",
-        "test_gcs_push.py",
-        "test_geofence_api.py",
-        "test_gcs_sysid.py",
-        "test_gcs_offline_map.py",
-        "test_replay_capture_processes.py",
-        "test_plan_page.py",
-        "test_sim_parallel.py",  # virtual time: the figures do not depend on the machine
-        "test_sim_campaign.py",  # the same
-        "test_tdm_election.py",  # virtual time, in-process
-        "test_station_swarms.py",
-        "test_swarms_page.py",
-        "test_caps.py",  # the size cap: virtual time and in-process commands only
-        "test_subswarm_processes.py",  # six agents, one channel: what the station shows
-        "test_sim_channels.py",  # virtual time: channels, the relay, the scale bench's quick shape
-        "test_sim_events.py",  # in-process, virtual time
-        "test_own_ack.py",  # the core alone and three replays, virtual time
+        "test_bounded_campaign_has_no_violation",
+        "test_a_cold_start_sends_no_pose_before_the_fix_and_reports_the_refusals_it_met",
     }
 )
 
 
-@pytest.hookimpl(tryfirst=True)  # before ``-m`` selects by markers
+def _group(item: pytest.Item, with_processes: set[Path]) -> str | None:
+    if item.get_closest_marker("sitl") is not None:
+        name = getattr(item, "originalname", item.name)
+        return "sitl-bench" if name in SITL_ALONE else "sitl"
+    if item.path.name in FIXED_PORTS:
+        return "fixed-ports"
+    if item.path in with_processes:
+        return item.path.stem
+    return None
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The process tests of :data:`LIGHT`'s modules are ``light`` too."""
-    for item in items:
-        if item.path.name in LIGHT and item.get_closest_marker("processes") is not None:
-            item.add_marker(pytest.mark.light)
+    """Groups for pytest-xdist's ``--dist loadgroup``: the real autopilots' tests in two
+    groups (one of them checks that no autopilot of its own outlives it; PX4 takes most
+    of a core), the fixed-port tests together, and each module that starts processes on
+    one worker; every other test goes wherever a worker is free. The longest groups come
+    first (the real autopilots, the fixed ports, then the process modules), so that
+    they start at once instead of ending the session; the order is the same in every
+    worker, as xdist requires."""
+    with_processes = {i.path for i in items if i.get_closest_marker("processes") is not None}
+    rank: dict[str, int] = {"sitl-bench": 0, "sitl": 1, "fixed-ports": 2}
+    keyed = []
+    for index, item in enumerate(items):
+        group = None if item.get_closest_marker("xdist_group") is not None else _group(item, with_processes)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+        long = getattr(item, "originalname", item.name) in LONG
+        keyed.append((2 if long else rank.get(group or "", 3 if group else 4), index, item))
+    items[:] = [item for _, _, item in sorted(keyed, key=lambda k: (k[0], k[1]))]
 
 
 class _SitlGate:

@@ -26,7 +26,8 @@ from swarm.core.messages import AgentState, Phase
 from swarm.runtime.bridge import RadioBridge
 from swarm.runtime.transport import Transport, open_session
 
-pytestmark = pytest.mark.processes  # five agent processes on emulated radios
+# timing: survivors exit within 2 s of SIGTERM
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # five agent processes on emulated radios
 
 N = 5
 ELECT_DEADLINE = 90.0  # radios' hop lock plus three 2 s windows: ~8 s seen; bounds a failure

@@ -14,11 +14,11 @@ from net_helpers import wait_until
 from swarm.cli.bench.faults import FAULTS_QUICK, run_faults
 from swarm.cli.procs import Child
 
-pytestmark = pytest.mark.processes  # the bench's processes through a fault campaign
+# timing: dual-leader seconds within the leader timeout, replays within the minute
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # the bench's processes through a fault campaign
 
 
 @pytest.mark.timeout(900)
-@pytest.mark.waits  # members up for 75 s before the restart fault; a third of a core
 def test_signed_swarm_survives_the_bounded_fault_campaign() -> None:
     lines: list[str] = []
     result = run_faults(FAULTS_QUICK, log=lines.append, member_uptime_s=75.0)

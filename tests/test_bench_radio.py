@@ -10,7 +10,8 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.processes  # the radio benchmark's processes
+# timing: the radio benchmark: goodput, latency, CPU
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # the radio benchmark's processes
 
 FIELDS = (
     "air_speed_kbps",

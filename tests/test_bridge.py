@@ -55,7 +55,8 @@ from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 from swarm.runtime.bridge import BridgeConfig, RadioBridge
 from swarm.runtime.transport import Transport, open_session
 
-pytestmark = pytest.mark.processes  # bridges on a radio emulator process and Zenoh
+# timing: frames merged within the bridge's 5 ms hold (the module's shared networks)
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # bridges on a radio emulator process and Zenoh
 
 DEADLINE = 20.0  # anything crossing the emulated air (a TDM round is 0.24-0.4 s)
 LOCK_DEADLINE = 60.0  # radios find each other's hopping sequence

@@ -19,7 +19,8 @@ from net_helpers import free_port
 
 from swarm.cli.procs import start_emulator
 
-pytestmark = pytest.mark.processes  # bridge processes on emulated radios and Zenoh
+# timing: the share of frames through in a fixed 6 s window
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # bridge processes on emulated radios and Zenoh
 
 NODE = Path(__file__).resolve().parent / "bridge_node.py"
 ROOT = NODE.parent.parent

@@ -18,7 +18,6 @@ from swarm.cli.bench import cold_start
 pytestmark = pytest.mark.processes  # emulator, swarm sim, swarm agent, a station: real time
 
 
-@pytest.mark.waits  # the 41.5 s recorded boot, then a take-off: little CPU
 def test_a_cold_start_sends_no_pose_before_the_fix_and_reports_the_refusals_it_met() -> None:
     r = cold_start.run(quick=False)
     assert r["boot_s"] > 40.0  # the recorded boot, not a shortened one

@@ -20,7 +20,8 @@ from swarm.core.station import StationConfig
 from swarm.runtime.server import GcsServer, ServerConfig
 from swarm.runtime.station import Station
 
-pytestmark = pytest.mark.processes  # a browser against a running station
+# timing: telemetry within a shortened 3 s give-up
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # a browser against a running station
 
 
 class HomingAgent(ScriptedAgent):

@@ -12,7 +12,8 @@ import pytest
 
 from swarm.cli.bench.commands import run
 
-pytestmark = pytest.mark.processes  # agent and station processes at 20 % loss
+# timing: each command through within 12 s of retries at 20 % loss
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # agent and station processes at 20 % loss
 
 
 def check(figures: dict[str, Any], n: int) -> None:

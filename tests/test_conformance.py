@@ -258,6 +258,7 @@ def test_live_replay_through_the_runner_conforms(trace: Path) -> None:
     assert ratios and all(x is not None and 0.8 <= x <= 1.2 for x in ratios), r["timings"]
 
 
+@pytest.mark.timing  # a live replay at 10x matched ack for ack
 @pytest.mark.processes
 def test_live_replay_of_the_boot_through_the_runner() -> None:
     """The flight trace's first 25 s (boot and refused arms) live at speedup 10: about 3 s."""

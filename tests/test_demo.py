@@ -71,6 +71,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, object], P
     return json.loads(p.stdout), d, tmp, p.returncode
 
 
+@pytest.mark.timing  # the slot error of a flight in real time (the module-wide demo)
 def test_demo_elects_flies_in_formation_and_summarises(
     demo: tuple[dict[str, object], Path, Path, int],
 ) -> None:
@@ -97,6 +98,7 @@ def test_demo_elects_flies_in_formation_and_summarises(
     assert set(s["per_member"]) == {str(k) for k in (1, 2, 3) if k != s["leader"]}  # type: ignore[arg-type]
 
 
+@pytest.mark.timing  # the slot error of a flight in real time (the module-wide demo)
 def test_replay_plots_the_demo_capture(
     demo: tuple[dict[str, object], Path, Path, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

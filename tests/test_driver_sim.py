@@ -55,6 +55,7 @@ def _wait_telemetry(v: drv.Vehicle) -> drv.VehicleState:
     return v.wait_for(lambda s: s.ned is not None and s.rel_alt is not None and s.gps_ok, 15.0, "telemetry")
 
 
+@pytest.mark.timing  # setpoint gaps under 0.25 s
 @pytest.mark.parametrize("profile", PROFILES)
 def test_takeoff_then_20m_north(make_sim: Any, profile: str) -> None:
     _, endpoint = make_sim(profile)
@@ -163,6 +164,7 @@ def test_rejected_arm_carries_text(make_sim: Any, profile: str) -> None:
         assert not v.state.armed
 
 
+@pytest.mark.timing  # a 0.5 s link timeout
 @pytest.mark.parametrize("profile", PROFILES)
 def test_lost_link_detected(make_sim: Any, profile: str) -> None:
     sim, endpoint = make_sim(profile)

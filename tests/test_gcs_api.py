@@ -221,6 +221,7 @@ def test_config_state_and_agent(live: dict[str, Any]) -> None:
     assert st == 404 and "replay" in err["error"]
 
 
+@pytest.mark.timing  # six retries in a 12 s window
 @pytest.mark.processes
 def test_commands_acked_rejected_and_unanswered(live: dict[str, Any]) -> None:
     base, agents = live["base"], live["agents"]

@@ -29,7 +29,8 @@ from test_gcs_api import ScriptedAgent
 from swarm.cli.bench.gcs_flood import CONNECTIONS, Flood, limited_station, operator_request
 from swarm.core.messages import CommandKind, Phase
 
-pytestmark = pytest.mark.processes
+# timing: requests per second and answers within 10 s under a flood
+pytestmark = [pytest.mark.processes, pytest.mark.timing]
 
 DEADLINE = 60.0
 #: an operator's request during the flood is answered within this, or it failed (three SYN

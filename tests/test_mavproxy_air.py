@@ -10,7 +10,8 @@ from __future__ import annotations
 import pytest
 from mavproxy_air import measure
 
-pytestmark = pytest.mark.processes  # an emulator thread on real ptys, for 8 s
+# timing: frames per second on air, each frame on air within 1 s
+pytestmark = [pytest.mark.processes, pytest.mark.timing]  # an emulator thread on real ptys, for 8 s
 
 
 def test_recommended_mavproxy_sends_only_its_heartbeat() -> None:

@@ -64,7 +64,7 @@ print(" ".join(str(ports.free_port("tcp")) for _ in range(100)))
 
 
 def _draw_side_by_side(tmp_path: Path, registry: str) -> tuple[set[int], set[int]]:
-    base = ports.free_port_range(300, "tcp")  # 300 ports nobody listens on a moment ago
+    base = ports.free_port_range(300, "tcp", registry=None)  # 300 ports nobody listened on
     start = f"{time.time() + 3:.3f}"
     procs = [
         subprocess.Popen(

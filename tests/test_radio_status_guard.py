@@ -238,6 +238,7 @@ def swarm(tmp_path: Path) -> Iterator[tuple[list[RadioBridge], PoseRecorder, Any
 
 
 # txbuf 45 (reports rejected only as second reports) takes another 34 s: with the slow ones
+@pytest.mark.timing  # pose rates over 15 s windows
 @pytest.mark.parametrize("txbuf", [0, pytest.param(45, marks=pytest.mark.slow)])
 def test_rogue_radio_status_stream_slows_poses_by_at_most_a_fifth(
     swarm: tuple[list[RadioBridge], PoseRecorder, Any, list[Transport]], txbuf: int

@@ -49,7 +49,6 @@ def test_the_example_is_the_cold_start_one() -> None:
     assert "python3 fly.py" in lines[0]
 
 
-@pytest.mark.waits  # a 41.5 s recorded boot (little CPU); TCP 5760 as test_readme_examples.py
 def test_readme_driver_example_runs_as_written_against_a_booting_autopilot(tmp_path: Path) -> None:
     with socket.socket() as s:  # the README's fixed port: say so plainly if something holds it
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)

@@ -224,7 +224,6 @@ def test_agents_on_the_emulator_are_told_its_slots() -> None:
                 assert f"--slots {nodes.group(1)}" in line, f"{e.page} line {e.line}: {line.strip()}"
 
 
-@pytest.mark.waits  # the README's fixed ports (TCP 5760...): one session with test_readme_driver.py
 @pytest.mark.parametrize("example", runnable(), ids=lambda e: e.name)
 def test_readme_example_runs_as_written(example: Example, tmp_path: Path) -> None:
     timeout = float(example.options.get("timeout", DEFAULT_TIMEOUT)) * SLACK

@@ -75,6 +75,7 @@ def take_off(sim: VehicleSim, c: mavutil.mavfile, alt: float = 10.0) -> None:
     settle(sim, (0.0, 0.0, -alt), 0.3)
 
 
+@pytest.mark.timing  # a count of positions in 2 s
 def test_heartbeat_and_no_streams_until_requested(sim: VehicleSim, conn: mavutil.mavfile) -> None:
     hb = wait_msg(conn, "HEARTBEAT")
     assert hb.autopilot == 3 and hb.type == 2 and hb.custom_mode == 0  # STABILIZE

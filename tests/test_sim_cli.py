@@ -28,6 +28,7 @@ def free_port(kind: int) -> int:
     return net_helpers.free_port("udp" if kind == socket.SOCK_DGRAM else "tcp")
 
 
+@pytest.mark.timing  # exit within 5 s of SIGTERM
 def test_ready_lines_client_and_sigterm() -> None:
     base = free_port(socket.SOCK_STREAM)
     p = run("--vehicles", "2", "--profile", "ardupilot", "--base-port", str(base), "--speedup", "2")

@@ -135,6 +135,7 @@ def test_unknown_command_unsupported_and_other_sysid_ignored(sim: VehicleSim) ->
     assert not sim.vehicle(0).state.armed
 
 
+@pytest.mark.timing  # a 20 Hz setpoint stream never paused 0.5 s; the failsafe within 3 s
 def test_offboard_rules_flight_and_failsafe(slow_sim: VehicleSim) -> None:
     sim = slow_sim
     c = connect(sim.endpoints[0])
@@ -209,6 +210,7 @@ def test_nav_takeoff_amsl_then_land(sim: VehicleSim) -> None:
     assert sim.vehicle(0).state.landed_state == 1
 
 
+@pytest.mark.timing  # heartbeats back within 0.8 s
 def test_drop_link_silences_heartbeats(sim: VehicleSim) -> None:
     c = connect(sim.endpoints[0])
     wait_msg(c, "HEARTBEAT")

@@ -325,9 +325,30 @@ def test_install_into_a_folder_that_is_not_one_is_bad_input(
 NOBODY = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
 
 
+def check_nobody_can_run_the_checkout() -> None:
+    """Fail in one clear line when user nobody cannot run this checkout's interpreter
+    and package (a clone under a private 0700 folder): what the test needs, not a bug."""
+    probe = subprocess.run(
+        [*NOBODY, sys.executable, "-c", "import swarm.cli.commands.service"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd="/",
+    )
+    if probe.returncode != 0:
+        last = (probe.stderr.strip().splitlines() or ["no output"])[-1]
+        pytest.fail(
+            f"user nobody cannot run {sys.executable} with this checkout ({last}): a folder on the "
+            "way is private (mode 0700?); this test runs `swarm service install` as nobody: make the "
+            "folders traversable (chmod o+x) or clone where other users may read",
+            pytrace=False,
+        )
+
+
 @pytest.mark.processes
 def test_install_into_etc_needs_root_in_one_line(tmp_path: Path) -> None:
     """As a user without root (nobody): one line, exit 1, nothing written."""
+    check_nobody_can_run_the_checkout()
     proc = subprocess.run(
         [*NOBODY, sys.executable, "-m", "swarm.cli", "service", "install", "agent"],
         capture_output=True,

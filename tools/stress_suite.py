@@ -23,6 +23,7 @@ import re
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     recorded = datetime.datetime.now(datetime.UTC)
     try:
         for i in range(1, args.runs + 1):
-            log = args.out.parent / f".stress-run-{i}.log"
+            log = Path(tempfile.gettempdir()) / f"stress-suite-run-{i}.log"  # not in the checkout
             args.out.mkdir(parents=True, exist_ok=True)
             print(
                 f"stress-suite: run {i} of {args.runs} ({args.busy} busy loops): {args.command}", flush=True

@@ -9,11 +9,12 @@ seconds each; ``make test-quick`` leaves them out, ``make test`` runs them all.
 error measured while flying in real time.
 
 ``make test`` (``tests/run_all.sh``) runs every test that judges no time in parallel
-pytest-xdist workers, then the ``timing`` tests one after another in a session of
-their own. In the workers, the tests of a module that starts processes stay together
-on one worker, in their order (:func:`pytest_collection_modifyitems`: they share
-module-wide benches, and some stop a part of one), and the tests that need fixed ports
-or the machine's real autopilots are grouped so that no two of them run at once.
+pytest-xdist workers, then the ``timing`` tests one after another beside the tests of
+the real autopilots (``sitl``), one after another too. In the workers, the tests of a
+module that starts processes stay together on one worker, in their order
+(:func:`pytest_collection_modifyitems`: they share module-wide benches, and some stop a
+part of one), and the tests that need fixed ports are grouped so that no two of them
+run at once.
 """
 
 from __future__ import annotations
@@ -29,10 +30,7 @@ from net_helpers import ManualClock
 FIXED_PORTS = frozenset({"test_readme_driver.py", "test_readme_examples.py"})
 
 
-#: the real autopilots' tests in two groups of about four minutes each: the conformance
-#: bench alone in one, every other in the other (PX4 SITL takes most of a core)
-SITL_ALONE = frozenset({"test_the_conformance_bench_flies_both_real_autopilots_beside_the_simulator"})
-#: tests of a minute or more outside those groups: started with the first, not last
+#: tests of a minute or more: started with the first, not last
 LONG = frozenset(
     {
         "test_bounded_campaign_has_no_violation",
@@ -42,9 +40,6 @@ LONG = frozenset(
 
 
 def _group(item: pytest.Item, with_processes: set[Path]) -> str | None:
-    if item.get_closest_marker("sitl") is not None:
-        name = getattr(item, "originalname", item.name)
-        return "sitl-bench" if name in SITL_ALONE else "sitl"
     if item.path.name in FIXED_PORTS:
         return "fixed-ports"
     if item.path in with_processes:
@@ -54,15 +49,13 @@ def _group(item: pytest.Item, with_processes: set[Path]) -> str | None:
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Groups for pytest-xdist's ``--dist loadgroup``: the real autopilots' tests in two
-    groups (one of them checks that no autopilot of its own outlives it; PX4 takes most
-    of a core), the fixed-port tests together, and each module that starts processes on
-    one worker; every other test goes wherever a worker is free. The longest groups come
-    first (the real autopilots, the fixed ports, then the process modules), so that
-    they start at once instead of ending the session; the order is the same in every
-    worker, as xdist requires."""
+    """Groups for pytest-xdist's ``--dist loadgroup``: the fixed-port tests together and
+    each module that starts processes on one worker; every other test goes wherever a
+    worker is free. The longest come first (the fixed ports, the tests of a minute or
+    more, then the process modules), so that they start at once instead of ending the
+    session; the order is the same in every worker, as xdist requires."""
     with_processes = {i.path for i in items if i.get_closest_marker("processes") is not None}
-    rank: dict[str, int] = {"sitl-bench": 0, "sitl": 1, "fixed-ports": 2}
+    rank: dict[str, int] = {"fixed-ports": 1}
     keyed = []
     for index, item in enumerate(items):
         group = None if item.get_closest_marker("xdist_group") is not None else _group(item, with_processes)

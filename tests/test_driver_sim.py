@@ -144,6 +144,7 @@ def test_ardupilot_needs_guided_and_takeoff(make_sim: Any) -> None:
         assert v.state.mode == "GUIDED" and v.state.in_air
 
 
+@pytest.mark.timing  # the refusal's texts are those that arrive within a window of the ACK
 @pytest.mark.parametrize("profile", PROFILES)
 def test_rejected_arm_carries_text(make_sim: Any, profile: str) -> None:
     sim, endpoint = make_sim(profile)

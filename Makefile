@@ -1,11 +1,11 @@
 # Set-up is idempotent: a stamp file records that .venv matches pyproject.toml;
 # the browser step is a quick check once chromium is there. No npm: Leaflet is
-# vendored in the package (swarm/runtime/vendor/leaflet, see `make leaflet`).
+# vendored in the package (swarm/runtime/station/vendor/leaflet, see `make leaflet`).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-LEAFLET := swarm/runtime/vendor/leaflet
+LEAFLET := swarm/runtime/station/vendor/leaflet
 # Debian's chromium drives the page tests and the page benchmark (headless).
 CHROMIUM_PKGS := chromium fonts-dejavu-core
 CHROMIUM_BIN ?= chromium

@@ -25,9 +25,9 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from radios.link import open_link
-from swarm.core.messages import Advertize, Message, Selection
-from swarm.runtime.bridge import RadioBridge
-from swarm.runtime.transport import Transport, open_session
+from swarm.core.wire.messages import Advertize, Message, Selection
+from swarm.runtime.bridge.radio_bridge import RadioBridge
+from swarm.runtime.keyspace.transport import Transport, open_session
 
 EPOCH = 11  # marks this program's numbered messages
 

@@ -15,8 +15,8 @@ from typing import Any
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.messages import Phase
-from swarm.runtime.station import Station
+from swarm.core.wire.messages import Phase
+from swarm.runtime.station.live import Station
 
 
 @dataclass

@@ -17,8 +17,8 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.core.messages import AgentState, Phase
-from swarm.runtime.agent import (
+from swarm.core.wire.messages import AgentState, Phase
+from swarm.runtime.agent.live import (
     Agent,
     AgentConfig,
     NodeOptions,
@@ -27,7 +27,7 @@ from swarm.runtime.agent import (
     state_dict,
     vehicle_messages,
 )
-from swarm.runtime.transport import Transport
+from swarm.runtime.keyspace.transport import Transport
 
 pytestmark = pytest.mark.processes  # agents over Zenoh and radios, in real time
 
@@ -272,7 +272,7 @@ def test_cli_bad_input_exits_2_with_one_line(
 
 def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
     from swarm.cli.procs import Child
-    from swarm.core.messages import PoseReport
+    from swarm.core.wire.messages import PoseReport
 
     base = free_port()
     sim = Child(["sim", "--vehicles", "1", "--profile", "ardupilot", "--base-port", str(base)], name="sim")

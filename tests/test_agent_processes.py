@@ -22,9 +22,9 @@ from net_helpers import wait_until
 
 from radios.link import open_link
 from swarm.cli.procs import Child, start_emulator
-from swarm.core.messages import AgentState, Phase
-from swarm.runtime.bridge import RadioBridge
-from swarm.runtime.transport import Transport, open_session
+from swarm.core.wire.messages import AgentState, Phase
+from swarm.runtime.bridge.radio_bridge import RadioBridge
+from swarm.runtime.keyspace.transport import Transport, open_session
 
 # timing: survivors exit within 2 s of SIGTERM
 pytestmark = [pytest.mark.processes, pytest.mark.timing]  # five agent processes on emulated radios

@@ -1,13 +1,13 @@
-"""The radio bridge's send queue (swarm.core.air_queue): priorities, budgets, multicast,
+"""The radio bridge's send queue (swarm.core.bridge.air_queue): priorities, budgets, multicast,
 the RADIO_STATUS back-off. A pure core: driven with a manual clock, no thread, no radio."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from swarm.core.air_queue import AirItem, AirQueue, Klass
-from swarm.core.radio_guard import RADIO_COMPID, RADIO_SYSID, RadioState, RadioStatusGuard
-from swarm.core.tunnel import TUNNEL_MAX, Kind
+from swarm.core.bridge.air_queue import AirItem, AirQueue, Klass
+from swarm.core.bridge.radio_guard import RADIO_COMPID, RADIO_SYSID, RadioState, RadioStatusGuard
+from swarm.core.wire.tunnel import TUNNEL_MAX, Kind
 
 
 @dataclass

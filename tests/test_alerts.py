@@ -13,8 +13,14 @@ import pytest
 from test_gcs_station import POSE, connect, tm
 
 from firmware_bridge.sim.autopilot import BATTERY_CRITICAL, BATTERY_LOW, Autopilot
-from swarm.core.gslink import FLAG_FC_OK
-from swarm.core.messages import (
+from swarm.core.agent.gslink import FLAG_FC_OK
+from swarm.core.agent.node import AgentNode, AutopilotText, PositionFix, Send
+from swarm.core.agent.notices import SEPARATION_HOLD, NoticeConfig, NoticeGate, one_line
+from swarm.core.election.protocol import profile_by_name
+from swarm.core.station.alerts import AlertConfig, LinkHealth
+from swarm.core.station.core import CommandRefused, StationCore, parse_command
+from swarm.core.station.model import StationConfig
+from swarm.core.wire.messages import (
     NOTICE_MAX,
     AckResult,
     AgentNotice,
@@ -25,12 +31,6 @@ from swarm.core.messages import (
     decode,
     encode,
 )
-from swarm.core.node import AgentNode, AutopilotText, PositionFix, Send
-from swarm.core.notices import SEPARATION_HOLD, NoticeConfig, NoticeGate, one_line
-from swarm.core.protocol import profile_by_name
-from swarm.core.station import CommandRefused, StationCore, parse_command
-from swarm.core.station_alerts import AlertConfig, LinkHealth
-from swarm.core.station_view import StationConfig
 from swarm.errors import DecodeError, MessageError
 
 AUTO, AGENT = NoticeSource.AUTOPILOT, NoticeSource.AGENT

@@ -16,10 +16,10 @@ from gcs_security_helpers import JSON, request
 from net_helpers import free_port, wait_until
 
 from swarm.cli.procs import start_emulator
-from swarm.core.messages import AgentNotice, NoticeSource
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
-from swarm.runtime.transport import Transport
+from swarm.core.wire.messages import AgentNotice, NoticeSource
+from swarm.runtime.keyspace.transport import Transport
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 TOKEN = "alerts-test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -25,7 +25,7 @@ from gcs_browser import browser, poll, screenshot, start_station
 from net_helpers import free_port, free_port_range
 
 from swarm.cli.procs import Child
-from swarm.core.formation import offset
+from swarm.core.flight.formation import offset
 
 pytestmark = pytest.mark.processes  # a browser against a bench of processes
 

@@ -7,7 +7,7 @@ streams under the sender's name, no loops (each message delivered once per
 receiver, frames out bounded by what the node itself sent), multicast merging,
 priority under a saturated pose/telemetry load, back-off on RADIO_STATUS, bad
 input through ``handle_frame`` (never an exception), signing, and the frames of a
-capture decoding with pymavlink and ``swarm.core.messages.decode``.
+capture decoding with pymavlink and ``swarm.core.wire.messages.decode``.
 
 Nothing sleeps to hope that something happened: waits poll for an outcome until a
 generous deadline; fixed pauses only watch that nothing *more* arrives.
@@ -35,7 +35,7 @@ from radios.link import Link, open_link
 from radios.mavlink import MSG_TUNNEL, Frame, FrameBuilder, pack_frame, parse_one
 from radios.signing import key_from_passphrase
 from swarm.cli.procs import start_emulator
-from swarm.core.messages import (
+from swarm.core.wire.messages import (
     Advertize,
     AgentState,
     Heartbeat,
@@ -51,9 +51,9 @@ from swarm.core.messages import (
     decode,
     encode,
 )
-from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
-from swarm.runtime.bridge import BridgeConfig, RadioBridge
-from swarm.runtime.transport import Transport, open_session
+from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
+from swarm.runtime.bridge.radio_bridge import BridgeConfig, RadioBridge
+from swarm.runtime.keyspace.transport import Transport, open_session
 
 # timing: frames merged within the bridge's 5 ms hold (the module's shared networks)
 pytestmark = [pytest.mark.processes, pytest.mark.timing]  # bridges on a radio emulator process and Zenoh

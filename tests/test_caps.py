@@ -12,8 +12,9 @@ import pytest
 
 from swarm.cli.commands import agent as agent_cmd
 from swarm.cli.commands import simulate as simulate_cmd
-from swarm.core import caps
-from swarm.core.messages import (
+from swarm.core.election import caps
+from swarm.core.election.protocol import ADVERTIZE, FLAG_LEADER, PAPER, Core
+from swarm.core.wire.messages import (
     ADV_SIZE,
     ADV_SWARM,
     Advertize,
@@ -30,7 +31,6 @@ from swarm.core.messages import (
     encode,
     swarm_tag,
 )
-from swarm.core.protocol import ADVERTIZE, FLAG_LEADER, PAPER, Core
 from swarm.runtime.options import AgentConfig
 from swarm.sim.simulate import Scenario, Sim
 from swarm.sim.subswarms import capped_agreement, split_pairs
@@ -471,7 +471,7 @@ def test_swarm_simulate_runs_capped(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_the_agent_config_carries_the_cap_to_its_core() -> None:
-    from swarm.core.node import AgentNode
+    from swarm.core.agent.node import AgentNode
 
     node = AgentNode(3, "a3", PAPER, rng=random.Random(1), cap=6)
     assert node.core.cap == 6

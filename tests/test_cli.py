@@ -163,8 +163,8 @@ def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> Non
     """Two agents, one started with ``swarm -v``; a third node advertises both their
     ids under another name. Both report it (a pilot event on stdout); only the one
     with ``-v`` also logs it on stderr, one line with time, logger name and level."""
-    from swarm.core.messages import Advertize
-    from swarm.runtime.transport import Transport
+    from swarm.core.wire.messages import Advertize
+    from swarm.runtime.keyspace.transport import Transport
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     common = ["--zenoh-listen", ep, "--json"]
@@ -189,7 +189,7 @@ def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> Non
             wait_until(reported, "both agents to report the intruder", 60, 0.5)
         wait_until(lambda: [x for x in loud.errors if "advertises our id 1" in x], "the log line", 30)
         lines = [x for x in loud.errors if "advertises our id 1" in x]
-        assert len(lines) == 1 and " swarm.runtime.agent INFO: agent loud: " in lines[0]
+        assert len(lines) == 1 and " swarm.runtime.agent.live INFO: agent loud: " in lines[0]
         assert lines[0][:4].isdigit()  # the time first
     finally:
         for ch in kids:

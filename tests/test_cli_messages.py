@@ -20,7 +20,7 @@ from swarm.cli.commands.simulate import main as simulate_main
 from swarm.cli.commands.simulate import text_report
 from swarm.cli.util import PeerWatch
 from swarm.errors import TransportError
-from swarm.runtime.transport import open_session, session_config, zenoh_open_message
+from swarm.runtime.keyspace.transport import open_session, session_config, zenoh_open_message
 
 DEMO = Path(__file__).parent / "data" / "demo" / "demo.tlog"
 

@@ -14,8 +14,19 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, CommandLog, answer_command, mode_code, remembered
-from swarm.core.messages import (
+from swarm.core.agent.gslink import FLAG_ARMED, FLAG_FC_OK, CommandLog, answer_command, mode_code, remembered
+from swarm.core.flight.pilot import Pilot, PilotConfig, Role
+from swarm.core.station.core import (
+    CARRIED_OUT,
+    NO_ANSWER,
+    RESULTS,
+    CommandRefused,
+    CommandSpec,
+    StationConfig,
+    StationCore,
+    StOut,
+)
+from swarm.core.wire.messages import (
     AckResult,
     Command,
     CommandAck,
@@ -26,17 +37,6 @@ from swarm.core.messages import (
     Phase,
     Pose,
     Telemetry,
-)
-from swarm.core.pilot import Pilot, PilotConfig, Role
-from swarm.core.station import (
-    CARRIED_OUT,
-    NO_ANSWER,
-    RESULTS,
-    CommandRefused,
-    CommandSpec,
-    StationConfig,
-    StationCore,
-    StOut,
 )
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)

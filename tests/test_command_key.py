@@ -25,10 +25,10 @@ from net_helpers import free_port, wait_until
 
 from radios.link import open_link
 from radios.mavlink import MSG_TUNNEL, FrameBuilder, parse_one
-from swarm.core.messages import Advertize, Command, CommandKind, Heartbeat, StartPool, decode, encode
-from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind, unpack_tunnel
-from swarm.runtime.bridge import BridgeConfig, RadioBridge
-from swarm.runtime.transport import Transport, command_key, inbox_key, open_session
+from swarm.core.wire.messages import Advertize, Command, CommandKind, Heartbeat, StartPool, decode, encode
+from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind, unpack_tunnel
+from swarm.runtime.bridge.radio_bridge import BridgeConfig, RadioBridge
+from swarm.runtime.keyspace.transport import Transport, command_key, inbox_key, open_session
 
 DEADLINE = 20.0
 ARM = Command(255, 7, 2, CommandKind.ARM)
@@ -75,7 +75,7 @@ def test_a_command_goes_on_the_command_key_and_only_there_reaches_the_agent(
         # a Command put on the inbox (an agent's certificate may put there) is dropped,
         # counted, and logged once
         forged = Command(255, 8, 2, CommandKind.TAKEOFF, alt=10.0)
-        with caplog.at_level(logging.WARNING, logger="swarm.runtime.transport"):
+        with caplog.at_level(logging.WARNING, logger="swarm.runtime.keyspace.transport"):
             for _ in range(3):
                 station.session.put(inbox_key("agent2"), encode(forged))
             wait_until(lambda: agent.misplaced_commands == 3, "three misplaced Commands counted", DEADLINE)

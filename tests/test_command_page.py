@@ -15,10 +15,10 @@ from gcs_browser import browser
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.messages import Command, CommandKind, Phase
-from swarm.core.station import StationConfig
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
+from swarm.core.station.core import StationConfig
+from swarm.core.wire.messages import Command, CommandKind, Phase
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 # timing: telemetry within a shortened 3 s give-up
 pytestmark = [pytest.mark.processes, pytest.mark.timing]  # a browser against a running station

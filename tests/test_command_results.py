@@ -5,7 +5,7 @@ A pure agent node and a pure station talk in virtual time (every message deliver
 answers). The vehicle is the driver's outcome as an event: each vehicle call the
 node starts ends, after the time the scenario gives it, with the :class:`CallDone`
 the agent runtime would queue (the runtime's own mapping of the driver's errors,
-:func:`swarm.runtime.agent.call_result`, is tested on the driver's real error
+:func:`swarm.runtime.agent.live.call_result`, is tested on the driver's real error
 classes at the end). The same refusal through the real simulator, a real agent and a
 real station: tests/test_command_results_processes.py.
 """
@@ -19,8 +19,20 @@ from dataclasses import dataclass, field
 from firmware_bridge.commands import MAV_RESULT_ACCEPTED
 from firmware_bridge.errors import CommandRejected, CommandTimeout
 from firmware_bridge.session import WaitTimeout
-from swarm.core.gslink import CommandLog, short_reason
-from swarm.core.messages import (
+from swarm.core.agent.gslink import CommandLog, short_reason
+from swarm.core.agent.node import AgentNode, CallDone, CallOut, NodeOut, Send, VehicleInfo
+from swarm.core.election.protocol import profile_by_name
+from swarm.core.flight.pilot import Call
+from swarm.core.station.core import (
+    CARRIED_OUT,
+    NO_ANSWER,
+    CommandSpec,
+    Request,
+    StationConfig,
+    StationCore,
+    StOut,
+)
+from swarm.core.wire.messages import (
     REASON_MAX,
     AckResult,
     Command,
@@ -30,19 +42,7 @@ from swarm.core.messages import (
     decode,
     encode,
 )
-from swarm.core.node import AgentNode, CallDone, CallOut, NodeOut, Send, VehicleInfo
-from swarm.core.pilot import Call
-from swarm.core.protocol import profile_by_name
-from swarm.core.station import (
-    CARRIED_OUT,
-    NO_ANSWER,
-    CommandSpec,
-    Request,
-    StationConfig,
-    StationCore,
-    StOut,
-)
-from swarm.runtime.agent import call_result
+from swarm.runtime.agent.live import call_result
 
 AGENT = 3
 STATION = 255
@@ -241,8 +241,8 @@ def test_evidence_still_counts_for_a_command_in_progress() -> None:
 def flying_after_a_failsafe(b: Bench) -> None:
     """The vehicle flies 20 m up under setpoint control, then its autopilot lets go
     (PX4's setpoint-loss failsafe: AUTO.LOITER)."""
-    from swarm.core.messages import Pose
-    from swarm.core.node import OwnPose
+    from swarm.core.agent.node import OwnPose
+    from swarm.core.wire.messages import Pose
 
     here = Pose(47.397742, 8.545594, 508.0)
     b._from_node(b.node.handle(OwnPose(here, False), b.now))  # home: where it stood

@@ -22,10 +22,10 @@ from gcs_browser import browser, screenshot
 from net_helpers import free_port, wait_until
 
 from swarm.cli.procs import Child
-from swarm.core.station import StationConfig
-from swarm.runtime.agent import Agent, AgentConfig, NodeOptions
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
+from swarm.core.station.core import StationConfig
+from swarm.runtime.agent.live import Agent, AgentConfig, NodeOptions
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 pytestmark = pytest.mark.processes  # a simulator, an agent, a station and a browser
 

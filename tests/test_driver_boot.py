@@ -31,10 +31,17 @@ from firmware_bridge.telemetry import (
     arming_problems,
 )
 from radios.tlog import read_tlog
-from swarm.core.messages import Pose
-from swarm.core.node import POSITION_VALID, WAITING_FOR_POSITION, AgentNode, EventOut, OwnPose, PositionFix
-from swarm.core.protocol import NO_POSE, profile_by_name
-from swarm.runtime.vehicle import pose_from_state, vehicle_messages
+from swarm.core.agent.node import (
+    POSITION_VALID,
+    WAITING_FOR_POSITION,
+    AgentNode,
+    EventOut,
+    OwnPose,
+    PositionFix,
+)
+from swarm.core.election.protocol import NO_POSE, profile_by_name
+from swarm.core.wire.messages import Pose
+from swarm.runtime.agent.vehicle import pose_from_state, vehicle_messages
 
 mavlink: Any = ardupilotmega
 TRACES = Path(__file__).parent / "data" / "traces"
@@ -311,10 +318,10 @@ def test_wait_ready_gives_the_recorded_refusals_then_returns_when_armable(player
 
 @pytest.mark.processes
 def test_an_agent_sends_no_pose_before_the_fix_and_says_so(player: Any) -> None:
-    from swarm.core.messages import PoseReport
-    from swarm.core.pilot import Call
-    from swarm.runtime.agent import Agent, AgentConfig, NodeOptions
-    from swarm.runtime.transport import Transport
+    from swarm.core.flight.pilot import Call
+    from swarm.core.wire.messages import PoseReport
+    from swarm.runtime.agent.live import Agent, AgentConfig, NodeOptions
+    from swarm.runtime.keyspace.transport import Transport
 
     p = player(FLIGHT, speed=8.0, hold_at=1.0, until=24.0)
     ep = f"tcp/127.0.0.1:{free_port()}"

@@ -1,4 +1,4 @@
-"""Stations joined through a real Zenoh router (swarm.runtime.federation), in one
+"""Stations joined through a real Zenoh router (swarm.runtime.station.federation), in one
 process: what crosses, and a hostile sender on the IP network (a raw Zenoh session
 that reaches the router): forged and replayed commands, huge and malformed states,
 names taken, a station that goes away. The stations' own parts (``local`` and
@@ -17,9 +17,17 @@ import zenoh
 from net_helpers import free_port, wait_until
 
 from swarm.cli.commands.router import open_router
-from swarm.core.federation import KIND_COMMAND, KIND_STATE, Stamp, command_key, fed_key, seal, state_key
-from swarm.runtime.federation import MAX_STATIONS, Federation
-from swarm.runtime.transport import open_session
+from swarm.core.station.federation import (
+    KIND_COMMAND,
+    KIND_STATE,
+    Stamp,
+    command_key,
+    fed_key,
+    seal,
+    state_key,
+)
+from swarm.runtime.keyspace.transport import open_session
+from swarm.runtime.station.federation import MAX_STATIONS, Federation
 
 KEY = fed_key(b"k" * 32)
 DEADLINE = 20.0

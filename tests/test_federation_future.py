@@ -18,9 +18,9 @@ import pytest
 from net_helpers import free_port, wait_until
 
 from swarm.cli.commands.router import open_router
-from swarm.core.federation import KIND_STATE, fed_key, seal, state_key
-from swarm.runtime.federation import Federation
-from swarm.runtime.transport import open_session
+from swarm.core.station.federation import KIND_STATE, fed_key, seal, state_key
+from swarm.runtime.keyspace.transport import open_session
+from swarm.runtime.station.federation import Federation
 
 DEADLINE = 20.0
 YEAR_2100_US = 4_102_444_800 * 1_000_000

@@ -23,8 +23,8 @@ from net_helpers import wait_until
 
 from swarm.cli.bench.scale_procs import Deployment, http, led_swarms
 from swarm.cli.procs import Child, json_events
-from swarm.core.federation import HEADER, WINDOW_S, command_key
-from swarm.runtime.transport import open_session
+from swarm.core.station.federation import HEADER, WINDOW_S, command_key
+from swarm.runtime.keyspace.transport import open_session
 
 pytestmark = pytest.mark.processes  # emulators, agents, two stations and a router
 DEADLINE = 60.0

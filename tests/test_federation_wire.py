@@ -1,4 +1,4 @@
-"""The stations' envelope and what may cross between stations (swarm.core.federation):
+"""The stations' envelope and what may cross between stations (swarm.core.station.federation):
 attacks first (forged, tampered, replayed, late, huge, malformed, hostile fields), then
 the command checks on both sides. Pure: times are given."""
 
@@ -10,7 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarm.core.federation import (
+from swarm.core.flight.geofence import Geofence
+from swarm.core.station.core import CommandRefused, parse_command
+from swarm.core.station.federation import (
     KIND_COMMAND,
     KIND_RESULT,
     KIND_STATE,
@@ -27,8 +29,6 @@ from swarm.core.federation import (
     seal,
     spec_body,
 )
-from swarm.core.geofence import Geofence
-from swarm.core.station import CommandRefused, parse_command
 
 KEY = fed_key(bytes(range(32)))
 NOW = 1_800_000_000.0
@@ -181,7 +181,7 @@ def test_a_command_for_another_station_is_checked_here_and_carried_as_the_api_ob
 
 
 def test_a_state_too_large_is_thinned_not_refused() -> None:
-    from swarm.core.federation import thin
+    from swarm.core.station.federation import thin
 
     body = {"agents": [{"id": i, "name": f"a{i}", "trail": [[47.0, 8.0]] * 120} for i in range(1, 251)]}
     small = thin(body)
@@ -190,7 +190,7 @@ def test_a_state_too_large_is_thinned_not_refused() -> None:
 
 
 def test_a_gate_remembers_a_bounded_number_of_senders() -> None:
-    from swarm.core.federation import MAX_SENDERS
+    from swarm.core.station.federation import MAX_SENDERS
 
     gate = Gate(None)
     for i in range(MAX_SENDERS + 50):  # names made up by the thousand, unsigned
@@ -212,7 +212,7 @@ def test_commands_may_cross_on_the_way_but_each_is_taken_once() -> None:
     loose = Gate(None, accept_unsigned_commands=True)
     with pytest.raises(FederationRefused, match="out of window"):
         loose.open(seal(KIND_COMMAND, "x", 1, T - 10**9, b"{}", None), NOW, KIND_COMMAND)
-    from swarm.core.federation import MAX_ONCE
+    from swarm.core.station.federation import MAX_ONCE
 
     for i in range(MAX_ONCE):
         loose.open(seal(KIND_COMMAND, "x", 1, T + i, b"{}", None), NOW, KIND_COMMAND)
@@ -228,7 +228,7 @@ def test_a_hostile_stations_alerts_are_rebuilt_bounded_and_plain() -> None:
     """Alerts cross in the state (issue 16): a hostile station's are cut to a bounded
     count of known fields and types, text printable and short; junk is dropped, never
     the whole state."""
-    from swarm.core.federation import MAX_ALERTS
+    from swarm.core.station.federation import MAX_ALERTS
 
     evil = "<img src=x onerror=alert(1)>\x1b[2J\u202e" + "x" * 5000
     good = {"id": 7, "kind": "battery", "agent": 41, "level": "critical", "text": "a41 battery 9 %",
@@ -261,7 +261,7 @@ def forge(flags: int, body: bytes, key: bytes | None) -> bytes:
     import hashlib
     import hmac
 
-    from swarm.core.federation import HEADER, MAGIC
+    from swarm.core.station.federation import HEADER, MAGIC
 
     data = HEADER.pack(MAGIC, KIND_STATE, flags | (1 if key else 0), T, 7, 4) + b"gcsC" + body
     return data + hmac.new(key, data, hashlib.sha256).digest() if key else data
@@ -273,7 +273,7 @@ def test_a_compressed_state_opens_and_a_bomb_or_junk_is_refused() -> None:
     MAX_ENVELOPE: a bomb is refused as too large, junk as malformed, signed or not."""
     import zlib
 
-    from swarm.core.federation import FLAG_DEFLATE
+    from swarm.core.station.federation import FLAG_DEFLATE
 
     body = {"agents": [{"id": i, "name": f"a{i}", "trail": [[47.0, 8.0]] * 40} for i in range(1, 101)]}
     plain = json.dumps(body).encode()

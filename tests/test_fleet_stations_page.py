@@ -32,13 +32,13 @@ from test_fleet_view import LowBattery
 from test_gcs_api import ScriptedAgent
 
 from swarm.cli.commands.router import open_router
-from swarm.core.federation import MAX_ALERTS, fed_key
-from swarm.core.geofence import Geofence
-from swarm.core.messages import Phase
-from swarm.runtime.federation import Federation
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
-from swarm.runtime.stations import Fleet
+from swarm.core.flight.geofence import Geofence
+from swarm.core.station.federation import MAX_ALERTS, fed_key
+from swarm.core.wire.messages import Phase
+from swarm.runtime.station.federation import Federation
+from swarm.runtime.station.fleet import Fleet
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 pytestmark = pytest.mark.processes  # stations, a router and a browser
 
@@ -187,8 +187,8 @@ def test_three_stations_swarms_show_three_colours_the_same_on_every_view(live: L
 
 
 def test_a_bad_acknowledgement_for_another_station_is_one_line(live: Live) -> None:
-    from swarm.core.federation import ack_any
-    from swarm.core.station import CommandRefused
+    from swarm.core.station.core import CommandRefused
+    from swarm.core.station.federation import ack_any
 
     b_alert = next(al for al in live.a.snapshot()["alerts"] if al["station"] == "gcsB")
     for alert_id, station, status in (

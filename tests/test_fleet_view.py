@@ -1,4 +1,4 @@
-"""One view of several channels (swarm.runtime.stations.Fleet), in one process: two real
+"""One view of several channels (swarm.runtime.station.fleet.Fleet), in one process: two real
 stations (each its own Zenoh session, standing in for a radio's channel) with scripted
 agents that speak the real connection protocol. Agents tagged with their channel, one
 agent id heard on both shown once and reported, alert ids unique across channels and
@@ -14,11 +14,11 @@ import pytest
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.geofence import Geofence
-from swarm.core.messages import Phase, Telemetry
-from swarm.core.station import CommandRefused, parse_command
-from swarm.runtime.station import Station
-from swarm.runtime.stations import Fleet
+from swarm.core.flight.geofence import Geofence
+from swarm.core.station.core import CommandRefused, parse_command
+from swarm.core.wire.messages import Phase, Telemetry
+from swarm.runtime.station.fleet import Fleet
+from swarm.runtime.station.live import Station
 
 DEADLINE = 30.0
 

@@ -432,7 +432,7 @@ FC_KEPT = {
 @pytest.mark.processes
 def test_a_real_agent_logs_its_radio_both_ways_and_its_flight_controller(tmp_path: Path) -> None:
     from swarm.cli.procs import Child, start_emulator
-    from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind
+    from swarm.core.wire.tunnel import PAYLOAD_TYPE_BASE, Kind
 
     emu, links = start_emulator(2, tmp_path)
     port = free_port_range(1, "udp")

@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import pytest
 
-from swarm.core.formation import (
+from swarm.core.flight.formation import (
     AgeEstimator,
     FormationConfig,
     Route,
@@ -26,8 +26,18 @@ from swarm.core.formation import (
     slot_error,
     slot_offset,
 )
-from swarm.core.messages import AckResult, Assignment, Command, CommandKind, Phase, Pose, Side, Task, TaskKind
-from swarm.core.pilot import Mode, Pilot, PilotConfig, Role
+from swarm.core.flight.pilot import Mode, Pilot, PilotConfig, Role
+from swarm.core.wire.messages import (
+    AckResult,
+    Assignment,
+    Command,
+    CommandKind,
+    Phase,
+    Pose,
+    Side,
+    Task,
+    TaskKind,
+)
 from swarm.sim.flightsim import FlightScenario, FlightSim
 
 HOME = Pose(47.397742, 8.545594, 508.0)

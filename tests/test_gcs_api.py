@@ -1,6 +1,6 @@
 """The station's HTTP API and WebSocket with a real server on a free port, a real
 station over Zenoh, and scripted agents (each a Transport running the real agent-side
-connection core, swarm.core.gslink, and answering commands as the test says). Then replay:
+connection core, swarm.core.agent.gslink, and answering commands as the test says). Then replay:
 a capture written here, played with a manual clock, and served."""
 
 from __future__ import annotations
@@ -21,8 +21,9 @@ from net_helpers import ManualClock, free_port, wait_until
 
 from radios.mavlink import FrameBuilder, dialect
 from radios.tlog import TlogWriter
-from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.core.messages import (
+from swarm.core.agent.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+from swarm.core.station.core import CommandRefused
+from swarm.core.wire.messages import (
     AckResult,
     AgentState,
     Command,
@@ -36,12 +37,11 @@ from swarm.core.messages import (
     Telemetry,
     encode,
 )
-from swarm.core.station import CommandRefused
-from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
-from swarm.runtime.replay import ReplayStation, load_capture
-from swarm.runtime.server import LEAFLET_DIR, STATIC_DIR, GcsServer, ServerConfig, ServerError
-from swarm.runtime.station import Station
-from swarm.runtime.transport import Transport
+from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
+from swarm.runtime.keyspace.transport import Transport
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.replay import ReplayStation, load_capture
+from swarm.runtime.station.server import LEAFLET_DIR, STATIC_DIR, GcsServer, ServerConfig, ServerError
 
 HOME = (47.397742, 8.545594)
 

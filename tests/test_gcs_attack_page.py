@@ -24,7 +24,7 @@ from gcs_security_helpers import Swarm, live_swarm
 from net_helpers import free_port, wait_until
 
 from swarm.cli.bench.gcs_page import BROWSER_ARGS, find_browser
-from swarm.runtime.server import GcsServer, ServerConfig
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 pytestmark = pytest.mark.processes  # a browser against a running station
 

@@ -1,5 +1,5 @@
 """The station's connection cap and its malformed-request lines
-(:mod:`swarm.runtime.connections`).
+(:mod:`swarm.runtime.station.connections`).
 
 The choice of which connection makes room, and the line gate, are logic: checked
 here without sockets (a transport is what ``loop.create_server`` hands a protocol:
@@ -25,7 +25,7 @@ import pytest
 from gcs_security_helpers import live_swarm, request
 from net_helpers import free_port, wait_until
 
-from swarm.runtime.connections import (
+from swarm.runtime.station.connections import (
     MAX_CONNECTIONS,
     ConnectionLimiter,
     LineGate,
@@ -34,7 +34,7 @@ from swarm.runtime.connections import (
     raise_file_limit,
     reason_of,
 )
-from swarm.runtime.server import GcsServer, ServerConfig
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 
 class Peer:

@@ -1,4 +1,4 @@
-"""The station's state deltas (swarm.core.station_delta): a delta stream applied to the
+"""The station's state deltas (swarm.core.station.delta): a delta stream applied to the
 first state reproduces every later state exactly, over random changes of agents,
 fields, trails and events (hypothesis), through JSON as on the wire; and the page's
 own code (static/delta.js, in headless Chromium) applies the same streams to the same
@@ -16,8 +16,8 @@ from gcs_browser import browser
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from swarm.core.station_delta import DeltaError, apply, apply_list, build, list_delta, same
-from swarm.runtime.server import STATIC_DIR
+from swarm.core.station.delta import DeltaError, apply, apply_list, build, list_delta, same
+from swarm.runtime.station.server import STATIC_DIR
 
 # rounded as the station rounds them; inside a list a -0.0 compares as 0.0 (the page's
 # numbers cannot tell them apart either), so the points here have no negative zero

@@ -27,11 +27,11 @@ from gcs_browser import browser, poll
 from net_helpers import free_port, wait_until
 from test_gcs_api import HOME, ScriptedAgent
 
-from swarm.core.messages import Phase, Pose
-from swarm.core.station_delta import apply
-from swarm.runtime import websocket
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
+from swarm.core.station.delta import apply
+from swarm.core.wire.messages import Phase, Pose
+from swarm.runtime.station import websocket
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 
 class FlyingAgent(ScriptedAgent):

@@ -30,8 +30,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from net_helpers import ManualClock, free_port, wait_until
 
-from swarm.core.station import KINDS, CommandRefused, parse_command
-from swarm.runtime.server import OSM_TILES, STATIC_DIR, GcsServer, ServerConfig, page_policy
+from swarm.core.station.core import KINDS, CommandRefused, parse_command
+from swarm.runtime.station.server import OSM_TILES, STATIC_DIR, GcsServer, ServerConfig, page_policy
 
 TOKEN = "Zq0-test-token-with-enough-entropy_42"
 
@@ -448,7 +448,7 @@ def test_parse_command_takes_any_json_value() -> None:
 def test_replay_controls_take_extreme_values(tmp_path: Any, manual_clock: ManualClock) -> None:
     from test_gcs_api import write_capture
 
-    from swarm.runtime.replay import ReplayStation, load_capture
+    from swarm.runtime.station.replay import ReplayStation, load_capture
 
     path = tmp_path / "flight.tlog"
     write_capture(path)

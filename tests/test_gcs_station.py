@@ -1,6 +1,6 @@
 """The station's protocol core in virtual time: advertising, connecting with retries,
 heartbeats, heartbeat loss -> disconnect -> reconnect (also against the real agent-side
-core, swarm.core.gslink, over a lossy fake channel), command acks, retries, dedupe and
+core, swarm.core.agent.gslink, over a lossy fake channel), command acks, retries, dedupe and
 refusals, the leader, trails, and the passive (replay) mode."""
 
 from __future__ import annotations
@@ -11,8 +11,17 @@ from typing import Any
 
 import pytest
 
-from swarm.core.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.core.messages import (
+from swarm.core.agent.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+from swarm.core.station.core import (
+    NO_ANSWER,
+    CommandRefused,
+    CommandSpec,
+    StationConfig,
+    StationCore,
+    StOut,
+    parse_command,
+)
+from swarm.core.wire.messages import (
     AckResult,
     AgentState,
     Command,
@@ -28,15 +37,6 @@ from swarm.core.messages import (
     Telemetry,
     decode,
     encode,
-)
-from swarm.core.station import (
-    NO_ANSWER,
-    CommandRefused,
-    CommandSpec,
-    StationConfig,
-    StationCore,
-    StOut,
-    parse_command,
 )
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)
@@ -153,7 +153,7 @@ def test_connect_attempts_stop_when_the_agent_is_gone() -> None:
 
 
 class Channel:
-    """Station core <-> agent cores (swarm.core.gslink) with seeded loss, in virtual time."""
+    """Station core <-> agent cores (swarm.core.agent.gslink) with seeded loss, in virtual time."""
 
     def __init__(self, core: StationCore, agents: list[GsLink], loss: float, seed: int) -> None:
         self.core = core

@@ -20,8 +20,8 @@ from emu_helpers import AIR_DEADLINE, LOCK_DEADLINE, running_emulator
 from net_helpers import wait_until
 
 from radios.mavlink import dialect
-from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind
-from swarm.runtime.station import Station
+from swarm.core.wire.tunnel import PAYLOAD_TYPE_BASE, Kind
+from swarm.runtime.station.live import Station
 
 pytestmark = pytest.mark.processes  # real ptys, an emulator thread, a Zenoh session
 
@@ -92,7 +92,7 @@ def test_another_sender_with_the_station_id_is_reported_once(
     bench: tuple[Station, Sender, list[dict[str, Any]]], caplog: pytest.LogCaptureFixture
 ) -> None:
     station, sender, events = bench
-    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge")
+    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge.radio_bridge")
     # MAVProxy given another id (--source-system 254): nothing to say
     other = sender.as_(254, 190)
     for _ in range(3):

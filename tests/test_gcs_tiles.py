@@ -1,4 +1,4 @@
-"""Map tiles from an MBTiles file (swarm.runtime.tiles): served byte-exact by a real
+"""Map tiles from an MBTiles file (swarm.runtime.station.tiles): served byte-exact by a real
 server, and hostile files (not SQLite, missing tables, huge or non-blob tiles, a
 view that never ends, SQL and URI syntax in the name, a FIFO, a device) refused at
 start in one line (exit 2) or answered with a 404 per tile, never a 500.
@@ -23,9 +23,9 @@ from gcs_browser import tile_png, tile_xy
 from net_helpers import free_port
 
 from swarm.cli.commands.gcs import main as gcs_main
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
-from swarm.runtime.tiles import MAX_TILE_BYTES, MbTilesError, open_mbtiles
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
+from swarm.runtime.station.tiles import MAX_TILE_BYTES, MbTilesError, open_mbtiles
 
 HOME = (47.397742, 8.545594)
 ZOOM = 17

@@ -16,12 +16,12 @@ import pytest
 from net_helpers import free_port, wait_until
 from test_gcs_api import HOME, ScriptedAgent, http
 
-from swarm.core.formation import offset
-from swarm.core.geofence import Geofence
-from swarm.core.messages import CommandKind, Phase
-from swarm.core.station import StationConfig
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
+from swarm.core.flight.formation import offset
+from swarm.core.flight.geofence import Geofence
+from swarm.core.station.core import StationConfig
+from swarm.core.wire.messages import CommandKind, Phase
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 AGENT = 4
 GROUND = 500.0  # the scripted agent's altitude AMSL, on the ground: its home

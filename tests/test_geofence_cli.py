@@ -12,7 +12,7 @@ from test_config_file import NODE, one_error, parse
 from swarm.cli.commands import agent as agent_cmd
 from swarm.cli.commands import gcs as gcs_cmd
 from swarm.cli.fence_args import fence_from
-from swarm.core.geofence import Geofence
+from swarm.core.flight.geofence import Geofence
 
 AGENT = ["--name", "a1", "--id", "1", "--zenoh-listen", "tcp/127.0.0.1:1"]
 GCS = ["--zenoh-listen", "tcp/127.0.0.1:1"]

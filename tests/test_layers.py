@@ -54,14 +54,22 @@ def test_the_tree_keeps_its_contracts(tree: Path) -> None:
 @pytest.mark.parametrize(
     ("module", "line", "contract"),
     [
-        ("swarm/core/protocol.py", "import swarm.runtime.agent", "pure-core"),  # core -> runtime
-        ("swarm/core/node.py", "import time", "pure-core"),  # a clock in the core
-        ("swarm/core/pilot.py", "import threading", "pure-core"),
-        ("swarm/core/messages.py", "import radios.link", "pure-core"),  # I/O through another package
-        ("swarm/core/tunnel.py", "import swarm.sim.tracks", "swarm-layers"),  # upward, inside swarm
-        ("swarm/runtime/agent.py", "import swarm.cli.demo", "swarm-layers"),  # runtime -> commands
-        ("swarm/sim/simulate.py", "import swarm.runtime.bridge", "swarm-layers"),  # siblings stay apart
-        ("radios/mavlink.py", "import swarm.core.messages", "packages"),  # radios knows no swarm
+        (
+            "swarm/core/election/protocol.py",
+            "import swarm.runtime.agent.live",
+            "pure-core",
+        ),  # core -> runtime
+        ("swarm/core/agent/node.py", "import time", "pure-core"),  # a clock in the core
+        ("swarm/core/flight/pilot.py", "import threading", "pure-core"),
+        ("swarm/core/wire/messages.py", "import radios.link", "pure-core"),  # I/O through another package
+        ("swarm/core/wire/tunnel.py", "import swarm.sim.tracks", "swarm-layers"),  # upward, inside swarm
+        ("swarm/runtime/agent/live.py", "import swarm.cli.demo", "swarm-layers"),  # runtime -> commands
+        (
+            "swarm/sim/simulate.py",
+            "import swarm.runtime.bridge.radio_bridge",
+            "swarm-layers",
+        ),  # siblings stay apart
+        ("radios/mavlink.py", "import swarm.core.wire.messages", "packages"),  # radios knows no swarm
         ("firmware_bridge/modes.py", "import swarm.errors", "packages"),
         ("firmware_bridge/telemetry.py", "import time", "driver-pure-core"),  # a clock in the driver's core
         ("radios/link.py", "import firmware_bridge.errors", "packages"),

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarm.core.messages import (
+from swarm.core.wire.messages import (
     ADV_SIZE,
     ADV_SWARM,
     AckResult,

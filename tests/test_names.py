@@ -1,10 +1,10 @@
-"""The bridge's name table (swarm.core.names): names and ids learnt, conflicts, stale
+"""The bridge's name table (swarm.core.bridge.names): names and ids learnt, conflicts, stale
 mappings giving way, and who is told of a conflict. A pure core: a manual clock."""
 
 from __future__ import annotations
 
-from swarm.core.messages import NameConflict
-from swarm.core.names import NameTable, conflict_note
+from swarm.core.bridge.names import NameTable, conflict_note
+from swarm.core.wire.messages import NameConflict
 
 
 def test_a_pair_is_learnt_and_refreshed() -> None:

@@ -10,21 +10,7 @@ import random
 import pytest
 from net_helpers import ManualClock
 
-from swarm.core.messages import (
-    AckResult,
-    Advertize,
-    Command,
-    CommandAck,
-    CommandKind,
-    GSAdvertize,
-    GSConnect,
-    Message,
-    Phase,
-    Pose,
-    PoseReport,
-    Telemetry,
-)
-from swarm.core.node import (
+from swarm.core.agent.node import (
     SETPOINT_PERIOD,
     VEHICLE_LINK_LOST,
     AgentNode,
@@ -41,7 +27,21 @@ from swarm.core.node import (
     VehicleInfo,
     VehicleLink,
 )
-from swarm.core.protocol import PAPER, Profile, profile_by_name
+from swarm.core.election.protocol import PAPER, Profile, profile_by_name
+from swarm.core.wire.messages import (
+    AckResult,
+    Advertize,
+    Command,
+    CommandAck,
+    CommandKind,
+    GSAdvertize,
+    GSConnect,
+    Message,
+    Phase,
+    Pose,
+    PoseReport,
+    Telemetry,
+)
 
 HOME = Pose(47.397742, 8.545594, 508.0)
 STATION = 255
@@ -308,7 +308,7 @@ def test_a_radio_check_costs_a_member_neither_its_leader_nor_its_place() -> None
     still, and once it is back the member acknowledges at once (the leader's timers did
     not stand still): checked from every point of the heartbeat interval, 2.4 s each
     time, with the first frame after it lost."""
-    from swarm.core.node import RadioAway, RadioBack
+    from swarm.core.agent.node import RadioAway, RadioBack
 
     air = Air(3, profile=PAPER)
     air.run(30.0)
@@ -334,7 +334,7 @@ def test_a_radio_check_costs_a_member_neither_its_leader_nor_its_place() -> None
 def test_without_a_radio_for_longer_than_a_timeout_the_swarm_still_moves_on_once_it_is_back() -> None:
     """Deaf time stands still, but once the radio is back a leader that died meanwhile is
     left after a leader timeout as ever (held, not forgotten)."""
-    from swarm.core.node import RadioAway, RadioBack
+    from swarm.core.agent.node import RadioAway, RadioBack
 
     air = Air(3)
     air.run(30.0)
@@ -360,7 +360,7 @@ def test_a_leader_cut_off_by_a_rogue_steps_down_once_its_radio_is_put_back() -> 
     merge rule absorbed it (the fault bench: two leaders for 2-5 s after each such attack
     was undone). A leader left with no member now steps down and joins; one that kept its
     members stays."""
-    from swarm.core.node import RadioAway, RadioBack, RadioRestored
+    from swarm.core.agent.node import RadioAway, RadioBack, RadioRestored
 
     air = Air(3, profile=PAPER)
     air.run(30.0)

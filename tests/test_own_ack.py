@@ -1,4 +1,4 @@
-"""A member's own acknowledgement timer (swarm.core.liveness): the rule in the core
+"""A member's own acknowledgement timer (swarm.core.election.liveness): the rule in the core
 alone (virtual time: the test moves ``now``), the leader taking back an agent that still
 acks it, and the fault campaign's heavy-loss replays (issue 15): the 17- and 36-agent ones
 failed before the rule; the others are noted where they are listed."""
@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import pytest
 
-from swarm.core import liveness
-from swarm.core.liveness import OWN_ACK_SLACK
-from swarm.core.messages import Heartbeat, HeartbeatAck, Phase, Pose, Task
-from swarm.core.protocol import Core, paper_profile
+from swarm.core.election import liveness
+from swarm.core.election.liveness import OWN_ACK_SLACK
+from swarm.core.election.protocol import Core, paper_profile
+from swarm.core.wire.messages import Heartbeat, HeartbeatAck, Phase, Pose, Task
 from swarm.sim.faultsim import make_sim
 from swarm.sim.scenario import Scenario
 

@@ -4,7 +4,7 @@ wheel for a 64-bit Raspberry Pi.
 
 Theory of operation
 -------------------
-* The vendored Leaflet (``swarm/runtime/vendor/leaflet``, copied from the npm package
+* The vendored Leaflet (``swarm/runtime/station/vendor/leaflet``, copied from the npm package
   by ``make leaflet``) is checked against its ``SHA256SUMS``, and its version against
   the pin in ``package.json`` and ``package-lock.json``: a file changed by hand, a
   file missing or a version drifting fails here.
@@ -47,9 +47,9 @@ from net_helpers import free_port, wait_until
 from swarm.cli import main as swarm_main
 
 ROOT = Path(__file__).resolve().parents[1]
-RUNTIME = ROOT / "swarm" / "runtime"
+RUNTIME = ROOT / "swarm" / "runtime" / "station"
 LEAFLET = RUNTIME / "vendor" / "leaflet"
-#: what the page needs, under swarm/runtime; served as /, /static/..., /vendor/leaflet/...
+#: what the page needs, under swarm/runtime/station; served as /, /static/..., /vendor/leaflet/...
 #: every file of the page's folder ships (a new script must not be left out of the wheel)
 PAGE_FILES = tuple(sorted(f"static/{p.name}" for p in (RUNTIME / "static").iterdir() if p.is_file()))
 assert {"static/index.html", "static/app.js", "static/app.css"} <= set(PAGE_FILES)
@@ -202,8 +202,8 @@ def test_installed_wheel_serves_the_page_and_leaflet_outside_the_checkout(tmp_pa
     with zipfile.ZipFile(wheel) as zf:
         in_wheel = set(zf.namelist())
     for rel in PAGE_FILES + LEAFLET_FILES:
-        assert f"swarm/runtime/{rel}" in in_sdist, f"the sdist lacks {rel}"
-        assert f"swarm/runtime/{rel}" in in_wheel, f"the wheel lacks {rel}"
+        assert f"swarm/runtime/station/{rel}" in in_sdist, f"the sdist lacks {rel}"
+        assert f"swarm/runtime/station/{rel}" in in_wheel, f"the wheel lacks {rel}"
     assert not any("node_modules" in n for n in in_sdist | in_wheel)
 
     bin_ = _fresh_venv(tmp_path / "venv", wheel)

@@ -5,7 +5,7 @@ station's real HTTP server and WebSocket.
 
 * route, waypoints and go-to target drawn from the station's GOTO and WAYPOINT, gone
   when the agent says "arrived"; the layer control hides and shows a layer;
-* each member's formation slot where swarm.core.formation puts it, and each home;
+* each member's formation slot where swarm.core.flight.formation puts it, and each home;
 * the measure tool's distance and bearing against pymap3d (Vincenty, WGS-84), the
   go-to target untouched while measuring, Escape clearing it;
 * "Follow swarm" keeps every agent in view when the swarm moves 2 km;
@@ -26,9 +26,10 @@ from gcs_browser import browser, new_page, poll, screenshot
 from net_helpers import free_port, wait_until
 from test_gcs_api import HOME, ScriptedAgent
 
-from swarm.core.formation import slot_error
-from swarm.core.gslink import FLAG_FC_OK, mode_code
-from swarm.core.messages import (
+from swarm.core.agent.gslink import FLAG_FC_OK, mode_code
+from swarm.core.flight.formation import slot_error
+from swarm.core.station.core import CommandSpec
+from swarm.core.wire.messages import (
     AgentNotice,
     Assignment,
     Command,
@@ -42,9 +43,8 @@ from swarm.core.messages import (
     TaskKind,
     Telemetry,
 )
-from swarm.core.station import CommandSpec
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 pytestmark = pytest.mark.processes  # a browser against a running station
 

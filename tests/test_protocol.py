@@ -8,7 +8,8 @@ import random
 
 import pytest
 
-from swarm.core.messages import (
+from swarm.core.election.protocol import ADVERTIZE, PAPER, Core, fast_profile, paper_profile
+from swarm.core.wire.messages import (
     Advertize,
     Heartbeat,
     HeartbeatAck,
@@ -21,7 +22,6 @@ from swarm.core.messages import (
     SyncPool,
     pool_digest,
 )
-from swarm.core.protocol import ADVERTIZE, PAPER, Core, fast_profile, paper_profile
 from swarm.sim.simulate import Scenario, Sim, campaign
 
 POSE = Pose(47.4, 8.5, 500.0)
@@ -167,7 +167,7 @@ def test_an_agent_that_hears_a_leader_is_not_alone() -> None:
     hear the swarm but not be heard; expelled, it formed a swarm of one after the alone
     timeout, and the swarm had two leaders for the rest of the flood. An agent that hears
     a leader's Advertize keeps asking to join it instead."""
-    from swarm.core.protocol import FLAG_LEADER
+    from swarm.core.election.protocol import FLAG_LEADER
 
     a = Core(4)
     a.start(0.0)
@@ -193,8 +193,8 @@ def test_time_without_a_radio_is_not_time_alone() -> None:
     covered the gap between two Advertizes made it a swarm of one beside the real leader
     for the rest of the flood (two leaders for 144 s of a 1 MiB flood). While the radio
     is away the election core's time stands still."""
-    from swarm.core.node import AgentNode, RadioAway, RadioBack
-    from swarm.core.protocol import FLAG_LEADER
+    from swarm.core.agent.node import AgentNode, RadioAway, RadioBack
+    from swarm.core.election.protocol import FLAG_LEADER
 
     node = AgentNode(4, "agent4", PAPER)
     node.start(0.0)

@@ -33,9 +33,9 @@ from net_helpers import free_port, wait_until
 from radios.errors import LinkClosedError, LinkOpenError
 from radios.link import open_link
 from swarm.cli.procs import Child, json_events, start_emulator
-from swarm.core.messages import Advertize, Selection, encode
-from swarm.runtime.bridge import RadioBridge
-from swarm.runtime.transport import Transport, open_session
+from swarm.core.wire.messages import Advertize, Selection, encode
+from swarm.runtime.bridge.radio_bridge import RadioBridge
+from swarm.runtime.keyspace.transport import Transport, open_session
 
 pytestmark = pytest.mark.processes  # radios unplugged and replugged under running processes
 
@@ -212,7 +212,7 @@ def test_a_link_that_cannot_be_reopened_says_so(tmp_path: Path) -> None:
 
 
 def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge")
+    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge.radio_bridge")
     heard: list[tuple[str, str]] = []
     with running_emulator(tmp_path, 2) as run, ExitStack() as stack:
         n1, n2 = _two_bridged_nodes(
@@ -244,7 +244,9 @@ def test_bridge_waits_for_the_radio_and_reopens_it(tmp_path: Path, caplog: pytes
         )
         wait_until(lambda: b2.stats.radio_status_accepted > 0, "RADIO_STATUS again", AIR_DEADLINE)
     lines = [
-        r.getMessage() for r in caplog.records if r.name == "swarm.runtime.bridge" and "a2" in r.getMessage()
+        r.getMessage()
+        for r in caplog.records
+        if r.name == "swarm.runtime.bridge.radio_bridge" and "a2" in r.getMessage()
     ]
     assert sum("lost" in x for x in lines) == 1 and sum("back after" in x for x in lines) == 1, lines
     waiting = [x for x in lines if "still away" in x]
@@ -301,7 +303,7 @@ def test_bridge_never_writes_to_another_device_at_its_radios_path(
     fresh pty (a reassigned /dev/ttyUSB0, a reused /dev/pts/N), then another radio of the
     same emulator: the bridge opens neither for writing, says so once per device, keeps
     waiting, and takes its own radio back when it returns."""
-    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge")
+    caplog.set_level(logging.WARNING, logger="swarm.runtime.bridge.radio_bridge")
     heard: list[tuple[str, str]] = []
     with running_emulator(tmp_path, 3) as run, ExitStack() as stack:
         n1, n2 = _two_bridged_nodes(run, stack)

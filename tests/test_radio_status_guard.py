@@ -3,7 +3,7 @@
 A SiK radio injects RADIO_STATUS (sysid 51, compid 68, unsigned) into its host's
 serial output once per HEARTBEAT from that host; a foreign radio on the same NETID
 can put identical bytes on the air and ours forwards them. The pure rule
-(:class:`swarm.core.radio_guard.RadioStatusGuard`) is tested on a manual clock; then end
+(:class:`swarm.core.bridge.radio_guard.RadioStatusGuard`) is tested on a manual clock; then end
 to end: a ``swarm radio-emu`` process (real ptys, the SiK air model), three bridged
 nodes streaming poses at 4 Hz, an observer measuring them, and a rogue radio on the
 same NETID sending forged RADIO_STATUS at 10 Hz with txbuf 0.
@@ -26,10 +26,10 @@ from net_helpers import wait_until
 from radios.link import open_link
 from radios.mavlink import pack_frame
 from swarm.cli.procs import start_emulator
-from swarm.core.messages import Advertize, Pose, PoseReport
-from swarm.core.radio_guard import RadioState, RadioStatusGuard
-from swarm.runtime.bridge import RadioBridge
-from swarm.runtime.transport import Transport, open_session
+from swarm.core.bridge.radio_guard import RadioState, RadioStatusGuard
+from swarm.core.wire.messages import Advertize, Pose, PoseReport
+from swarm.runtime.bridge.radio_bridge import RadioBridge
+from swarm.runtime.keyspace.transport import Transport, open_session
 
 pytestmark = pytest.mark.processes  # bridges on emulated radios, in real time
 

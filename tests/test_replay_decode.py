@@ -1,4 +1,4 @@
-"""`swarm replay` reads the swarm's TUNNEL payloads as messages (swarm.core.tunnel_decode):
+"""`swarm replay` reads the swarm's TUNNEL payloads as messages (swarm.core.wire.tunnel_decode):
 the fields of each kind, text and JSON lines, and hostile payloads (cut, padded, garbage,
 lying lengths and addressee lists) shown as undecodable on one line, never a traceback."""
 
@@ -14,7 +14,7 @@ import pytest
 from radios.mavlink import FrameBuilder
 from radios.tlog import TlogWriter
 from swarm.cli.commands.replay import main
-from swarm.core.messages import (
+from swarm.core.wire.messages import (
     AckResult,
     AgentState,
     Assignment,
@@ -30,8 +30,8 @@ from swarm.core.messages import (
     Telemetry,
     encode,
 )
-from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind, pack
-from swarm.core.tunnel_decode import decode_tunnel
+from swarm.core.wire.tunnel import PAYLOAD_TYPE_BASE, Kind, pack
+from swarm.core.wire.tunnel_decode import decode_tunnel
 
 T0 = 1_700_000_000.0
 TIME_RE = r"\d\d:\d\d:\d\d\.\d{3}"

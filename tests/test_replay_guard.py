@@ -1,6 +1,6 @@
 """The stations' replay guard across restarts and states from the future
-(swarm.core.federation's Gate: pure, times given), the station's file of it
-(swarm.runtime.federation, without a session), and where nodes keep their state
+(swarm.core.station.federation's Gate: pure, times given), the station's file of it
+(swarm.runtime.station.federation, without a session), and where nodes keep their state
 (swarm.cli.state_dir, --state-dir and its config key)."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from swarm.cli.commands import gcs as gcs_cmd
 from swarm.cli.configfile import read_arguments
 from swarm.cli.state_dir import default_state_dir, open_state_dir
 from swarm.cli.util import UsageError
-from swarm.core.federation import (
+from swarm.core.station.federation import (
     FUTURE_S,
     KIND_COMMAND,
     KIND_STATE,
@@ -30,7 +30,7 @@ from swarm.core.federation import (
     fed_key,
     seal,
 )
-from swarm.runtime.federation import Federation
+from swarm.runtime.station.federation import Federation
 
 KEY = fed_key(b"k" * 32)
 NOW = 1_790_000_000.0
@@ -149,7 +149,7 @@ def test_the_station_file_is_kept_only_with_a_key_and_a_failed_save_is_one_warni
     with pytest.raises(FederationRefused, match="replayed"):
         again.command_gate.open(cmd(NOW), NOW, KIND_COMMAND)
     # a hostile file: one warning, the gates start empty
-    caplog.set_level(logging.WARNING, "swarm.runtime.federation")
+    caplog.set_level(logging.WARNING, "swarm.runtime.station.federation")
     (tmp_path / "h.json").write_text(
         '{"format": "uav-swarm station replay guard", "version": 1, "states": 7}'
     )

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from swarm.runtime.replay import ReplayStation, load_capture
+from swarm.runtime.station.replay import ReplayStation, load_capture
 
 DEMO = Path(__file__).resolve().parent / "data" / "demo" / "demo.tlog"
 

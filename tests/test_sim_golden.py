@@ -10,12 +10,12 @@ events that give no host output nor for frames no agent handles, and the invaria
 are sampled on their own 100 ms grid. Times moved in their last bits and the
 samples moved onto the grid; for the same seeds the converged counts, leaders and
 violations stayed the same (docs/DESIGN.md, section 8, gives the comparison).
-Re-recorded once more for the member's own ack timer (swarm.core.liveness, issue 15):
+Re-recorded once more for the member's own ack timer (swarm.core.election.liveness, issue 15):
 under loss a member that missed a Heartbeat now acknowledges on its own, so runs with
 loss put more acks on the air; the loss-free run and fast_n10_loss10_s3 kept their
 bytes. Same converged counts, leaders and elect_s elsewhere; paper_n6_faults_s2 fails
 over to another leader sooner (leader 1 after 11.0 s, was 4 after 23.5 s), no violation.
-Re-recorded for "Leaders court the larger" (swarm.core.caps.courted, issue 15): a
+Re-recorded for "Leaders court the larger" (swarm.core.election.caps.courted, issue 15): a
 leader's periodic Heartbeat also lists the leaders that would absorb it. Only
 paper_n6_faults_s2 (a partition heals: two leaders meet) moved: the same result to the
 digit (failover 10.98 s, leader 1, converged) with one more addressee byte on the air

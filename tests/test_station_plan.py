@@ -1,4 +1,4 @@
-"""What the station keeps of the plan (swarm.core.station_plan, through StationCore):
+"""What the station keeps of the plan (swarm.core.station.plan, through StationCore):
 routes and go-to targets set by GOTO, extended by WAYPOINT, replaced, cleared on
 "arrived", on STOP and on a refusal; other stations' commands heard; the leader's
 task and slots from its Heartbeat; home positions; hostile commands ignored."""
@@ -9,7 +9,10 @@ import json
 
 from test_gcs_station import station_with, tm
 
-from swarm.core.messages import (
+from swarm.core.station.core import CommandSpec, StationCore
+from swarm.core.station.delta import apply, build
+from swarm.core.station.plan import ROUTE_MAX, PlanBook
+from swarm.core.wire.messages import (
     AckResult,
     AgentNotice,
     Assignment,
@@ -24,9 +27,6 @@ from swarm.core.messages import (
     Task,
     TaskKind,
 )
-from swarm.core.station import CommandSpec, StationCore
-from swarm.core.station_delta import apply, build
-from swarm.core.station_plan import ROUTE_MAX, PlanBook
 
 
 def goto(
@@ -131,7 +131,7 @@ def test_the_leaders_task_and_slots_and_home() -> None:
     core.handle(Heartbeat(3, 1, 8, frozenset({4, 5}), Task(TaskKind.HOLD)), 1.2)
     assert core.snapshot(1.2)["task"] is None and core.snapshot(1.2)["slots"] is None
     # home: where Telemetry shows the vehicle on the ground with its flight controller
-    from swarm.core.gslink import FLAG_FC_OK
+    from swarm.core.agent.gslink import FLAG_FC_OK
 
     core.handle(tm(4, pose=Pose(47.3971, 8.5451, 488.0), phase=Phase.MEMBER, leader=3, flags=FLAG_FC_OK), 1.3)
     a4 = next(a for a in core.snapshot(1.3)["agents"] if a["id"] == 4)

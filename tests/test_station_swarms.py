@@ -1,4 +1,4 @@
-"""Several swarms at the station (swarm.core.station_swarms, issue 16): the state's
+"""Several swarms at the station (swarm.core.station.swarms, issue 16): the state's
 ``swarms`` (leader, members, a stable colour), commands to one swarm or to all, and
 the hostile sender: a ``swarm`` field of any JSON value, a swarm that is not or no
 longer there, a flood of leaders in AgentStates and Heartbeats. Pure core, virtual time.
@@ -13,8 +13,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from swarm.core.gslink import FLAG_FC_OK, mode_code
-from swarm.core.messages import (
+from swarm.core.agent.gslink import FLAG_FC_OK, mode_code
+from swarm.core.station.core import CommandRefused, CommandSpec, StationCore, StOut, parse_command
+from swarm.core.station.delta import apply, build
+from swarm.core.wire.messages import (
     AckResult,
     AgentState,
     Command,
@@ -28,8 +30,6 @@ from swarm.core.messages import (
     Pose,
     Telemetry,
 )
-from swarm.core.station import CommandRefused, CommandSpec, StationCore, StOut, parse_command
-from swarm.core.station_delta import apply, build
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)
 #: two swarms: agent 3 leads 1 and 2, agent 6 leads 4 and 5
@@ -114,7 +114,7 @@ def test_the_leaders_heartbeat_list_adds_agents_that_name_no_other_leader() -> N
 
 
 def test_the_other_swarms_task_travels_apart_from_its_members() -> None:
-    from swarm.core.messages import Assignment, Side, Task, TaskKind
+    from swarm.core.wire.messages import Assignment, Side, Task, TaskKind
 
     core = station(TWO)
     task = Task(TaskKind.FOLLOW, heading=90.0, assignments=(Assignment(1, 3, Side.LEFT),))
@@ -280,7 +280,7 @@ def _swarms(spec: dict[str, list[int]]) -> list[dict[str, Any]]:
 
 
 def test_two_stations_own_colour_0_swarms_get_distinct_colours_the_same_on_every_page() -> None:
-    from swarm.core.station_swarms import fleet_colours
+    from swarm.core.station.swarms import fleet_colours
 
     merged = _swarms({"gcsA": [0, 1], "gcsB": [0], "gcsC": [0, 1, 2]})
     got = {(s["station"], s["leader"]): s["colour"] for s in fleet_colours(merged)}
@@ -297,7 +297,7 @@ def test_two_stations_own_colour_0_swarms_get_distinct_colours_the_same_on_every
 
 
 def test_a_stations_swarm_keeps_its_colour_when_another_stations_swarm_appears() -> None:
-    from swarm.core.station_swarms import PALETTE, fleet_colours
+    from swarm.core.station.swarms import PALETTE, fleet_colours
 
     alone = fleet_colours(_swarms({"gcsA": [0, 1]}))
     both = fleet_colours(_swarms({"gcsA": [0, 1], "gcsB": [0]}))
@@ -314,7 +314,7 @@ def test_a_stations_swarm_keeps_its_colour_when_another_stations_swarm_appears()
     )
 )
 def test_colours_are_always_distinct_beyond_the_palette_too(spec: dict[str, list[int]]) -> None:
-    from swarm.core.station_swarms import PALETTE, fleet_colours
+    from swarm.core.station.swarms import PALETTE, fleet_colours
 
     merged = _swarms(spec)
     colours = [s["colour"] for s in fleet_colours(merged)]

@@ -25,9 +25,9 @@ from gcs_browser import browser, new_page, poll, screenshot
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.messages import CommandKind, Phase
-from swarm.runtime.server import GcsServer, ServerConfig
-from swarm.runtime.station import Station
+from swarm.core.wire.messages import CommandKind, Phase
+from swarm.runtime.station.live import Station
+from swarm.runtime.station.server import GcsServer, ServerConfig
 
 pytestmark = pytest.mark.processes  # a browser against a running station
 

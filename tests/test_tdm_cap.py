@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import random
 
-from swarm.core import caps
-from swarm.core.messages import (
+from swarm.core.election import caps
+from swarm.core.election.profiles import tdm_profile
+from swarm.core.election.protocol import Core, Out
+from swarm.core.wire.messages import (
     Phase,
     PoolStatus,
     Selection,
@@ -16,8 +18,6 @@ from swarm.core.messages import (
     SyncPool,
     pool_digest,
 )
-from swarm.core.profiles import tdm_profile
-from swarm.core.protocol import Core, Out
 from swarm.sim.campaign import draw
 from swarm.sim.faultsim import FaultSim, make_sim
 from swarm.sim.simulate import Scenario, Sim
@@ -101,7 +101,7 @@ def test_a_full_pool_that_heard_every_vote_decides_before_its_lock_window() -> N
     assert TDM.lock_window > 0.3
     assert c.phase == Phase.MEMBER and c.leader == 3
     # the vote goes once more (a member that missed it would wait for it) and, capped,
-    # the member asks its candidate to list it (swarm.core.caps: "A member by its vote")
+    # the member asks its candidate to list it (swarm.core.election.caps: "A member by its vote")
     sel = Selection(2, 3, 99, pool_digest({1, 2, 3}) & 0xFFFF)
     assert _msgs(out, Selection) == [(1, sel), (3, sel)]
     assert (3, StartPool(2)) in _msgs(out, StartPool)

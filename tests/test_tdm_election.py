@@ -9,9 +9,15 @@ import random
 import pytest
 
 from swarm.cli.commands.simulate import main as simulate_main
-from swarm.core.messages import Phase, Selection, StartPool, StartPoolAck, SyncPool, pool_digest
-from swarm.core.profiles import PROFILE_NAMES, fast_profile, paper_profile, profile_by_name, tdm_profile
-from swarm.core.protocol import Core, Out
+from swarm.core.election.profiles import (
+    PROFILE_NAMES,
+    fast_profile,
+    paper_profile,
+    profile_by_name,
+    tdm_profile,
+)
+from swarm.core.election.protocol import Core, Out
+from swarm.core.wire.messages import Phase, Selection, StartPool, StartPoolAck, SyncPool, pool_digest
 from swarm.sim.campaign import draw, run_campaign
 from swarm.sim.simulate import Scenario, Sim, campaign
 

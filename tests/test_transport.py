@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.core.messages import (
+from swarm.core.wire.messages import (
     Advertize,
     AgentState,
     GSAdvertize,
@@ -28,7 +28,7 @@ from swarm.core.messages import (
     StartPool,
 )
 from swarm.errors import MessageError, TransportError
-from swarm.runtime.transport import Transport, inbox_key, open_session
+from swarm.runtime.keyspace.transport import Transport, inbox_key, open_session
 
 DEADLINE = 20.0
 QUIET = 0.5  # how long "nothing else arrives" is watched after the expected did

@@ -23,13 +23,13 @@ from swarm.cli.commands import doctor as doctor_cmd
 from swarm.cli.configfile import read_arguments
 from swarm.cli.util import UsageError, node_options
 from swarm.core.doctor.tls import SOON_S, AclFacts, CertFacts, TlsFacts, acl_check, tls_checks
-from swarm.core.zenoh_acl import Node, acl
-from swarm.core.zenoh_edge import endpoint_kind, key_over_ip, tls_needed
-from swarm.core.zenoh_log import ANONYMOUS, Passed, Refusal, RefusalBook, ZenohLogReader
+from swarm.core.keyspace.acl import Node, acl
+from swarm.core.keyspace.endpoints import endpoint_kind, key_over_ip, tls_needed
+from swarm.core.keyspace.router_log import ANONYMOUS, Passed, Refusal, RefusalBook, ZenohLogReader
 from swarm.errors import TransportError
 from swarm.runtime.doctor.tls import acl_facts, tls_facts
-from swarm.runtime.pki import issue, make_ca
-from swarm.runtime.transport import open_session
+from swarm.runtime.keyspace.pki import issue, make_ca
+from swarm.runtime.keyspace.transport import open_session
 
 # -- endpoints and the key -------------------------------------------------------------
 
@@ -109,7 +109,7 @@ def test_loopback_with_the_key_warns_once_and_tls_flags_are_checked(caplog: pyte
     assert node.tls is None and len(warnings) == 1
     assert warnings[0].startswith("warning: --key does not cover Zenoh: tcp/127.0.0.1:7447 is")
     # said once the node's session opens (after every other check passed), not before
-    with caplog.at_level(logging.WARNING, logger="swarm.runtime.transport"):
+    with caplog.at_level(logging.WARNING, logger="swarm.runtime.keyspace.transport"):
         session = open_session(listen=[f"tcp/127.0.0.1:{free_port()}"], signed=True)
         session.close()
     said = [r.getMessage() for r in caplog.records]

@@ -3,7 +3,7 @@ tried against a real ``swarm router`` as an attacker would.
 
 The swarm's CA, a router's, two agents' and a station's certificates, an expired
 agent certificate and another CA's station certificate are made with the real code
-(:mod:`swarm.runtime.pki`), the ACL by ``swarm certs``' rules. A router listens on
+(:mod:`swarm.runtime.keyspace.pki`), the ACL by ``swarm certs``' rules. A router listens on
 ``tls/127.0.0.1`` with the ACL; agent2 is connected with its own certificate and
 listens on its inbox and command key. Then, each several times: a client with no
 certificate, plain TCP to the TLS port, another CA's certificate, an expired
@@ -28,11 +28,11 @@ import pytest
 from net_helpers import free_port, wait_until
 
 from swarm.cli.procs import Child, json_events
-from swarm.core.messages import Command, CommandKind, decode, encode
+from swarm.core.wire.messages import Command, CommandKind, decode, encode
 from swarm.errors import CertError
+from swarm.runtime.keyspace.pki import issue, make_ca, nodes, write_acl
+from swarm.runtime.keyspace.transport import ClientSession, open_session, session_config
 from swarm.runtime.options import TlsFiles
-from swarm.runtime.pki import issue, make_ca, nodes, write_acl
-from swarm.runtime.transport import ClientSession, open_session, session_config
 
 DEADLINE = 30.0
 DAY = 86400.0

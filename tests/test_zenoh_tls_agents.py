@@ -26,10 +26,10 @@ from net_helpers import free_port, wait_until
 
 from swarm.cli.bench.ip_attack import ATTACK_SEQ, executed
 from swarm.cli.procs import Child, json_events
-from swarm.core.messages import Command, CommandKind, encode
+from swarm.core.wire.messages import Command, CommandKind, encode
+from swarm.runtime.keyspace.pki import issue, make_ca, nodes, write_acl
+from swarm.runtime.keyspace.transport import open_session
 from swarm.runtime.options import TlsFiles
-from swarm.runtime.pki import issue, make_ca, nodes, write_acl
-from swarm.runtime.transport import open_session
 
 pytestmark = pytest.mark.processes  # a router, two agents and a station over TLS
 

@@ -9,7 +9,7 @@ radio emulator with N + 1 radios (``--capture``: everything on air goes to a
 processes (agent K: radio K-1, vehicle K) and, when the ground station is
 installed and ``gcs`` is asked, ``swarm gcs`` on one more radio. The demo itself
 drives a ground station on the last radio: the real one,
-:class:`swarm.runtime.station.Station` (id 254, name ``demo``), which connects the
+:class:`swarm.runtime.station.live.Station` (id 254, name ``demo``), which connects the
 agents and sends Commands with acknowledgement and retry, exactly as an operator's
 station does (a command counts once an agent accepted it or its Telemetry shows
 it carried out). A command the station refuses for a moment (409: no leader, an
@@ -60,12 +60,12 @@ from typing import TYPE_CHECKING, Any
 from radios.ports import free_port_range
 from swarm.cli.procs import Child, ChildError, start_emulator
 from swarm.cli.sitl_fleet import SitlFleet
-from swarm.core.messages import AckResult, CommandKind
-from swarm.core.profiles import PROFILE_NAMES
+from swarm.core.election.profiles import PROFILE_NAMES
+from swarm.core.wire.messages import AckResult, CommandKind
 from swarm.errors import SwarmError
 
 if TYPE_CHECKING:
-    from swarm.runtime.station import Station
+    from swarm.runtime.station.live import Station
 
 DEMO_ID = 254
 DEMO_NAME = "demo"
@@ -339,7 +339,7 @@ class _Demo:
         Raises:
             DemoError: the station refused it, or an agent refused or did not answer.
         """
-        from swarm.core.station import DONE_RESULTS, CommandRefused, CommandSpec
+        from swarm.core.station.core import DONE_RESULTS, CommandRefused, CommandSpec
 
         assert self.station is not None
         # A 409 (agent not connected, no leader) can be a moment's view at 10-20 % loss:
@@ -571,7 +571,7 @@ class _Demo:
     def take_off_each(self, agents: list[int], alt: float) -> list[dict[str, Any]]:
         """The take-off to each of ``agents`` at once (an autopilot still booting takes its
         ``ready`` wait: one after the other they would add up); the results not accepted."""
-        from swarm.core.station import DONE_RESULTS, CommandRefused, CommandSpec
+        from swarm.core.station.core import DONE_RESULTS, CommandRefused, CommandSpec
 
         assert self.station is not None
         futs, bad = [], []
@@ -682,8 +682,8 @@ def _why(bad: list[dict[str, Any]]) -> str:
 
 def _station(radio: str) -> Station:
     """The demo's ground station on ``radio`` (started)."""
-    from swarm.core.station import StationConfig
-    from swarm.runtime.station import Station
+    from swarm.core.station.core import StationConfig
+    from swarm.runtime.station.live import Station
 
     return Station(
         DEMO_NAME, DEMO_ID, radio=radio, config=StationConfig(command_give_up=COMMAND_GIVE_UP_S)

@@ -4,7 +4,7 @@ Theory of operation. :func:`add_fence_arguments` declares ``--fence-floor``,
 ``--fence-ceiling`` and ``--fence-radius`` once (config-file keys ``fence_floor``,
 ``fence_ceiling``, ``fence_radius``, derived from the flags by
 :mod:`swarm.cli.configfile`); :func:`fence_from` builds the
-:class:`~swarm.core.geofence.Geofence` they describe, or raises one UsageError naming
+:class:`~swarm.core.flight.geofence.Geofence` they describe, or raises one UsageError naming
 the flag at fault (exit 2), so that a config file's value is blamed on its key.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 
 from swarm.cli.util import UsageError
-from swarm.core.geofence import Geofence
+from swarm.core.flight.geofence import Geofence
 
 _DEFAULTS = Geofence()
 #: flag -> (the Geofence field, what it is)

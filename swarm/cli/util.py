@@ -186,7 +186,7 @@ def node_options(a: argparse.Namespace, who: str, *, others: str = "") -> NodeOp
 
 def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, str | None]:
     """The TLS files and ACL file of :func:`add_node_arguments`' values, for a node of
-    ``role`` named ``a.name``, once the rules of :mod:`swarm.core.zenoh_edge` allow
+    ``role`` named ``a.name``, once the rules of :mod:`swarm.core.keyspace.endpoints` allow
     them: a ``tls/`` endpoint needs the three files, the files need ``tls/``
     endpoints only, an ACL needs TLS and a listen endpoint; ``--key`` with a plain
     endpoint beyond loopback is refused. The warnings (``--key`` on loopback, TLS
@@ -196,7 +196,7 @@ def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, s
     Raises:
         UsageError: what the rules refuse.
     """
-    from swarm.core.zenoh_edge import key_over_ip, tls_needed
+    from swarm.core.keyspace.endpoints import key_over_ip, tls_needed
     from swarm.runtime.options import TlsFiles
 
     endpoints = [*(a.zenoh_listen or []), *(a.zenoh_connect or [])]
@@ -217,7 +217,9 @@ def zenoh_security(a: argparse.Namespace, role: str) -> tuple[TlsFiles | None, s
             f"warning: no --zenoh-acl: any certificate of the swarm's CA that connects to "
             f"{', '.join(a.zenoh_listen)} may publish anything (swarm certs writes acl.json5)"
         )
-    a.zenoh_warnings = warnings  # said when the session opens (swarm.runtime.transport); the doctor's lines
+    a.zenoh_warnings = (
+        warnings  # said when the session opens (swarm.runtime.keyspace.transport); the doctor's lines
+    )
     tls = (
         TlsFiles(ca, cert, key, name=getattr(a, "name", None) or "", role=role)
         if ca and cert and key
@@ -278,7 +280,7 @@ def peer_watch(prog: str, a: argparse.Namespace, node: Any) -> Callable[[], None
     session = getattr(node, "session", None)
     if not getattr(a, "zenoh_connect", None) or session is None:
         return lambda: None
-    from swarm.runtime.transport import has_peer
+    from swarm.runtime.keyspace.transport import has_peer
 
     watch = PeerWatch(list(a.zenoh_connect), time.monotonic())
 

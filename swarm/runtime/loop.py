@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-A pure core (:class:`swarm.core.node.AgentNode`, :class:`swarm.core.station.StationCore`)
+A pure core (:class:`swarm.core.agent.node.AgentNode`, :class:`swarm.core.station.core.StationCore`)
 is driven from one thread: callbacks of other threads (Zenoh, the pose reader, the
 vehicle caller, the HTTP server) only :meth:`EventLoop.put` what they have; the
 loop waits on the queue until the core's next deadline, hands every queued item to

@@ -4,13 +4,13 @@ Theory of operation
 -------------------
 An agent or a ground station meets the others either over Zenoh endpoints (its
 session listens on or connects to them) or through a radio: then its Zenoh session
-has no endpoints and no scouting, and a :class:`~swarm.runtime.bridge.RadioBridge`
+has no endpoints and no scouting, and a :class:`~swarm.runtime.bridge.radio_bridge.RadioBridge`
 carries the key space over the radio link (captured to a file if asked, MAVLink 2
 signed with the swarm key if given). :func:`open_node` opens one or the other as
 ``(session, link, bridge)``; :func:`open_node_io` adds the node's
-:class:`~swarm.runtime.transport.Transport` and returns them as one :class:`NodeIO`,
+:class:`~swarm.runtime.keyspace.transport.Transport` and returns them as one :class:`NodeIO`,
 which closes them in the reverse order. Whatever was opened is closed again if a
-later step fails. ``open_node`` stays importable from :mod:`swarm.runtime.bridge`.
+later step fails. ``open_node`` stays importable from :mod:`swarm.runtime.bridge.radio_bridge`.
 :class:`StartOnce` is the node's ``start()``: open once, close again on failure.
 """
 
@@ -23,9 +23,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Self
 
 if TYPE_CHECKING:
-    from swarm.runtime.bridge import RadioBridge
+    from swarm.runtime.bridge.radio_bridge import RadioBridge
+    from swarm.runtime.keyspace.transport import Transport
     from swarm.runtime.options import NodeOptions, TlsFiles
-    from swarm.runtime.transport import Transport
 
 log = logging.getLogger(__name__)
 
@@ -116,8 +116,8 @@ def open_node(
     """
     from radios.link import open_link
     from radios.signing import load_key
-    from swarm.runtime.bridge import BridgeConfig, RadioBridge
-    from swarm.runtime.transport import open_session
+    from swarm.runtime.bridge.radio_bridge import BridgeConfig, RadioBridge
+    from swarm.runtime.keyspace.transport import open_session
 
     key = load_key(key_file) if key_file is not None else None
     ours = link is None  # a handed link is closed by whoever opened it
@@ -158,7 +158,7 @@ def open_node_io(name: str, agent_id: int, node: NodeOptions, *, capture: Any = 
     Raises:
         what :func:`open_node` raises.
     """
-    from swarm.runtime.transport import Transport
+    from swarm.runtime.keyspace.transport import Transport
 
     session, link, bridge = open_node(
         name,

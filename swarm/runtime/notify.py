@@ -29,7 +29,7 @@ needed: this module is the whole client.
 
 What counts as a loop is the runtime's: the agent's protocol loop, its radio bridge's
 send and receive threads, its flight-controller session's receiver and housekeeper
-and its pose thread (:meth:`swarm.runtime.agent.Agent.loop_beats`); the station's
+and its pose thread (:meth:`swarm.runtime.agent.live.Agent.loop_beats`); the station's
 loop and bridge and the HTTP server's event loop for ``swarm gcs``.
 """
 

@@ -24,10 +24,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from swarm.core.caps import check_cap
-from swarm.core.messages import NAME_RE
-from swarm.core.pilot import PilotConfig
-from swarm.core.profiles import PROFILE_NAMES
+from swarm.core.election.caps import check_cap
+from swarm.core.election.profiles import PROFILE_NAMES
+from swarm.core.flight.pilot import PilotConfig
+from swarm.core.wire.messages import NAME_RE
 
 if TYPE_CHECKING:
     from radios.link import Link
@@ -110,13 +110,13 @@ class NodeOptions:
 
 @dataclass(frozen=True)
 class AgentConfig:
-    """How an agent behaves (see :mod:`swarm.runtime.agent`): ``profile`` ``paper``,
+    """How an agent behaves (see :mod:`swarm.runtime.agent.live`): ``profile`` ``paper``,
     ``fast`` or ``tdm`` (the last two: windows from ``round_s``, the radio network's TDM round: None for a
     SiK pair at 64 kbit/s), ``vote`` ``random``, ``battery`` or ``link``, ``pose_hz``
     with a flight controller, ``fc_timeout`` to hear it first, ``seed`` for the random
     draws (None: unseeded), ``pilot`` the formation and flight settings and the
-    geofence (:class:`~swarm.core.geofence.Geofence`, ``pilot.fence``), ``swarm_cap``
-    the most agents in its swarm (0: no cap; :mod:`swarm.core.caps`), ``swarm_name``
+    geofence (:class:`~swarm.core.flight.geofence.Geofence`, ``pilot.fence``), ``swarm_cap``
+    the most agents in its swarm (0: no cap; :mod:`swarm.core.election.caps`), ``swarm_name``
     the only swarm name it pools with ("": agents without one).
 
     Raises:
@@ -130,7 +130,7 @@ class AgentConfig:
     fc_timeout: float = 10.0
     seed: int | None = None
     pilot: PilotConfig = field(default_factory=PilotConfig)
-    swarm_cap: int = 0  # the most agents in its swarm (swarm.core.caps); 0: no cap
+    swarm_cap: int = 0  # the most agents in its swarm (swarm.core.election.caps); 0: no cap
     swarm_name: str = ""  # pools only with agents of this swarm name; "": with unnamed ones
 
     def __post_init__(self) -> None:

@@ -28,7 +28,7 @@ never lets go of the members they share, see docs/DESIGN.md); no live agent idle
 no swarm and not electing) for longer than its alone timeout without hearing a
 leader to join (the protocol's "Alone" rule); no election (pooling, locked,
 electing) longer than ELECT_BOUND_ROUNDS rounds plus its windows; with a size cap, no
-pool or swarm larger than the cap (:mod:`swarm.core.caps`); every message an
+pool or swarm larger than the cap (:mod:`swarm.core.election.caps`); every message an
 agent sends decodes to itself; and at the end, that the swarm agreed and held after
 the last fault healed. A violation names its virtual time.
 """
@@ -40,9 +40,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from radios.mavlink import FrameBuilder, FrameParser
-from swarm.core.messages import Phase, decode, encode
-from swarm.core.protocol import Core, Out, profile_by_name
-from swarm.core.tunnel import COMP_ID, Kind
+from swarm.core.election.protocol import Core, Out, profile_by_name
+from swarm.core.wire.messages import Phase, decode, encode
+from swarm.core.wire.tunnel import COMP_ID, Kind
 from swarm.errors import DecodeError
 from swarm.sim.scenario import RunResult, Scenario, parse_drift, parse_span
 from swarm.sim.simulate import POSE, Sim, _Watch

@@ -5,7 +5,7 @@ Theory of operation
 -------------------
 A :class:`FlightSim` is a :class:`swarm.sim.simulate.Sim` (N protocol cores behind the
 air model, frames encoded exactly as the radio bridge does) with, for each agent,
-a :class:`swarm.core.pilot.Pilot` and a point-mass multicopter
+a :class:`swarm.core.flight.pilot.Pilot` and a point-mass multicopter
 (:class:`firmware_bridge.sim.dynamics.Body`, the vehicle simulator's own dynamics
 with PX4's position-loop gains and limits, taking the setpoints' velocity
 feed-forward as PX4 offboard does), in the scenario's :class:`swarm.sim.weather.Weather`
@@ -43,8 +43,11 @@ import pymap3d
 
 from firmware_bridge.sim.dynamics import Body, Limits, Target
 from radios.mavlink import FrameBuilder, dialect
-from swarm.core.formation import slot_error
-from swarm.core.messages import (
+from swarm.core.agent.node import AgentNode, NodeOut, OwnPose, PoseHeard, Send, SetpointOut
+from swarm.core.election.protocol import ADVERTIZE, Out
+from swarm.core.flight.formation import slot_error
+from swarm.core.flight.pilot import PilotConfig, Setpoint
+from swarm.core.wire.messages import (
     AckResult,
     Command,
     CommandAck,
@@ -56,10 +59,7 @@ from swarm.core.messages import (
     TaskKind,
     encode,
 )
-from swarm.core.node import AgentNode, NodeOut, OwnPose, PoseHeard, Send, SetpointOut
-from swarm.core.pilot import PilotConfig, Setpoint
-from swarm.core.protocol import ADVERTIZE, Out
-from swarm.core.tunnel import Kind
+from swarm.core.wire.tunnel import Kind
 from swarm.sim.simulate import Scenario, Sim, pct
 from swarm.sim.tracks import turn_changes
 from swarm.sim.weather import Environment, Weather

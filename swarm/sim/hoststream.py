@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 
 from radios.air.serial import drain, drain_time
 from radios.mavlink import STX_V1, STX_V2, frame_length, frame_problem
-from swarm.core.tunnel import Kind
+from swarm.core.wire.tunnel import Kind
 
 if TYPE_CHECKING:
     from radios.mavlink import FrameParser

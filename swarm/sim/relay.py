@@ -6,8 +6,8 @@ The real station holds one radio per channel and hands a command for the swarms 
 channel C to C's radio. In the simulator each channel is its own run
 (:mod:`swarm.sim.channels`); with ``Scenario.command_at`` set, the channel's run is a
 :class:`RelaySim`: its agents are the agent's whole pure node
-(:class:`swarm.core.node.AgentNode`, no flight controller), and one more radio on the
-channel is a station, the real pure :class:`swarm.core.station.StationCore` (station
+(:class:`swarm.core.agent.node.AgentNode`, no flight controller), and one more radio on the
+channel is a station, the real pure :class:`swarm.core.station.core.StationCore` (station
 id 255): it advertises itself, connects the agents (GSConnect, heartbeats,
 Telemetry), learns the leader from their AgentState, and at ``command_at`` submits a
 swarm FOLLOW (heading 90), which goes to the leader it sees with the station's own
@@ -38,13 +38,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from swarm.core.messages import GCS_ID, CommandAck, CommandKind, Message, Phase
-from swarm.core.node import AgentNode, NodeOut, PublishState, Send
-from swarm.core.protocol import ADVERTIZE, Core, Out
-from swarm.core.station import StationCore
-from swarm.core.station_commands import CommandRefused, CommandSpec
-from swarm.core.station_view import StOut
-from swarm.core.tunnel import Kind
+from swarm.core.agent.node import AgentNode, NodeOut, PublishState, Send
+from swarm.core.election.protocol import ADVERTIZE, Core, Out
+from swarm.core.station.commands import CommandRefused, CommandSpec
+from swarm.core.station.core import StationCore
+from swarm.core.station.model import StOut
+from swarm.core.wire.messages import GCS_ID, CommandAck, CommandKind, Message, Phase
+from swarm.core.wire.tunnel import Kind
 from swarm.sim.scenario import RunResult, Scenario
 from swarm.sim.simulate import POSE, Sim
 

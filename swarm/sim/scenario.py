@@ -155,7 +155,7 @@ class Scenario:
     pauses: list[str] = field(default_factory=list)
     drift: list[str] = field(default_factory=list)
     strict: bool = False  # the campaign's continuous invariants (swarm.sim.faultsim)
-    #: agents per swarm at most (swarm.core.caps; 0: no cap, one swarm); each channel's run takes it
+    #: agents per swarm at most (swarm.core.election.caps; 0: no cap, one swarm); each channel's run takes it
     cap: int = 0
     #: a station on the channel sends one swarm command at this virtual time (None: no
     #: station; swarm.sim.relay)

@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-Each simulated agent is a :class:`swarm.core.protocol.Core` behind a radio of
+Each simulated agent is a :class:`swarm.core.election.protocol.Core` behind a radio of
 :class:`radios.air.AirModel` (the same model the pty emulator runs). What a core
 sends is encoded exactly as the radio bridge does it: compact message in a
 MAVLink 2 TUNNEL frame, payload type by key kind, identical P2P payloads to several
@@ -57,9 +57,9 @@ from radios.air import AirModel, LossModel, RadioConfig
 from radios.air.serial import drain
 from radios.loss import GilbertElliott, UniformLoss
 from radios.mavlink import HEADER_V2, MSG_TUNNEL, STX_V2, FrameBuilder, FrameParser, frame_length
-from swarm.core.messages import Advertize, Message, Phase, Pose, decode, encode
-from swarm.core.protocol import ADVERTIZE, Core, Out, profile_by_name
-from swarm.core.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
+from swarm.core.election.protocol import ADVERTIZE, Core, Out, profile_by_name
+from swarm.core.wire.messages import Advertize, Message, Phase, Pose, decode, encode
+from swarm.core.wire.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
 from swarm.errors import DecodeError
 from swarm.sim.hoststream import HostStreams
 from swarm.sim.scenario import (

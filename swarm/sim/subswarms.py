@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-With a size cap (:mod:`swarm.core.caps`, ``swarm simulate --cap N``) a connected
+With a size cap (:mod:`swarm.core.election.caps`, ``swarm simulate --cap N``) a connected
 group of agents settles into several swarms, so the plain judge's "one leader per
 connected group" cannot hold. :func:`capped_agreement` says instead whether every
 live agent is in a led swarm of at most ``cap`` agents: each leader lists at most
@@ -18,8 +18,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from swarm.core.messages import Phase
-from swarm.core.protocol import Core
+from swarm.core.election.protocol import Core
+from swarm.core.wire.messages import Phase
 
 
 def capped_agreement(live: Sequence[Core], cap: int, group: Callable[[int], int]) -> tuple[bool, int]:

@@ -27,8 +27,8 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from swarm.core.formation import ne_between, slot_offset
-from swarm.core.messages import TaskKind
+from swarm.core.flight.formation import ne_between, slot_offset
+from swarm.core.wire.messages import TaskKind
 
 if TYPE_CHECKING:
     from swarm.sim.tracks import Analysis

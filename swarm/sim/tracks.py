@@ -9,7 +9,7 @@ swarm task (heading, assignments). :func:`analyse` rebuilds from it:
 * each agent's **track**: its poses at their sample times. A pose carries its
   sample time modulo 2.56 s in the sender's clock; the capture stamps the air
   time. Per sender, the delay (air time - sample time) modulo 2.56 s is smallest
-  (taken around the wrap: :func:`swarm.core.formation.circular_floor`) for the pose
+  (taken around the wrap: :func:`swarm.core.flight.formation.circular_floor`) for the pose
   that waited least; the sample time of every pose is its air time
   minus its delay beyond that smallest one (the smallest, a few tens of
   milliseconds of serial and air time, is ignored);
@@ -55,9 +55,9 @@ from typing import Any
 from radios.errors import CaptureError
 from radios.mavlink import MSG_TUNNEL
 from radios.tlog import read_tlog
-from swarm.core.formation import POSE_T_WRAP, circular_floor, ne_between, slot_error
-from swarm.core.messages import Heartbeat, Pose, PoseReport, Task, TaskKind, decode
-from swarm.core.tunnel import Kind, unpack_tunnel
+from swarm.core.flight.formation import POSE_T_WRAP, circular_floor, ne_between, slot_error
+from swarm.core.wire.messages import Heartbeat, Pose, PoseReport, Task, TaskKind, decode
+from swarm.core.wire.tunnel import Kind, unpack_tunnel
 from swarm.errors import DecodeError
 
 KIND_P2P, KIND_POSE, KIND_MULTI = Kind.P2P, Kind.POSE, Kind.MULTI

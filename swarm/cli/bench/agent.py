@@ -41,14 +41,14 @@ from radios.rotating import FlightLog
 from radios.tlog import TIMESTAMP
 from radios.tlogset import read_flight_log
 from swarm.cli.procs import Child, cpu_seconds, json_events, start_emulator
-from swarm.core.tunnel import PAYLOAD_TYPE_BASE, Kind
+from swarm.core.wire.tunnel import PAYLOAD_TYPE_BASE, Kind
 
 ADVERTIZE = PAYLOAD_TYPE_BASE + Kind.ADVERTIZE
 AGENT_MODULES = (
     "swarm.cli.commands.agent",
-    "swarm.runtime.agent",
-    "swarm.runtime.bridge",
-    "swarm.runtime.transport",
+    "swarm.runtime.agent.live",
+    "swarm.runtime.bridge.radio_bridge",
+    "swarm.runtime.keyspace.transport",
     "radios.link",
     "radios.seriallink",
     "radios.rotating",

@@ -35,9 +35,9 @@ from firmware_bridge.sim import REALISTIC_BOOT
 from firmware_bridge.sim.boot import POSITION_VALID, RECORDED_TOTAL
 from radios.ports import free_port
 from swarm.cli.procs import Child, start_emulator
-from swarm.core.messages import AckResult, CommandKind, PoseReport
-from swarm.core.station import DONE_RESULTS, CommandRefused, CommandSpec, StationConfig
-from swarm.runtime.station import Station
+from swarm.core.station.core import DONE_RESULTS, CommandRefused, CommandSpec, StationConfig
+from swarm.core.wire.messages import AckResult, CommandKind, PoseReport
+from swarm.runtime.station.live import Station
 
 QUICK_BOOT = 10.0
 AGENT_ID = 1
@@ -122,8 +122,8 @@ def _poses(capture: str, sim_start: float, boot: float) -> dict[str, Any]:
     from radios.errors import CaptureError
     from radios.mavlink import MSG_TUNNEL
     from radios.tlog import read_tlog
-    from swarm.core.messages import decode
-    from swarm.core.tunnel import Kind, unpack_tunnel
+    from swarm.core.wire.messages import decode
+    from swarm.core.wire.tunnel import Kind, unpack_tunnel
     from swarm.errors import DecodeError
 
     valid_from = sim_start + POSITION_VALID * boot / RECORDED_TOTAL

@@ -17,7 +17,7 @@ import time
 from typing import Any
 
 from swarm.cli.procs import Child, start_emulator
-from swarm.core.profiles import PROFILE_NAMES
+from swarm.core.election.profiles import PROFILE_NAMES
 from swarm.sim.simulate import Scenario, campaign
 
 CASES = [(5, 0.0), (5, 0.1), (10, 0.0), (10, 0.1)]

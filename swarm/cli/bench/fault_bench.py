@@ -317,7 +317,7 @@ class FaultBench:
 
     def start(self) -> None:
         from swarm.cli.demo import _free_base_port
-        from swarm.core.profiles import profile_by_name
+        from swarm.core.election.profiles import profile_by_name
 
         with open(self.key_file, "w", encoding="utf-8") as fh:
             fh.write(KEY_PASSPHRASE + "\n")

@@ -410,7 +410,7 @@ def _pose_stats(bench: FaultBench, start_wall: float, end_wall: float) -> dict[i
     """Per agent: pose frames put on the air in the window, and the longest gap."""
     from radios.errors import RadioError
     from radios.tlog import read_tlog
-    from swarm.core.tunnel import Kind, unpack_tunnel
+    from swarm.core.wire.tunnel import Kind, unpack_tunnel
     from swarm.errors import SwarmError
 
     times: dict[int, list[float]] = {k: [] for k in bench.agents}
@@ -652,8 +652,8 @@ def ip_attacker(bench: FaultBench) -> FaultResult:
 def _forgeries(bench: FaultBench, key: bytes | None, sysid: int) -> list[bytes]:
     """Advertize, StartPool, a vote for the rogue and a Heartbeat claiming every agent."""
     from radios.mavlink import FrameBuilder
-    from swarm.core.messages import Advertize, Heartbeat, Selection, StartPool, encode
-    from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
+    from swarm.core.wire.messages import Advertize, Heartbeat, Selection, StartPool, encode
+    from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 
     b = FrameBuilder(sysid, COMP_ID, signing_key=key)
     members = frozenset(bench.agents) - {sysid}
@@ -781,8 +781,8 @@ def rogue_vote(bench: FaultBench, seconds: float = 15.0) -> FaultResult:
     and in the survivors' names."""
     from radios.mavlink import FrameBuilder
     from radios.signing import key_from_passphrase
-    from swarm.core.messages import Selection, encode, pool_digest
-    from swarm.core.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
+    from swarm.core.wire.messages import Selection, encode, pool_digest
+    from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 
     bench.settled("forged vote")
     lead = bench.leader()

@@ -2,7 +2,7 @@
 
 A ``swarm gcs --zenoh-listen`` process is the station. Another process (this module
 run with ``--feed``) plays N agents over one Zenoh session: each speaks the real
-agent side of the connection protocol (:class:`swarm.core.gslink.GsLink`: GSAdvertize,
+agent side of the connection protocol (:class:`swarm.core.agent.gslink.GsLink`: GSAdvertize,
 GSConnectAck, Telemetry as its heartbeat at ``hz``) and also publishes its pose
 and its AgentState at ``hz``, flying a circle. Once the station has all of them
 connected:
@@ -56,8 +56,8 @@ from typing import Any
 from radios.ports import free_port
 from swarm.cli.bench import replay_speed
 from swarm.cli.procs import Child, cpu_seconds
-from swarm.core.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.core.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
+from swarm.core.agent.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
+from swarm.core.wire.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
 
 AGENTS = 50
 HZ = 5.0
@@ -256,7 +256,7 @@ class _Feeder:
     """``agents`` agents at ``hz`` over one Zenoh session (see the module docstring)."""
 
     def __init__(self, ep: str, agents: int, hz: float) -> None:
-        from swarm.runtime import transport  # Zenoh: in the feeder process only
+        from swarm.runtime.keyspace import transport  # Zenoh: in the feeder process only
 
         self.keys = transport
         self.session = transport.open_session(connect=[ep])

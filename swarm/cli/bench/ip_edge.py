@@ -108,7 +108,7 @@ def second_machine() -> Iterator[tuple[str | None, str, str]]:
 def make_pki(d: Path, router_host: str) -> dict[str, Path]:
     """The swarm's CA and certificates (router, st0, st1; an agent's, an expired
     agent's) in ``d``, another CA's station in ``d/other``, the ACL."""
-    from swarm.runtime.pki import issue, make_ca, nodes, write_acl
+    from swarm.runtime.keyspace.pki import issue, make_ca, nodes, write_acl
 
     now = time.time()
     make_ca(d, now=now)
@@ -138,8 +138,8 @@ def _tls_flags(d: Path, name: str) -> list[str]:
 def _cert_attacks(ep: str, pki: dict[str, Path]) -> dict[str, dict[str, Any]]:
     """Real certificates used wrongly: another CA's station, an expired agent, a valid
     agent asking a station's command queryable. What each reached."""
+    from swarm.runtime.keyspace.transport import ClientSession, session_config
     from swarm.runtime.options import TlsFiles
-    from swarm.runtime.transport import ClientSession, session_config
 
     d = pki["dir"]
     cases = {
@@ -179,9 +179,9 @@ def router_load(d: Path, seconds: float) -> dict[str, Any]:
     with their certificates) each putting its pose at :data:`LOAD_HZ` Hz and hearing
     everyone's, for ``seconds``, through a router without and with ``--acl`` (whose
     decisions it reads from Zenoh's log): the router's CPU, in % of one core."""
+    from swarm.runtime.keyspace.pki import issue, make_ca, nodes, write_acl
+    from swarm.runtime.keyspace.transport import open_session
     from swarm.runtime.options import TlsFiles
-    from swarm.runtime.pki import issue, make_ca, nodes, write_acl
-    from swarm.runtime.transport import open_session
 
     now = time.time()
     d.mkdir()

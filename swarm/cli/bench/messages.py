@@ -27,12 +27,12 @@ from dataclasses import fields
 from enum import IntEnum
 from typing import Any
 
-import swarm.core.messages as sm
+import swarm.core.wire.messages as sm
 from radios.link import open_link
 from radios.sik.timing import model_latency_s, tdm_timing
 from swarm.cli.procs import start_emulator
-from swarm.runtime.bridge import RadioBridge, bridge_message_frame_bytes
-from swarm.runtime.transport import Transport, open_session
+from swarm.runtime.bridge.radio_bridge import RadioBridge, bridge_message_frame_bytes
+from swarm.runtime.keyspace.transport import Transport, open_session
 
 AIR_KBPS = 64
 SERIAL_BAUD = 57600

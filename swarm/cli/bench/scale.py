@@ -4,7 +4,7 @@ Theory of operation
 -------------------
 Two simulated targets, in virtual time (:mod:`swarm.sim.channels`, seeds over every
 core with the same figures as one), with the ``tdm`` election profile (``PROFILE``:
-with a cap its rules run with the cap's, :mod:`swarm.core.tdm_election`) and 10 % loss:
+with a cap its rules run with the cap's, :mod:`swarm.core.election.tdm`) and 10 % loss:
 
 * ``one_channel_n50``: 50 agents on one channel with a swarm cap of 10 (``CAP``):
   every agent in a swarm with a leader within 30 s at the 95th percentile, in at least

@@ -198,8 +198,8 @@ def state_traffic(router: str, seconds: float = TRAFFIC_S) -> dict[str, Any]:
     per station the envelopes a second and bytes a second, and their sum."""
     import threading
 
-    from swarm.core.federation import PREFIX
-    from swarm.runtime.transport import open_session
+    from swarm.core.station.federation import PREFIX
+    from swarm.runtime.keyspace.transport import open_session
 
     got: dict[str, list[int]] = {}
     lock = threading.Lock()
@@ -234,14 +234,14 @@ def state_cost(agents: list[dict[str, Any]], n: int, key: bytes | None = b"k" * 
     ``agents`` (a real station's, copied round-robin), each given a position, a home and
     a trail of :data:`TRAIL_POINTS` points of a random walk (7 decimals, as a station
     rounds them), one swarm per 10 agents: its bytes as sent (trails cut to
-    :data:`~swarm.core.federation.TRAIL_SENT`, deflated) and a second at
+    :data:`~swarm.core.station.federation.TRAIL_SENT`, deflated) and a second at
     :data:`PUBLISH_HZ`; ``json_bytes``: its JSON once inflated; ``before_bytes_per_s``:
     whole trails, not deflated (what was sent before); ``seal_ms``: the time to make it
     (JSON, deflate, MAC), once a period.
     """
     import random
 
-    from swarm.core.federation import KIND_STATE, TRAIL_SENT, fed_key, seal, thin
+    from swarm.core.station.federation import KIND_STATE, TRAIL_SENT, fed_key, seal, thin
 
     rng = random.Random(16)
     made = []

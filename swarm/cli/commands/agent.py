@@ -35,7 +35,7 @@ value the radio showed at that start check (:func:`~radios.sik.guard.baseline`).
 ``--radio-check-period S`` checks the radio again every S seconds, and
 ``--radio-recheck S`` when the agent has heard no other agent for S seconds (a radio
 moved to another network hears no one): the radio bridge lends the port to the
-check for about 2.3 s (:meth:`~swarm.runtime.bridge.RadioBridge.lend_radio`) while
+check for about 2.3 s (:meth:`~swarm.runtime.bridge.radio_bridge.RadioBridge.lend_radio`) while
 the agent goes on, in flight too: its protocol state, its pilot and its flight
 controller are not touched. Each re-check prints ``radio-checked`` (``why``:
 ``period`` or ``isolated``; the ``radio`` events ``paused`` and ``back`` around it
@@ -89,12 +89,12 @@ from swarm.cli.util import (
     peer_watch,
     print_json,
 )
-from swarm.core.caps import MAX_CAP, check_cap
-from swarm.core.formation import FormationConfig
-from swarm.core.messages import NAME_RE, AgentState
-from swarm.core.pilot import PilotConfig
+from swarm.core.election.caps import MAX_CAP, check_cap
+from swarm.core.flight.formation import FormationConfig
+from swarm.core.flight.pilot import PilotConfig
+from swarm.core.wire.messages import NAME_RE, AgentState
 from swarm.errors import MessageError
-from swarm.runtime.agent import (
+from swarm.runtime.agent.live import (
     PROFILES,
     VEHICLE_LINK_BACK,
     VEHICLE_LINK_LOST,

@@ -17,8 +17,8 @@ the machine where certificates are made (the CA's private key never leaves it):
   certificate, say).
 
 Nothing existing is overwritten but the ACL file (derived from the certificates); the
-folder must exist. The work is :mod:`swarm.runtime.pki`'s and the rules are
-:mod:`swarm.core.zenoh_acl`'s. Exit 0 with what to copy where, 2 for bad input (an
+folder must exist. The work is :mod:`swarm.runtime.keyspace.pki`'s and the rules are
+:mod:`swarm.core.keyspace.acl`'s. Exit 0 with what to copy where, 2 for bad input (an
 existing file, no folder, a bad name or role, no CA), 1 for a failed write.
 """
 
@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 from swarm.cli.util import guarded
-from swarm.core.zenoh_acl import ROLES
+from swarm.core.keyspace.acl import ROLES
 
 PROG = "swarm certs"
 
@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _acl(folder: str, out: str | None = None) -> list[str]:
-    from swarm.runtime.pki import nodes, write_acl
+    from swarm.runtime.keyspace.pki import nodes, write_acl
 
     members, skipped = nodes(folder)
     path = write_acl(folder, members, out)
@@ -75,7 +75,7 @@ def _acl(folder: str, out: str | None = None) -> list[str]:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    from swarm.runtime.pki import issue, make_ca
+    from swarm.runtime.keyspace.pki import issue, make_ca
 
     a = build_parser().parse_args(argv)
     now = time.time()

@@ -31,7 +31,7 @@ from swarm.cli.configfile import read_arguments
 from swarm.cli.demo import AUTOPILOTS, SITL_DURATION_S, DemoConfig, run_demo
 from swarm.cli.demo_report import summary_lines
 from swarm.cli.util import EXIT_FAILURE, StopFlag, UsageError, guarded, parser, print_json
-from swarm.core.profiles import PROFILE_NAMES
+from swarm.core.election.profiles import PROFILE_NAMES
 
 PROG = "swarm demo"
 

@@ -6,7 +6,7 @@ Live: ``swarm gcs --radio URL`` (a SiK radio or an emulator pty) or
 Several channels: ``--radio NAME=URL`` repeated (one radio per NETID); with radios,
 ``--zenoh-connect/--zenoh-listen`` join other stations over Zenoh (routers:
 ``swarm router``), their agents shown and commanded on this page too
-(:class:`swarm.runtime.stations.Fleet`, :mod:`swarm.runtime.federation`; remote
+(:class:`swarm.runtime.station.fleet.Fleet`, :mod:`swarm.runtime.station.federation`; remote
 commands need the swarm key, or ``--allow-unsigned-remote``).
 
 The page and the API answer only their own page, under this machine's names
@@ -61,13 +61,13 @@ from swarm.cli.util import (
     print_json,
     zenoh_security,
 )
-from swarm.core.gslink import STATION_IDS
-from swarm.core.message_types import NAME_RE
-from swarm.core.messages import check_name
+from swarm.core.agent.gslink import STATION_IDS
+from swarm.core.wire.message_types import NAME_RE
+from swarm.core.wire.messages import check_name
 from swarm.errors import MessageError
-from swarm.runtime.connections import raise_file_limit
 from swarm.runtime.notify import Service
-from swarm.runtime.server import (
+from swarm.runtime.station.connections import raise_file_limit
+from swarm.runtime.station.server import (
     MAX_WS_HZ,
     OSM_ATTRIBUTION,
     OSM_TILES,
@@ -78,7 +78,7 @@ from swarm.runtime.server import (
     check_host_name,
     check_token,
 )
-from swarm.runtime.tiles import MbTilesError, open_mbtiles
+from swarm.runtime.station.tiles import MbTilesError, open_mbtiles
 
 PROG = "swarm gcs"
 
@@ -161,8 +161,8 @@ def _add_alert_arguments(p: argparse.ArgumentParser) -> None:
 
 def _station_config(a: argparse.Namespace) -> Any:
     """The live station's settings from the alert and fence flags (UsageError for bad ones)."""
-    from swarm.core.station_alerts import AlertConfig
-    from swarm.core.station_view import StationConfig
+    from swarm.core.station.alerts import AlertConfig
+    from swarm.core.station.model import StationConfig
 
     w, c, loss = a.battery_warning, a.battery_critical, a.link_loss_alert
     if not 0 <= c < w <= 100:
@@ -393,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _open_station(a: argparse.Namespace) -> Any:
     if a.replay is not None:
-        from swarm.runtime.replay import ReplayStation, load_capture
+        from swarm.runtime.station.replay import ReplayStation, load_capture
 
         try:
             cap = load_capture(a.replay)
@@ -406,7 +406,7 @@ def _open_station(a: argparse.Namespace) -> Any:
         return ReplayStation(
             cap, speed=a.speed or 1.0, name=None if a.name == "gcs" else a.name, playing=not a.paused
         ).start()
-    from swarm.runtime.station import Station
+    from swarm.runtime.station.live import Station
 
     if a.channels is not None:
         return _open_fleet(a)
@@ -421,11 +421,11 @@ def _open_station(a: argparse.Namespace) -> Any:
 def _open_fleet(a: argparse.Namespace) -> Any:
     """One station per channel, merged, joined to the other stations over Zenoh."""
     from radios.signing import load_key
-    from swarm.core.federation import fed_key
-    from swarm.runtime.federation import Federation
+    from swarm.core.station.federation import fed_key
     from swarm.runtime.options import NodeOptions
-    from swarm.runtime.station import Station
-    from swarm.runtime.stations import Fleet
+    from swarm.runtime.station.federation import Federation
+    from swarm.runtime.station.fleet import Fleet
+    from swarm.runtime.station.live import Station
 
     key = fed_key(load_key(a.key)) if a.key is not None else None
     folder = a.state_folder

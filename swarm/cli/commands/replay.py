@@ -11,7 +11,7 @@ modes (each its own function below; only one runs):
 
 * dump (default): one line per frame, MAVProxy-like text or, with ``--json``, one
   JSON object per line (:func:`radios.replay.decode_record`). A swarm TUNNEL frame
-  is shown as the message it carries (:func:`swarm.core.tunnel_decode.decode_tunnel`):
+  is shown as the message it carries (:func:`swarm.core.wire.tunnel_decode.decode_tunnel`):
   text ``TIME SYSID/COMPID KIND FROM -> TO {field : value, ...}``, JSON the header
   facts plus ``tunnel``, ``kind``, ``from``, ``to`` and ``fields``; a payload that
   does not decode (a capture is hostile input) is one line saying why (``kind``
@@ -79,7 +79,7 @@ from swarm.cli.util import (
     parser,
     print_json,
 )
-from swarm.core.tunnel_decode import decode_tunnel, format_fields, format_to
+from swarm.core.wire.tunnel_decode import decode_tunnel, format_fields, format_to
 
 if TYPE_CHECKING:  # the flight log and link modules are imported where used: a dump needs neither
     from radios.tlogset import FlightLogReader
@@ -236,7 +236,7 @@ def _dump(reader: TlogReader | FlightLogReader, *, as_json: bool) -> int:
 
 
 def _swarm(rec: TlogRecord) -> dict[str, Any] | None:
-    """The record's swarm message (:func:`swarm.core.tunnel_decode.decode_tunnel`) with
+    """The record's swarm message (:func:`swarm.core.wire.tunnel_decode.decode_tunnel`) with
     the MAVLink header facts, or None when it is not a swarm TUNNEL frame."""
     frame = rec.frame
     raw = frame.raw

@@ -14,8 +14,8 @@ the same TLS and access-control sections, in its configuration).
 With ``--tls-ca/--tls-cert/--tls-key`` every link is mutual TLS (a node without a
 certificate of the swarm's CA, or with an expired one, is refused at the handshake)
 and with ``--acl FILE`` Zenoh's access control decides what each certificate may do
-(``swarm certs`` makes all four; the rules: :mod:`swarm.core.zenoh_acl`). What the
-router refuses is read from Zenoh's own log (:mod:`swarm.runtime.zenoh_logwatch`):
+(``swarm certs`` makes all four; the rules: :mod:`swarm.core.keyspace.acl`). What the
+router refuses is read from Zenoh's own log (:mod:`swarm.runtime.keyspace.logwatch`):
 each kind of refusal is said once (``--json``: ``{"event": "refused", "by": "tls",
 "why"}`` or ``{"event": "refused", "by": "acl", "who", "what", "flow", "key"}``) and
 counted; the counts are printed every ``--report-every`` seconds when they changed
@@ -39,7 +39,7 @@ from swarm.cli.util import StopFlag, UsageError, guarded, parser, print_json
 from swarm.errors import TransportError
 
 if TYPE_CHECKING:
-    from swarm.core.zenoh_log import Refusal
+    from swarm.core.keyspace.router_log import Refusal
     from swarm.runtime.options import TlsFiles
 
 PROG = "swarm router"
@@ -86,11 +86,11 @@ def open_router(
     or CertError (the TLS or ACL files)."""
     import zenoh
 
-    from swarm.runtime.transport import session_config, zenoh_config_message, zenoh_open_message
+    from swarm.runtime.keyspace.transport import session_config, zenoh_config_message, zenoh_open_message
 
     acl_text = None
     if tls is not None:
-        from swarm.runtime import zenoh_tls
+        from swarm.runtime.keyspace import tls as zenoh_tls
 
         zenoh_tls.check_tls(tls)
         acl_text = zenoh_tls.load_acl(acl) if acl is not None else None
@@ -112,7 +112,7 @@ def _tls(a: argparse.Namespace) -> TlsFiles | None:
     """The router's TLS files once the rules allow them (UsageError otherwise); its
     warnings (plain TCP beyond loopback, TLS without an ACL) in ``a.warnings``, said
     once it runs."""
-    from swarm.core.zenoh_edge import CERTS_HINT, endpoint_kind, tls_needed
+    from swarm.core.keyspace.endpoints import CERTS_HINT, endpoint_kind, tls_needed
     from swarm.runtime.options import TlsFiles
 
     if not a.report_every >= 0:
@@ -184,10 +184,10 @@ def _serve(a: argparse.Namespace, tls: TlsFiles | None, stop: StopFlag) -> int:
     out = _Out(a.json)
     watch: Any = None
     if tls is not None:
-        from swarm.runtime.zenoh_tls import check_tls
+        from swarm.runtime.keyspace.tls import check_tls
 
         check_tls(tls)  # before Zenoh's log is taken over: a bad file is one plain line
-        from swarm.runtime.zenoh_logwatch import LogWatch
+        from swarm.runtime.keyspace.logwatch import LogWatch
 
         watch = LogWatch(out.refused, out.warning).start()
     try:

@@ -18,8 +18,8 @@ from typing import Any
 
 from swarm.cli.progress import Progress
 from swarm.cli.util import EXIT_INTERRUPTED, UsageError, guarded, parser, print_json
-from swarm.core.caps import MAX_CAP, check_cap
-from swarm.core.profiles import PROFILE_NAMES
+from swarm.core.election.caps import MAX_CAP, check_cap
+from swarm.core.election.profiles import PROFILE_NAMES
 from swarm.sim.campaign import run_campaign
 from swarm.sim.channels import DEFAULT_LATENCY_S, MAX_CHANNELS, ChannelScenario, run_channels
 from swarm.sim.scenario import Link, parse_drift, parse_span

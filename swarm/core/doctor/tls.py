@@ -16,7 +16,7 @@ probe (:mod:`swarm.runtime.doctor.tls`) reads them into :class:`TlsFacts` and
 * the key: readable by this user only (mode 0600 or 0400), the certificate's key;
 * the ACL: readable, Zenoh accepts it, access control on and denying by default.
 
-A ``fail`` is what the node refuses to start with (:mod:`swarm.runtime.zenoh_tls`
+A ``fail`` is what the node refuses to start with (:mod:`swarm.runtime.keyspace.tls`
 uses these same verdicts), a ``warn`` is flyable. Pure: facts and ``now`` in.
 """
 

@@ -42,7 +42,7 @@ from swarm.core.doctor.host import (
 from swarm.core.doctor.radio import RadioFacts, RadioPlan, radio_checks
 from swarm.core.doctor.tls import acl_check, tls_checks
 from swarm.core.doctor.vehicle import VehicleFacts, vehicle_checks
-from swarm.core.zenoh_edge import CERTS_HINT
+from swarm.core.keyspace.endpoints import CERTS_HINT
 from swarm.runtime.doctor.host import device_facts, disk_facts, key_facts, zenoh_facts
 from swarm.runtime.doctor.radio import radio_facts
 from swarm.runtime.doctor.tls import acl_facts, tls_facts
@@ -67,7 +67,9 @@ class Setup:
     fc_timeout: float = HEARTBEAT_S
     tls: TlsFiles | None = None  # --tls-ca/--tls-cert/--tls-key, with the name and role expected
     acl: str | None = None  # --zenoh-acl
-    zenoh_warnings: Sequence[str] = ()  # what the agent would warn of its Zenoh (swarm.core.zenoh_edge)
+    zenoh_warnings: Sequence[
+        str
+    ] = ()  # what the agent would warn of its Zenoh (swarm.core.keyspace.endpoints)
 
 
 def _radio_device(setup: Setup, out: list[Check]) -> tuple[str, int] | None:

@@ -1,7 +1,7 @@
 """Probes of a node's TLS files and its Zenoh access-control file (facts, no verdicts).
 
 :func:`tls_facts` reads the CA's certificate, the node's certificate and private key
-(:mod:`swarm.runtime.pki`: regular files of at most 64 KiB, read without blocking) and
+(:mod:`swarm.runtime.keyspace.pki`: regular files of at most 64 KiB, read without blocking) and
 notes what they say, whether the CA signed the certificate and whether the key is the
 certificate's; :func:`acl_facts` hands the access-control file to Zenoh's own parser
 (it is JSON5) and notes what it says. Nothing is judged here
@@ -21,7 +21,7 @@ ACL_MAX = 4 * 1024 * 1024  # bytes: a swarm of 250 agents' rules take ~0.4 MB
 
 
 def _cert(path: str) -> tuple[CertFacts, object | None]:
-    from swarm.runtime.pki import cert_info, load_cert
+    from swarm.runtime.keyspace.pki import cert_info, load_cert
 
     try:
         cert = load_cert(path)
@@ -33,7 +33,7 @@ def _cert(path: str) -> tuple[CertFacts, object | None]:
 
 def tls_facts(ca: str, cert: str, key: str, *, expect_name: str = "", expect_role: str = "") -> TlsFacts:
     """What the three files are (see the module docstring)."""
-    from swarm.runtime.pki import key_matches, load_key, signed_by
+    from swarm.runtime.keyspace.pki import key_matches, load_key, signed_by
 
     ca_facts, ca_cert = _cert(ca)
     cert_facts, node_cert = _cert(cert)
@@ -80,7 +80,7 @@ def parse_acl(path: str, text: str) -> dict[str, object]:
     Zenoh's own reason."""
     import zenoh
 
-    from swarm.runtime.transport import zenoh_config_message
+    from swarm.runtime.keyspace.transport import zenoh_config_message
 
     cfg = zenoh.Config()
     try:

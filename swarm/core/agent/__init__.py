@@ -1,0 +1,3 @@
+"""One agent as a pure state machine: the node that composes the election, the pilot and the ground-
+station link.
+"""

@@ -1,0 +1,3 @@
+"""The ground station's pure core: agents, alerts, commands and their delivery, swarms, plans, deltas
+and federation.
+"""

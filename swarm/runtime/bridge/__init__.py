@@ -1,0 +1,1 @@
+"""The radio bridge: the swarm's Zenoh key space carried over a SiK radio, both directions."""

@@ -40,7 +40,7 @@ master ends and drives one :class:`radios.air.AirModel` in real time
 
 :class:`Emulator` is usable in-process (tests) or through ``swarm radio-emu``. Its
 options, their checks and the parameters each radio boots with are in
-:mod:`radios.emulator_config` (re-exported here).
+:mod:`radios.emulator_config`.
 """
 
 from __future__ import annotations
@@ -66,11 +66,7 @@ from typing import Any
 from radios.air import AirModel, LossModel, RadioConfig
 from radios.device_id import emulator_label
 from radios.emulator_config import (
-    BAUD_CODE,
-    SERIAL_BAUD,
     EmulatorConfig,
-    check_capture_path,
-    parse_param,
     radio_config_of,
     stored_params,
 )
@@ -607,15 +603,4 @@ def _named(p: SikParams, table: dict[int, int]) -> dict[str, int]:
     return {spec.name: table[spec.index] for spec in p.specs}
 
 
-# re-exported: the configuration lives in radios.emulator_config
-__all__ = [
-    "BAUD_CODE",
-    "CONTROL",
-    "CONTROL_HELP",
-    "SERIAL_BAUD",
-    "Emulator",
-    "EmulatorConfig",
-    "check_capture_path",
-    "parse_param",
-    "radio_config_of",
-]
+__all__ = ["CONTROL", "CONTROL_HELP", "Emulator"]

@@ -20,7 +20,8 @@ from pathlib import Path
 
 from radios.air import RadioConfig
 from radios.errors import ConfigError
-from radios.sik.params import SikParams, spec_for, validate_user_value
+from radios.sik.param_table import spec_for
+from radios.sik.params import SikParams, validate_user_value
 
 SERIAL_BAUD = {1: 1200, 2: 2400, 4: 4800, 9: 9600, 19: 19200, 38: 38400, 57: 57600, 115: 115200, 230: 230400}
 BAUD_CODE = {v: k for k, v in SERIAL_BAUD.items()}

@@ -229,6 +229,12 @@ class FrameParser:
         """Bytes held while waiting for the rest of a frame."""
         return len(self._buf)
 
+    @property
+    def held(self) -> bytearray:
+        """The bytes held while waiting for the rest of a frame: the buffer itself, for a
+        reader that looks ahead without a copy (the simulator); never change it."""
+        return self._buf
+
     def reset(self) -> None:
         self._buf.clear()
 

@@ -25,7 +25,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from radios.link import open_link
-from swarm.core.wire.messages import Advertize, Message, Selection
+from swarm.core.wire.message_types import Advertize, Message, Selection
 from swarm.runtime.bridge.radio_bridge import RadioBridge
 from swarm.runtime.keyspace.transport import Transport, open_session
 

@@ -22,7 +22,8 @@ from typing import Any
 
 from net_helpers import wait_until
 
-from radios.emulator import Emulator, EmulatorConfig
+from radios.emulator import Emulator
+from radios.emulator_config import EmulatorConfig
 from radios.link import Link, open_link
 from radios.mavlink import STX_V1, STX_V2, Frame, FrameBuilder, FrameParser
 

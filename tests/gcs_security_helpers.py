@@ -15,7 +15,7 @@ from typing import Any
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.wire.messages import Phase
+from swarm.core.wire.message_types import Phase
 from swarm.runtime.station.live import Station
 
 

@@ -17,17 +17,11 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.core.wire.messages import AgentState, Phase
-from swarm.runtime.agent.live import (
-    Agent,
-    AgentConfig,
-    NodeOptions,
-    default_round_s,
-    pose_from_state,
-    state_dict,
-    vehicle_messages,
-)
+from swarm.core.wire.message_types import AgentState, Phase
+from swarm.runtime.agent.live import Agent, default_round_s
+from swarm.runtime.agent.vehicle import pose_from_state, state_dict, vehicle_messages
 from swarm.runtime.keyspace.transport import Transport
+from swarm.runtime.options import AgentConfig, NodeOptions
 
 pytestmark = pytest.mark.processes  # agents over Zenoh and radios, in real time
 
@@ -272,7 +266,7 @@ def test_cli_bad_input_exits_2_with_one_line(
 
 def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
     from swarm.cli.procs import Child
-    from swarm.core.wire.messages import PoseReport
+    from swarm.core.wire.message_types import PoseReport
 
     base = free_port()
     sim = Child(["sim", "--vehicles", "1", "--profile", "ardupilot", "--base-port", str(base)], name="sim")

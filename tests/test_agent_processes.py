@@ -22,7 +22,7 @@ from net_helpers import wait_until
 
 from radios.link import open_link
 from swarm.cli.procs import Child, start_emulator
-from swarm.core.wire.messages import AgentState, Phase
+from swarm.core.wire.message_types import AgentState, Phase
 from swarm.runtime.bridge.radio_bridge import RadioBridge
 from swarm.runtime.keyspace.transport import Transport, open_session
 

@@ -13,14 +13,15 @@ import pytest
 from test_gcs_station import POSE, connect, tm
 
 from firmware_bridge.sim.autopilot import BATTERY_CRITICAL, BATTERY_LOW, Autopilot
-from swarm.core.agent.gslink import FLAG_FC_OK
 from swarm.core.agent.node import AgentNode, AutopilotText, PositionFix, Send
-from swarm.core.agent.notices import SEPARATION_HOLD, NoticeConfig, NoticeGate, one_line
-from swarm.core.election.protocol import profile_by_name
+from swarm.core.agent.notices import NoticeConfig, NoticeGate
+from swarm.core.election.profiles import profile_by_name
 from swarm.core.station.alerts import AlertConfig, LinkHealth
-from swarm.core.station.core import CommandRefused, StationCore, parse_command
+from swarm.core.station.commands import CommandRefused, parse_command
+from swarm.core.station.core import StationCore
 from swarm.core.station.model import StationConfig
-from swarm.core.wire.messages import (
+from swarm.core.wire.codes import FLAG_FC_OK, SEPARATION_HOLD, one_line
+from swarm.core.wire.message_types import (
     NOTICE_MAX,
     AckResult,
     AgentNotice,
@@ -28,9 +29,8 @@ from swarm.core.wire.messages import (
     GSAdvertize,
     GSConnect,
     NoticeSource,
-    decode,
-    encode,
 )
+from swarm.core.wire.messages import decode, encode
 from swarm.errors import DecodeError, MessageError
 
 AUTO, AGENT = NoticeSource.AUTOPILOT, NoticeSource.AGENT

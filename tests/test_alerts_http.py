@@ -16,7 +16,7 @@ from gcs_security_helpers import JSON, request
 from net_helpers import free_port, wait_until
 
 from swarm.cli.procs import start_emulator
-from swarm.core.wire.messages import AgentNotice, NoticeSource
+from swarm.core.wire.message_types import AgentNotice, NoticeSource
 from swarm.runtime.keyspace.transport import Transport
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig

@@ -35,7 +35,7 @@ from radios.link import Link, open_link
 from radios.mavlink import MSG_TUNNEL, Frame, FrameBuilder, pack_frame, parse_one
 from radios.signing import key_from_passphrase
 from swarm.cli.procs import start_emulator
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     Advertize,
     AgentState,
     Heartbeat,
@@ -48,9 +48,8 @@ from swarm.core.wire.messages import (
     Selection,
     StartPool,
     Telemetry,
-    decode,
-    encode,
 )
+from swarm.core.wire.messages import decode, encode
 from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 from swarm.runtime.bridge.radio_bridge import BridgeConfig, RadioBridge
 from swarm.runtime.keyspace.transport import Transport, open_session

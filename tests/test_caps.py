@@ -13,24 +13,24 @@ import pytest
 from swarm.cli.commands import agent as agent_cmd
 from swarm.cli.commands import simulate as simulate_cmd
 from swarm.core.election import caps
-from swarm.core.election.protocol import ADVERTIZE, FLAG_LEADER, PAPER, Core
-from swarm.core.wire.messages import (
+from swarm.core.election.outbox import ADVERTIZE, FLAG_LEADER
+from swarm.core.election.profiles import PAPER
+from swarm.core.election.protocol import Core
+from swarm.core.wire.message_types import (
     ADV_SIZE,
     ADV_SWARM,
     Advertize,
-    DecodeError,
     Heartbeat,
-    MessageError,
     Phase,
     PoolStatus,
     StartPool,
     StartPoolAck,
     SyncPool,
     SyncPoolAck,
-    decode,
-    encode,
     swarm_tag,
 )
+from swarm.core.wire.messages import decode, encode
+from swarm.errors import DecodeError, MessageError
 from swarm.runtime.options import AgentConfig
 from swarm.sim.simulate import Scenario, Sim
 from swarm.sim.subswarms import capped_agreement, split_pairs

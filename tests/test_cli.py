@@ -163,7 +163,7 @@ def test_verbose_shows_the_agents_log_lines_and_the_default_stays_quiet() -> Non
     """Two agents, one started with ``swarm -v``; a third node advertises both their
     ids under another name. Both report it (a pilot event on stdout); only the one
     with ``-v`` also logs it on stderr, one line with time, logger name and level."""
-    from swarm.core.wire.messages import Advertize
+    from swarm.core.wire.message_types import Advertize
     from swarm.runtime.keyspace.transport import Transport
 
     ep = f"tcp/127.0.0.1:{free_port()}"

@@ -19,8 +19,9 @@ from swarm.cli.commands.sim import main as sim_main
 from swarm.cli.commands.simulate import main as simulate_main
 from swarm.cli.commands.simulate import text_report
 from swarm.cli.util import PeerWatch
+from swarm.core.keyspace.zenoh_errors import zenoh_open_message
 from swarm.errors import TransportError
-from swarm.runtime.keyspace.transport import open_session, session_config, zenoh_open_message
+from swarm.runtime.keyspace.transport import open_session, session_config
 
 DEMO = Path(__file__).parent / "data" / "demo" / "demo.tlog"
 

@@ -14,19 +14,13 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from swarm.core.agent.gslink import FLAG_ARMED, FLAG_FC_OK, CommandLog, answer_command, mode_code, remembered
+from swarm.core.agent.gslink import CommandLog, answer_command, remembered
 from swarm.core.flight.pilot import Pilot, PilotConfig, Role
-from swarm.core.station.core import (
-    CARRIED_OUT,
-    NO_ANSWER,
-    RESULTS,
-    CommandRefused,
-    CommandSpec,
-    StationConfig,
-    StationCore,
-    StOut,
-)
-from swarm.core.wire.messages import (
+from swarm.core.station.commands import CARRIED_OUT, NO_ANSWER, RESULTS, CommandRefused, CommandSpec
+from swarm.core.station.core import StationCore
+from swarm.core.station.model import StationConfig, StOut
+from swarm.core.wire.codes import FLAG_ARMED, FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import (
     AckResult,
     Command,
     CommandAck,

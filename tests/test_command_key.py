@@ -25,7 +25,8 @@ from net_helpers import free_port, wait_until
 
 from radios.link import open_link
 from radios.mavlink import MSG_TUNNEL, FrameBuilder, parse_one
-from swarm.core.wire.messages import Advertize, Command, CommandKind, Heartbeat, StartPool, decode, encode
+from swarm.core.wire.message_types import Advertize, Command, CommandKind, Heartbeat, StartPool
+from swarm.core.wire.messages import decode, encode
 from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind, unpack_tunnel
 from swarm.runtime.bridge.radio_bridge import BridgeConfig, RadioBridge
 from swarm.runtime.keyspace.transport import Transport, command_key, inbox_key, open_session

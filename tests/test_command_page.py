@@ -15,8 +15,8 @@ from gcs_browser import browser
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.station.core import StationConfig
-from swarm.core.wire.messages import Command, CommandKind, Phase
+from swarm.core.station.model import StationConfig
+from swarm.core.wire.message_types import Command, CommandKind, Phase
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig
 

@@ -19,29 +19,16 @@ from dataclasses import dataclass, field
 from firmware_bridge.commands import MAV_RESULT_ACCEPTED
 from firmware_bridge.errors import CommandRejected, CommandTimeout
 from firmware_bridge.session import WaitTimeout
-from swarm.core.agent.gslink import CommandLog, short_reason
+from swarm.core.agent.gslink import CommandLog
 from swarm.core.agent.node import AgentNode, CallDone, CallOut, NodeOut, Send, VehicleInfo
-from swarm.core.election.protocol import profile_by_name
+from swarm.core.election.profiles import profile_by_name
 from swarm.core.flight.pilot import Call
-from swarm.core.station.core import (
-    CARRIED_OUT,
-    NO_ANSWER,
-    CommandSpec,
-    Request,
-    StationConfig,
-    StationCore,
-    StOut,
-)
-from swarm.core.wire.messages import (
-    REASON_MAX,
-    AckResult,
-    Command,
-    CommandAck,
-    CommandKind,
-    Message,
-    decode,
-    encode,
-)
+from swarm.core.station.commands import CARRIED_OUT, NO_ANSWER, CommandSpec, Request
+from swarm.core.station.core import StationCore
+from swarm.core.station.model import StationConfig, StOut
+from swarm.core.wire.codes import short_reason
+from swarm.core.wire.message_types import REASON_MAX, AckResult, Command, CommandAck, CommandKind, Message
+from swarm.core.wire.messages import decode, encode
 from swarm.runtime.agent.live import call_result
 
 AGENT = 3
@@ -242,7 +229,7 @@ def flying_after_a_failsafe(b: Bench) -> None:
     """The vehicle flies 20 m up under setpoint control, then its autopilot lets go
     (PX4's setpoint-loss failsafe: AUTO.LOITER)."""
     from swarm.core.agent.node import OwnPose
-    from swarm.core.wire.messages import Pose
+    from swarm.core.wire.message_types import Pose
 
     here = Pose(47.397742, 8.545594, 508.0)
     b._from_node(b.node.handle(OwnPose(here, False), b.now))  # home: where it stood

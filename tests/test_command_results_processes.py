@@ -22,8 +22,9 @@ from gcs_browser import browser, screenshot
 from net_helpers import free_port, wait_until
 
 from swarm.cli.procs import Child
-from swarm.core.station.core import StationConfig
-from swarm.runtime.agent.live import Agent, AgentConfig, NodeOptions
+from swarm.core.station.model import StationConfig
+from swarm.runtime.agent.live import Agent
+from swarm.runtime.options import AgentConfig, NodeOptions
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig
 

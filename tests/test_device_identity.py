@@ -29,7 +29,8 @@ from radios.device_id import (
     shared_serial,
 )
 from radios.device_probe import confirm, identify, sysfs_facts
-from radios.emulator import Emulator, EmulatorConfig
+from radios.emulator import Emulator
+from radios.emulator_config import EmulatorConfig
 from radios.errors import DeviceMismatchError, LinkOpenError
 from radios.link import open_link
 

@@ -39,8 +39,9 @@ from swarm.core.agent.node import (
     OwnPose,
     PositionFix,
 )
-from swarm.core.election.protocol import NO_POSE, profile_by_name
-from swarm.core.wire.messages import Pose
+from swarm.core.election.outbox import NO_POSE
+from swarm.core.election.profiles import profile_by_name
+from swarm.core.wire.message_types import Pose
 from swarm.runtime.agent.vehicle import pose_from_state, vehicle_messages
 
 mavlink: Any = ardupilotmega
@@ -319,9 +320,10 @@ def test_wait_ready_gives_the_recorded_refusals_then_returns_when_armable(player
 @pytest.mark.processes
 def test_an_agent_sends_no_pose_before_the_fix_and_says_so(player: Any) -> None:
     from swarm.core.flight.pilot import Call
-    from swarm.core.wire.messages import PoseReport
-    from swarm.runtime.agent.live import Agent, AgentConfig, NodeOptions
+    from swarm.core.wire.message_types import PoseReport
+    from swarm.runtime.agent.live import Agent
     from swarm.runtime.keyspace.transport import Transport
+    from swarm.runtime.options import AgentConfig, NodeOptions
 
     p = player(FLIGHT, speed=8.0, hold_at=1.0, until=24.0)
     ep = f"tcp/127.0.0.1:{free_port()}"

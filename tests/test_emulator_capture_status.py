@@ -10,7 +10,8 @@ import pytest
 from emu_helpers import heartbeat, opened, recv_until, running_emulator, tunnel
 
 from radios.air import RADIO_STATUS_COMPID, RADIO_STATUS_SYSID
-from radios.emulator import Emulator, EmulatorConfig
+from radios.emulator import Emulator
+from radios.emulator_config import EmulatorConfig
 from radios.errors import ConfigError
 from radios.mavlink import MSG_RADIO_STATUS
 from radios.tlog import read_tlog

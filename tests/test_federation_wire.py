@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from swarm.core.flight.geofence import Geofence
-from swarm.core.station.core import CommandRefused, parse_command
+from swarm.core.station.commands import CommandRefused, parse_command
 from swarm.core.station.federation import (
     KIND_COMMAND,
     KIND_RESULT,

@@ -30,8 +30,8 @@ from gcs_browser import browser, new_page, poll, screenshot, start_station
 from net_helpers import free_port, wait_until
 from test_gcs_api import HOME, ScriptedAgent
 
-from swarm.core.agent.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, mode_code
-from swarm.core.wire.messages import CommandKind, Phase, Pose, Telemetry
+from swarm.core.wire.codes import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import CommandKind, Phase, Pose, Telemetry
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig
 

@@ -34,7 +34,7 @@ from test_gcs_api import ScriptedAgent
 from swarm.cli.commands.router import open_router
 from swarm.core.flight.geofence import Geofence
 from swarm.core.station.federation import MAX_ALERTS, fed_key
-from swarm.core.wire.messages import Phase
+from swarm.core.wire.message_types import Phase
 from swarm.runtime.station.federation import Federation
 from swarm.runtime.station.fleet import Fleet
 from swarm.runtime.station.live import Station
@@ -187,7 +187,7 @@ def test_three_stations_swarms_show_three_colours_the_same_on_every_view(live: L
 
 
 def test_a_bad_acknowledgement_for_another_station_is_one_line(live: Live) -> None:
-    from swarm.core.station.core import CommandRefused
+    from swarm.core.station.commands import CommandRefused
     from swarm.core.station.federation import ack_any
 
     b_alert = next(al for al in live.a.snapshot()["alerts"] if al["station"] == "gcsB")

@@ -15,8 +15,8 @@ from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
 from swarm.core.flight.geofence import Geofence
-from swarm.core.station.core import CommandRefused, parse_command
-from swarm.core.wire.messages import Phase, Telemetry
+from swarm.core.station.commands import CommandRefused, parse_command
+from swarm.core.wire.message_types import Phase, Telemetry
 from swarm.runtime.station.fleet import Fleet
 from swarm.runtime.station.live import Station
 

@@ -111,7 +111,7 @@ def test_a_flight_in_wind_gusts_and_gps_noise_is_measured_on_the_true_positions(
 def test_the_captures_analysis_measures_the_heading_error_after_the_turn() -> None:
     # the leader's last straight stretch runs east; the V's last task heading is what it held
     from swarm.core.flight.formation import offset
-    from swarm.core.wire.messages import Pose, Task, TaskKind
+    from swarm.core.wire.message_types import Pose, Task, TaskKind
     from swarm.sim.tracks import Analysis, heading_error
 
     home = (47.397742, 8.545594)

@@ -27,7 +27,7 @@ from swarm.core.flight.formation import (
     slot_offset,
 )
 from swarm.core.flight.pilot import Mode, Pilot, PilotConfig, Role
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     AckResult,
     Assignment,
     Command,

@@ -21,9 +21,10 @@ from net_helpers import ManualClock, free_port, wait_until
 
 from radios.mavlink import FrameBuilder, dialect
 from radios.tlog import TlogWriter
-from swarm.core.agent.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.core.station.core import CommandRefused
-from swarm.core.wire.messages import (
+from swarm.core.agent.gslink import GsConfig, GsLink
+from swarm.core.station.commands import CommandRefused
+from swarm.core.wire.codes import FLAG_ARMED, FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import (
     AckResult,
     AgentState,
     Command,
@@ -35,8 +36,8 @@ from swarm.core.wire.messages import (
     Pose,
     PoseReport,
     Telemetry,
-    encode,
 )
+from swarm.core.wire.messages import encode
 from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 from swarm.runtime.keyspace.transport import Transport
 from swarm.runtime.station.live import Station

@@ -27,7 +27,7 @@ from net_helpers import wait_until
 from test_gcs_api import ScriptedAgent
 
 from swarm.cli.bench.gcs_flood import CONNECTIONS, Flood, limited_station, operator_request
-from swarm.core.wire.messages import CommandKind, Phase
+from swarm.core.wire.message_types import CommandKind, Phase
 
 # timing: requests per second and answers within 10 s under a flood
 pytestmark = [pytest.mark.processes, pytest.mark.timing]

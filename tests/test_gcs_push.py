@@ -28,7 +28,7 @@ from net_helpers import free_port, wait_until
 from test_gcs_api import HOME, ScriptedAgent
 
 from swarm.core.station.delta import apply
-from swarm.core.wire.messages import Phase, Pose
+from swarm.core.wire.message_types import Phase, Pose
 from swarm.runtime.station import websocket
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig

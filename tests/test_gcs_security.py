@@ -30,7 +30,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from net_helpers import ManualClock, free_port, wait_until
 
-from swarm.core.station.core import KINDS, CommandRefused, parse_command
+from swarm.core.station.commands import KINDS, CommandRefused, parse_command
 from swarm.runtime.station.server import OSM_TILES, STATIC_DIR, GcsServer, ServerConfig, page_policy
 
 TOKEN = "Zq0-test-token-with-enough-entropy_42"

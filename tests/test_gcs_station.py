@@ -11,17 +11,12 @@ from typing import Any
 
 import pytest
 
-from swarm.core.agent.gslink import FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.core.station.core import (
-    NO_ANSWER,
-    CommandRefused,
-    CommandSpec,
-    StationConfig,
-    StationCore,
-    StOut,
-    parse_command,
-)
-from swarm.core.wire.messages import (
+from swarm.core.agent.gslink import GsConfig, GsLink
+from swarm.core.station.commands import NO_ANSWER, CommandRefused, CommandSpec, parse_command
+from swarm.core.station.core import StationCore
+from swarm.core.station.model import StationConfig, StOut
+from swarm.core.wire.codes import FLAG_ARMED, FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import (
     AckResult,
     AgentState,
     Command,
@@ -35,9 +30,8 @@ from swarm.core.wire.messages import (
     Pose,
     PoseReport,
     Telemetry,
-    decode,
-    encode,
 )
+from swarm.core.wire.messages import decode, encode
 
 POSE = Pose(47.397, 8.545, 488.0, 90.0)
 

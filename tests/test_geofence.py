@@ -12,9 +12,11 @@ import pytest
 from swarm.core.flight.formation import ne_between, offset
 from swarm.core.flight.geofence import Geofence
 from swarm.core.flight.pilot import Mode, Pilot, PilotConfig, Role
-from swarm.core.station.core import CommandRefused, CommandSpec, StationConfig, StationCore, parse_command
-from swarm.core.station.model import AgentView
-from swarm.core.wire.messages import AckResult, Command, CommandAck, CommandKind, Phase, Pose, decode, encode
+from swarm.core.station.commands import CommandRefused, CommandSpec, parse_command
+from swarm.core.station.core import StationCore
+from swarm.core.station.model import AgentView, StationConfig
+from swarm.core.wire.message_types import AckResult, Command, CommandAck, CommandKind, Phase, Pose
+from swarm.core.wire.messages import decode, encode
 
 HOME = (47.397742, 8.545594, 584.0)  # a field 584 m above sea level
 MEMBER = Role(Phase.MEMBER, leader=1)
@@ -178,7 +180,7 @@ def test_a_takeoff_inside_the_fence_is_made() -> None:
 def _node() -> Any:
     from swarm.core.agent.node import AgentNode, OwnPose
     from swarm.core.election.profiles import profile_by_name
-    from swarm.core.wire.messages import GSAdvertize, GSConnect
+    from swarm.core.wire.message_types import GSAdvertize, GSConnect
 
     node = AgentNode(2, "agent2", profile_by_name("paper", 0.25), has_fc=True)
     node.start(0.0)
@@ -296,8 +298,8 @@ def test_without_the_agents_home_the_station_leaves_the_radius_to_the_agent() ->
 
 
 def test_the_station_learns_the_home_where_telemetry_shows_the_vehicle_on_the_ground() -> None:
-    from swarm.core.agent.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK
-    from swarm.core.wire.messages import Telemetry
+    from swarm.core.wire.codes import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK
+    from swarm.core.wire.message_types import Telemetry
 
     core = station(home=False)
     core.handle(Telemetry(3, pose(up=10.0), 0, FLAG_FC_OK | FLAG_ARMED | FLAG_AIRBORNE), 1.0)

@@ -18,8 +18,8 @@ from test_gcs_api import HOME, ScriptedAgent, http
 
 from swarm.core.flight.formation import offset
 from swarm.core.flight.geofence import Geofence
-from swarm.core.station.core import StationConfig
-from swarm.core.wire.messages import CommandKind, Phase
+from swarm.core.station.model import StationConfig
+from swarm.core.wire.message_types import CommandKind, Phase
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig
 

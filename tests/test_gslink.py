@@ -10,8 +10,9 @@ from collections.abc import Iterator
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.core.agent.gslink import MODES, CommandLog, GsConfig, GsLink, mode_code, mode_name
-from swarm.core.wire.messages import (
+from swarm.core.agent.gslink import CommandLog, GsConfig, GsLink
+from swarm.core.wire.codes import MODES, mode_code, mode_name
+from swarm.core.wire.message_types import (
     AckResult,
     CommandAck,
     GSAdvertize,
@@ -24,8 +25,9 @@ from swarm.core.wire.messages import (
     Pose,
     Telemetry,
 )
-from swarm.runtime.agent.live import Agent, AgentConfig, NodeOptions
+from swarm.runtime.agent.live import Agent
 from swarm.runtime.keyspace.transport import Transport
+from swarm.runtime.options import AgentConfig, NodeOptions
 
 pytestmark = pytest.mark.processes  # a real agent and its station link, in real time
 
@@ -102,7 +104,7 @@ def test_mode_codes_round_trip() -> None:
 
 
 def test_command_log_replays_answers_and_sends_new_ones_again() -> None:
-    from swarm.core.wire.messages import Command, CommandKind
+    from swarm.core.wire.message_types import Command, CommandKind
 
     log = CommandLog(size=2)
     c1, c2, c3 = (Command(255, s, 3, CommandKind.ARM) for s in (1, 2, 3))
@@ -191,7 +193,7 @@ def test_real_agent_connects_sends_telemetry_and_drops_a_silent_station(
 def test_real_agent_answers_commands_with_reasons_once_per_sequence_number(
     agent_and_station: tuple[Agent, Transport, list[Message]],
 ) -> None:
-    from swarm.core.wire.messages import Command, CommandKind
+    from swarm.core.wire.message_types import Command, CommandKind
 
     agent, station, got = agent_and_station
 

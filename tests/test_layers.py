@@ -1,6 +1,7 @@
 """The import contracts (pyproject.toml, ``[tool.importlinter]``; ``make test`` runs
 ``lint-imports``) hold for the tree, and catch what they are there to catch: an
-upward import, and a pure core reaching for a clock, a thread or the radio."""
+upward import (between layers, and between the feature folders inside one), and a
+pure core reaching for a clock, a thread or the radio."""
 
 from __future__ import annotations
 
@@ -69,6 +70,16 @@ def test_the_tree_keeps_its_contracts(tree: Path) -> None:
             "import swarm.runtime.bridge.radio_bridge",
             "swarm-layers",
         ),  # siblings stay apart
+        ("swarm/core/station/core.py", "import swarm.core.agent.node", "core-features"),  # station -> agent
+        ("swarm/core/agent/node.py", "import swarm.core.station.alerts", "core-features"),  # agent -> station
+        (
+            "swarm/core/wire/codes.py",
+            "import swarm.core.election.profiles",
+            "core-features",
+        ),  # wire -> election
+        ("swarm/core/bridge/names.py", "import swarm.core.flight.geofence", "core-edges"),
+        ("swarm/runtime/keyspace/transport.py", "import swarm.runtime.bridge.stats", "runtime-features"),
+        ("swarm/runtime/bridge/rx.py", "import swarm.runtime.station.fleet", "runtime-features"),
         ("radios/mavlink.py", "import swarm.core.wire.messages", "packages"),  # radios knows no swarm
         ("firmware_bridge/modes.py", "import swarm.errors", "packages"),
         ("firmware_bridge/telemetry.py", "import time", "driver-pure-core"),  # a clock in the driver's core
@@ -83,3 +94,55 @@ def test_a_planted_import_breaks_its_contract(tree: Path, module: str, line: str
     p = lint(tree, contract)
     assert p.returncode != 0, f"{line} in {module} was not caught:\n{p.stdout[-2000:]}"
     assert "BROKEN" in p.stdout and "1 broken" in p.stdout, p.stdout[-2000:]
+
+
+def test_no_import_circle_inside_swarm_but_the_noted_ones() -> None:
+    """Inside ``swarm/``: no module imports itself back when the program runs, and the
+    circles of type annotations alone (imports under ``TYPE_CHECKING``) are the two that
+    their modules' docstrings explain: the election's strategies and its state, the
+    simulator and its host streams."""
+    import grimp
+
+    def circles(graph: grimp.ImportGraph) -> list[set[str]]:
+        """The strongly connected groups of more than one module (Tarjan's algorithm)."""
+        mods = {m for m in graph.modules if m.startswith("swarm.")}
+        edges = {m: sorted(graph.find_modules_directly_imported_by(m) & mods) for m in mods}
+        index: dict[str, int] = {}
+        low: dict[str, int] = {}
+        stack: list[str] = []
+        found: list[set[str]] = []
+
+        def visit(v: str) -> None:
+            index[v] = low[v] = len(index)
+            stack.append(v)
+            for w in edges[v]:
+                if w not in index:
+                    visit(w)
+                    low[v] = min(low[v], low[w])
+                elif w in stack:
+                    low[v] = min(low[v], index[w])
+            if low[v] == index[v]:
+                ring = set()
+                while True:
+                    w = stack.pop()
+                    ring.add(w)
+                    if w == v:
+                        break
+                if len(ring) > 1:
+                    found.append(ring)
+
+        for m in sorted(mods):
+            if m not in index:
+                visit(m)
+        return found
+
+    assert circles(grimp.build_graph("swarm", exclude_type_checking_imports=True)) == []
+    noted = [
+        {"swarm.core.election." + m for m in ("protocol", "rules", "tdm", "caps", "liveness")},
+        {"swarm.sim.simulate", "swarm.sim.hoststream"},
+    ]
+    typed = circles(grimp.build_graph("swarm"))
+    assert sorted(map(sorted, typed)) == sorted(map(sorted, noted)), typed
+    for ring in noted:  # the note is in a module docstring of the ring
+        docs = [(ROOT / (m.replace(".", "/") + ".py")).read_text().split('"""')[1] for m in ring]
+        assert any("TYPE_CHECKING" in d for d in docs), ring

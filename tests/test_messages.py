@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     ADV_SIZE,
     ADV_SWARM,
     AckResult,
@@ -41,11 +41,9 @@ from swarm.core.wire.messages import (
     Task,
     TaskKind,
     Telemetry,
-    decode,
-    encode,
-    message_types,
     pool_digest,
 )
+from swarm.core.wire.messages import decode, encode, message_types
 from swarm.errors import DecodeError, MessageError, VersionMismatch
 
 ids = st.integers(1, 250)

@@ -4,7 +4,7 @@ mappings giving way, and who is told of a conflict. A pure core: a manual clock.
 from __future__ import annotations
 
 from swarm.core.bridge.names import NameTable, conflict_note
-from swarm.core.wire.messages import NameConflict
+from swarm.core.wire.message_types import NameConflict
 
 
 def test_a_pair_is_learnt_and_refreshed() -> None:

@@ -27,8 +27,8 @@ from swarm.core.agent.node import (
     VehicleInfo,
     VehicleLink,
 )
-from swarm.core.election.protocol import PAPER, Profile, profile_by_name
-from swarm.core.wire.messages import (
+from swarm.core.election.profiles import PAPER, Profile, profile_by_name
+from swarm.core.wire.message_types import (
     AckResult,
     Advertize,
     Command,

@@ -9,8 +9,9 @@ import pytest
 
 from swarm.core.election import liveness
 from swarm.core.election.liveness import OWN_ACK_SLACK
-from swarm.core.election.protocol import Core, paper_profile
-from swarm.core.wire.messages import Heartbeat, HeartbeatAck, Phase, Pose, Task
+from swarm.core.election.profiles import paper_profile
+from swarm.core.election.protocol import Core
+from swarm.core.wire.message_types import Heartbeat, HeartbeatAck, Phase, Pose, Task
 from swarm.sim.faultsim import make_sim
 from swarm.sim.scenario import Scenario
 

@@ -26,10 +26,10 @@ from gcs_browser import browser, new_page, poll, screenshot
 from net_helpers import free_port, wait_until
 from test_gcs_api import HOME, ScriptedAgent
 
-from swarm.core.agent.gslink import FLAG_FC_OK, mode_code
 from swarm.core.flight.formation import slot_error
-from swarm.core.station.core import CommandSpec
-from swarm.core.wire.messages import (
+from swarm.core.station.commands import CommandSpec
+from swarm.core.wire.codes import FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import (
     AgentNotice,
     Assignment,
     Command,

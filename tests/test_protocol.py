@@ -8,8 +8,10 @@ import random
 
 import pytest
 
-from swarm.core.election.protocol import ADVERTIZE, PAPER, Core, fast_profile, paper_profile
-from swarm.core.wire.messages import (
+from swarm.core.election.outbox import ADVERTIZE
+from swarm.core.election.profiles import PAPER, fast_profile, paper_profile
+from swarm.core.election.protocol import Core
+from swarm.core.wire.message_types import (
     Advertize,
     Heartbeat,
     HeartbeatAck,
@@ -22,7 +24,8 @@ from swarm.core.wire.messages import (
     SyncPool,
     pool_digest,
 )
-from swarm.sim.simulate import Scenario, Sim, campaign
+from swarm.sim.parallel import campaign
+from swarm.sim.simulate import Scenario, Sim
 
 POSE = Pose(47.4, 8.5, 500.0)
 
@@ -167,7 +170,7 @@ def test_an_agent_that_hears_a_leader_is_not_alone() -> None:
     hear the swarm but not be heard; expelled, it formed a swarm of one after the alone
     timeout, and the swarm had two leaders for the rest of the flood. An agent that hears
     a leader's Advertize keeps asking to join it instead."""
-    from swarm.core.election.protocol import FLAG_LEADER
+    from swarm.core.election.outbox import FLAG_LEADER
 
     a = Core(4)
     a.start(0.0)
@@ -194,7 +197,7 @@ def test_time_without_a_radio_is_not_time_alone() -> None:
     for the rest of the flood (two leaders for 144 s of a 1 MiB flood). While the radio
     is away the election core's time stands still."""
     from swarm.core.agent.node import AgentNode, RadioAway, RadioBack
-    from swarm.core.election.protocol import FLAG_LEADER
+    from swarm.core.election.outbox import FLAG_LEADER
 
     node = AgentNode(4, "agent4", PAPER)
     node.start(0.0)

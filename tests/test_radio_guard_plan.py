@@ -8,11 +8,13 @@ import pytest
 from emu_helpers import heartbeat
 from test_sik_rogue import AtBench
 
-from radios.emulator import Emulator, EmulatorConfig
+from radios.emulator import Emulator
+from radios.emulator_config import EmulatorConfig
 from radios.errors import ConfigError
 from radios.sik.at import ATEngine
 from radios.sik.guard import CheckSchedule, baseline
-from radios.sik.params import PARAMS_MULTIPOINT, PARAMS_STANDARD, SikParams
+from radios.sik.param_table import PARAMS_MULTIPOINT, PARAMS_STANDARD
+from radios.sik.params import SikParams
 from radios.sik.rogue import RtAttackOutcome, landed, plan_attack, registers_from_stats
 from swarm.cli.commands import agent as agent_cmd
 

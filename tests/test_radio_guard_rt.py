@@ -21,7 +21,8 @@ from net_helpers import wait_until
 from radios.emulator_config import radio_config_of
 from radios.sik.config import SikConfigurator, open_port
 from radios.sik.guard import UNGUARDED, Known, baseline, check_radio, known_of
-from radios.sik.params import SikParams, params_for
+from radios.sik.param_table import params_for
+from radios.sik.params import SikParams
 from radios.sik.rogue import Attack, landed, plan_attack, play_rt_attack, send_line, send_reboot
 from swarm.cli.procs import Child, json_events
 

@@ -33,7 +33,8 @@ from net_helpers import free_port, wait_until
 from radios.errors import LinkClosedError, LinkOpenError
 from radios.link import open_link
 from swarm.cli.procs import Child, json_events, start_emulator
-from swarm.core.wire.messages import Advertize, Selection, encode
+from swarm.core.wire.message_types import Advertize, Selection
+from swarm.core.wire.messages import encode
 from swarm.runtime.bridge.radio_bridge import RadioBridge
 from swarm.runtime.keyspace.transport import Transport, open_session
 

@@ -27,7 +27,7 @@ from radios.link import open_link
 from radios.mavlink import pack_frame
 from swarm.cli.procs import start_emulator
 from swarm.core.bridge.radio_guard import RadioState, RadioStatusGuard
-from swarm.core.wire.messages import Advertize, Pose, PoseReport
+from swarm.core.wire.message_types import Advertize, Pose, PoseReport
 from swarm.runtime.bridge.radio_bridge import RadioBridge
 from swarm.runtime.keyspace.transport import Transport, open_session
 

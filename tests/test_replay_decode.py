@@ -14,7 +14,7 @@ import pytest
 from radios.mavlink import FrameBuilder
 from radios.tlog import TlogWriter
 from swarm.cli.commands.replay import main
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     AckResult,
     AgentState,
     Assignment,
@@ -28,8 +28,8 @@ from swarm.core.wire.messages import (
     Task,
     TaskKind,
     Telemetry,
-    encode,
 )
+from swarm.core.wire.messages import encode
 from swarm.core.wire.tunnel import PAYLOAD_TYPE_BASE, Kind, pack
 from swarm.core.wire.tunnel_decode import decode_tunnel
 

@@ -14,7 +14,8 @@ from sik_pty_radio import PtyRadio
 
 from radios.errors import ConfigError
 from radios.sik.at import ATEngine
-from radios.sik.params import ENCRYPTION_LEVEL, NETID, SikParams, validate_key_hex
+from radios.sik.param_table import ENCRYPTION_LEVEL, NETID
+from radios.sik.params import SikParams, validate_key_hex
 from swarm.cli.commands.radio_config import main
 
 pytestmark = pytest.mark.processes  # radios on ptys with real +++ guard times

@@ -13,7 +13,8 @@ from radios.sik.at import (
     ATOutput,
     split_remote_target,
 )
-from radios.sik.params import BROADCAST, SikParams
+from radios.sik.param_table import BROADCAST
+from radios.sik.params import SikParams
 
 ATI6 = "silence_period: 260\ntx_window_width: 7140\nmax_data_packet_length: 252"
 ATI7 = "L/R RSSI: 180/175  L/R noise: 40/42 pkts: 10  txe=0 rxe=0 stx=0 srx=0 ecc=0/0"

@@ -26,7 +26,7 @@ from radios.sik.guard import (
     parse_expected,
     split_radio_url,
 )
-from radios.sik.params import NETID
+from radios.sik.param_table import NETID
 from swarm.cli.commands import agent as agent_cmd
 from swarm.cli.procs import Child, json_events
 

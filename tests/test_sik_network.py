@@ -17,7 +17,7 @@ from radios.sik.network import (
     params_text,
     plan_settings,
 )
-from radios.sik.params import BANDS
+from radios.sik.param_table import BANDS
 
 
 def test_multipoint_plan_writes_the_node_registers_first() -> None:

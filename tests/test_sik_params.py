@@ -5,19 +5,18 @@ from __future__ import annotations
 import pytest
 
 from radios.errors import ConfigError
-from radios.sik.params import (
+from radios.sik.param_table import (
     AIR_RATES,
     BROADCAST,
     PARAMS_MULTIPOINT,
     PARAMS_STANDARD,
     POWER_LEVELS,
     SERIAL_SPEEDS,
-    SikParams,
     params_for,
     round_up,
     spec_for,
-    validate_user_value,
 )
+from radios.sik.params import SikParams, validate_user_value
 
 STANDARD_DEFAULTS = {
     "FORMAT": 26,

@@ -17,9 +17,10 @@ keeps sending. The last test shows that limit; the agent's radio guard
 from __future__ import annotations
 
 from radios.air import AirModel, RadioConfig
-from radios.emulator import radio_config_of
+from radios.emulator_config import radio_config_of
 from radios.sik.at import ATEngine
-from radios.sik.params import NETID, SikParams
+from radios.sik.param_table import NETID
+from radios.sik.params import SikParams
 
 KEY = "00112233445566778899aabbccddeeff"
 OTHER_KEY = "ffeeddccbbaa99887766554433221100"

@@ -12,7 +12,7 @@ import pytest
 
 from swarm.cli.bench import campaign as bench_campaign
 from swarm.cli.commands.simulate import main
-from swarm.core.wire.messages import Phase
+from swarm.core.wire.message_types import Phase
 from swarm.core.wire.tunnel import Kind
 from swarm.sim.campaign import draw, run_campaign
 from swarm.sim.faultsim import DriftCore, FaultSim, make_sim

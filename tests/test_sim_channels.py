@@ -10,10 +10,11 @@ import pytest
 
 from swarm.cli.commands.bench import main as bench_main
 from swarm.cli.commands.simulate import main as simulate_main
-from swarm.core.wire.messages import Phase
+from swarm.core.wire.message_types import Phase
 from swarm.sim.channels import ChannelScenario, id_ranges, parse_place, pct_none, round_robin, run_channels
+from swarm.sim.parallel import campaign
 from swarm.sim.relay import RelaySim
-from swarm.sim.simulate import Scenario, Sim, campaign
+from swarm.sim.simulate import Scenario, Sim
 
 
 def channel_sims(cs: ChannelScenario, seed: int) -> list[Sim]:

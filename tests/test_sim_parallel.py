@@ -14,7 +14,8 @@ import pytest
 from net_helpers import live_processes, wait_until
 
 from swarm.cli.commands.simulate import main
-from swarm.sim.simulate import Scenario, campaign
+from swarm.sim.parallel import campaign
+from swarm.sim.simulate import Scenario
 
 pytestmark = pytest.mark.processes  # worker processes
 

@@ -9,10 +9,11 @@ import json
 
 from test_gcs_station import station_with, tm
 
-from swarm.core.station.core import CommandSpec, StationCore
+from swarm.core.station.commands import CommandSpec
+from swarm.core.station.core import StationCore
 from swarm.core.station.delta import apply, build
 from swarm.core.station.plan import ROUTE_MAX, PlanBook
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     AckResult,
     AgentNotice,
     Assignment,
@@ -131,7 +132,7 @@ def test_the_leaders_task_and_slots_and_home() -> None:
     core.handle(Heartbeat(3, 1, 8, frozenset({4, 5}), Task(TaskKind.HOLD)), 1.2)
     assert core.snapshot(1.2)["task"] is None and core.snapshot(1.2)["slots"] is None
     # home: where Telemetry shows the vehicle on the ground with its flight controller
-    from swarm.core.agent.gslink import FLAG_FC_OK
+    from swarm.core.wire.codes import FLAG_FC_OK
 
     core.handle(tm(4, pose=Pose(47.3971, 8.5451, 488.0), phase=Phase.MEMBER, leader=3, flags=FLAG_FC_OK), 1.3)
     a4 = next(a for a in core.snapshot(1.3)["agents"] if a["id"] == 4)

@@ -13,10 +13,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from swarm.core.agent.gslink import FLAG_FC_OK, mode_code
-from swarm.core.station.core import CommandRefused, CommandSpec, StationCore, StOut, parse_command
+from swarm.core.station.commands import CommandRefused, CommandSpec, parse_command
+from swarm.core.station.core import StationCore
 from swarm.core.station.delta import apply, build
-from swarm.core.wire.messages import (
+from swarm.core.station.model import StOut
+from swarm.core.wire.codes import FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import (
     AckResult,
     AgentState,
     Command,
@@ -114,7 +116,7 @@ def test_the_leaders_heartbeat_list_adds_agents_that_name_no_other_leader() -> N
 
 
 def test_the_other_swarms_task_travels_apart_from_its_members() -> None:
-    from swarm.core.wire.messages import Assignment, Side, Task, TaskKind
+    from swarm.core.wire.message_types import Assignment, Side, Task, TaskKind
 
     core = station(TWO)
     task = Task(TaskKind.FOLLOW, heading=90.0, assignments=(Assignment(1, 3, Side.LEFT),))

@@ -25,7 +25,7 @@ from gcs_browser import browser, new_page, poll, screenshot
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.wire.messages import CommandKind, Phase
+from swarm.core.wire.message_types import CommandKind, Phase
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig
 

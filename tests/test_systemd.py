@@ -480,7 +480,8 @@ def test_gcs_ready_once_its_server_answers(monkeypatch: pytest.MonkeyPatch) -> N
 def test_an_agent_and_a_station_on_a_radio_report_every_loop_alive() -> None:
     """The watchdog's probe over a radio (a ``virtual://`` bus): the protocol loop and the
     bridge's two threads, all fresh. A probe that raised would stop the petting for good."""
-    from swarm.runtime.agent.live import Agent, NodeOptions
+    from swarm.runtime.agent.live import Agent
+    from swarm.runtime.options import NodeOptions
     from swarm.runtime.station.live import Station
 
     bus = f"virtual://notify-{uuid.uuid4().hex}"

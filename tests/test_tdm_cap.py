@@ -7,9 +7,10 @@ from __future__ import annotations
 import random
 
 from swarm.core.election import caps
+from swarm.core.election.outbox import Out
 from swarm.core.election.profiles import tdm_profile
-from swarm.core.election.protocol import Core, Out
-from swarm.core.wire.messages import (
+from swarm.core.election.protocol import Core
+from swarm.core.wire.message_types import (
     Phase,
     PoolStatus,
     Selection,

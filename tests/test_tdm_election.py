@@ -9,6 +9,7 @@ import random
 import pytest
 
 from swarm.cli.commands.simulate import main as simulate_main
+from swarm.core.election.outbox import Out
 from swarm.core.election.profiles import (
     PROFILE_NAMES,
     fast_profile,
@@ -16,10 +17,11 @@ from swarm.core.election.profiles import (
     profile_by_name,
     tdm_profile,
 )
-from swarm.core.election.protocol import Core, Out
-from swarm.core.wire.messages import Phase, Selection, StartPool, StartPoolAck, SyncPool, pool_digest
+from swarm.core.election.protocol import Core
+from swarm.core.wire.message_types import Phase, Selection, StartPool, StartPoolAck, SyncPool, pool_digest
 from swarm.sim.campaign import draw, run_campaign
-from swarm.sim.simulate import Scenario, Sim, campaign
+from swarm.sim.parallel import campaign
+from swarm.sim.simulate import Scenario, Sim
 
 ROUND = 1.0
 

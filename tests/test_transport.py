@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 from net_helpers import free_port, wait_until
 
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     Advertize,
     AgentState,
     GSAdvertize,

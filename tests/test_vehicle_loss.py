@@ -19,9 +19,9 @@ from gcs_browser import browser
 from net_helpers import free_port, wait_until
 
 from swarm.cli.procs import Child
-from swarm.core.agent.gslink import FLAG_ARMED, FLAG_FC_OK, mode_code
 from swarm.core.station.core import StationCore
-from swarm.core.wire.messages import GSAdvertize, GSConnect, GSConnectAck, Phase, Pose, Telemetry
+from swarm.core.wire.codes import FLAG_ARMED, FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import GSAdvertize, GSConnect, GSConnectAck, Phase, Pose, Telemetry
 
 pytestmark = pytest.mark.processes  # simulator, agent and station processes
 

@@ -27,8 +27,8 @@ from swarm.core.keyspace.acl import Node, acl
 from swarm.core.keyspace.endpoints import endpoint_kind, key_over_ip, tls_needed
 from swarm.core.keyspace.router_log import ANONYMOUS, Passed, Refusal, RefusalBook, ZenohLogReader
 from swarm.errors import TransportError
-from swarm.runtime.doctor.tls import acl_facts, tls_facts
 from swarm.runtime.keyspace.pki import issue, make_ca
+from swarm.runtime.keyspace.tls_probe import acl_facts, tls_facts
 from swarm.runtime.keyspace.transport import open_session
 
 # -- endpoints and the key -------------------------------------------------------------

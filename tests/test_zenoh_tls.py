@@ -28,7 +28,8 @@ import pytest
 from net_helpers import free_port, wait_until
 
 from swarm.cli.procs import Child, json_events
-from swarm.core.wire.messages import Command, CommandKind, decode, encode
+from swarm.core.wire.message_types import Command, CommandKind
+from swarm.core.wire.messages import decode, encode
 from swarm.errors import CertError
 from swarm.runtime.keyspace.pki import issue, make_ca, nodes, write_acl
 from swarm.runtime.keyspace.transport import ClientSession, open_session, session_config

@@ -26,7 +26,8 @@ from net_helpers import free_port, wait_until
 
 from swarm.cli.bench.ip_attack import ATTACK_SEQ, executed
 from swarm.cli.procs import Child, json_events
-from swarm.core.wire.messages import Command, CommandKind, encode
+from swarm.core.wire.message_types import Command, CommandKind
+from swarm.core.wire.messages import encode
 from swarm.runtime.keyspace.pki import issue, make_ca, nodes, write_acl
 from swarm.runtime.keyspace.transport import open_session
 from swarm.runtime.options import TlsFiles

@@ -95,6 +95,12 @@ class AirModel:
             self._push(start + 0.5 * self.rng.random(), _LINK_UPDATE, r.index, None)
 
     # ------------------------------------------------------------------ API
+    @property
+    def queue(self) -> list[tuple[float, int, int, int, Any]]:
+        """The pending events, a heap by time: the queue itself, for a scheduler that
+        runs them at their own times (the simulator's host streams); never change it."""
+        return self._events
+
     def host_write(self, node: int, data: bytes, now: float) -> None:
         """Bytes the host wrote to ``node``'s serial port at ``now``; they reach the
         radio at the serial rate."""

@@ -67,7 +67,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from radios.errors import ConfigError
-from radios.sik.params import BROADCAST, NODEID, UINT32_MAX, SikParams, check_flavour
+from radios.sik.param_table import BROADCAST, NODEID, UINT32_MAX, check_flavour
+from radios.sik.params import SikParams
 
 BOARD_IDS: dict[str, int] = {
     "HM-TRP": 78,

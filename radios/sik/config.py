@@ -40,7 +40,8 @@ from typing import Any, Protocol
 import serial
 
 from radios.errors import ATError, ATTimeoutError, ConfigError, LinkClosedError, LinkOpenError
-from radios.sik.params import check_flavour, spec_for, validate_user_value
+from radios.sik.param_table import check_flavour, spec_for
+from radios.sik.params import validate_user_value
 from radios.sik.readout import DEFAULT_TRIES, parse_local, read_remote
 
 READ_SLICE = 0.05  # seconds: the longest a single port read blocks

@@ -60,8 +60,8 @@ from pathlib import Path
 from radios.errors import ATError, ConfigError, LinkOpenError, RadioError
 from radios.seriallink import DEFAULT_BAUD
 from radios.sik.config import SERIAL_BAUD, SikConfigurator, open_port
-from radios.sik.param_table import UNGUARDED
-from radios.sik.params import FLAVOURS, spec_for, validate_user_value
+from radios.sik.param_table import FLAVOURS, UNGUARDED, spec_for
+from radios.sik.params import validate_user_value
 from radios.smallfile import read_small_file
 from radios.url import Options, parse_link_url
 

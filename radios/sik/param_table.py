@@ -15,7 +15,7 @@ add :data:`AES_PARAM` (S16 ``ENCRYPTION_LEVEL``). :func:`check_flavour`,
 Only the HM-TRP (Si1000, 20 dBm) board is modelled: TXPOWER is capped at 20 and
 rounded to the HM-TRP power levels whatever board an emulated radio claims to be.
 What a radio does with these values (its three copies, the host-side checks) is
-:mod:`radios.sik.params`, which re-exports these names.
+:mod:`radios.sik.params`'s.
 """
 
 from __future__ import annotations

@@ -4,8 +4,7 @@ Theory of operation
 -------------------
 The registers themselves are data in :mod:`radios.sik.param_table` (one frozen
 ``ParamSpec`` per S register, with its default, range, when it applies and the
-firmware's rewrites); this module re-exports those names and says what a radio
-does with them.
+firmware's rewrites); this module says what a radio does with them.
 
 A SiK radio keeps every parameter in three places, and :class:`SikParams` models all
 three because the difference is visible from the AT interface:
@@ -51,34 +50,25 @@ from collections.abc import Mapping
 
 from radios.errors import ConfigError
 from radios.sik.param_table import (
-    AIR_RATES,
     BANDS,
     BROADCAST,
     DEFAULT_KEY_BYTE,
     ENCRYPTION_LEVEL,
     ENCRYPTION_LEVELS,
-    FLAVOURS,
     FORMAT,
     KEY_BYTES,
     MAX_FREQ,
     MIN_FREQ,
-    NETID,
     NODECOUNT,
     NODEDESTINATION,
     NODEID,
     PARAM_FORMAT_CURRENT,
-    PARAMS_MULTIPOINT,
-    PARAMS_STANDARD,
     PARAMS_STANDARD_AES,
-    POWER_LEVELS,
-    SERIAL_SPEEDS,
-    UINT32_MAX,
     Band,
     Flavour,
     ParamSpec,
     check_flavour,
     params_for,
-    round_up,
     spec_for,
 )
 
@@ -311,26 +301,4 @@ class SikParams:
         return True
 
 
-# the tables are radios.sik.param_table's: these are re-exported for the code that reads them here
-__all__ = [
-    "AIR_RATES",
-    "BROADCAST",
-    "ENCRYPTION_LEVEL",
-    "FLAVOURS",
-    "NETID",
-    "NODEID",
-    "PARAMS_MULTIPOINT",
-    "PARAMS_STANDARD",
-    "POWER_LEVELS",
-    "SERIAL_SPEEDS",
-    "UINT32_MAX",
-    "Flavour",
-    "SikParams",
-    "check_flavour",
-    "key_length",
-    "params_for",
-    "round_up",
-    "spec_for",
-    "validate_key_hex",
-    "validate_user_value",
-]
+__all__ = ["SikParams", "key_length", "validate_key_hex", "validate_user_value"]

@@ -41,7 +41,8 @@ from dataclasses import dataclass
 
 from radios.errors import ATError, ConfigError
 from radios.sik.config import SikConfigurator, open_port, strip_node
-from radios.sik.params import spec_for, validate_user_value
+from radios.sik.param_table import spec_for
+from radios.sik.params import validate_user_value
 
 #: per register, values a rogue writes (the first that differs from the victim's is
 #: used): each is accepted and shown as it is by the firmware (915 MHz band, HM-TRP)

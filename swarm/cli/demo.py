@@ -61,7 +61,7 @@ from radios.ports import free_port_range
 from swarm.cli.procs import Child, ChildError, start_emulator
 from swarm.cli.sitl_fleet import SitlFleet
 from swarm.core.election.profiles import PROFILE_NAMES
-from swarm.core.wire.messages import AckResult, CommandKind
+from swarm.core.wire.message_types import AckResult, CommandKind
 from swarm.errors import SwarmError
 
 if TYPE_CHECKING:
@@ -339,7 +339,7 @@ class _Demo:
         Raises:
             DemoError: the station refused it, or an agent refused or did not answer.
         """
-        from swarm.core.station.core import DONE_RESULTS, CommandRefused, CommandSpec
+        from swarm.core.station.commands import DONE_RESULTS, CommandRefused, CommandSpec
 
         assert self.station is not None
         # A 409 (agent not connected, no leader) can be a moment's view at 10-20 % loss:
@@ -571,7 +571,7 @@ class _Demo:
     def take_off_each(self, agents: list[int], alt: float) -> list[dict[str, Any]]:
         """The take-off to each of ``agents`` at once (an autopilot still booting takes its
         ``ready`` wait: one after the other they would add up); the results not accepted."""
-        from swarm.core.station.core import DONE_RESULTS, CommandRefused, CommandSpec
+        from swarm.core.station.commands import DONE_RESULTS, CommandRefused, CommandSpec
 
         assert self.station is not None
         futs, bad = [], []
@@ -610,7 +610,8 @@ class _Demo:
         """The formation's figures from the capture (as ``swarm replay --plot`` computes
         them), the plot, the targets missed and ``ok``."""
         from swarm.cli.demo_report import targets
-        from swarm.sim.tracks import FIGURES, analyse, plot
+        from swarm.sim.trackplot import plot
+        from swarm.sim.tracks import FIGURES, analyse
 
         summary = self.summary
         an = analyse(self.capture)
@@ -682,7 +683,7 @@ def _why(bad: list[dict[str, Any]]) -> str:
 
 def _station(radio: str) -> Station:
     """The demo's ground station on ``radio`` (started)."""
-    from swarm.core.station.core import StationConfig
+    from swarm.core.station.model import StationConfig
     from swarm.runtime.station.live import Station
 
     return Station(

@@ -10,7 +10,7 @@ signed with the swarm key if given). :func:`open_node` opens one or the other as
 ``(session, link, bridge)``; :func:`open_node_io` adds the node's
 :class:`~swarm.runtime.keyspace.transport.Transport` and returns them as one :class:`NodeIO`,
 which closes them in the reverse order. Whatever was opened is closed again if a
-later step fails. ``open_node`` stays importable from :mod:`swarm.runtime.bridge.radio_bridge`.
+later step fails.
 :class:`StartOnce` is the node's ``start()``: open once, close again on failure.
 """
 

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 from swarm.core.election.caps import check_cap
 from swarm.core.election.profiles import PROFILE_NAMES
 from swarm.core.flight.pilot import PilotConfig
-from swarm.core.wire.messages import NAME_RE
+from swarm.core.wire.message_types import NAME_RE
 
 if TYPE_CHECKING:
     from radios.link import Link

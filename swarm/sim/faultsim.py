@@ -40,8 +40,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from radios.mavlink import FrameBuilder, FrameParser
-from swarm.core.election.protocol import Core, Out, profile_by_name
-from swarm.core.wire.messages import Phase, decode, encode
+from swarm.core.election.outbox import Out
+from swarm.core.election.profiles import profile_by_name
+from swarm.core.election.protocol import Core
+from swarm.core.wire.message_types import Phase
+from swarm.core.wire.messages import decode, encode
 from swarm.core.wire.tunnel import COMP_ID, Kind
 from swarm.errors import DecodeError
 from swarm.sim.scenario import RunResult, Scenario, parse_drift, parse_span
@@ -138,7 +141,7 @@ class FaultSim(Sim):
                     self._restarts += 1
                     seed = (self.seed * 1_000_003 + i * 7919 + self._restarts) & 0xFFFFFFFFFFFF
                     self.cores[i] = self._new_core(i, random.Random(seed))
-                    self.parsers[i] = FrameParser(trusted=self._trusted)
+                    self.parsers[i] = FrameParser(trusted=self.trusted)
                     self.builders[i] = FrameBuilder(i + 1, COMP_ID)
                     self.started[i] = False
                     self.start_at[i] = t

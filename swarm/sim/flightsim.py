@@ -44,10 +44,10 @@ import pymap3d
 from firmware_bridge.sim.dynamics import Body, Limits, Target
 from radios.mavlink import FrameBuilder, dialect
 from swarm.core.agent.node import AgentNode, NodeOut, OwnPose, PoseHeard, Send, SetpointOut
-from swarm.core.election.protocol import ADVERTIZE, Out
+from swarm.core.election.outbox import ADVERTIZE, Out
 from swarm.core.flight.formation import slot_error
 from swarm.core.flight.pilot import PilotConfig, Setpoint
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     AckResult,
     Command,
     CommandAck,
@@ -57,10 +57,10 @@ from swarm.core.wire.messages import (
     Pose,
     PoseReport,
     TaskKind,
-    encode,
 )
+from swarm.core.wire.messages import encode
 from swarm.core.wire.tunnel import Kind
-from swarm.sim.simulate import Scenario, Sim, pct
+from swarm.sim.simulate import Scenario, Sim
 from swarm.sim.tracks import turn_changes
 from swarm.sim.weather import Environment, Weather
 
@@ -454,4 +454,4 @@ def run(fs: FlightScenario, seed: int = 0) -> FlightResult:
     return FlightSim(fs, seed).run_flight()
 
 
-__all__ = ["FlightResult", "FlightScenario", "FlightSim", "pct", "run"]
+__all__ = ["FlightResult", "FlightScenario", "FlightSim", "run"]

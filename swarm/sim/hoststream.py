@@ -24,6 +24,11 @@ gets a frame it handles (``due``, from the air model's closed-form serial clock
 their own times (:meth:`HostStreams.run_air`): only an event that gives a host
 output can bring the next step forward. Every receiver of a broadcast holds the same
 stream: it is walked once (a cache keyed by the bytes).
+
+:class:`HostStreams` names :class:`~swarm.sim.simulate.Sim` in its annotations only
+(an import under ``TYPE_CHECKING``): the simulator makes its host streams and hands
+itself to them, so the two modules name each other, and nothing of either runs at
+import time.
 """
 
 from __future__ import annotations
@@ -140,7 +145,7 @@ class HostStreams:
     def serve(self, i: int, t: float, deliver: bool = True) -> float:
         """Radio ``i``'s output to its host at ``t``: once the first frame its agent
         handles has arrived (:meth:`walk`), what has arrived goes to the parser and the
-        core (``Sim._deliver``). Returns when the next such frame will have arrived
+        core (``Sim.deliver``). Returns when the next such frame will have arrived
         (infinite if none waits), from the closed-form serial clock, so the answer does
         not depend on when it is asked. Without ``deliver`` a frame already complete is
         left for a step at ``t``."""
@@ -153,7 +158,7 @@ class HostStreams:
             hr = r.host_ready
             if not ob and not hr:
                 return _INF
-            pend = parser._buf
+            pend = parser.held
             head = len(pend) + len(hr)
             # the stream: the parser's bytes, those not yet fed, then the radio's output;
             # frames before ``seen`` were walked and are not the agent's: walk on from there
@@ -181,7 +186,7 @@ class HostStreams:
                 return t
             if not hr:
                 return _INF  # never loop: the walk mirrors the parser (tests/test_sim_events.py)
-            self.sim._deliver(i, t)
+            self.sim.deliver(i, t)
             self.walked[i] = 0
 
     def walk(self, stream: bytes) -> Walk:
@@ -189,10 +194,10 @@ class HostStreams:
         (:func:`frames_in`), each frame as ``(offset, target,
         the addressees of a MULTI frame or None)``; target -1: no swarm message. Every
         receiver of a broadcast holds the same stream: it is walked once."""
-        frames, rest = frames_in(stream, self.sim._trusted)
+        frames, rest = frames_in(stream, self.sim.trusted)
         out: list[tuple[int, int, bytes | None]] = []
         for end, raw in frames:
-            tun = self.sim._tunnel_of(raw)
+            tun = self.sim.tunnel_of(raw)
             if tun is None:
                 out.append((end, -1, None))
             else:
@@ -207,7 +212,7 @@ class HostStreams:
         returns ``nxt``, or earlier when an event gave a host output that completes a
         frame before it."""
         air = self.air
-        ev = air._events
+        ev = air.queue
         thr = t + 1e-9
         while ev and ev[0][0] < nxt:
             te = ev[0][0]

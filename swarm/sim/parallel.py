@@ -29,11 +29,12 @@ import signal
 from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
+from typing import Any
 
 from swarm.errors import SwarmError
 from swarm.sim.faultsim import make_sim
 from swarm.sim.relay import RelaySim
-from swarm.sim.simulate import RunResult, Scenario
+from swarm.sim.simulate import RunResult, Scenario, Sim, pct, pct2
 
 STOP_GRACE_S = 5.0  # after SIGTERM, before SIGKILL
 
@@ -172,4 +173,40 @@ def _stop(procs: list[BaseProcess]) -> None:
             p.join()
 
 
-__all__ = ["WorkerDied", "run_jobs", "run_seeds"]
+def campaign(
+    sc: Scenario, seeds: int, seed0: int = 0, jobs: int = 1, on_done: Callable[[], None] = lambda: None
+) -> dict[str, Any]:
+    """Seeds ``seed0 ..`` run (over ``jobs`` processes) and summarised; the summary is
+    the same for any number of jobs. ``on_done`` is called once per finished seed."""
+    results = run_seeds(sc, seeds, seed0, jobs, on_done)
+    elect = [r.elect_s for r in results if r.elect_s is not None]
+    fail = [r.failover_s for r in results if r.failover_s is not None]
+    bad = [r for r in results if r.violations]
+    round_s = Sim(sc, seed0).round_s
+    out: dict[str, Any] = {
+        "agents": sc.agents,
+        "profile": sc.profile,
+        "loss": sc.loss,
+        "runs": len(results),
+        "converged": sum(r.elect_s is not None or r.failover_s is not None for r in results),
+        "stable_at_end": sum(r.stable_at_end for r in results),
+        "violations": sum(len(r.violations) for r in results),
+        "elect_s": {"p50": pct(elect, 0.5), "p95": pct(elect, 0.95), "max": pct(elect, 1.0)},
+        "air_utilisation": {
+            "p50": pct([r.air_utilisation for r in results], 0.5),
+            "max": pct([r.air_utilisation for r in results], 1.0),
+        },
+        "messages_per_agent": {"p50": pct([r.messages_per_agent for r in results], 0.5)},
+        "round_s": round(round_s, 4),
+        "election_rounds": {k: None if v is None else round(v / round_s, 2) for k, v in pct2(elect).items()},
+    }
+    if sc.crashes:
+        out["failover_s"] = {"p50": pct(fail, 0.5), "p95": pct(fail, 0.95)}
+    out["failing"] = [
+        {"seed": r.seed, "violations": r.violations or ["did not converge"], "replay": sc.command(r.seed)}
+        for r in bad[:10]
+    ]
+    return out
+
+
+__all__ = ["WorkerDied", "campaign", "run_jobs", "run_seeds"]

@@ -39,11 +39,12 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from swarm.core.agent.node import AgentNode, NodeOut, PublishState, Send
-from swarm.core.election.protocol import ADVERTIZE, Core, Out
+from swarm.core.election.outbox import ADVERTIZE, Out
+from swarm.core.election.protocol import Core
 from swarm.core.station.commands import CommandRefused, CommandSpec
 from swarm.core.station.core import StationCore
 from swarm.core.station.model import StOut
-from swarm.core.wire.messages import GCS_ID, CommandAck, CommandKind, Message, Phase
+from swarm.core.wire.message_types import GCS_ID, CommandAck, CommandKind, Message, Phase
 from swarm.core.wire.tunnel import Kind
 from swarm.sim.scenario import RunResult, Scenario
 from swarm.sim.simulate import POSE, Sim

@@ -16,7 +16,7 @@ deadline, a start or crash, the invariants' 100 ms sample, and the arrival at a
 host of the first frame its agent handles, computed from the air model's
 closed-form serial clock by :class:`swarm.sim.hoststream.HostStreams`); the air's
 own events run between steps at their own times. A frame every receiver of a
-broadcast gets is CRC-checked and decoded once (:meth:`Sim._tunnel_of`); one
+broadcast gets is CRC-checked and decoded once (:meth:`Sim.tunnel_of`); one
 message to many peers is encoded once. What a run is (:class:`Scenario`, its faults,
 its length, :class:`RunResult`) lives in :mod:`swarm.sim.scenario`; seeds over
 processes in :mod:`swarm.sim.parallel`.
@@ -49,16 +49,17 @@ from __future__ import annotations
 import random
 import statistics
 from collections import defaultdict
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 from radios.air import AirModel, LossModel, RadioConfig
 from radios.air.serial import drain
 from radios.loss import GilbertElliott, UniformLoss
 from radios.mavlink import HEADER_V2, MSG_TUNNEL, STX_V2, FrameBuilder, FrameParser, frame_length
-from swarm.core.election.protocol import ADVERTIZE, Core, Out, profile_by_name
-from swarm.core.wire.messages import Advertize, Message, Phase, Pose, decode, encode
+from swarm.core.election.outbox import ADVERTIZE, Out
+from swarm.core.election.profiles import profile_by_name
+from swarm.core.election.protocol import Core
+from swarm.core.wire.message_types import Advertize, Message, Phase, Pose
+from swarm.core.wire.messages import decode, encode
 from swarm.core.wire.tunnel import COMP_ID, Kind, group, pack, unpack_tunnel
 from swarm.errors import DecodeError
 from swarm.sim.hoststream import HostStreams
@@ -137,9 +138,9 @@ class Sim:
         for c in self.cores:
             c.set_pose(POSE)
         self.builders = [FrameBuilder(i + 1, COMP_ID) for i in range(n)]
-        self._trusted: set[bytes] = set()  # frames whose CRC one receiver has checked
+        self.trusted: set[bytes] = set()  # frames whose CRC one receiver has checked
         self._decoded: dict[bytes, _Tunnel | None] = {}
-        self.parsers = [FrameParser(trusted=self._trusted) for _ in range(n)]
+        self.parsers = [FrameParser(trusted=self.trusted) for _ in range(n)]
         self.hosts = HostStreams(self)  # when each host next gets a frame it handles
         self.start_at = [0.0] * n
         for spec in sc.late:
@@ -191,9 +192,9 @@ class Sim:
         drain(radio, t)
         if not self._frame_ready(i, radio.host_ready):
             return  # the bytes wait in the radio's output: the parser could not finish a frame
-        self._deliver(i, t)
+        self.deliver(i, t)
 
-    def _deliver(self, i: int, t: float) -> None:
+    def deliver(self, i: int, t: float) -> None:
         """Feed what radio ``i`` has output to its parser, and the frames for agent
         ``i`` to its core."""
         data = self.air.take_output(i, t)
@@ -207,7 +208,7 @@ class Sim:
         outs: list[Out] = []
         me = i + 1
         for f in frames:
-            tun = self._tunnel_of(f.raw)
+            tun = self.tunnel_of(f.raw)
             if tun is None:
                 continue
             kind, target, ids, msg = tun
@@ -220,7 +221,7 @@ class Sim:
         """Whether the bytes the radio has output for the host (after those the parser
         holds) can complete a frame or need scanning: the parser yields the same frames
         at the same step whether it is fed every step or only then."""
-        pend = self.parsers[i]._buf
+        pend = self.parsers[i].held
         if len(pend) >= 3:
             head: bytes | bytearray = pend
         elif pend:
@@ -232,7 +233,7 @@ class Sim:
         flen = frame_length(head, 0)
         return flen is None or len(pend) + len(ready) >= flen
 
-    def _tunnel_of(self, raw: bytes) -> _Tunnel | None:
+    def tunnel_of(self, raw: bytes) -> _Tunnel | None:
         """The swarm message a whole frame carries (kind, target, addressees, message),
         or None (not a TUNNEL frame, not the swarm's, not a valid message). Every
         receiver of a broadcast gets the same frame: it is decoded once (messages are
@@ -240,9 +241,9 @@ class Sim:
         cache = self._decoded
         if raw in cache:
             return cache[raw]
-        if len(cache) > _CACHE_MAX or len(self._trusted) > 2 * _CACHE_MAX:
+        if len(cache) > _CACHE_MAX or len(self.trusted) > 2 * _CACHE_MAX:
             cache.clear()
-            self._trusted.clear()
+            self.trusted.clear()
         res: _Tunnel | None = None
         if raw[0] == STX_V2 and raw[7] | (raw[8] << 8) | (raw[9] << 16) == MSG_TUNNEL:
             try:
@@ -461,44 +462,6 @@ def pct(values: list[float], q: float) -> float | None:
     s = sorted(values)
     k = min(len(s) - 1, max(0, round(q * (len(s) - 1))))
     return round(s[k], 3)
-
-
-def campaign(
-    sc: Scenario, seeds: int, seed0: int = 0, jobs: int = 1, on_done: Callable[[], None] = lambda: None
-) -> dict[str, Any]:
-    """Seeds ``seed0 ..`` run (over ``jobs`` processes) and summarised; the summary is
-    the same for any number of jobs. ``on_done`` is called once per finished seed."""
-    from swarm.sim.parallel import run_seeds  # the pool's module imports this one
-
-    results = run_seeds(sc, seeds, seed0, jobs, on_done)
-    elect = [r.elect_s for r in results if r.elect_s is not None]
-    fail = [r.failover_s for r in results if r.failover_s is not None]
-    bad = [r for r in results if r.violations]
-    round_s = Sim(sc, seed0).round_s
-    out: dict[str, Any] = {
-        "agents": sc.agents,
-        "profile": sc.profile,
-        "loss": sc.loss,
-        "runs": len(results),
-        "converged": sum(r.elect_s is not None or r.failover_s is not None for r in results),
-        "stable_at_end": sum(r.stable_at_end for r in results),
-        "violations": sum(len(r.violations) for r in results),
-        "elect_s": {"p50": pct(elect, 0.5), "p95": pct(elect, 0.95), "max": pct(elect, 1.0)},
-        "air_utilisation": {
-            "p50": pct([r.air_utilisation for r in results], 0.5),
-            "max": pct([r.air_utilisation for r in results], 1.0),
-        },
-        "messages_per_agent": {"p50": pct([r.messages_per_agent for r in results], 0.5)},
-        "round_s": round(round_s, 4),
-        "election_rounds": {k: None if v is None else round(v / round_s, 2) for k, v in pct2(elect).items()},
-    }
-    if sc.crashes:
-        out["failover_s"] = {"p50": pct(fail, 0.5), "p95": pct(fail, 0.95)}
-    out["failing"] = [
-        {"seed": r.seed, "violations": r.violations or ["did not converge"], "replay": sc.command(r.seed)}
-        for r in bad[:10]
-    ]
-    return out
 
 
 def pct2(values: list[float]) -> dict[str, float | None]:

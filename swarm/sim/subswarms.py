@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from swarm.core.election.protocol import Core
-from swarm.core.wire.messages import Phase
+from swarm.core.wire.message_types import Phase
 
 
 def capped_agreement(live: Sequence[Core], cap: int, group: Callable[[int], int]) -> tuple[bool, int]:

@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from swarm.core.flight.formation import ne_between, slot_offset
-from swarm.core.wire.messages import TaskKind
+from swarm.core.wire.message_types import TaskKind
 
 if TYPE_CHECKING:
     from swarm.sim.tracks import Analysis

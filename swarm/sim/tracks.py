@@ -32,7 +32,7 @@ swarm task (heading, assignments). :func:`analyse` rebuilds from it:
   straight stretch (its last ``course_s`` seconds faster than 1 m/s), which is the
   route's last heading whatever the route was.
 
-:func:`plot` draws two panels with matplotlib's Agg backend (no display needed).
+:func:`swarm.sim.trackplot.plot` draws two panels with matplotlib's Agg backend (no display needed).
 Left, the map (local metres from the leader's first pose): each agent's track
 during the counted interval (take-off, the V forming and landing drawn thin and
 grey, apart from it), the leader's thick with arrows along it, its straight legs
@@ -56,7 +56,8 @@ from radios.errors import CaptureError
 from radios.mavlink import MSG_TUNNEL
 from radios.tlog import read_tlog
 from swarm.core.flight.formation import POSE_T_WRAP, circular_floor, ne_between, slot_error
-from swarm.core.wire.messages import Heartbeat, Pose, PoseReport, Task, TaskKind, decode
+from swarm.core.wire.message_types import Heartbeat, Pose, PoseReport, Task, TaskKind
+from swarm.core.wire.messages import decode
 from swarm.core.wire.tunnel import Kind, unpack_tunnel
 from swarm.errors import DecodeError
 
@@ -315,20 +316,6 @@ def heading_error(an: Analysis, course_s: float = 5.0) -> float | None:
     return round(abs((follows[-1].heading - course + 180.0) % 360.0 - 180.0), 2)
 
 
-def plot(
-    an: Analysis, out: str, *, slot_every_s: float = 10.0, title: str = "", target_m: float | None = 1.5
-) -> str:
-    """The map and the slot error over time to ``out`` (PNG): :func:`swarm.sim.trackplot.plot`.
-
-    Raises:
-        OSError: the file cannot be written.
-        ValueError: nothing to draw (no pose in the capture).
-    """
-    from swarm.sim.trackplot import plot as draw
-
-    return draw(an, out, slot_every_s=slot_every_s, title=title, target_m=target_m)
-
-
 __all__ = [
     "FIGURES",
     "INTERVAL",
@@ -337,7 +324,6 @@ __all__ = [
     "analyse",
     "fmt",
     "heading_error",
-    "plot",
     "position_at",
     "read_capture",
     "route_start",

@@ -27,7 +27,8 @@ import time
 from typing import Any
 
 from swarm.sim.campaign import run_campaign
-from swarm.sim.simulate import Scenario, campaign
+from swarm.sim.parallel import campaign
+from swarm.sim.simulate import Scenario
 
 FULL = 10_000
 QUICK = 300

@@ -35,8 +35,9 @@ from firmware_bridge.sim import REALISTIC_BOOT
 from firmware_bridge.sim.boot import POSITION_VALID, RECORDED_TOTAL
 from radios.ports import free_port
 from swarm.cli.procs import Child, start_emulator
-from swarm.core.station.core import DONE_RESULTS, CommandRefused, CommandSpec, StationConfig
-from swarm.core.wire.messages import AckResult, CommandKind, PoseReport
+from swarm.core.station.commands import DONE_RESULTS, CommandRefused, CommandSpec
+from swarm.core.station.model import StationConfig
+from swarm.core.wire.message_types import AckResult, CommandKind, PoseReport
 from swarm.runtime.station.live import Station
 
 QUICK_BOOT = 10.0

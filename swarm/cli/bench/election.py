@@ -18,7 +18,8 @@ from typing import Any
 
 from swarm.cli.procs import Child, start_emulator
 from swarm.core.election.profiles import PROFILE_NAMES
-from swarm.sim.simulate import Scenario, campaign
+from swarm.sim.parallel import campaign
+from swarm.sim.simulate import Scenario
 
 CASES = [(5, 0.0), (5, 0.1), (10, 0.0), (10, 0.1)]
 PROFILES = PROFILE_NAMES

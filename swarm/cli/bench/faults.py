@@ -33,20 +33,11 @@ from collections.abc import Callable
 from typing import Any
 
 from swarm.cli.bench.fault_bench import (
-    AGENTS,
     CHECK_PERIOD_S,
-    HEALTH_TIMEOUT_S,
-    HOME,
-    KEY_PASSPHRASE,
-    LOSS,
-    RECHECK_S,
     ROGUE_ID,
-    SPACING_M,
-    AgentProc,
     BenchError,
     FaultBench,
     FaultResult,
-    Snapshot,
 )
 from swarm.cli.procs import json_events
 
@@ -652,7 +643,8 @@ def ip_attacker(bench: FaultBench) -> FaultResult:
 def _forgeries(bench: FaultBench, key: bytes | None, sysid: int) -> list[bytes]:
     """Advertize, StartPool, a vote for the rogue and a Heartbeat claiming every agent."""
     from radios.mavlink import FrameBuilder
-    from swarm.core.wire.messages import Advertize, Heartbeat, Selection, StartPool, encode
+    from swarm.core.wire.message_types import Advertize, Heartbeat, Selection, StartPool
+    from swarm.core.wire.messages import encode
     from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 
     b = FrameBuilder(sysid, COMP_ID, signing_key=key)
@@ -781,7 +773,8 @@ def rogue_vote(bench: FaultBench, seconds: float = 15.0) -> FaultResult:
     and in the survivors' names."""
     from radios.mavlink import FrameBuilder
     from radios.signing import key_from_passphrase
-    from swarm.core.wire.messages import Selection, encode, pool_digest
+    from swarm.core.wire.message_types import Selection, pool_digest
+    from swarm.core.wire.messages import encode
     from swarm.core.wire.tunnel import COMP_ID, PAYLOAD_TYPE_BASE, Kind
 
     bench.settled("forged vote")
@@ -1108,23 +1101,4 @@ def run(quick: bool = False) -> dict[str, Any]:
     return run_faults(FAULTS_ALL, log=log)
 
 
-__all__ = [  # the harness's names, re-exported: they lived here
-    "AGENTS",
-    "FAULTS",
-    "FAULTS_ALL",
-    "FAULTS_QUICK",
-    "HEALTH_TIMEOUT_S",
-    "HOME",
-    "KEY_PASSPHRASE",
-    "LOSS",
-    "RECHECK_S",
-    "ROGUE_ID",
-    "SPACING_M",
-    "AgentProc",
-    "BenchError",
-    "FaultBench",
-    "FaultResult",
-    "Snapshot",
-    "run",
-    "run_faults",
-]
+__all__ = ["FAULTS", "FAULTS_ALL", "FAULTS_QUICK", "run", "run_faults"]

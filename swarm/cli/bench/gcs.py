@@ -56,8 +56,10 @@ from typing import Any
 from radios.ports import free_port
 from swarm.cli.bench import replay_speed
 from swarm.cli.procs import Child, cpu_seconds
-from swarm.core.agent.gslink import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, GsConfig, GsLink, mode_code
-from swarm.core.wire.messages import AgentState, Phase, Pose, PoseReport, Telemetry, decode, encode
+from swarm.core.agent.gslink import GsConfig, GsLink
+from swarm.core.wire.codes import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, mode_code
+from swarm.core.wire.message_types import AgentState, Phase, Pose, PoseReport, Telemetry
+from swarm.core.wire.messages import decode, encode
 
 AGENTS = 50
 HZ = 5.0

@@ -159,7 +159,8 @@ def forgeries(
     """The (key, payload) pairs an attacker publishes: a station's ARM and TAKEOFF to
     each agent (on its inbox and on its command key), a phantom leader's Advertize and
     Heartbeats naming every agent its member."""
-    from swarm.core.wire.messages import Advertize, Command, CommandKind, Heartbeat, encode
+    from swarm.core.wire.message_types import Advertize, Command, CommandKind, Heartbeat
+    from swarm.core.wire.messages import encode
 
     members = frozenset(agents.values())
     out: list[tuple[str, bytes]] = [("swarm/advertize", encode(Advertize(phantom_id, "phantom")))]

@@ -27,6 +27,7 @@ from dataclasses import fields
 from enum import IntEnum
 from typing import Any
 
+import swarm.core.wire.message_types as mt
 import swarm.core.wire.messages as sm
 from radios.link import open_link
 from radios.sik.timing import model_latency_s, tdm_timing
@@ -42,38 +43,38 @@ FAST_LOCK_SEED = "16"
 LOCK_DEADLINE_S = 60.0
 SAMPLE_DEADLINE_S = 3.0
 
-POSE = sm.Pose(48.8566123, 2.3522219, 135.4, heading=271.5, vn=3.25, ve=-1.5, t=12.34)
+POSE = mt.Pose(48.8566123, 2.3522219, 135.4, heading=271.5, vn=3.25, ve=-1.5, t=12.34)
 POOL = frozenset({1, 2, 3, 4, 5})
 
 
-def representative() -> dict[str, sm.Message]:
+def representative() -> dict[str, mt.Message]:
     """One typical instance of every message type (five agents, ids 1..5, GCS 255)."""
-    task = sm.Task(
-        sm.TaskKind.FOLLOW,
+    task = mt.Task(
+        mt.TaskKind.FOLLOW,
         heading=90.0,
         back_m=10.0,
         side_m=5.0,
         assignments=(
-            sm.Assignment(2, 1, sm.Side.LEFT),
-            sm.Assignment(3, 1, sm.Side.RIGHT),
-            sm.Assignment(4, 2, sm.Side.LEFT),
-            sm.Assignment(5, 3, sm.Side.RIGHT),
+            mt.Assignment(2, 1, mt.Side.LEFT),
+            mt.Assignment(3, 1, mt.Side.RIGHT),
+            mt.Assignment(4, 2, mt.Side.LEFT),
+            mt.Assignment(5, 3, mt.Side.RIGHT),
         ),
     )
-    msgs: list[sm.Message] = [
-        sm.Advertize(1, "agent1", flags=1),
-        sm.GSAdvertize(255, "gcs"),
-        sm.Heartbeat(1, epoch=3, seq=17, members=POOL, task=task),
-        sm.HeartbeatAck(2, seq=17, pose=POSE),
-        sm.StartPool(1),
-        sm.StartPoolAck(2, sm.PoolStatus.ALREADY_IN_POOL, locked=False, members=POOL),
-        sm.SyncPool(1, sm.pool_digest(POOL), locked=True),
-        sm.SyncPoolAck(2, same=True, locked=True),
-        sm.Selection(2, candidate=4, weight=870, epoch=3),
-        sm.PoseReport(POSE),
-        sm.AgentState(
+    msgs: list[mt.Message] = [
+        mt.Advertize(1, "agent1", flags=1),
+        mt.GSAdvertize(255, "gcs"),
+        mt.Heartbeat(1, epoch=3, seq=17, members=POOL, task=task),
+        mt.HeartbeatAck(2, seq=17, pose=POSE),
+        mt.StartPool(1),
+        mt.StartPoolAck(2, mt.PoolStatus.ALREADY_IN_POOL, locked=False, members=POOL),
+        mt.SyncPool(1, mt.pool_digest(POOL), locked=True),
+        mt.SyncPoolAck(2, same=True, locked=True),
+        mt.Selection(2, candidate=4, weight=870, epoch=3),
+        mt.PoseReport(POSE),
+        mt.AgentState(
             1,
-            sm.Phase.LEADER,
+            mt.Phase.LEADER,
             leader=1,
             candidate=1,
             weight=870,
@@ -82,25 +83,25 @@ def representative() -> dict[str, sm.Message]:
             pool=POOL,
             members=POOL,
         ),
-        sm.GSConnect(255, seq=1),
-        sm.GSConnectAck(1, seq=1, hb_interval_ms=1000),
-        sm.Telemetry(
+        mt.GSConnect(255, seq=1),
+        mt.GSConnectAck(1, seq=1, hb_interval_ms=1000),
+        mt.Telemetry(
             1,
             POSE,
             mode=4,
             flags=0b0111,
-            phase=sm.Phase.LEADER,
+            phase=mt.Phase.LEADER,
             leader=1,
             battery=87,
             rssi=180,
             remrssi=175,
             groundspeed=3.5,
         ),
-        sm.GSHeartbeat(255, seq=9),
-        sm.Command(255, seq=12, target=0, kind=sm.CommandKind.FOLLOW, heading=45.0),
-        sm.CommandAck(1, seq=12, result=sm.AckResult.ACCEPTED),
-        sm.NameConflict(3, "agent2", other_id=7),
-        sm.AgentNotice(3, sm.NoticeSource.AUTOPILOT, 4, "PreArm: GPS not healthy", repeats=2),
+        mt.GSHeartbeat(255, seq=9),
+        mt.Command(255, seq=12, target=0, kind=mt.CommandKind.FOLLOW, heading=45.0),
+        mt.CommandAck(1, seq=12, result=mt.AckResult.ACCEPTED),
+        mt.NameConflict(3, "agent2", other_id=7),
+        mt.AgentNotice(3, mt.NoticeSource.AUTOPILOT, 4, "PreArm: GPS not healthy", repeats=2),
     ]
     out = {type(m).__name__: m for m in msgs}
     missing = {t.__name__ for t in sm.message_types()} - set(out)
@@ -135,45 +136,45 @@ def _naive(obj: Any, name: str = "") -> Any:
     return out
 
 
-def naive_json(msg: sm.Message) -> bytes:
+def naive_json(msg: mt.Message) -> bytes:
     """A message as a naive implementation would send it: JSON with the type name."""
     return json.dumps({"type": type(msg).__name__, **_naive(msg)}).encode("utf-8")
 
 
 def election_traffic(
     agents: int = 5, seconds: float = 60.0, pose_hz: float = 4.0, seed: int = 1
-) -> list[sm.Message]:
+) -> list[mt.Message]:
     """One election's messages and a minute of formation flight for ``agents`` agents."""
     rng = random.Random(seed)
     ids = list(range(1, agents + 1))
     pool = frozenset(ids)
     leader = ids[-1]
     members = frozenset(i for i in ids if i != leader)
-    out: list[sm.Message] = [sm.Advertize(i, _agent_name(i), flags=1) for i in ids]
+    out: list[mt.Message] = [mt.Advertize(i, _agent_name(i), flags=1) for i in ids]
     # pooling: agent 1 starts, everyone acks, pools synced until unchanged and locked
-    out += [sm.StartPool(1) for _ in ids[1:]]
-    out += [sm.StartPoolAck(i, sm.PoolStatus.SUCCESS, members=pool) for i in ids[1:]]
+    out += [mt.StartPool(1) for _ in ids[1:]]
+    out += [mt.StartPoolAck(i, mt.PoolStatus.SUCCESS, members=pool) for i in ids[1:]]
     for locked in (False, True):
         for i in ids:
             for _ in ids[1:]:
-                out.append(sm.SyncPool(i, sm.pool_digest(pool), locked=locked))
-                out.append(sm.SyncPoolAck(i, same=True, locked=locked))
+                out.append(mt.SyncPool(i, mt.pool_digest(pool), locked=locked))
+                out.append(mt.SyncPoolAck(i, same=True, locked=locked))
     # votes: everyone to everyone
     out += [
-        sm.Selection(i, candidate=leader, weight=rng.randrange(100, 1000), epoch=1)
+        mt.Selection(i, candidate=leader, weight=rng.randrange(100, 1000), epoch=1)
         for i in ids
         for _ in ids[1:]
     ]
-    task = sm.Task(
-        sm.TaskKind.FOLLOW,
+    task = mt.Task(
+        mt.TaskKind.FOLLOW,
         heading=90.0,
         assignments=tuple(
-            sm.Assignment(m, leader, sm.Side.LEFT if m % 2 else sm.Side.RIGHT) for m in sorted(members)
+            mt.Assignment(m, leader, mt.Side.LEFT if m % 2 else mt.Side.RIGHT) for m in sorted(members)
         ),
     )
 
-    def pose(i: int, t: float) -> sm.Pose:
-        return sm.Pose(
+    def pose(i: int, t: float) -> mt.Pose:
+        return mt.Pose(
             48.8566 + 1e-4 * i + rng.uniform(-1e-5, 1e-5),
             2.3522 + 1e-4 * t + rng.uniform(-1e-5, 1e-5),
             135.0 + rng.uniform(-0.5, 0.5),
@@ -185,14 +186,14 @@ def election_traffic(
 
     for s in range(int(seconds)):
         for m in sorted(members):
-            out.append(sm.Heartbeat(leader, epoch=1, seq=s & 0xFF, members=members, task=task))
-            out.append(sm.HeartbeatAck(m, seq=s & 0xFF, pose=pose(m, float(s))))
+            out.append(mt.Heartbeat(leader, epoch=1, seq=s & 0xFF, members=members, task=task))
+            out.append(mt.HeartbeatAck(m, seq=s & 0xFF, pose=pose(m, float(s))))
     for k in range(int(seconds * pose_hz)):
-        out += [sm.PoseReport(pose(i, k / pose_hz)) for i in ids]
+        out += [mt.PoseReport(pose(i, k / pose_hz)) for i in ids]
     return out
 
 
-def json_ratio(msgs: list[sm.Message]) -> tuple[int, int]:
+def json_ratio(msgs: list[mt.Message]) -> tuple[int, int]:
     """(compact bytes, naive JSON bytes) of ``msgs`` as TUNNEL payloads."""
     return sum(len(sm.encode(m)) for m in msgs), sum(len(naive_json(m)) for m in msgs)
 
@@ -200,9 +201,9 @@ def json_ratio(msgs: list[sm.Message]) -> tuple[int, int]:
 # -- bridge latency ------------------------------------------------------------------
 
 
-def _probe(i: int) -> sm.Selection:
+def _probe(i: int) -> mt.Selection:
     # epoch 257 ends the payload with a non-zero byte: MAVLink 2 trims nothing
-    return sm.Selection(1, candidate=2, weight=i, epoch=257)
+    return mt.Selection(1, candidate=2, weight=i, epoch=257)
 
 
 class _Probes:
@@ -212,8 +213,8 @@ class _Probes:
         self.arrivals: dict[int, float] = {}
         self.cond = threading.Condition()
 
-    def on_inbox(self, msg: sm.Message) -> None:
-        if isinstance(msg, sm.Selection) and msg.epoch == 257:
+    def on_inbox(self, msg: mt.Message) -> None:
+        if isinstance(msg, mt.Selection) and msg.epoch == 257:
             with self.cond:
                 self.arrivals.setdefault(msg.weight, time.monotonic())
                 self.cond.notify_all()
@@ -256,8 +257,8 @@ def _lock(ta: Transport, tb: Transport, bridges: list[RadioBridge], probes: _Pro
     """
     deadline = time.monotonic() + LOCK_DEADLINE_S
     while time.monotonic() < deadline and not all(len(b.peers()) == 2 for b in bridges):
-        ta.advertise(sm.Advertize(1, "a1"))
-        tb.advertise(sm.Advertize(2, "a2"))
+        ta.advertise(mt.Advertize(1, "a1"))
+        tb.advertise(mt.Advertize(2, "a2"))
         time.sleep(0.3)
     warm = 1_000_000
     while time.monotonic() < deadline:
@@ -335,7 +336,7 @@ def run(quick: bool = False) -> dict[str, Any]:
             "naive_json_ratio": round(naive / compact, 2),
         }
     )
-    unchanged = sm.SyncPool(1, sm.pool_digest(POOL), locked=False)
+    unchanged = mt.SyncPool(1, mt.pool_digest(POOL), locked=False)
     out["targets"] = {
         "pose_payload_le_16": out["payload_bytes"]["PoseReport"] <= 16,
         "heartbeat_ack_payload_le_18": out["payload_bytes"]["HeartbeatAck"] <= 18,

@@ -27,8 +27,9 @@ from typing import Any
 
 import swarm.sim.simulate as simulate
 from swarm.sim.faultsim import make_sim
+from swarm.sim.parallel import campaign
 from swarm.sim.scenario import RunResult
-from swarm.sim.simulate import Scenario, campaign
+from swarm.sim.simulate import Scenario
 
 #: issue 15's targets, CPU seconds
 TARGET_CPU_S_PER_1000_RUNS = 10.0

@@ -89,22 +89,16 @@ from swarm.cli.util import (
     peer_watch,
     print_json,
 )
+from swarm.core.agent.node import VEHICLE_LINK_BACK, VEHICLE_LINK_LOST
 from swarm.core.election.caps import MAX_CAP, check_cap
 from swarm.core.flight.formation import FormationConfig
 from swarm.core.flight.pilot import PilotConfig
-from swarm.core.wire.messages import NAME_RE, AgentState
+from swarm.core.wire.message_types import NAME_RE, AgentState
 from swarm.errors import MessageError
-from swarm.runtime.agent.live import (
-    PROFILES,
-    VEHICLE_LINK_BACK,
-    VEHICLE_LINK_LOST,
-    VOTES,
-    Agent,
-    AgentConfig,
-    default_round_s,
-    state_dict,
-)
+from swarm.runtime.agent.live import Agent, default_round_s
+from swarm.runtime.agent.vehicle import state_dict
 from swarm.runtime.notify import Service
+from swarm.runtime.options import PROFILES, VOTES, AgentConfig
 
 PROG = "swarm agent"
 MIN_CHECK_PERIOD_S = 10.0  # a radio check pauses the link about 2.3 s: at most a quarter of the time

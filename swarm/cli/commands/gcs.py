@@ -61,22 +61,19 @@ from swarm.cli.util import (
     print_json,
     zenoh_security,
 )
-from swarm.core.agent.gslink import STATION_IDS
-from swarm.core.wire.message_types import NAME_RE
-from swarm.core.wire.messages import check_name
+from swarm.core.wire.codes import STATION_IDS
+from swarm.core.wire.message_types import NAME_RE, check_name
 from swarm.errors import MessageError
 from swarm.runtime.notify import Service
 from swarm.runtime.station.connections import raise_file_limit
+from swarm.runtime.station.security import TOKEN_RULE, check_host_name, check_token
 from swarm.runtime.station.server import (
     MAX_WS_HZ,
     OSM_ATTRIBUTION,
     OSM_TILES,
-    TOKEN_RULE,
     GcsServer,
     ServerConfig,
     ServerError,
-    check_host_name,
-    check_token,
 )
 from swarm.runtime.station.tiles import MbTilesError, open_mbtiles
 

@@ -67,15 +67,8 @@ from radios.sik.network import (
     params_text,
     plan_settings,
 )
-from radios.sik.params import (
-    FLAVOURS,
-    Flavour,
-    check_flavour,
-    params_for,
-    spec_for,
-    validate_key_hex,
-    validate_user_value,
-)
+from radios.sik.param_table import FLAVOURS, Flavour, check_flavour, params_for, spec_for
+from radios.sik.params import validate_key_hex, validate_user_value
 from radios.smallfile import read_small_file
 from swarm.cli.util import UsageError, guarded, parser, print_json
 

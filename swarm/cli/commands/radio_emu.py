@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from radios.emulator import Emulator, EmulatorConfig, check_capture_path, parse_param
+from radios.emulator import Emulator
+from radios.emulator_config import EmulatorConfig, check_capture_path, parse_param
 from radios.errors import CaptureError, ConfigError
 from swarm.cli.configfile import read_arguments
 from swarm.cli.util import StopFlag, UsageError, guarded, parser

@@ -413,7 +413,8 @@ def _print_summary(st: PlayStats, args: argparse.Namespace, speed: float, max_ga
 def _plot(path: str, out: str, *, as_json: bool) -> int:
     """Tracks, leader, slots (swarm.sim.tracks.plot) and the formation metrics."""
     from swarm.cli.progress import Ticker
-    from swarm.sim.tracks import analyse, plot
+    from swarm.sim.trackplot import plot
+    from swarm.sim.tracks import analyse
 
     parent = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(parent):

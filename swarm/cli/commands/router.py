@@ -86,7 +86,8 @@ def open_router(
     or CertError (the TLS or ACL files)."""
     import zenoh
 
-    from swarm.runtime.keyspace.transport import session_config, zenoh_config_message, zenoh_open_message
+    from swarm.core.keyspace.zenoh_errors import zenoh_config_message, zenoh_open_message
+    from swarm.runtime.keyspace.transport import session_config
 
     acl_text = None
     if tls is not None:

@@ -22,8 +22,9 @@ from swarm.core.election.caps import MAX_CAP, check_cap
 from swarm.core.election.profiles import PROFILE_NAMES
 from swarm.sim.campaign import run_campaign
 from swarm.sim.channels import DEFAULT_LATENCY_S, MAX_CHANNELS, ChannelScenario, run_channels
+from swarm.sim.parallel import campaign
 from swarm.sim.scenario import Link, parse_drift, parse_span
-from swarm.sim.simulate import Partition, Scenario, campaign, parse_at
+from swarm.sim.simulate import Partition, Scenario, parse_at
 
 PROG = "swarm simulate"
 #: the repeatable fault flags: (flag, Scenario field, metavar, help)
@@ -344,7 +345,7 @@ def _fig(v: float | None, unit: str = " s") -> str:
 
 
 def text_report(r: dict[str, Any]) -> str:
-    """The campaign's figures (:func:`swarm.sim.simulate.campaign`) for a person: one
+    """The campaign's figures (:func:`swarm.sim.parallel.campaign`) for a person: one
     line a figure saying what it counts, then each failing seed once with its replay."""
     n, e, air = r["runs"], r["elect_s"], r["air_utilisation"]
     rounds = r.get("election_rounds", {"p50": None, "p95": None})

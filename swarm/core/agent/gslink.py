@@ -51,9 +51,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TypeVar
 
-from swarm.core.agent.notices import cut_utf8, printable_line
-from swarm.core.wire.messages import (
-    REASON_MAX,
+from swarm.core.wire.codes import is_station, short_reason
+from swarm.core.wire.message_types import (
     AckResult,
     Command,
     CommandAck,
@@ -66,55 +65,6 @@ from swarm.core.wire.messages import (
 )
 
 T = TypeVar("T")
-
-#: station ids (MAVLink ground stations use 255 and the ids just below it)
-STATION_IDS = range(251, 256)
-
-#: Telemetry.mode codes: PX4 names, then ArduCopter names (0: unknown)
-MODES: tuple[str, ...] = (
-    "",
-    "MANUAL",
-    "STABILIZED",
-    "ALTCTL",
-    "POSCTL",
-    "OFFBOARD",
-    "AUTO.TAKEOFF",
-    "AUTO.LOITER",
-    "AUTO.MISSION",
-    "AUTO.RTL",
-    "AUTO.LAND",
-    "AUTO.READY",
-    "ACRO",
-    "STABILIZE",
-    "ALT_HOLD",
-    "GUIDED",
-    "LOITER",
-    "RTL",
-    "LAND",
-    "AUTO",
-    "BRAKE",
-    "POSHOLD",
-)
-_MODE_CODES = {name: i for i, name in enumerate(MODES)}
-
-# Telemetry.flags bits
-FLAG_ARMED = 0x01
-FLAG_AIRBORNE = 0x02
-FLAG_FC_OK = 0x04
-FLAG_HOLDING = 0x08  # holding position: stale pose, separation, or a stop command
-FLAG_CONTROL_LOST = 0x10  # the autopilot left setpoint control by itself (a failsafe, RC)
-
-
-def mode_code(name: str) -> int:
-    return _MODE_CODES.get(name, 0)
-
-
-def mode_name(code: int) -> str:
-    return MODES[code] if 0 <= code < len(MODES) else ""
-
-
-def is_station(agent_id: int) -> bool:
-    return agent_id in STATION_IDS
 
 
 @dataclass(frozen=True)
@@ -335,17 +285,6 @@ class CommandLog:
         return self._again[0][0] if self._again else None
 
 
-def short_reason(text: str) -> str:
-    """``text`` as a CommandAck's reason: one line (control characters and runs of
-    blanks become one space), cut to what the frame holds (``REASON_MAX`` bytes of
-    UTF-8, whole characters) with "..." where it was cut. An autopilot's STATUSTEXTs
-    are joined with "; " by the driver: a text repeated is kept once (the driver also
-    counts a text heard just before the command, often the last refusal's), and a
-    long list keeps its first texts."""
-    line = "; ".join(dict.fromkeys(printable_line(text).split("; ")))
-    return cut_utf8(line, REASON_MAX)
-
-
 def answer_command(
     log: CommandLog,
     cmd: Command,
@@ -384,22 +323,11 @@ def answer_command(
 
 __all__ = [
     "ACK_REPEATS",
-    "FLAG_AIRBORNE",
-    "FLAG_ARMED",
-    "FLAG_CONTROL_LOST",
-    "FLAG_FC_OK",
-    "FLAG_HOLDING",
-    "MODES",
-    "STATION_IDS",
     "CommandLog",
     "GsConfig",
     "GsCounters",
     "GsLink",
     "GsOut",
     "answer_command",
-    "is_station",
-    "mode_code",
-    "mode_name",
     "remembered",
-    "short_reason",
 ]

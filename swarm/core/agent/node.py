@@ -10,7 +10,7 @@ virtual-time flight simulator (:mod:`swarm.sim.flightsim`) drive the same code:
 
 * ``start(now)``, then ``handle(event, now)`` for each event, ``tick(now)`` at
   ``next_deadline()`` (or sooner: a tick before its time does nothing wrong).
-* **Events in**: a swarm or station :class:`~swarm.core.wire.messages.Message` received;
+* **Events in**: a swarm or station :class:`~swarm.core.wire.message_types.Message` received;
   :class:`PoseHeard` (another agent's pose stream); :class:`OwnPose` (this vehicle's
   pose, and whether it is airborne); :class:`VehicleInfo` (the flight controller's
   mode, arming, battery, link: what Telemetry reports); :class:`RadioInfo` (the
@@ -73,23 +73,22 @@ import math
 import random
 from dataclasses import dataclass, replace
 
-from swarm.core.agent.gslink import (
+from swarm.core.agent.gslink import CommandLog, GsLink, GsOut, answer_command
+from swarm.core.agent.notices import NoticeGate, agent_severity
+from swarm.core.election.outbox import ADVERTIZE, NO_POSE, Out
+from swarm.core.election.profiles import Profile, RandomVote, VotePolicy
+from swarm.core.election.protocol import Core
+from swarm.core.flight.pilot import Call, Mode, Pilot, PilotConfig, Role, Setpoint
+from swarm.core.wire.codes import (
     FLAG_AIRBORNE,
     FLAG_ARMED,
     FLAG_CONTROL_LOST,
     FLAG_FC_OK,
     FLAG_HOLDING,
-    CommandLog,
-    GsLink,
-    GsOut,
-    answer_command,
     mode_code,
     short_reason,
 )
-from swarm.core.agent.notices import NoticeGate, agent_severity
-from swarm.core.election.protocol import ADVERTIZE, NO_POSE, Core, Out, Profile, RandomVote, VotePolicy
-from swarm.core.flight.pilot import Call, Mode, Pilot, PilotConfig, Role, Setpoint
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     AckResult,
     Advertize,
     AgentNotice,

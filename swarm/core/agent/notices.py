@@ -24,7 +24,7 @@ between those sources and the air:
   stops talking), most severe first, oldest first among equals.
 
 The node (:mod:`swarm.core.agent.node`) sends each line taken as an
-:class:`~swarm.core.wire.messages.AgentNotice` to every connected station. Pure: no I/O,
+:class:`~swarm.core.wire.message_types.AgentNotice` to every connected station. Pure: no I/O,
 no clock (``now`` is given).
 """
 
@@ -33,38 +33,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from swarm.core.wire.messages import NOTICE_MAX, NoticeSource
-
-#: MAVLink severities (MAV_SEVERITY)
-EMERGENCY, ALERT, CRITICAL, ERROR, WARNING, NOTICE, INFO, DEBUG = range(8)
-SEVERITY_NAMES = ("emergency", "alert", "critical", "error", "warning", "notice", "info", "debug")
-#: the pilot's event when it holds because another agent is too close (the station
-#: raises a separation alert on a notice starting so)
-SEPARATION_HOLD = "holding: too close"
-
-
-def printable_line(text: str | bytes) -> str:
-    """``text`` as one printable line: every character that is not printable (control
-    characters, line ends, NUL; bytes are read as UTF-8, bad bytes replaced) becomes a
-    blank, runs of blanks one space."""
-    if isinstance(text, bytes):
-        text = text.decode("utf-8", "replace")
-    return " ".join("".join(c if c.isprintable() else " " for c in str(text)).split())
-
-
-def cut_utf8(line: str, limit: int) -> str:
-    """``line`` cut to ``limit`` bytes of UTF-8 (whole characters), with "..." where it
-    was cut."""
-    raw = line.encode("utf-8")
-    if len(raw) <= limit:
-        return line
-    return raw[: limit - 3].decode("utf-8", errors="ignore").rstrip() + "..."
-
-
-def one_line(text: str | bytes, limit: int = NOTICE_MAX) -> str:
-    """``text`` as one printable line (:func:`printable_line`) of at most ``limit``
-    bytes of UTF-8 (:func:`cut_utf8`)."""
-    return cut_utf8(printable_line(text), limit)
+from swarm.core.wire.codes import DEBUG, INFO, NOTICE, SEPARATION_HOLD, WARNING, one_line
+from swarm.core.wire.message_types import NoticeSource
 
 
 def agent_severity(text: str) -> int:
@@ -206,15 +176,4 @@ class NoticeGate:
         return len(self._pending)
 
 
-__all__ = [
-    "CRITICAL",
-    "SEPARATION_HOLD",
-    "SEVERITY_NAMES",
-    "WARNING",
-    "Notice",
-    "NoticeConfig",
-    "NoticeCounters",
-    "NoticeGate",
-    "agent_severity",
-    "one_line",
-]
+__all__ = ["Notice", "NoticeConfig", "NoticeCounters", "NoticeGate", "agent_severity"]

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from swarm.core.wire.messages import NameConflict
+from swarm.core.wire.message_types import NameConflict
 
 STALE_S = 30.0
 

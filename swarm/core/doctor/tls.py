@@ -5,7 +5,7 @@ Theory of operation
 A node on ``tls/`` endpoints holds the swarm CA's certificate (``--tls-ca``), its own
 certificate (``--tls-cert``) and private key (``--tls-key``); a router or listening
 node also the access-control file (``--zenoh-acl``, ``swarm router --acl``). The
-probe (:mod:`swarm.runtime.doctor.tls`) reads them into :class:`TlsFacts` and
+probe (:mod:`swarm.runtime.keyspace.tls_probe`) reads them into :class:`TlsFacts` and
 :class:`AclFacts`; :func:`tls_checks` and :func:`acl_check` judge them with ``now``:
 
 * the CA: readable, a CA, valid now; a warning within :data:`SOON_S` of its end;

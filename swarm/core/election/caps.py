@@ -60,7 +60,7 @@ in :mod:`swarm.core.election.rules` or :class:`swarm.core.election.protocol.Core
   waited for the smaller leader to hear the larger twice (a campaign run at 25 % loss
   kept two leaders in one group 23 s).
 * **Names** (``Core(..., swarm_name=NAME)``, the agent's ``--swarm-name``): a named
-  agent's Advertize carries its name's 16-bit tag (:func:`swarm.core.wire.messages.swarm_tag`,
+  agent's Advertize carries its name's 16-bit tag (:func:`swarm.core.wire.message_types.swarm_tag`,
   flag ADV_SWARM); an agent asks, courts, absorbs or follows only agents that advertised
   its own tag (none for an agent without a name), and a named agent takes into its pool
   only agents it heard advertise its tag (:func:`foreign`). Agents of different names
@@ -79,7 +79,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from swarm.core.wire.messages import ADV_SIZE, ADV_SWARM, Advertize, Heartbeat, Phase, SyncPoolAck, swarm_tag
+from swarm.core.wire.message_types import (
+    ADV_SIZE,
+    ADV_SWARM,
+    Advertize,
+    Heartbeat,
+    Phase,
+    SyncPoolAck,
+    swarm_tag,
+)
 
 if TYPE_CHECKING:
     from swarm.core.election.protocol import Core
@@ -159,7 +167,7 @@ def skip_advert(core: Core, msg: Advertize, now: float) -> bool:
     if core.phase == Phase.IDLE and msg.flags & FLAG_LEADER:
         asked = core.asked.get(a)
         if asked is not None and now - asked >= RETRY_SLACK * core.profile.startpool_retry:
-            del core.asked[a]  # Advertizes come once a round, give or take: ask at each
+            core.answered(a)  # Advertizes come once a round, give or take: ask at each
     if core.phase == Phase.LEADER or msg.flags & FLAG_LEADER or late(core, now):
         return False  # a leader admits alone; a free agent late in finding a pool asks anyone
     return block(a, core.cap) != block(core.me, core.cap) or a > core.me
@@ -168,6 +176,17 @@ def skip_advert(core: Core, msg: Advertize, now: float) -> bool:
 def block(agent: int, cap: int) -> int:
     """The block of ids ``agent`` pools with first: ids 1..cap, cap+1..2*cap, ..."""
     return (agent - 1) // cap
+
+
+def founded(core: Core) -> None:
+    """The core opened its pool on a StartPool: it is the pool's one admitter."""
+    core.capped.founder = True
+
+
+def confirmed(core: Core) -> None:
+    """A Heartbeat of its leader listed the member: it is no longer a member by its vote
+    alone (see "A member by its vote")."""
+    core.capped.unconfirmed = False
 
 
 def late(core: Core, now: float) -> bool:
@@ -191,7 +210,7 @@ def refuses(core: Core, asker: int) -> bool:
 def note_refusal(core: Core, sender: int, members: frozenset[int], now: float) -> None:
     """A StartPoolAck FULL: stop asking ``sender`` until it advertises a smaller size or
     an alone timeout has passed."""
-    core.asked.pop(sender, None)
+    core.answered(sender)
     core.capped.refused[sender] = (max(len(members), 1), now)
 
 
@@ -207,9 +226,7 @@ def trim(core: Core, new: set[int], now: float) -> bool:
         return True
     if keep == core.pool:
         return False
-    core.pool = keep
-    core.changed_at = now
-    core.counters.merges += 1
+    core.replace_pool(keep, now)
     return True
 
 
@@ -274,11 +291,7 @@ def release(core: Core, msg: SyncPoolAck) -> bool:
         return False
     if core.me in msg.members:
         return False
-    del core.members[msg.sender]
-    core.pool.discard(msg.sender)
-    core.poses.pop(msg.sender, None)
-    core.counters.expelled += 1
-    core.state_dirty = True
+    core.expel(msg.sender)
     return True
 
 
@@ -425,10 +438,12 @@ __all__ = [
     "ask_after_vote",
     "block",
     "check_cap",
+    "confirmed",
     "courted",
     "fits",
     "foreign",
     "forget_s",
+    "founded",
     "full",
     "late",
     "may_absorb",

@@ -39,11 +39,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from swarm.core.election import (
-    caps,
-    rules,  # (which calls back here: names read at call time)
-)
-from swarm.core.wire.messages import Heartbeat, HeartbeatAck, Phase
+from swarm.core.election import caps
+from swarm.core.election.outbox import NO_POSE, Out
+from swarm.core.wire.message_types import Heartbeat, HeartbeatAck, Phase
 
 if TYPE_CHECKING:
     from swarm.core.election.protocol import Core
@@ -69,16 +67,16 @@ def own_ack_due(core: Core) -> float:
     return max(core.acked_at + OWN_ACK_SLACK * hb, core.leader_seen + POSE_SILENCE * hb)
 
 
-def own_ack(core: Core, now: float, out: list[rules.Out]) -> None:
+def own_ack(core: Core, now: float, out: list[Out]) -> None:
     """A member whose leader's Heartbeat is overdue acknowledges anyway."""
     if core.phase != Phase.MEMBER or now + 1e-9 < own_ack_due(core):
         return
     # the next one a whole interval on (the slack is for the first only)
-    core.acked_at = now - (OWN_ACK_SLACK - 1.0) * core.profile.heartbeat_interval
-    out.append(rules.Out(core.leader, HeartbeatAck(core.me, core.heard_seq, core.pose or rules.NO_POSE)))
+    core.acked(now - (OWN_ACK_SLACK - 1.0) * core.profile.heartbeat_interval)
+    out.append(Out(core.leader, HeartbeatAck(core.me, core.heard_seq, core.pose or NO_POSE)))
 
 
-def answer_stray_ack(core: Core, msg: HeartbeatAck, now: float, out: list[rules.Out]) -> None:
+def answer_stray_ack(core: Core, msg: HeartbeatAck, now: float, out: list[Out]) -> None:
     """A leader hearing an ack from an agent it does not list: that agent takes it for
     its leader (one expelled by bad luck, or while cut off, that then heard a Heartbeat
     sent before the expulsion). It is taken back, as a late joiner would be; one the
@@ -89,13 +87,10 @@ def answer_stray_ack(core: Core, msg: HeartbeatAck, now: float, out: list[rules.
     if core.phase != Phase.LEADER:
         return
     if not caps.refuses(core, a) and not caps.foreign(core, a, unknown=True):
-        core.members[a] = now
-        core.pool.add(a)
-        core.poses[a] = msg.pose
-        core.state_dirty = True
+        core.adopt(a, now, msg.pose)
         return
     told = core.told_at.get(a)
     if told is not None and now - told < core.profile.heartbeat_interval:
         return
-    core.told_at[a] = now
-    out.append(rules.Out(a, Heartbeat(core.me, core.epoch, core.hb_seq, frozenset(core.members), core.task)))
+    core.told(a, now)
+    out.append(Out(a, Heartbeat(core.me, core.epoch, core.hb_seq, frozenset(core.members), core.task)))

@@ -9,13 +9,23 @@ its destination) and wakes it again at :meth:`Core.next_deadline`. The same core
 runs in the agent (threads, Zenoh, real time) and in ``swarm simulate`` (virtual
 time over the radio air model).
 
-Three modules: this one holds the core's state, its timers (:meth:`Core.tick`) and
-its transitions; :mod:`swarm.core.election.rules` holds what each message does
-(one handler per message type, in one table); :mod:`swarm.core.election.profiles` holds
-the timing profiles and vote policies. This module re-exports the names of both.
-Under the ``tdm`` profile :mod:`swarm.core.election.tdm` replaces the pooling
-timers and three of the message rules (votes exchanged while pooling), with or
-without a size cap.
+This module is the election's one state: :class:`Core` holds every field, runs the
+timers (:meth:`Core.tick`) and owns every transition. The strategies decide, and ask
+the core for a transition by name (:meth:`Core.adopt`, :meth:`Core.adopt_vote`,
+:meth:`Core.heard_heartbeat`, ...); they read its fields but never write them:
+:mod:`swarm.core.election.rules` (what each message does, one handler per message
+type, in one table), :mod:`swarm.core.election.tdm` (under the ``tdm`` profile: the
+pooling timers and three of the message rules, votes exchanged while pooling),
+:mod:`swarm.core.election.caps` (a size cap and a swarm name, with their own
+:class:`~swarm.core.election.caps.CapState`) and :mod:`swarm.core.election.liveness`
+(a member's own ack timer). The profile chooses the rules and the pooling timers once,
+when the core is made. :mod:`swarm.core.election.profiles` holds the timing profiles
+and vote policies, :mod:`swarm.core.election.outbox` what the election sends.
+
+The strategies name :class:`Core` in their type annotations only (an import under
+``TYPE_CHECKING``): that is the one import circle of the election, and it is right:
+the state calls its strategies, the strategies are handed the state, and nothing of
+either runs at import time.
 
 Phases and the paper's steps (section 2.3):
 
@@ -104,26 +114,23 @@ Beyond the paper (each rule stated once, here):
 from __future__ import annotations
 
 import random
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from swarm.core.election import caps, liveness
+from swarm.core.election.outbox import ADVERTIZE, FLAG_HAS_FC, FLAG_LEADER, NO_POSE, Out
 from swarm.core.election.profiles import (
     PAPER,
-    BatteryVote,
-    LinkQualityVote,
     Profile,
     RandomVote,
     VotePolicy,
-    fast_profile,
-    paper_profile,
-    profile_by_name,
 )
-from swarm.core.election.rules import ADVERTIZE, FLAG_HAS_FC, FLAG_LEADER, HANDLERS, NO_POSE, Out
+from swarm.core.election.rules import HANDLERS, Handler
 from swarm.core.election.tdm import TDM_HANDLERS
 from swarm.core.election.tdm import news_at as tdm_news_at
 from swarm.core.election.tdm import pool_timers as tdm_pool_timers
 from swarm.core.flight.formation import reconcile
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     AgentState,
     Heartbeat,
     HeartbeatAck,
@@ -213,6 +220,10 @@ class Core:
     idle_since: float = 0.0
     _started: bool = False
     _next: dict[str, float] = field(default_factory=dict)
+    _handlers: dict[type, Handler] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _pooling: Callable[[Core, float, list[Out]], None] = field(
+        default=lambda core, now, out: None, init=False, repr=False, compare=False
+    )
     asked: dict[int, float] = field(default_factory=dict)  # StartPool sent at
     synced_digest: dict[int, int] = field(default_factory=dict)
     heard: set[int] = field(default_factory=set)  # tdm: pool members whose vote was heard
@@ -225,6 +236,10 @@ class Core:
     def __post_init__(self) -> None:
         self.cap = caps.check_cap(self.cap or 0)
         self.capped.tag = caps.tag_of(self.swarm_name)
+        # the strategies, chosen once: the paper's message rules, three of them replaced
+        # under the tdm profile, and the pooling timers of one or the other
+        self._handlers = {**HANDLERS, **TDM_HANDLERS} if self.profile.tdm else dict(HANDLERS)
+        self._pooling = tdm_pool_timers if self.profile.tdm else Core._paper_pool_timers
 
     # -- driver API --------------------------------------------------------------
     def start(self, now: float) -> list[Out]:
@@ -242,7 +257,7 @@ class Core:
             self.counters.impossible += 1  # our own id from elsewhere: ignore
             return out
         self.counters.handled += 1
-        h = (TDM_HANDLERS.get(type(msg)) if self.tdm else None) or HANDLERS.get(type(msg))
+        h = self._handlers.get(type(msg))
         if h is None:
             self.counters.ignored_phase += 1
             return out
@@ -253,7 +268,7 @@ class Core:
         """Timers: periodic sends, windows, timeouts."""
         out: list[Out] = []
         ph = self.phase
-        if ph in _TIMER_PHASES["advertize"] and self._due("advertize", now, self.profile.advertize_interval):
+        if ph in _TIMER_PHASES["advertize"] and self.due("advertize", now, self.profile.advertize_interval):
             fc = self.has_fc and self.vehicle_ok
             flags = (FLAG_HAS_FC if fc else 0) | (FLAG_LEADER if ph == Phase.LEADER else 0)
             ad = caps.advert(self, flags, self.name or f"agent{self.me}")
@@ -405,14 +420,14 @@ class Core:
         )
 
     # -- helpers ------------------------------------------------------------------
-    def _due(self, timer: str, now: float, interval: float) -> bool:
+    def due(self, timer: str, now: float, interval: float) -> bool:
         t = self._next.get(timer)
         if t is None or now + _EPS >= t:
             self._next[timer] = now + interval
             return True
         return False
 
-    def _set_phase(self, phase: Phase) -> None:
+    def set_phase(self, phase: Phase) -> None:
         if phase != self.phase:
             self.phase = phase
             self.state_dirty = True
@@ -433,11 +448,11 @@ class Core:
         self.capped.founder = False
         self.change_pool(other, now)
         self.locked = False
-        self._set_phase(Phase.POOLING)
+        self.set_phase(Phase.POOLING)
         self._next.pop("sync", None)
 
     def go_idle(self, now: float) -> None:
-        self._set_phase(Phase.IDLE)
+        self.set_phase(Phase.IDLE)
         self.pool = set()
         self.locked = False
         self.leader = 0
@@ -449,7 +464,7 @@ class Core:
         self._next = {"advertize": now}
 
     def _become_leader(self, now: float, members: set[int]) -> None:
-        self._set_phase(Phase.LEADER)
+        self.set_phase(Phase.LEADER)
         self.leader = self.me
         self.members = {m: now for m in members if m != self.me}
         self.pool = {self.me} | set(self.members)
@@ -466,7 +481,7 @@ class Core:
         self.go_idle(now)
 
     def become_member(self, leader: int, now: float) -> None:
-        self._set_phase(Phase.MEMBER)
+        self.set_phase(Phase.MEMBER)
         self.leader = leader
         self.last_hb = self.acked_at = now
         self.members = {}
@@ -481,10 +496,11 @@ class Core:
         return SyncPool(self.me, d, self.locked, members)
 
     def _pool_timers(self, now: float, out: list[Out]) -> None:
-        if self.tdm:
-            return tdm_pool_timers(self, now, out)
+        self._pooling(self, now, out)
+
+    def _paper_pool_timers(self, now: float, out: list[Out]) -> None:
         p = self.profile
-        if self._due("sync", now, p.sync_interval):
+        if self.due("sync", now, p.sync_interval):
             for m in sorted(self.pool - {self.me}):
                 out.append(Out(m, self._sync_msg(m)))
         for a, t in list(self.asked.items()):
@@ -498,13 +514,13 @@ class Core:
             if not self.locked:
                 self.locked = True
                 self.changed_at = now  # the second window starts now
-                self._set_phase(Phase.LOCKED)
+                self.set_phase(Phase.LOCKED)
                 self.asked.clear()
             else:
                 self.start_election(now, out)
 
     def start_election(self, now: float, out: list[Out]) -> None:
-        self._set_phase(Phase.ELECTING)
+        self.set_phase(Phase.ELECTING)
         self.epoch = pool_digest(self.pool) & 0xFFFF
         # an agent that cannot fly votes for itself with weight 0: anyone else wins
         self.vote = (self.policy.weight(self.rng) if self.can_lead else 0, self.me)
@@ -513,7 +529,7 @@ class Core:
 
     def _election_timers(self, now: float, out: list[Out]) -> None:
         p = self.profile
-        if self._due("vote", now, p.vote_interval):
+        if self.due("vote", now, p.vote_interval):
             sel = Selection(self.me, self.vote[1], self.vote[0], self.epoch)
             out += [Out(m, sel) for m in sorted(self.pool - {self.me})]
         if _elapsed(now, self.vote_changed_at, p.vote_window):
@@ -533,12 +549,8 @@ class Core:
         p = self.profile
         for m, t in list(self.members.items()):
             if _elapsed(now, t, p.ack_timeout):
-                del self.members[m]
-                self.poses.pop(m, None)
-                self.pool.discard(m)
-                self.counters.expelled += 1
-                self.state_dirty = True
-        if self._due("heartbeat", now, p.heartbeat_interval) and self.members:
+                self.expel(m)
+        if self.due("heartbeat", now, p.heartbeat_interval) and self.members:
             # the formation follows membership: departed members close up, newcomers
             # join an arm, a new leader assigns afresh (swarm.core.flight.formation.reconcile)
             self.task = reconcile(self.task, self.me, self.members, self.poses, self.pose)
@@ -550,26 +562,114 @@ class Core:
     def lock_from_peer(self, now: float) -> None:
         self.locked = True
         self.changed_at = now
-        self._set_phase(Phase.LOCKED)
+        self.set_phase(Phase.LOCKED)
         self.asked.clear()
 
+    # -- transitions the strategies ask for (rules, tdm, caps, liveness) ------------
+    # They read this state freely; every change goes through a method here.
+    def ask(self, agent: int, now: float) -> None:
+        """A StartPool sent to ``agent`` now (retried until answered)."""
+        self.asked[agent] = now
 
-__all__ = [
-    "ADVERTIZE",
-    "FLAG_HAS_FC",
-    "FLAG_LEADER",
-    "HB_SILENCE_FACTOR",
-    "NO_POSE",
-    "PAPER",
-    "BatteryVote",
-    "Core",
-    "Counters",
-    "LinkQualityVote",
-    "Out",
-    "Profile",
-    "RandomVote",
-    "VotePolicy",
-    "fast_profile",
-    "paper_profile",
-    "profile_by_name",
-]
+    def answered(self, agent: int) -> None:
+        """``agent`` answered our StartPool (or refused it): stop asking."""
+        self.asked.pop(agent, None)
+
+    def not_alone(self, now: float) -> None:
+        """A swarm is there to join: the alone timeout starts again."""
+        self.idle_since = now
+
+    def adopt(self, agent: int, now: float, pose: Pose | None = None) -> None:
+        """A leader takes ``agent`` into its swarm (a late joiner, an absorbed swarm's
+        agent): listed by the next Heartbeat."""
+        if agent == self.me or agent in self.members:
+            return
+        self.members[agent] = now
+        self.pool.add(agent)
+        if pose is not None:
+            self.poses[agent] = pose
+        self.state_dirty = True
+
+    def expel(self, agent: int) -> None:
+        """A leader lets ``agent`` go (silent past the ack timeout, or following another)."""
+        del self.members[agent]
+        self.poses.pop(agent, None)
+        self.pool.discard(agent)
+        self.counters.expelled += 1
+        self.state_dirty = True
+
+    def heard_ack(self, agent: int, pose: Pose, now: float) -> None:
+        """A member's HeartbeatAck: alive now, and where it is."""
+        self.members[agent] = now
+        self.poses[agent] = pose
+
+    def heard_heartbeat(self, hb: Heartbeat, now: float) -> None:
+        """A member's leader's Heartbeat: its task, its election, and the member's own-ack
+        timer restarts (swarm.core.election.liveness)."""
+        self.task = hb.task
+        self.last_hb = now
+        self.epoch = hb.epoch
+        self.acked_at, self.heard_seq = now, hb.seq
+
+    def told(self, agent: int, now: float) -> None:
+        """A leader sent a stray ack's sender the Heartbeat that does not list it."""
+        self.told_at[agent] = now
+
+    def acked(self, at: float) -> None:
+        """A member's own HeartbeatAck counted as sent at ``at``."""
+        self.acked_at = at
+
+    def changed(self) -> None:
+        """The phase, leader, vote or membership changed: say so (take_state_changed)."""
+        self.state_dirty = True
+
+    def resync_all(self) -> None:
+        """Every pool member must hear the whole pool again (it changed by a merge)."""
+        self.synced_digest.clear()
+
+    def replace_pool(self, pool: set[int], now: float) -> None:
+        """The pool becomes ``pool`` (a capped merge kept the cap's lowest ids)."""
+        self.pool = pool
+        self.changed_at = now
+        self.counters.merges += 1
+
+    def adopt_vote(self, vote: tuple[int, int], now: float) -> None:
+        """A heavier vote heard: ours now."""
+        self.vote = vote
+        self.vote_changed_at = now
+        self.state_dirty = True
+
+    def draw_vote(self, now: float) -> None:
+        """Our own vote, once per pool (the tdm profile votes while pooling)."""
+        if self.vote[1] == 0:
+            self.vote = (self.policy.weight(self.rng) if self.can_lead else 0, self.me)
+            self.vote_changed_at = now
+            self.heard.clear()
+            self.state_dirty = True
+
+    def heard_vote(self, agent: int) -> None:
+        """The tdm profile: ``agent``'s vote heard."""
+        self.heard.add(agent)
+
+    def send_sync_now(self) -> None:
+        """News: the next SyncPool leaves in this round's slot, not the next."""
+        self._next.pop("sync", None)
+
+    def next_send(self, timer: str) -> float | None:
+        """When the periodic ``timer`` ("advertize", "sync", "vote", "heartbeat") next sends."""
+        return self._next.get(timer)
+
+    def elect_on_locked_pool(self, now: float) -> None:
+        """The tdm profile: the pool locks and elects at once, keeping the vote gathered
+        while pooling; without every vote heard the vote window also runs from the
+        pool's last change (a member added late may hold a heavier vote not yet heard)."""
+        self.locked = True
+        self.asked.clear()
+        self.set_phase(Phase.ELECTING)
+        self.epoch = pool_digest(self.pool) & 0xFFFF
+        self.draw_vote(now)
+        self.vote_changed_at = max(self.vote_changed_at, self.changed_at)
+        self._next["vote"] = now
+
+
+__all__ = ["HB_SILENCE_FACTOR", "Core", "Counters"]

@@ -17,18 +17,17 @@ message never raises. Pure: no I/O, no clock.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from swarm.core.election import caps, liveness
-from swarm.core.wire.messages import (
+from swarm.core.election.outbox import FLAG_LEADER, NO_POSE, Out
+from swarm.core.wire.message_types import (
     Advertize,
     Heartbeat,
     HeartbeatAck,
-    Message,
     Phase,
     PoolStatus,
-    Pose,
     Selection,
     StartPool,
     StartPoolAck,
@@ -39,20 +38,6 @@ from swarm.core.wire.messages import (
 
 if TYPE_CHECKING:
     from swarm.core.election.protocol import Core
-
-ADVERTIZE = 0  # Out.to for the advertize broadcast
-#: the pose an agent without a flight controller acknowledges with ("null island")
-NO_POSE = Pose(0.0, 0.0, 0.0)
-FLAG_HAS_FC = 0x01
-FLAG_LEADER = 0x02
-
-
-@dataclass(frozen=True)
-class Out:
-    """A message to send: ``to`` is an agent id, or ADVERTIZE for the broadcast."""
-
-    to: int
-    msg: Message
 
 
 def on_advertize(core: Core, msg: Advertize, now: float, out: list[Out]) -> None:
@@ -67,12 +52,12 @@ def on_advertize(core: Core, msg: Advertize, now: float, out: list[Out]) -> None
         out.append(Out(a, Heartbeat(core.me, core.epoch, core.hb_seq, frozenset(core.members), core.task)))
         return
     if core.phase == Phase.IDLE and msg.flags & FLAG_LEADER:
-        core.idle_since = now  # not alone: a swarm is there to join (see "Alone")
+        core.not_alone(now)  # not alone: a swarm is there to join (see "Alone")
     if core.phase == Phase.IDLE or (core.phase == Phase.POOLING and a not in core.pool):
         asked = core.asked.get(a)
         if asked is not None and now - asked < core.profile.startpool_retry:
             return  # asked a moment ago; each Advertize after that asks again
-        core.asked[a] = now
+        core.ask(a, now)
         out.append(Out(a, StartPool(core.me)))
     else:
         core.counters.ignored_phase += 1
@@ -90,17 +75,14 @@ def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> Non
         return
     if core.phase == Phase.IDLE:
         core.open_pool({a}, now)
-        core.capped.founder = True
+        caps.founded(core)
         out.append(Out(a, StartPoolAck(core.me, PoolStatus.SUCCESS, False, frozenset(core.pool))))
     elif core.phase == Phase.POOLING:
         core.change_pool({a}, now)
         out.append(Out(a, StartPoolAck(core.me, PoolStatus.ALREADY_IN_POOL, False, frozenset(core.pool))))
     elif core.phase == Phase.LEADER:
         # late joiner: adopt it; our Heartbeats will list it
-        if a not in core.members:
-            core.members[a] = now
-            core.pool.add(a)
-            core.state_dirty = True
+        core.adopt(a, now)
         out.append(Out(a, StartPoolAck(core.me, PoolStatus.ALREADY_IN_POOL, True, frozenset(core.pool))))
     else:
         core.counters.ignored_phase += 1  # the paper: ignored
@@ -108,7 +90,7 @@ def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> Non
 
 def on_start_pool_ack(core: Core, msg: StartPoolAck, now: float, out: list[Out]) -> None:
     a = msg.sender
-    core.asked.pop(a, None)
+    core.answered(a)
     if msg.status == PoolStatus.FULL:
         caps.note_refusal(core, a, msg.members, now)
         return
@@ -172,7 +154,7 @@ def on_sync_pool_ack(core: Core, msg: SyncPoolAck, now: float, out: list[Out]) -
             core.lock_from_peer(now)
         return
     if core.change_pool(msg.members, now):
-        core.synced_digest.clear()  # everyone must hear the merged pool
+        core.resync_all()  # everyone must hear the merged pool
 
 
 def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None:
@@ -194,9 +176,7 @@ def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None
         return
     theirs = (msg.weight, msg.candidate)
     if theirs > core.vote:
-        core.vote = theirs
-        core.vote_changed_at = now
-        core.state_dirty = True
+        core.adopt_vote(theirs, now)
 
 
 def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None:
@@ -214,11 +194,9 @@ def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None
         else:
             # absorb the other swarm: its leader and members
             for m in {lead} | set(msg.members):
-                if m != core.me and m not in core.members:
-                    core.members[m] = now
-                    core.pool.add(m)
+                core.adopt(m, now)
             core.counters.merges += 1
-            core.state_dirty = True
+            core.changed()
             return
         if core.phase != Phase.MEMBER:
             return
@@ -235,12 +213,8 @@ def on_heartbeat(core: Core, msg: Heartbeat, now: float, out: list[Out]) -> None
         return  # ...and tells the other one so (swarm.core.election.caps.release)
     if core.phase != Phase.MEMBER or core.leader != lead:
         core.become_member(lead, now)
-    if core.task != msg.task:
-        core.task = msg.task
-    core.last_hb = now
-    core.capped.unconfirmed = False
-    core.epoch = msg.epoch
-    core.acked_at, core.heard_seq = now, msg.seq  # the own-ack timer restarts (swarm.core.election.liveness)
+    core.heard_heartbeat(msg, now)
+    caps.confirmed(core)
     out.append(Out(lead, HeartbeatAck(core.me, msg.seq, core.pose or NO_POSE)))
 
 
@@ -252,11 +226,13 @@ def on_heartbeat_ack(core: Core, msg: HeartbeatAck, now: float, out: list[Out]) 
         core.counters.ignored_foreign += 1
         liveness.answer_stray_ack(core, msg, now, out)  # it takes us for its leader
         return
-    core.members[msg.sender] = now
-    core.poses[msg.sender] = replace(msg.pose)
+    core.heard_ack(msg.sender, replace(msg.pose), now)
 
 
-HANDLERS: dict[type, Callable[[Core, Any, float, list[Out]], None]] = {
+#: a message rule: what one message does to the core, and what it sends
+Handler = Callable[["Core", Any, float, list[Out]], None]
+
+HANDLERS: dict[type, Handler] = {
     Advertize: on_advertize,
     StartPool: on_start_pool,
     StartPoolAck: on_start_pool_ack,

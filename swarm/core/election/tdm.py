@@ -62,14 +62,14 @@ other's Heartbeats (each lists the other as a member) and merge by the swarm rul
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from swarm.core.election import caps
-from swarm.core.election.rules import Out
+from swarm.core.election.outbox import Out
+from swarm.core.election.rules import Handler
 from swarm.core.election.rules import on_start_pool as on_start_pool_paper
 from swarm.core.election.rules import on_sync_pool as on_sync_pool_paper
-from swarm.core.wire.messages import Phase, Selection, StartPool, SyncPool, pool_digest
+from swarm.core.wire.message_types import Phase, Selection, StartPool, SyncPool, pool_digest
 
 if TYPE_CHECKING:
     from swarm.core.election.protocol import Core
@@ -86,25 +86,16 @@ def _elapsed(now: float, since: float, span: float) -> bool:
     return now + 1e-9 >= since + span
 
 
-def ensure_vote(core: Core, now: float) -> None:
-    """Draws the agent's own vote once per pool (candidate 0: none drawn yet)."""
-    if core.vote[1] == 0:
-        core.vote = (core.policy.weight(core.rng) if core.can_lead else 0, core.me)
-        core.vote_changed_at = now
-        core.heard.clear()
-        core.state_dirty = True
-
-
 def pool_timers(core: Core, now: float, out: list[Out]) -> None:
     """POOLING and LOCKED under the ``tdm`` profile: the round's SyncPool and vote to
     every member, StartPool retries, and the lock that starts the election."""
     p = core.profile
-    ensure_vote(core, now)
+    core.draw_vote(now)
     others = sorted(core.pool - {core.me})
     news = news_at(core)
     if news is not None and now + 1e-9 >= news:
-        core._next.pop("sync", None)  # news: it leaves in this round's slot, not the next
-    if core._due("sync", now, p.sync_interval) and others:
+        core.send_sync_now()  # news: it leaves in this round's slot, not the next
+    if core.due("sync", now, p.sync_interval) and others:
         digest = pool_digest(core.pool)
         sync = SyncPool(core.me, digest, core.locked, frozenset(core.pool))
         sel = Selection(core.me, core.vote[1], core.vote[0], digest & 0xFFFF)
@@ -112,9 +103,9 @@ def pool_timers(core: Core, now: float, out: list[Out]) -> None:
         out += [Out(m, sel) for m in others]
     for a, t in list(core.asked.items()):
         if a in core.pool:
-            del core.asked[a]
+            core.answered(a)
         elif _elapsed(now, t, p.startpool_retry) and not core.locked:
-            core.asked[a] = now
+            core.ask(a, now)
             out.append(Out(a, StartPool(core.me)))
     if core.locked or _elapsed(now, core.changed_at, p.lock_window) or settled(core):
         start_election(core, now, out)
@@ -129,7 +120,7 @@ def settled(core: Core) -> bool:
 def news_at(core: Core) -> float | None:
     """When the pool or vote changed since the last SyncPool can be sent (None: no news)."""
     p = core.profile
-    sync = core._next.get("sync")
+    sync = core.next_send("sync")
     if sync is None or core.phase not in (Phase.POOLING, Phase.LOCKED):
         return None
     last = sync - p.sync_interval  # when the last SyncPool was sent
@@ -140,15 +131,7 @@ def news_at(core: Core) -> float | None:
 
 def start_election(core: Core, now: float, out: list[Out]) -> None:
     """Locked: elect on this pool, keeping the vote gathered while pooling."""
-    core.locked = True
-    core.asked.clear()
-    core._set_phase(Phase.ELECTING)
-    core.epoch = pool_digest(core.pool) & 0xFFFF
-    ensure_vote(core, now)
-    # without every vote heard, the vote window runs from the pool's last change too:
-    # a member added late may hold a heavier vote not yet heard
-    core.vote_changed_at = max(core.vote_changed_at, core.changed_at)
-    core._next["vote"] = now
+    core.elect_on_locked_pool(now)
     if complete(core):
         decide(core, now, out)
 
@@ -182,13 +165,11 @@ def on_selection(core: Core, msg: Selection, now: float, out: list[Out]) -> None
     if msg.candidate not in core.pool:
         core.counters.ignored_stale += 1  # our pool has not caught up: its SyncPool will bring it
         return
-    ensure_vote(core, now)
-    core.heard.add(msg.sender)
+    core.draw_vote(now)
+    core.heard_vote(msg.sender)
     theirs = (msg.weight, msg.candidate)
     if theirs > core.vote:
-        core.vote = theirs
-        core.vote_changed_at = now
-        core.state_dirty = True
+        core.adopt_vote(theirs, now)
     if core.phase == Phase.ELECTING and complete(core):
         decide(core, now, out)
     elif core.phase in (Phase.POOLING, Phase.LOCKED) and settled(core):
@@ -205,7 +186,7 @@ def on_start_pool(core: Core, msg: StartPool, now: float, out: list[Out]) -> Non
         on_start_pool_paper(core, msg, now, out)
     elif core.phase == Phase.IDLE:
         core.open_pool({msg.sender}, now)
-        core.capped.founder = True  # the pool's admitter (swarm.core.election.caps)
+        caps.founded(core)  # the pool's admitter (swarm.core.election.caps)
     elif core.phase == Phase.POOLING:
         core.change_pool({msg.sender}, now)
     else:
@@ -225,15 +206,13 @@ def on_sync_pool(core: Core, msg: SyncPool, now: float, out: list[Out]) -> None:
             if not caps.fits(len(core.members) + 2, core.cap):
                 core.counters.refused += 1
                 break
-            core.members[m] = now
-            core.pool.add(m)
-            core.state_dirty = True
+            core.adopt(m, now)
         return
     on_sync_pool_paper(core, msg, now, out)
 
 
 #: the message rules the ``tdm`` profile replaces (:meth:`swarm.core.election.protocol.Core.handle`)
-TDM_HANDLERS: dict[type, Callable[[Core, Any, float, list[Out]], None]] = {
+TDM_HANDLERS: dict[type, Handler] = {
     Selection: on_selection,
     StartPool: on_start_pool,
     SyncPool: on_sync_pool,
@@ -245,7 +224,6 @@ __all__ = [
     "TDM_HANDLERS",
     "complete",
     "decide",
-    "ensure_vote",
     "news_at",
     "on_selection",
     "on_start_pool",

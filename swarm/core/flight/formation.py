@@ -65,7 +65,7 @@ from dataclasses import dataclass, field, replace
 
 import pymap3d
 
-from swarm.core.wire.messages import Assignment, Pose, Side, Task, TaskKind
+from swarm.core.wire.message_types import Assignment, Pose, Side, Task, TaskKind
 
 POSE_T_WRAP = 2.56  # Pose.t crosses the air modulo this many seconds
 

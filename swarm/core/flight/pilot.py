@@ -92,7 +92,7 @@ from swarm.core.flight.formation import (
     turn_window_m,
 )
 from swarm.core.flight.geofence import Geofence
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     LEGACY_KINDS,
     AckResult,
     Command,

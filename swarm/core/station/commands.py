@@ -14,7 +14,7 @@ vehicle's home (``alt``); a go-to may give ``alt_amsl`` instead, which submit
 converts with the home the station knows.
 
 A submitted command is a :class:`Request` holding one :class:`Pending` per addressee:
-its :class:`~swarm.core.wire.messages.Command` (one seq each), the tries made, the agents
+its :class:`~swarm.core.wire.message_types.Command` (one seq each), the tries made, the agents
 it went to, and what the station saw of each agent's vehicle at its first send
 (:class:`Seen`). Results (:data:`RESULTS`): the agent's answer (``ACCEPTED``, or a
 refusal: ``REJECTED``, ``FAILED``, ``BAD_ARGUMENT``, ``NO_LEADER``,
@@ -39,7 +39,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from swarm.core.wire.messages import LEGACY_KINDS, AckResult, Command, CommandKind
+from swarm.core.wire.message_types import LEGACY_KINDS, AckResult, Command, CommandKind
 from swarm.errors import SwarmError
 
 NO_ANSWER = "NO_ANSWER"

@@ -42,9 +42,7 @@ station's part:
    The station radio's RADIO_STATUS (:meth:`StationCore.observe_radio`) gives the
    state's ``radio``: RSSI, noise and their margins, local and remote.
 7. The views and settings (:class:`AgentView`, :class:`Event`, :class:`StOut`,
-   :class:`StationConfig`) are :mod:`swarm.core.station.model`'s; this module
-   re-exports them, and the command names, so ``swarm.core.station.core`` stays the one
-   import for the runtime and the tests.
+   :class:`StationConfig`) are :mod:`swarm.core.station.model`'s; import them from there.
 8. The plan (:mod:`swarm.core.station.plan`): each agent's ``route`` (GOTO, WAYPOINT, any
    station's) until "arrived"; the leader's Heartbeat task (``task``, ``slots``).
 
@@ -67,7 +65,20 @@ import math
 from collections import deque
 from typing import Any
 
-from swarm.core.agent.gslink import (
+from swarm.core.station.alerts import AlertBook
+from swarm.core.station.commands import (
+    DONE_RESULTS,
+    NO_ANSWER,
+    CommandRefused,
+    CommandSpec,
+    Request,
+)
+from swarm.core.station.delivery import CommandDelivery
+from swarm.core.station.model import AgentView, Event, StationConfig, StationCounters, StOut, has_position
+from swarm.core.station.plan import PlanBook
+from swarm.core.station.swarms import SwarmBook
+from swarm.core.station.watch import AlertWatch
+from swarm.core.wire.codes import (
     FLAG_AIRBORNE,
     FLAG_ARMED,
     FLAG_CONTROL_LOST,
@@ -77,29 +88,7 @@ from swarm.core.agent.gslink import (
     mode_name,
     short_reason,
 )
-from swarm.core.station.alerts import AlertBook
-from swarm.core.station.commands import (
-    AGENT_KINDS,
-    ALT_AMSL,
-    CARRIED_OUT,
-    DONE_RESULTS,
-    KINDS,
-    NO_ANSWER,
-    RESULTS,
-    SWARM_KINDS,
-    CommandRefused,
-    CommandSpec,
-    Request,
-    evidence,
-    outcome,
-    parse_command,
-)
-from swarm.core.station.delivery import CommandDelivery
-from swarm.core.station.model import AgentView, Event, StationConfig, StationCounters, StOut, has_position
-from swarm.core.station.plan import PlanBook
-from swarm.core.station.swarms import SwarmBook
-from swarm.core.station.watch import AlertWatch
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     GCS_ID,
     AgentNotice,
     AgentState,
@@ -577,25 +566,4 @@ class StationCore:
             self._event(now, "leader", text)
 
 
-__all__ = [
-    "AGENT_KINDS",
-    "ALT_AMSL",
-    "CARRIED_OUT",
-    "DONE_RESULTS",
-    "KINDS",
-    "NO_ANSWER",
-    "RESULTS",
-    "SWARM_KINDS",
-    "AgentView",
-    "CommandRefused",
-    "CommandSpec",
-    "Event",
-    "Request",
-    "StOut",
-    "StationConfig",
-    "StationCore",
-    "StationCounters",
-    "evidence",
-    "outcome",
-    "parse_command",
-]
+__all__ = ["StationCore"]

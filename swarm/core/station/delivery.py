@@ -47,7 +47,6 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 
-from swarm.core.agent.gslink import short_reason
 from swarm.core.station.commands import (
     CARRIED_OUT,
     NO_ANSWER,
@@ -60,7 +59,8 @@ from swarm.core.station.commands import (
 )
 from swarm.core.station.model import AgentView, StationConfig, StationCounters, StOut
 from swarm.core.station.swarms import Addressee, SwarmBook, swarm_plan
-from swarm.core.wire.messages import AckResult, Command, CommandAck, CommandKind
+from swarm.core.wire.codes import short_reason
+from swarm.core.wire.message_types import AckResult, Command, CommandAck, CommandKind
 
 
 class CommandDelivery:

@@ -25,7 +25,7 @@ from typing import Any
 
 from swarm.core.flight.geofence import Geofence
 from swarm.core.station.alerts import AlertConfig, LinkHealth
-from swarm.core.wire.messages import Message, Phase, Pose
+from swarm.core.wire.message_types import Message, Phase, Pose
 
 
 @dataclass(frozen=True)

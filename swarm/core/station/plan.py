@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from swarm.core.wire.messages import Command, CommandKind, Heartbeat, Task, TaskKind
+from swarm.core.wire.message_types import Command, CommandKind, Heartbeat, Task, TaskKind
 
 #: a route keeps at most this many points (the newest)
 ROUTE_MAX = 32

@@ -54,7 +54,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from swarm.core.station.commands import CommandRefused, CommandSpec
-from swarm.core.wire.messages import CommandKind, Heartbeat, Phase
+from swarm.core.wire.message_types import CommandKind, Heartbeat, Phase
 
 
 class _Agent(Protocol):

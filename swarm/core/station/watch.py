@@ -12,7 +12,7 @@ eye on its agents. The core calls it where it learns something, with ``now``:
   ``loss_clear`` %);
 * the vehicle link lost or back (FLAG_FC_OK), an agent disconnected or connected
   (its silence beyond what its link's record allows: a ``link`` alert, critical);
-* an :class:`~swarm.core.wire.messages.AgentNotice`: an autopilot STATUSTEXT (an alert,
+* an :class:`~swarm.core.wire.message_types.AgentNotice`: an autopilot STATUSTEXT (an alert,
   ``critical`` at severity CRITICAL or worse) or one of the agent's own events (a
   line in the log; a separation hold is also an alert), every one in the log with
   its repeats;
@@ -34,9 +34,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from swarm.core.agent.notices import CRITICAL, SEPARATION_HOLD, SEVERITY_NAMES, one_line
 from swarm.core.station.alerts import AlertBook, AlertConfig, battery_level
-from swarm.core.wire.messages import AgentNotice, NoticeSource
+from swarm.core.wire.codes import CRITICAL, SEPARATION_HOLD, SEVERITY_NAMES, one_line
+from swarm.core.wire.message_types import AgentNotice, NoticeSource
 
 if TYPE_CHECKING:
     from swarm.core.station.commands import Request

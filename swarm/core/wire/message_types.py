@@ -12,7 +12,7 @@ CRC-32 digest when unchanged (:func:`pool_digest`).
 
 A message checks what it can when built (a :class:`Pose`'s numbers are finite);
 the ranges of the air format are checked by the codec, :mod:`swarm.core.wire.messages`,
-which re-exports every name of this module: import from there.
+which imports this module as ``mt``.
 """
 
 from __future__ import annotations

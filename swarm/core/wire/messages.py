@@ -2,8 +2,8 @@
 
 Theory of operation
 -------------------
-Every message is a frozen dataclass (:mod:`swarm.core.wire.message_types`, whose
-names this module re-exports: the rest of the code imports them from here).
+Every message is a frozen dataclass of :mod:`swarm.core.wire.message_types` (import the
+types from there).
 :func:`encode` turns it into bytes and :func:`decode` turns any byte string into a
 message or raises :class:`DecodeError` (and nothing else). A SiK radio gives the whole swarm a few
 kilobytes per second, so the encoding is tight:
@@ -39,7 +39,6 @@ from enum import IntEnum
 from typing import Any
 
 from swarm.core.wire import message_types as mt
-from swarm.core.wire.message_types import *  # noqa: F403  (re-exported: import the types from here)
 from swarm.errors import DecodeError, MessageError, VersionMismatch
 
 # -- primitive codecs -----------------------------------------------------------
@@ -458,14 +457,4 @@ def field_names(cls: type[mt.Message]) -> list[str]:
     return [f.name for f in fields(cls)]
 
 
-__all__ = [
-    *mt.__all__,
-    "BY_TYPE",
-    "DecodeError",
-    "MessageError",
-    "VersionMismatch",
-    "decode",
-    "encode",
-    "field_names",
-    "message_types",
-]
+__all__ = ["BY_TYPE", "decode", "encode", "field_names", "message_types"]

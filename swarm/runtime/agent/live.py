@@ -93,9 +93,6 @@ from collections.abc import Callable
 from typing import Any
 
 from swarm.core.agent.node import (
-    SETPOINT_PERIOD,
-    VEHICLE_LINK_BACK,
-    VEHICLE_LINK_LOST,
     AgentNode,
     AutopilotText,
     CallDone,
@@ -115,7 +112,7 @@ from swarm.core.agent.node import (
     SetTask,
     VehicleLink,
 )
-from swarm.core.election.protocol import (
+from swarm.core.election.profiles import (
     BatteryVote,
     LinkQualityVote,
     Profile,
@@ -124,7 +121,7 @@ from swarm.core.election.protocol import (
     profile_by_name,
 )
 from swarm.core.flight.pilot import Call, Setpoint
-from swarm.core.wire.messages import (
+from swarm.core.wire.message_types import (
     AckResult,
     Advertize,
     AgentState,
@@ -134,10 +131,10 @@ from swarm.core.wire.messages import (
     check_id,
     check_name,
 )
-from swarm.runtime.agent.vehicle import pose_from_state, state_dict, vehicle_info, vehicle_messages
+from swarm.runtime.agent.vehicle import pose_from_state, vehicle_info, vehicle_messages
 from swarm.runtime.loop import EventLoop
 from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
-from swarm.runtime.options import PROFILES, VOTES, AgentConfig, NodeOptions
+from swarm.runtime.options import AgentConfig, NodeOptions
 
 log = logging.getLogger(__name__)
 
@@ -608,21 +605,4 @@ class Agent(StartOnce):
         self.stats["poses"] += 1
 
 
-__all__ = [
-    "FC_LOG_MESSAGES",
-    "PROFILES",
-    "SETPOINT_PERIOD",
-    "STATS",
-    "VEHICLE_LINK_BACK",
-    "VEHICLE_LINK_LOST",
-    "VOTES",
-    "Agent",
-    "AgentConfig",
-    "NodeOptions",
-    "call_result",
-    "default_round_s",
-    "pose_from_state",
-    "state_dict",
-    "vehicle_info",
-    "vehicle_messages",
-]
+__all__ = ["FC_LOG_MESSAGES", "STATS", "Agent", "call_result", "default_round_s"]

@@ -19,7 +19,8 @@ from typing import Any
 
 from firmware_bridge.session import SETPOINT_MODES
 from swarm.core.agent.node import VehicleInfo
-from swarm.core.wire.messages import AgentState, MessageError, Pose
+from swarm.core.wire.message_types import AgentState, Pose
+from swarm.errors import MessageError
 
 
 def vehicle_info(s: Any, link_ok: bool) -> VehicleInfo:

@@ -69,7 +69,6 @@ swarm/<own>/state      0           swarm/<sender name>/state
 The receiving side (frames into the key space) is
 :class:`swarm.runtime.bridge.rx.AirToLocal`, a part of :class:`RadioBridge`; this
 module keeps the sending side, the radio's loss and reopening, and the life cycle.
-:func:`open_node` (re-exported here) is :mod:`swarm.runtime.node_io`'s.
 """
 
 from __future__ import annotations
@@ -78,7 +77,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from radios.errors import DeviceMismatchError, LinkClosedError, LinkOpenError, RadioError
@@ -92,11 +91,8 @@ from radios.signing_state import ClockKeeper, wall_ticks
 from swarm.core.bridge.air_queue import AirItem, AirQueue, Klass
 from swarm.core.bridge.names import NameTable
 from swarm.core.bridge.radio_guard import RadioState, RadioStatusGuard
-from swarm.core.wire.messages import (
-    Message,
-    Telemetry,
-    encode,
-)
+from swarm.core.wire.message_types import Message, Telemetry
+from swarm.core.wire.messages import encode
 from swarm.core.wire.tunnel import (
     COMP_ID,
     PAYLOAD_TYPE_BASE,
@@ -105,8 +101,8 @@ from swarm.core.wire.tunnel import (
     pack,
 )
 from swarm.runtime.bridge.rx import ATTACHMENT, AirToLocal
+from swarm.runtime.bridge.stats import BridgeStats
 from swarm.runtime.keyspace.transport import KEY_ADVERTIZE, KEY_GS_ADVERTIZE, PREFIX
-from swarm.runtime.node_io import open_node as open_node  # re-exported: it moved there
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -132,41 +128,6 @@ class BridgeConfig:
     #: a new P2P protocol item waits this long for identical payloads to other peers
     #: (a leader's heartbeat to N members) so they leave as one multicast frame
     coalesce_s: float = 0.005
-
-
-@dataclass
-class BridgeStats:
-    frames_out: int = 0
-    frames_in: int = 0
-    bytes_out: int = 0
-    published: int = 0
-    multicast_merged: int = 0
-    queue_drops: int = 0
-    oversize: int = 0
-    unroutable: int = 0
-    unknown_sender: int = 0
-    not_for_us: int = 0
-    overheard: int = 0  # a station: leaders' Heartbeats to their members (bridge_rx)
-    decode_errors: int = 0
-    version_mismatch: int = 0
-    conflicts: int = 0
-    send_errors: int = 0
-    throttled: int = 0  # send-loop passes that held telemetry back (txbuf back-off)
-    poses_thinned: int = 0  # poses skipped by the bounded txbuf back-off
-    radio_status_accepted: int = 0
-    radio_status_rejected: int = 0  # RADIO_STATUS not plausibly from the local radio
-    radio_losses: int = 0  # the radio's device went away
-    radio_reopens: int = 0  # ... and was opened again
-    radio_refused: int = 0  # attempts that found another device at the radio's path
-    dropped_radio_down: int = 0  # frames dropped while the radio was away
-    heartbeats: int = 0
-    vehicle_forwarded: int = 0
-    unsigned: int = 0
-    bad_signature: int = 0
-    replayed: int = 0
-
-    def as_dict(self) -> dict[str, int]:
-        return asdict(self)
 
 
 class RadioBridge(AirToLocal):

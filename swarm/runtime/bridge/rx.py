@@ -42,20 +42,12 @@ from typing import TYPE_CHECKING, Any
 
 from radios.mavlink import MSG_RADIO_STATUS, MSG_TUNNEL, Frame, radio_status_fields
 from radios.signing import Verifier
-from swarm.core.agent.gslink import is_station
 from swarm.core.bridge.air_queue import AirItem, Klass
 from swarm.core.bridge.names import NameTable, conflict_note
 from swarm.core.bridge.radio_guard import RadioState, RadioStatusGuard
-from swarm.core.wire.messages import (
-    Advertize,
-    Command,
-    GSAdvertize,
-    Heartbeat,
-    Message,
-    NameConflict,
-    decode,
-    encode,
-)
+from swarm.core.wire.codes import is_station
+from swarm.core.wire.message_types import Advertize, Command, GSAdvertize, Heartbeat, Message, NameConflict
+from swarm.core.wire.messages import decode, encode
 from swarm.core.wire.tunnel import Kind, unpack_tunnel
 from swarm.errors import DecodeError, VersionMismatch
 from swarm.runtime.keyspace.transport import (
@@ -68,7 +60,7 @@ from swarm.runtime.keyspace.transport import (
 )
 
 if TYPE_CHECKING:
-    from swarm.runtime.bridge.radio_bridge import BridgeStats
+    from swarm.runtime.bridge.stats import BridgeStats
 
 log = logging.getLogger("swarm.runtime.bridge.radio_bridge")  # one logger for the whole bridge
 

@@ -45,8 +45,8 @@ from swarm.core.doctor.vehicle import VehicleFacts, vehicle_checks
 from swarm.core.keyspace.endpoints import CERTS_HINT
 from swarm.runtime.doctor.host import device_facts, disk_facts, key_facts, zenoh_facts
 from swarm.runtime.doctor.radio import radio_facts
-from swarm.runtime.doctor.tls import acl_facts, tls_facts
 from swarm.runtime.doctor.vehicle import HEARTBEAT_S, vehicle_facts
+from swarm.runtime.keyspace.tls_probe import acl_facts, tls_facts
 
 if TYPE_CHECKING:
     from swarm.runtime.options import TlsFiles

@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 
 def check_tls(tls: TlsFiles, now: float | None = None) -> None:
     """Raise CertError with the first failing check's line (``seen; fix: ...``)."""
-    from swarm.runtime.doctor.tls import tls_facts
+    from swarm.runtime.keyspace.tls_probe import tls_facts
 
     facts = tls_facts(tls.ca, tls.cert, tls.key, expect_name=tls.name, expect_role=tls.role)
     bad = failures(tls_checks(facts, time.time() if now is None else now))
@@ -42,7 +42,7 @@ def check_tls(tls: TlsFiles, now: float | None = None) -> None:
 
 def load_acl(path: str) -> str:
     """The access-control file's text once Zenoh accepts it. Raises CertError."""
-    from swarm.runtime.doctor.tls import parse_acl, read_acl
+    from swarm.runtime.keyspace.tls_probe import parse_acl, read_acl
 
     text = read_acl(path)
     obj = parse_acl(path, text)

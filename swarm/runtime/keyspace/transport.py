@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -48,7 +47,8 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from swarm.core.keyspace.endpoints import key_over_ip
-from swarm.core.wire.messages import (
+from swarm.core.keyspace.zenoh_errors import RUST_SOURCE, zenoh_config_message, zenoh_open_message
+from swarm.core.wire.message_types import (
     Advertize,
     AgentState,
     Command,
@@ -56,9 +56,8 @@ from swarm.core.wire.messages import (
     Message,
     PoseReport,
     check_name,
-    decode,
-    encode,
 )
+from swarm.core.wire.messages import decode, encode
 from swarm.errors import DecodeError, TransportError
 
 if TYPE_CHECKING:
@@ -280,7 +279,7 @@ class ClientSession:
             try:
                 session = zenoh.open(self.cfg)
             except Exception as exc:  # nobody there yet (or it refused us): try again
-                self.last_error = _RUST_SOURCE.sub("", str(exc)).strip()
+                self.last_error = RUST_SOURCE.sub("", str(exc)).strip()
                 self._closed.wait(0.2)
                 continue
             with self._lock:
@@ -359,38 +358,6 @@ def has_peer(session: Any) -> bool:
     this is how a command can tell the user."""
     info = session.info
     return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
-
-
-#: Zenoh's errors end with where in its Rust source they were raised: " at /root/.cargo/...rs:61."
-_RUST_SOURCE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
-_BOUND_TO = re.compile(r"bound to ([a-z]+/\S+?):\s")
-
-
-_JSON5_MSG = re.compile(r'msg: "(.*?)"(?:, location|\s*\})')
-
-
-def zenoh_config_message(text: str) -> str:
-    """One line for Zenoh's refusal of an endpoint: its own sentence, without the
-    Rust debug wrapping (``Json5Err(Message { msg: ...``) or source paths."""
-    m = _JSON5_MSG.search(text)
-    detail = _RUST_SOURCE.sub("", m.group(1) if m else text).strip().rstrip(".")
-    return f"bad Zenoh endpoint: {detail} (for example tcp/127.0.0.1:7447)"
-
-
-def zenoh_open_message(text: str, listen: Sequence[str], connect: Sequence[str]) -> str:
-    """One line a user understands for Zenoh's ``zenoh.open`` error ``text``: a port in
-    use or an address not of this machine named as such, and never the Rust source
-    paths of the Zenoh build."""
-    m = _BOUND_TO.search(text)
-    endpoint = m.group(1) if m else (listen[0] if len(listen) == 1 else "")
-    port = endpoint.rpartition(":")[2]
-    if "Address already in use" in text and endpoint:
-        return f"cannot listen on {endpoint}: port {port} in use (another program, or another swarm node?)"
-    if "Cannot assign requested address" in text and endpoint:
-        return f"cannot listen on {endpoint}: that address is not one of this machine's"
-    detail = _RUST_SOURCE.sub("", text).replace("[", "").replace("]", "").strip().rstrip(".")
-    where = "; ".join(f"{k} {' '.join(v)}" for k, v in (("listen", listen), ("connect", connect)) if v)
-    return f"cannot open Zenoh session ({where or 'no endpoints'}): {detail}"
 
 
 class Transport:

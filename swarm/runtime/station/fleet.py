@@ -53,10 +53,11 @@ from concurrent.futures import Future
 from typing import Any
 
 from swarm.core.flight.geofence import Geofence
-from swarm.core.station.core import CommandRefused, CommandSpec, Event, parse_command
+from swarm.core.station.commands import CommandRefused, CommandSpec, parse_command
 from swarm.core.station.federation import check_remote, spec_body, text
+from swarm.core.station.model import Event
 from swarm.core.station.swarms import fleet_colours
-from swarm.core.wire.messages import CommandKind
+from swarm.core.wire.message_types import CommandKind
 from swarm.runtime.station.federation import Federation, Result
 from swarm.runtime.station.live import Station
 

@@ -11,7 +11,7 @@ before the core's queue), and their command keys for other stations' Commands; o
 messages there, and the station's own keys, are passed over on their first byte,
 undecoded.
 :class:`CoreStation` is the part of the live and the replayed station that reads their
-:class:`StationCore` for the server (its :class:`~swarm.runtime.station.server.ServedStation`).
+:class:`StationCore` for the server (its :class:`~swarm.runtime.station.served.ServedStation`).
 """
 
 from __future__ import annotations
@@ -24,16 +24,10 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from typing import Any, cast
 
-from swarm.core.station.core import (
-    CommandRefused,
-    CommandSpec,
-    Event,
-    StationConfig,
-    StationCore,
-    StOut,
-    outcome,
-)
-from swarm.core.wire.messages import GCS_ID, Command, GSAdvertize, Heartbeat, Message
+from swarm.core.station.commands import CommandRefused, CommandSpec, outcome
+from swarm.core.station.core import StationCore
+from swarm.core.station.model import Event, StationConfig, StOut
+from swarm.core.wire.message_types import GCS_ID, Command, GSAdvertize, Heartbeat, Message
 from swarm.runtime.keyspace.transport import command_key, inbox_key
 from swarm.runtime.loop import EventLoop
 from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io

@@ -44,9 +44,11 @@ from radios.errors import FrameError
 from radios.mavlink import MSG_HEARTBEAT, MSG_RADIO_STATUS, MSG_TUNNEL, radio_status_fields
 from radios.mavlink import decode as decode_frame
 from radios.tlog import read_tlog
-from swarm.core.agent.gslink import is_station
-from swarm.core.station.core import CommandRefused, CommandSpec, StationConfig, StationCore
-from swarm.core.wire.messages import Advertize, GSAdvertize, Message, Pose, check_name
+from swarm.core.station.commands import CommandRefused, CommandSpec
+from swarm.core.station.core import StationCore
+from swarm.core.station.model import StationConfig
+from swarm.core.wire.codes import is_station
+from swarm.core.wire.message_types import Advertize, GSAdvertize, Message, Pose, check_name
 from swarm.core.wire.messages import decode as decode_msg
 from swarm.core.wire.tunnel import COMP_ID, Kind, unpack_tunnel
 from swarm.errors import DecodeError

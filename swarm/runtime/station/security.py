@@ -38,7 +38,7 @@ a one-line reason):
    (:func:`ws_id`), a file path under a served folder (:func:`safe_file`: no
    traversal, no symlink out).
 
-Used by :mod:`swarm.runtime.station.server` (which re-exports the public names) and
+Used by :mod:`swarm.runtime.station.server` and
 :mod:`swarm.runtime.station.websocket`.
 """
 
@@ -58,7 +58,7 @@ from typing import Any
 from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 
-from swarm.core.station.core import CommandRefused
+from swarm.core.station.commands import CommandRefused
 
 MAX_BODY = 64 * 1024  # a request body or a WebSocket message
 MAX_WS_FRAME = 1024 * 1024  # beyond this the WebSocket closes (1009); up to it: a 413 answer

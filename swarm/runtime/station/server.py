@@ -30,8 +30,7 @@ Who may use it (docs/security.md: Host, Origin, token) is checked by one
 middleware before any route, :meth:`swarm.runtime.station.security.Guard.middleware`;
 bodies are read and parsed by the same module's :func:`~swarm.runtime.station.security.read_json`
 and :func:`~swarm.runtime.station.security.parse_json` (each refusal a status and a one-line
-reason). The WebSocket is :class:`swarm.runtime.station.websocket.WsHub`'s. This module
-re-exports the security module's public names.
+reason). The WebSocket is :class:`swarm.runtime.station.websocket.WsHub`'s.
 
 Every error is a JSON object ``{"error": reason}`` with a 4xx status (a handler
 that fails unexpectedly answers 500 and logs the traceback, which never reaches
@@ -58,27 +57,19 @@ import secrets
 import threading
 import time
 from collections.abc import Awaitable, Callable
-from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from aiohttp import web
 
-from swarm.core.station.core import CommandRefused, CommandSpec, parse_command
+from swarm.core.station.commands import CommandRefused, parse_command
 from swarm.core.station.federation import ack_any
 from swarm.errors import SwarmError
 from swarm.runtime.station.connections import ConnectionLimiter, HttpLog, default_limit
 from swarm.runtime.station.security import (
     AUTHORIZED,
-    HOST_RE,
     MAX_BODY,
-    MAX_DEPTH,
-    MAX_ID,
-    MAX_INT_DIGITS,
-    MAX_WS_FRAME,
-    TOKEN_RE,
-    TOKEN_RULE,
     WILDCARDS,
     BodyBroken,
     Guard,
@@ -86,13 +77,11 @@ from swarm.runtime.station.security import (
     check_token,
     error_response,
     is_loopback,
-    parse_json,
     read_json,
     replay_args,
     safe_file,
-    split_host,
-    ws_id,
 )
+from swarm.runtime.station.served import ServedStation
 from swarm.runtime.station.tiles import MbTiles
 from swarm.runtime.station.websocket import WsHub
 
@@ -125,40 +114,6 @@ def page_policy(tiles: str | None) -> str:
 
 class ServerError(SwarmError):
     """The server cannot start (address in use, bad host)."""
-
-
-class ReplayControl(Protocol):
-    def status(self) -> dict[str, Any]: ...
-
-    def control(self, action: Any, value: Any) -> dict[str, Any]: ...
-
-
-class ServedStation(Protocol):
-    """What the server reads from a station: the live one, a replay, or a fleet of several."""
-
-    name: str
-    id: int
-
-    @property
-    def replay(self) -> ReplayControl | None: ...
-
-    def describe(self) -> str: ...
-
-    def snapshot(self) -> dict[str, Any]: ...
-
-    def snapshot_json(self) -> str: ...
-
-    def agent(self, agent_id: int) -> dict[str, Any] | None: ...
-
-    def ack_alert(self, alert_id: Any) -> dict[str, Any]: ...
-
-    def center(self) -> list[float] | None: ...
-
-    def submit(self, spec: CommandSpec) -> Future[tuple[int, dict[str, Any]]]: ...
-
-    def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> None: ...
-
-    def remove_listener(self, fn: Callable[[dict[str, Any]], None]) -> None: ...
 
 
 @dataclass
@@ -583,32 +538,14 @@ class GcsServer:
 
 
 __all__ = [
-    "HOST_RE",
     "LEAFLET_DIR",
     "LOCAL_TILES",
-    "MAX_BODY",
-    "MAX_DEPTH",
-    "MAX_ID",
-    "MAX_INT_DIGITS",
-    "MAX_WS_FRAME",
     "MAX_WS_HZ",
     "OSM_ATTRIBUTION",
     "OSM_TILES",
     "STATIC_DIR",
-    "TOKEN_RE",
-    "TOKEN_RULE",
-    "WILDCARDS",
     "GcsServer",
-    "ServedStation",
     "ServerConfig",
     "ServerError",
-    "check_host_name",
-    "check_token",
-    "is_loopback",
     "page_policy",
-    "parse_json",
-    "replay_args",
-    "safe_file",
-    "split_host",
-    "ws_id",
 ]

@@ -54,13 +54,13 @@ from typing import TYPE_CHECKING, Any
 
 from aiohttp import WSMsgType, web
 
-from swarm.core.station.core import CommandRefused
+from swarm.core.station.commands import CommandRefused
 from swarm.core.station.delta import build
 from swarm.core.station.federation import ack_any
 from swarm.runtime.station.security import MAX_BODY, MAX_WS_FRAME, WS_PROTOCOL, parse_json, replay_args, ws_id
 
 if TYPE_CHECKING:
-    from swarm.runtime.station.server import ServedStation
+    from swarm.runtime.station.served import ServedStation
 
 log = logging.getLogger(__name__)
 

@@ -80,7 +80,7 @@ def parse_acl(path: str, text: str) -> dict[str, object]:
     Zenoh's own reason."""
     import zenoh
 
-    from swarm.runtime.keyspace.transport import zenoh_config_message
+    from swarm.core.keyspace.zenoh_errors import zenoh_config_message
 
     cfg = zenoh.Config()
     try:

@@ -136,7 +136,7 @@ def test_a_one_way_link_drops_one_direction_only() -> None:
 
 def test_a_message_that_does_not_decode_is_a_violation() -> None:
     sim = FaultSim(Scenario(agents=2, strict=True), 0)
-    sim._write(0, Kind.ADVERTIZE, (0,), b"\xff\x00garbage", 1.0)
+    sim._write(0, Kind.ADVERTIZE, (0,), b"\xff\x00garbage", 1.0)  # noqa: SLF001 (white box: garbage on the air)
     assert any("does not decode" in v for v in sim.violations)
 
 
@@ -247,6 +247,9 @@ def test_serial_and_jobs_campaigns_are_identical() -> None:
 
 
 @pytest.mark.processes  # worker processes
+# about 35 s of CPU: on a busy machine (two busy loops beside the suite) its wall time
+# passed the session's 180 s; the outcome is judged, not the time
+@pytest.mark.timeout(900)
 def test_bounded_campaign_has_no_violation() -> None:
     # 200 of `swarm bench campaign --quick`'s 300 scenarios (N <= 12): about 35 s of CPU
     res = bench_campaign.run(quick=True, scenarios=200)

@@ -92,6 +92,32 @@ def test_signal_stops_the_workers(sig: signal.Signals) -> None:
     wait_until(lambda: not any(alive(w) for w in workers), "no worker outlives the command", 30)
 
 
+def test_a_ctrl_c_while_the_workers_start_stops_the_run() -> None:
+    """Spawning the workers takes a while (seconds on a busy machine): a Ctrl-C that
+    comes then stops the run at once. The parent once ignored SIGINT while it spawned
+    its workers, and such a Ctrl-C was lost: the run went on to its end."""
+    args = ["simulate", "--agents", "40", "--seeds", "64", "--jobs", "16", "--duration", "120"]
+    p = subprocess.Popen(
+        [sys.executable, "-m", "swarm.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        # the first worker is there: the parent is spawning the others
+        wait_until(lambda: children_of(p.pid), "the first worker", 120, 0.001)
+        os.killpg(p.pid, signal.SIGINT)  # Ctrl-C reaches the whole group
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 130, err
+    assert err.strip().splitlines() == ["swarm simulate: interrupted, workers stopped, no results"], err
+    assert out == ""
+
+
 @pytest.mark.parametrize(
     "args",
     [["--jobs", "0"], ["--jobs", "-3"], ["--jobs", "100000"], ["--duration", "nan"], ["--duration", "-1"]],

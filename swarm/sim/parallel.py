@@ -14,9 +14,9 @@ shared queue can deadlock its own terminate when a worker dies holding the queue
 lock), so stopping is always possible: the parent terminates its workers and waits
 for each of them.
 
-Workers ignore SIGINT from their start (the parent ignores it while it spawns them,
-and they inherit that): a Ctrl-C reaches the whole process group, and only the
-parent decides. When the parent is interrupted (KeyboardInterrupt, which the CLI
+Workers ignore SIGINT from their start (the parent blocks it while it spawns them,
+they inherit that, and ignore it before they unblock it): a Ctrl-C reaches the whole
+process group, and only the parent decides. When the parent is interrupted (KeyboardInterrupt, which the CLI
 also raises for SIGTERM) it terminates every worker (SIGTERM, then SIGKILL) and
 waits for them before passing the interruption on, so no worker outlives it. A
 worker that dies on its own ends the run with :class:`WorkerDied`.
@@ -53,9 +53,10 @@ def _run_one(job: tuple[Scenario, int]) -> RunResult:
 def _serve(conn: Connection) -> None:
     """A worker: runs each ``(index, scenario, seed)`` it receives, answers ``(index, result)``,
     ends on ``None`` or when the parent's end closes. It ignores SIGINT (it started
-    so) and takes SIGTERM as it comes, also one that came while it started."""
+    blocked, and a Ctrl-C that came while it started is dropped here) and takes SIGTERM
+    as it comes, also one that came while it started."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
         while True:
             job = conn.recv()
@@ -105,13 +106,14 @@ def run_jobs(
 def _start(jobs: int, procs: list[BaseProcess]) -> list[Connection]:
     """Spawn the workers (appended to ``procs`` as they start); their pipes.
 
-    Workers are spawned with SIGINT ignored: an ignored signal stays ignored across
-    exec and Python then leaves it so, so no worker prints a Ctrl-C traceback while it
-    is still importing. (A Ctrl-C in those few milliseconds is lost for the parent too;
-    a SIGTERM waits, blocked, and stops the run once the workers have started.)"""
+    Workers are spawned with SIGINT and SIGTERM blocked: a blocked signal stays blocked
+    across exec, so no worker prints a Ctrl-C traceback while it is still importing
+    (each drops a Ctrl-C and takes a SIGTERM once it serves). The parent's signals
+    wait too, and stop the run as soon as the workers have started: spawning takes
+    seconds on a busy machine, and a Ctrl-C then must not be lost (it once was: the
+    parent ignored SIGINT while it spawned, and the run went on to its end)."""
     ctx = multiprocessing.get_context("spawn")
-    old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     conns: list[Connection] = []
     try:
         for _ in range(jobs):
@@ -122,8 +124,7 @@ def _start(jobs: int, procs: list[BaseProcess]) -> list[Connection]:
             theirs.close()
             conns.append(ours)
     finally:
-        signal.signal(signal.SIGINT, old_int)
-        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a SIGTERM that waited is raised here
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a Ctrl-C or SIGTERM that waited acts here
     return conns
 
 

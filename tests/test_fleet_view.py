@@ -16,6 +16,7 @@ from test_gcs_api import ScriptedAgent
 
 from swarm.core.flight.geofence import Geofence
 from swarm.core.station.commands import CommandRefused, parse_command
+from swarm.core.station.fleet import channel_swarms, merge_channels, merge_stations
 from swarm.core.wire.message_types import Phase, Telemetry
 from swarm.runtime.station.fleet import Fleet
 from swarm.runtime.station.live import Station
@@ -103,13 +104,45 @@ def test_a_cores_own_swarms_are_tagged_and_their_colours_made_unique() -> None:
         "agents": [],
         "swarms": [{"leader": 4, "members": [4, 5], "colour": 0}, {"leader": 9, "members": [9]}],
     }
-    got = [Fleet._swarms(snap, net, "gcs", (i, 2)) for i, net in enumerate(("north", "south"))]
+    got = [channel_swarms(snap, net, "gcs", (i, 2)) for i, net in enumerate(("north", "south"))]
     assert [[(s["leader"], s.get("colour"), s["net"]) for s in g] for g in got] == [
         [(4, 0, "north"), (9, None, "north")],
         [(4, 1, "south"), (9, None, "south")],
     ]
     # without the cores' list: one swarm per leader the agents name
     snap = {"agents": [{"id": 1, "leader": 2}, {"id": 2, "leader": 2}, {"id": 3, "leader": 0}]}
-    assert Fleet._swarms(snap, "n", "gcs", (0, 1)) == [
+    assert channel_swarms(snap, "n", "gcs", (0, 1)) == [
         {"leader": 2, "members": [1, 2], "net": "n", "station": "gcs"}
     ]
+
+
+def test_an_id_is_one_aircraft_across_channels_and_stations() -> None:
+    """The fleet merge (pure): an id heard on two channels is shown once (the first
+    channel's) and said; another station's agent also held here is hidden and said;
+    a silent station's agents are shown disconnected and its swarms left out; alert ids
+    are made unique per channel; the inputs are left alone."""
+    north = {
+        "agents": [{"id": 1, "leader": 1}, {"id": 3, "leader": 1}],
+        "events": [{"t": 1.0, "text": "a"}],
+        "alerts": [{"id": 0}],
+    }
+    south = {"agents": [{"id": 3, "leader": 2}, {"id": 2, "leader": 2}], "events": [], "alerts": [{"id": 0}]}
+    mine = merge_channels("gcs", [("north", north), ("south", south)])
+    assert [(a["id"], a["net"], a["station"]) for a in mine.agents] == [
+        (1, "north", "gcs"),
+        (3, "north", "gcs"),
+        (2, "south", "gcs"),
+    ]
+    assert mine.notes == ["agent id 3 heard on north and south"]
+    assert [a["id"] for a in mine.alerts] == [0, 1] and [a["net"] for a in mine.alerts] == ["north", "south"]
+    assert north["agents"][1] == {"id": 3, "leader": 1}  # inputs untouched
+    assert mine.as_state().keys() == {"agents", "events", "swarms", "alerts"}
+
+    held = {a["id"] for a in mine.agents}
+    remote = {"agents": [{"id": 2}, {"id": 7, "connected": True}], "events": [], "swarms": [{"leader": 7}]}
+    live = merge_stations(held, [("east", True, remote)])
+    assert [a["id"] for a in live.agents] == [7] and live.swarms == [{"leader": 7, "station": "east"}]
+    assert live.notes == ["agent id 2 of station east is also held here: hidden"]
+    silent = merge_stations(held, [("east", False, remote)])
+    assert silent.agents == [{"id": 7, "connected": False, "station": "east", "station_alive": False}]
+    assert silent.swarms == [] and held == {1, 2, 3}

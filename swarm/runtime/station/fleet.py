@@ -10,15 +10,9 @@ one-radio station) and, optionally, a :class:`~swarm.runtime.station.federation.
 the same view as one station (``snapshot``, ``agent``, ``submit``, events,
 alerts):
 
-* ``agents``: every channel's agents, then every other station's, each with ``net``
-  (its channel's name) and ``station`` (the station that hears it). System ids are
-  unique across a deployment: an id heard on two channels, or from another station
-  as well as here, is shown once (ours first, then the first channel; one event).
-  Another station's agents are shown disconnected once it has been silent for the
-  federation's timeout, and go when it is forgotten;
-* ``swarms``: the channels' own lists when their cores give one (issue 16's groups),
-  otherwise one per channel leader: ``{leader, members, net, station}``, then every
-  live station's; each ``colour`` is the merged view's
+* ``agents``, ``swarms``: every channel's, then every other station's, merged by
+  the pure functions of :mod:`swarm.core.station.fleet` (an id is one aircraft: shown
+  once, each collision an event); each swarm's ``colour`` is the merged view's
   (:func:`swarm.core.station.swarms.fleet_colours`: the same swarm in the same colour
   on every page, all distinct), the station's own beside it (``station_colour``), and
   the state published to the others carries the station's own;
@@ -55,6 +49,7 @@ from typing import Any
 from swarm.core.flight.geofence import Geofence
 from swarm.core.station.commands import CommandRefused, CommandSpec, parse_command
 from swarm.core.station.federation import check_remote, spec_body, text
+from swarm.core.station.fleet import Merged, merge_channels, merge_stations
 from swarm.core.station.model import Event
 from swarm.core.station.swarms import fleet_colours
 from swarm.core.wire.message_types import CommandKind
@@ -167,83 +162,40 @@ class Fleet:
     def local_state(self, snaps: list[dict[str, Any]] | None = None) -> dict[str, Any]:
         """This station's channels only (their ``snaps``, taken now if not given): what
         it publishes to the others."""
-        agents: dict[int, dict[str, Any]] = {}
-        events: list[dict[str, Any]] = []
-        swarms: list[dict[str, Any]] = []
-        alerts: list[dict[str, Any]] = []
         if snaps is None:
             snaps = [st.snapshot() for _net, st in self.channels]
-        for i, ((net, _st), snap) in enumerate(zip(self.channels, snaps, strict=True)):
-            for a in snap["agents"]:
-                if a["id"] in agents:
-                    self.note("federation", f"agent id {a['id']} heard on {agents[a['id']]['net']} and {net}")
-                    continue
-                agents[a["id"]] = {**a, "net": net, "station": self.name}
-            events += [{**e, "net": net} for e in snap["events"]]
-            swarms += self._swarms(snap, net, self.name, (i, len(self.channels)))
-            alerts += [{**al, "id": al["id"] * len(self.channels) + i, "net": net} for al in snap["alerts"]]
-        return {"agents": list(agents.values()), "events": events, "swarms": swarms, "alerts": alerts}
+        return self._merged_channels(snaps).as_state()
 
-    @staticmethod
-    def _swarms(snap: dict[str, Any], net: str, station: str, index: tuple[int, int]) -> list[dict[str, Any]]:
-        """A channel's swarms: its core's own list (a ``colour`` made unique across the
-        channels as alert ids are), or one per leader its agents name."""
-        if isinstance(snap.get("swarms"), list):
-            i, n = index
-            out = [{**s, "net": net, "station": station} for s in snap["swarms"]]
-            for s in out:
-                if isinstance(s.get("colour"), int):
-                    s["colour"] = s["colour"] * n + i
-            return out
-        lead = [a["leader"] for a in snap["agents"] if a.get("leader")]
-        out = []
-        for leader in sorted(set(lead)):
-            members = sorted(a["id"] for a in snap["agents"] if a.get("leader") == leader)
-            out.append({"leader": leader, "members": members, "net": net, "station": station})
-        return out
+    def _merged_channels(self, snaps: list[dict[str, Any]]) -> Merged:
+        merged = merge_channels(
+            self.name, [(net, s) for (net, _st), s in zip(self.channels, snaps, strict=True)]
+        )
+        for line in merged.notes:
+            self.note("federation", line)
+        return merged
 
-    def _remote_agents(self, held: set[int]) -> dict[str, list[dict[str, Any]]]:
-        """The other stations' ``agents``, ``events``, ``swarms`` (live stations') and
-        ``alerts``, each tagged with its ``station``."""
-        agents: list[dict[str, Any]] = []
-        events: list[dict[str, Any]] = []
-        swarms: list[dict[str, Any]] = []
-        alerts: list[dict[str, Any]] = []
-        out = {"agents": agents, "events": events, "swarms": swarms, "alerts": alerts}
-        if self.federation is None:
-            return out
-        for r, alive in self.federation.remotes():
-            for a in r.state["agents"]:
-                if a["id"] in held:
-                    self.note(
-                        "federation", f"agent id {a['id']} of station {r.name} is also held here: hidden"
-                    )
-                    continue
-                held.add(a["id"])
-                a = {**a, "station": r.name, "station_alive": alive}
-                if not alive:
-                    a["connected"] = False
-                agents.append(a)
-            events += [{**e, "station": r.name} for e in r.state["events"]]
-            if alive:
-                swarms += [{**s, "station": r.name} for s in r.state["swarms"]]
-            alerts += [{**al, "station": r.name, "station_alive": alive} for al in r.state.get("alerts", [])]
-        return out
+    def _merged_stations(self, held: set[int]) -> Merged:
+        """The other stations' agents, events, swarms (live stations') and alerts."""
+        fed = self.federation
+        remotes = [(r.name, alive, r.state) for r, alive in fed.remotes()] if fed is not None else []
+        merged = merge_stations(held, remotes)
+        for line in merged.notes:
+            self.note("federation", line)
+        return merged
 
     def snapshot(self) -> dict[str, Any]:
         snaps = [st.snapshot() for _net, st in self.channels]
         first = snaps[0]
-        mine = self.local_state(snaps)
-        held = {a["id"] for a in mine["agents"]}
-        other = self._remote_agents(held)
+        mine = self._merged_channels(snaps)
+        other = self._merged_stations({a["id"] for a in mine.agents})
         with self._lock:
             own = list(self._own_events)
-        all_events = sorted(mine["events"] + other["events"] + own, key=lambda e: e["t"])[-MAX_EVENTS:]
+        all_events = sorted(mine.events + other.events + own, key=lambda e: e["t"])[-MAX_EVENTS:]
         first.update(
-            agents=sorted(mine["agents"] + other["agents"], key=lambda a: a["id"]),
+            agents=sorted(mine.agents + other.agents, key=lambda a: a["id"]),
             events=all_events,
-            alerts=[{**al, "station": self.name} for al in mine["alerts"]] + other["alerts"],
-            swarms=fleet_colours(mine["swarms"] + other["swarms"]),
+            alerts=[{**al, "station": self.name} for al in mine.alerts] + other.alerts,
+            swarms=fleet_colours(mine.swarms + other.swarms),
             nets=[{"name": net, "station": self.name, "link": st.describe()} for net, st in self.channels],
             stations=self._stations(),
             station={"name": self.name, "id": self.id, "link": self.describe()},

@@ -34,7 +34,8 @@ def _swarm() -> list[str]:
     return [str(venv)] if venv.exists() else [sys.executable, "-m", "swarm.cli"]
 
 
-def _commit() -> str:
+def commit() -> str:
+    """The checkout's commit (``git describe --always --dirty``), or "unknown"."""
     try:
         run = subprocess.run(
             ["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True, text=True
@@ -44,10 +45,12 @@ def _commit() -> str:
     return run.stdout.strip() or "unknown"
 
 
-def _machine() -> dict[str, object]:
+def machine(load_before: float | None = None) -> dict[str, object]:
+    """This machine as a record names it: CPUs, the 1-minute load before the run (now, if
+    not given), the system and Python."""
     return {
         "cpus": os.cpu_count(),
-        "load_1m_before": round(os.getloadavg()[0], 2),
+        "load_1m_before": round(os.getloadavg()[0], 2) if load_before is None else load_before,
         "system": f"{platform.system()} {platform.machine()}",
         "python": platform.python_version(),
     }
@@ -56,7 +59,7 @@ def _machine() -> dict[str, object]:
 def record(area: str, extra: list[str], out: Path = OUT) -> bool:
     command = ["swarm", "bench", area, *extra, "--json"]
     started = datetime.datetime.now(datetime.UTC)
-    machine = _machine()
+    host = machine()
     proc = subprocess.Popen(
         [*_swarm(), *command[1:]], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
@@ -78,15 +81,15 @@ def record(area: str, extra: list[str], out: Path = OUT) -> bool:
     if not isinstance(result, dict):
         print(f"record-figures: {area}: swarm bench printed no JSON object", file=sys.stderr)
         return False
-    machine["load_1m_after"] = round(os.getloadavg()[0], 2)
+    host["load_1m_after"] = round(os.getloadavg()[0], 2)
     took = (datetime.datetime.now(datetime.UTC) - started).total_seconds()
     entry = {
         "area": area,
         "command": " ".join(command),
         "recorded": started.strftime("%Y-%m-%dT%H:%MZ"),
         "took_s": round(took, 1),
-        "commit": _commit(),
-        "machine": machine,
+        "commit": commit(),
+        "machine": host,
         "result": result,
     }
     out.mkdir(parents=True, exist_ok=True)

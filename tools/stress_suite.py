@@ -18,7 +18,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import re
 import signal
 import subprocess
@@ -27,16 +26,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from record_figures import commit, machine  # the records' shared fields (tools/ is on sys.path)
+
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "figures"
 BUSY = "while True: pass"
-
-
-def _commit() -> str:
-    run = subprocess.run(
-        ["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True, text=True
-    )
-    return run.stdout.strip() or "unknown"
 
 
 def one_run(command: list[str], log: Path) -> dict[str, object]:
@@ -100,14 +94,8 @@ def main(argv: list[str] | None = None) -> int:
         "command": f"tools/stress_suite.py --runs {args.runs} --busy {args.busy}",
         "recorded": recorded.strftime("%Y-%m-%dT%H:%MZ"),
         "took_s": round(sum(float(str(r["wall_s"])) for r in runs), 1),
-        "commit": _commit(),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "load_1m_before": before,
-            "load_1m_after": round(os.getloadavg()[0], 2),
-            "system": f"{platform.system()} {platform.machine()}",
-            "python": platform.python_version(),
-        },
+        "commit": commit(),
+        "machine": {**machine(before), "load_1m_after": round(os.getloadavg()[0], 2)},
         "result": {
             "busy_loops": args.busy,
             "runs": [

@@ -486,7 +486,7 @@ def connect(
     vehicle = Vehicle(conn, ep, hb, opts, source_system, source_component)
     try:
         if request_telemetry:
-            vehicle._request_telemetry()
+            vehicle.request_telemetry()
     except BaseException:
         vehicle.close()
         raise

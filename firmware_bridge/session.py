@@ -489,7 +489,7 @@ class Session:
             self._requests.asked(msg_id, rate_hz, time.monotonic())
         self.send_command_nowait(MAV_CMD_SET_MESSAGE_INTERVAL, (msg_id, 1e6 / rate_hz))
 
-    def _request_telemetry(self) -> None:
+    def request_telemetry(self) -> None:
         fast = self._opts.telemetry_rate_hz
         for msg_id, rate in (
             (MSG_GLOBAL_POSITION_INT, fast),

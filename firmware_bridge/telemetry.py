@@ -32,7 +32,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from firmware_bridge.modes import (
     MAV_AUTOPILOT_INVALID,
@@ -292,7 +292,7 @@ class TelemetryFolder:
             if getattr(msg, "target_system", 0) in (0, self.own_system):
                 ack = CommandAck(msg.command, msg.result, now)
         else:
-            fold = _FOLDS.get(mtype)
+            fold = self._FOLDS.get(mtype)
             if fold is not None:
                 upd.update(fold(self, msg, now))
         state = replace(self.state, **upd)
@@ -384,6 +384,19 @@ class TelemetryFolder:
     def _home_position(self, msg: Any, now: float) -> _Updates:
         return {"home": (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)}
 
+    #: one function per message type, the whole mapping in one table
+    _FOLDS: ClassVar[dict[str, Callable[[TelemetryFolder, Any, float], _Updates]]] = {
+        "HEARTBEAT": _heartbeat,
+        "GLOBAL_POSITION_INT": _global_position,
+        "LOCAL_POSITION_NED": _local_position,
+        "ATTITUDE": _attitude,
+        "EXTENDED_SYS_STATE": _extended_sys_state,
+        "SYS_STATUS": _sys_status,
+        "GPS_RAW_INT": _gps_raw,
+        "EKF_STATUS_REPORT": _ekf_status,
+        "HOME_POSITION": _home_position,
+    }
+
 
 def position_problem(s: VehicleState) -> str:
     """Why ``s``'s position is not (yet) a position, or "" when the autopilot vouches
@@ -434,19 +447,6 @@ def arming_problems(s: VehicleState, *, position: bool = True) -> list[str]:
     if s.prearm_ok is False:
         out.append("pre-arm checks failing")
     return out
-
-
-_FOLDS: dict[str, Callable[[TelemetryFolder, Any, float], _Updates]] = {
-    "HEARTBEAT": TelemetryFolder._heartbeat,
-    "GLOBAL_POSITION_INT": TelemetryFolder._global_position,
-    "LOCAL_POSITION_NED": TelemetryFolder._local_position,
-    "ATTITUDE": TelemetryFolder._attitude,
-    "EXTENDED_SYS_STATE": TelemetryFolder._extended_sys_state,
-    "SYS_STATUS": TelemetryFolder._sys_status,
-    "GPS_RAW_INT": TelemetryFolder._gps_raw,
-    "EKF_STATUS_REPORT": TelemetryFolder._ekf_status,
-    "HOME_POSITION": TelemetryFolder._home_position,
-}
 
 
 class LinkWatch:

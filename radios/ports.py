@@ -45,7 +45,7 @@ REGISTRY: Path | None = Path("/tmp") / f"uav-swarm-ports-{os.getuid()}"
 _DEFAULT = Path("/")  # "the module's REGISTRY" (read when called: tests point it elsewhere)
 
 
-def _bindable(port: int, kind: PortKind) -> bool:
+def bindable(port: int, kind: PortKind) -> bool:
     with socket.socket(socket.AF_INET, _SOCK_TYPES[kind]) as s:
         try:
             s.bind(("127.0.0.1", port))
@@ -130,7 +130,7 @@ def free_port_range(
             wanted = [base + step * i for i in range(count)]
             if wanted[-1] >= ports.stop or any(p in leases for p in wanted):
                 continue
-            if all(_bindable(p, kind) for p in wanted):
+            if all(bindable(p, kind) for p in wanted):
                 leases.update(dict.fromkeys(wanted, t + LEASE_S))
                 return base
     if count == 1:  # every draw taken or held: the kernel's choice (the old way)

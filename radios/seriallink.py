@@ -82,7 +82,7 @@ class SerialLink(Link):
                 self._gone = True
                 self._close()
             fresh = open_serial_url(parse_link_url(self.url), expected=self._identity)
-            self.port, self._fd = fresh.port, fresh._fd
+            self.port, self._fd = fresh.port, fresh._fd  # noqa: SLF001 (the same class's)
             self._parser = FrameParser(stats=self._parser.stats)
             self._pending.clear()
             self._gone = False
@@ -206,7 +206,7 @@ def open_serial_url(url: LinkURL, *, expected: DeviceIdentity | None = None, **o
         raise LinkOpenError(f"cannot open {target}: {exc}") from exc
     if identity is not None:
         try:
-            confirm(SerialLink._fileno(port), identity, target)
+            confirm(SerialLink._fileno(port), identity, target)  # noqa: SLF001 (the same class's)
         except (LinkOpenError, OSError):
             port.close()
             raise LinkOpenError(f"{target}: the device changed while it was being opened") from None

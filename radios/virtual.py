@@ -97,7 +97,7 @@ class VirtualLink(Link):
         for m in members:
             if self.loss and self._rng.random() < self.loss:
                 continue
-            m._deliver(data)
+            m._deliver(data)  # noqa: SLF001 (the peer link, of the same class)
 
     def _close(self) -> None:
         with _lock:

@@ -292,7 +292,7 @@ def test_flight_controller_pose_reaches_the_core_and_the_key_space() -> None:
             )
             p = poses[-1].pose
             assert 47.0 < p.lat < 48.0 and 8.0 < p.lon < 9.0  # the simulator's default home
-            assert 0 <= a._battery() <= 255
+            assert 0 <= a._battery() <= 255  # noqa: SLF001 (white box: the battery byte)
     finally:
         sim.stop()
 

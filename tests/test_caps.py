@@ -47,7 +47,7 @@ def _pool(core: Core, *others: int, now: float = 0.0) -> Core:
 def _leader(me: int, members: set[int], cap: int) -> Core:
     c = Core(me, cap=cap)
     c.start(0.0)
-    c._become_leader(0.0, members)
+    c.become_leader(0.0, members)
     return c
 
 
@@ -236,7 +236,7 @@ def test_a_leader_courts_only_leaders_that_would_absorb_it_and_not_for_ever() ->
     assert 9 not in _periodic_heartbeat(capped, 1.0 + hb)
     named = Core(6, swarm_name="red")
     named.start(0.0)
-    named._become_leader(0.0, {4})
+    named.become_leader(0.0, {4})
     named.handle(Advertize(9, "agent9", FLAG_LEADER | ADV_SWARM, 0, swarm_tag("blue")), 1.0)
     assert 9 not in _periodic_heartbeat(named, 1.0 + hb), "another name's leader is never courted"
 

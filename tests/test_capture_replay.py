@@ -483,7 +483,7 @@ def test_pymavlink_reads_the_same_capture(tmp_path: Path, monkeypatch: pytest.Mo
     assert len(theirs) == len(ours) == 6
     assert [m.get_type() for m in theirs] == [d["msg"] for d in ours]
     assert [m.get_srcSystem() for m in theirs] == [d["sysid"] for d in ours]
-    assert [m._timestamp for m in theirs] == pytest.approx([d["t"] for d in ours])
+    assert [m._timestamp for m in theirs] == pytest.approx([d["t"] for d in ours])  # noqa: SLF001 (pymavlink's receive time)
 
 
 def test_pymavlink_reads_a_capture_link_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

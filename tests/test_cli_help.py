@@ -18,7 +18,7 @@ import pytest
 from swarm.cli import COMMANDS
 from swarm.cli.commands.bench import AREAS
 
-_SKIP = (argparse._HelpAction, argparse._SubParsersAction, argparse._VersionAction)
+_SKIP = (argparse._HelpAction, argparse._SubParsersAction, argparse._VersionAction)  # noqa: SLF001 (argparse keeps its actions private)
 
 
 @contextlib.contextmanager
@@ -29,7 +29,7 @@ def _collect() -> Iterator[list[argparse.ArgumentParser]]:
     def spy(self: argparse.ArgumentParser, *args: object, **kw: object) -> object:
         made.append(self)
         for act in self._actions:
-            if isinstance(act, argparse._SubParsersAction):
+            if isinstance(act, argparse._SubParsersAction):  # noqa: SLF001 (argparse keeps its actions private)
                 made.extend(act.choices.values())
         return real(self, *args, **kw)  # type: ignore[arg-type]
 
@@ -57,7 +57,7 @@ def test_every_option_has_help(command: str, argv: list[str]) -> None:
     missing = [
         f"{p.prog}: {'/'.join(act.option_strings) or act.dest}"
         for p in _parsers(command, argv)
-        for act in p._actions
+        for act in p._actions  # noqa: SLF001 (argparse keeps its actions private)
         if not isinstance(act, _SKIP) and not (act.help and act.help.strip())
     ]
     assert not missing, "options without help: " + ", ".join(missing)

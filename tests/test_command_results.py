@@ -69,11 +69,11 @@ class Bench:
         profile = profile_by_name("fast", 0.25)
         self.node = AgentNode(AGENT, "agent3", profile, rng=random.Random(1), has_fc=True)
         self.station = StationCore(config=self.config)
-        self._from_node(self.node.start(0.0))
+        self.from_node(self.node.start(0.0))
         self.run(5.0)
         assert self.station.agents[AGENT].connected
 
-    def _from_node(self, outs: list[NodeOut]) -> None:
+    def from_node(self, outs: list[NodeOut]) -> None:
         for o in outs:
             if isinstance(o, Send) and o.to in (0, STATION):
                 if isinstance(o.msg, CommandAck):
@@ -97,13 +97,13 @@ class Bench:
             self._air = [x for x in self._air if x[0] > self.now]
             for _t, to, msg in due:
                 if to == "agent":
-                    self._from_node(self.node.handle(msg, self.now))
+                    self.from_node(self.node.handle(msg, self.now))
                 else:
                     self._from_station(self.station.handle(msg, self.now))
             for when, ev in [x for x in self._vehicle if x[0] <= self.now]:
                 self._vehicle.remove((when, ev))
-                self._from_node(self.node.handle(ev, self.now))
-            self._from_node(self.node.tick(self.now))
+                self.from_node(self.node.handle(ev, self.now))
+            self.from_node(self.node.tick(self.now))
             self._from_station(self.station.tick(self.now))
             self.finished += self.station.take_finished()
             self.events += [e.text for e in self.station.take_events() if e.kind == "command"]
@@ -217,7 +217,7 @@ def test_evidence_still_counts_for_a_command_in_progress() -> None:
     b = Bench(done(1000.0), config=StationConfig(command_in_progress_limit=30.0))
     req, _ = b.submit(CommandKind.TAKEOFF, alt=10.0)
     b.run(b.now + 2.0)
-    b._from_node(b.node.handle(VehicleInfo("GUIDED", True, True, 90), b.now))
+    b.from_node(b.node.handle(VehicleInfo("GUIDED", True, True, 90), b.now))
     b.run(b.now + 40.0)
     assert req.pending[0].result == CARRIED_OUT
 
@@ -232,12 +232,12 @@ def flying_after_a_failsafe(b: Bench) -> None:
     from swarm.core.wire.message_types import Pose
 
     here = Pose(47.397742, 8.545594, 508.0)
-    b._from_node(b.node.handle(OwnPose(here, False), b.now))  # home: where it stood
-    b._from_node(b.node.handle(OwnPose(Pose(here.lat, here.lon, 528.0), True), b.now))
-    b.node.pilot._hold("test")
-    b._from_node(b.node.handle(VehicleInfo("OFFBOARD", True, True, 80, controlled=True), b.now))
+    b.from_node(b.node.handle(OwnPose(here, False), b.now))  # home: where it stood
+    b.from_node(b.node.handle(OwnPose(Pose(here.lat, here.lon, 528.0), True), b.now))
+    b.node.pilot.hold("test")
+    b.from_node(b.node.handle(VehicleInfo("OFFBOARD", True, True, 80, controlled=True), b.now))
     for _ in range(2):
-        b._from_node(b.node.handle(VehicleInfo("AUTO.LOITER", True, True, 80, controlled=False), b.now))
+        b.from_node(b.node.handle(VehicleInfo("AUTO.LOITER", True, True, 80, controlled=False), b.now))
     assert b.node.pilot.control_lost == "AUTO.LOITER"
 
 
@@ -265,7 +265,7 @@ def test_a_go_to_after_a_failsafe_takes_control_back_and_is_answered_with_what_t
     req, seq = b.submit(CommandKind.GOTO, lat=47.3979, lon=8.5456, alt=20.0)
     b.run(b.now + 5.0)
     assert req.body()["ok"] is True and b.answers(seq)[-1] == ("ACCEPTED", "")
-    b._from_node(b.node.handle(VehicleInfo("OFFBOARD", True, True, 80, controlled=True), b.now))
+    b.from_node(b.node.handle(VehicleInfo("OFFBOARD", True, True, 80, controlled=True), b.now))
     assert b.node.pilot.control_lost == ""
     b.run(b.now + 3.0)
     assert b.station.agents[AGENT].control_lost is False

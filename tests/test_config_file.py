@@ -72,7 +72,7 @@ def parse(cmd: Any, argv: list[str]) -> argparse.Namespace:
 @pytest.mark.parametrize("command", ["agent", "gcs"])
 def test_every_flag_is_a_key_and_nothing_else(command: str) -> None:
     p = command_parser(command)
-    flags = {s for x in p._actions for s in x.option_strings if s.startswith("--")}
+    flags = {s for x in p._actions for s in x.option_strings if s.startswith("--")}  # noqa: SLF001 (argparse keeps its actions private)
     expected = {f[2:].replace("-", "_") for f in flags} - {"help", "config"}
     assert set(keys(p)) == expected
     assert {"log_level", "log_format"} <= expected

@@ -420,13 +420,13 @@ def test_key_probe_never_hangs_on_a_fifo_or_floods_on_a_device(tmp_path: Path) -
 
 
 def test_doctor_takes_the_agents_flags_without_name_and_id() -> None:
-    a = doctor._parse(["--zenoh-listen", "tcp/127.0.0.1:7447"])
+    a = doctor.parse_args(["--zenoh-listen", "tcp/127.0.0.1:7447"])
     assert a.name is None and a.id is None and a.expected is None
-    a = doctor._parse(["--name", "a1", "--id", "3", "--radio", "/dev/x", "--radio-params", "NETID=25"])
+    a = doctor.parse_args(["--name", "a1", "--id", "3", "--radio", "/dev/x", "--radio-params", "NETID=25"])
     assert a.expected == {"NETID": 25} and a.plan.slots is None
-    a = doctor._parse(["--radio", "/dev/x", "--profile", "fast", "--slots", "4", "--air-speed", "128"])
+    a = doctor.parse_args(["--radio", "/dev/x", "--profile", "fast", "--slots", "4", "--air-speed", "128"])
     assert (a.plan.slots, a.plan.air_speed) == (4, 128)
-    a = doctor._parse(["--radio", "/dev/x", "--profile", "fast", "--round-s", "0.3"])
+    a = doctor.parse_args(["--radio", "/dev/x", "--profile", "fast", "--round-s", "0.3"])
     assert a.plan.slots is None  # a given round is not computed from the radio's slots
 
 

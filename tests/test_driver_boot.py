@@ -346,7 +346,7 @@ def test_an_agent_sends_no_pose_before_the_fix_and_says_so(player: Any) -> None:
         wait_until(lambda: states, "the agent's state at the observer", 30.0)
         # a take-off order while the autopilot boots is refused within seconds, with why
         with pytest.raises(drv.NotReady, match="autopilot still booting"):
-            a._do_call(Call("takeoff", 10.0))
+            a._do_call(Call("takeoff", 10.0))  # noqa: SLF001 (white box: the agent's own call)
         p.go()  # the recorded boot from here: 0, 0, 0 positions, the fix, home at 19.9 s
         wait_until(lambda: POSITION_VALID in events, "'position valid'", 60.0)
         wait_until(lambda: poses, "a pose after the fix", 30.0)

@@ -510,7 +510,7 @@ def test_signing(fake_factory) -> None:
         while time.monotonic() < deadline and not fake.of_type("HEARTBEAT"):
             time.sleep(0.05)
         assert fake.of_type("HEARTBEAT")
-        assert all(m._signed for m in fake.of_type("HEARTBEAT"))
+        assert all(m._signed for m in fake.of_type("HEARTBEAT"))  # noqa: SLF001 (pymavlink's signed flag)
         assert v.state.last_heartbeat_time > 0
 
 

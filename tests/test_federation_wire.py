@@ -195,7 +195,7 @@ def test_a_gate_remembers_a_bounded_number_of_senders() -> None:
     gate = Gate(None)
     for i in range(MAX_SENDERS + 50):  # names made up by the thousand, unsigned
         gate.open(state_env({"agents": []}, sender=f"s{i}", key=None, t=T + i), NOW, KIND_STATE)
-    assert len(gate._newest) == MAX_SENDERS
+    assert gate.remembered == MAX_SENDERS
 
 
 def test_commands_may_cross_on_the_way_but_each_is_taken_once() -> None:

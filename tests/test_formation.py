@@ -174,7 +174,7 @@ def test_pose_age_whatever_the_two_clocks_are_modulo_the_wrap(offset_s: float) -
 def flying(me: int, n: float = 0.0, e: float = 0.0) -> Pilot:
     p = Pilot(me, PilotConfig())
     p.set_own(at(n, e, alt=528.0), True)
-    p._hold("test")
+    p.hold("test")
     return p
 
 
@@ -515,7 +515,7 @@ def test_a_member_feeds_forward_the_turn_starting_and_stopping() -> None:
     task = p.task
     p.on_task(replace(task, turn_rate=12.0), 1.0)
     p.on_task(replace(task, turn_rate=9.5), 1.8)
-    assert p._turn_accel == pytest.approx(-2.5 / 0.8)
+    assert p.turn_accel == pytest.approx(-2.5 / 0.8)
     p.on_pose(1, at(0, 0, alt=528.0, t=1.8), 1.8)
     sp, _ = p.step(1.8, role)
     cfg = FormationConfig()
@@ -527,12 +527,12 @@ def test_a_member_feeds_forward_the_turn_starting_and_stopping() -> None:
     assert (sp.vn, sp.ve) == pytest.approx((led.vn, led.ve))
     # a duplicate Heartbeat 0.1 s later does not make an acceleration of quantisation steps
     p.on_task(replace(task, turn_rate=9.0), 1.9)
-    assert p._turn_accel == pytest.approx(-2.5 / 0.8)
+    assert p.turn_accel == pytest.approx(-2.5 / 0.8)
     # the turn over: rate 0, nothing fed forward, and a slowing turn is never led past 0
     p.on_task(replace(task, turn_rate=0.0), 2.6)
-    assert p._swarm_turn_accel(0.0) == 0.0
-    p._turn_accel = -20.0
-    assert p._swarm_turn_accel(1.0) == pytest.approx(-1.0 / cfg.accel_lead_s)
+    assert p.swarm_turn_accel(0.0) == 0.0
+    p.turn_accel = -20.0
+    assert p.swarm_turn_accel(1.0) == pytest.approx(-1.0 / cfg.accel_lead_s)
 
 
 def test_members_keep_their_slots_while_the_leader_speeds_up_and_slows_down() -> None:

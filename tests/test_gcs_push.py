@@ -204,7 +204,7 @@ def test_a_client_that_never_reads_is_bounded_and_holds_up_no_one(live: dict[str
     def hammer() -> None:
         with contextlib.suppress(BlockingIOError):
             slow.send(spam)  # the station reads at its pace
-        for c in list(server.ws._clients.values()):
+        for c in list(server.ws._clients.values()):  # noqa: SLF001 (white box: the server's clients)
             peak[0] = max(peak[0], len(c.queue))
             peak[1] = max(peak[1], c.queued_bytes)
 
@@ -307,7 +307,7 @@ def test_the_page_holds_the_same_state_after_many_deltas_and_after_a_reconnect(l
             FlyingAgent.flying = True
         # the station drops every socket: the page reconnects, takes the whole state, then deltas again
         before = page.evaluate("window.gcsDelta.applied")
-        asyncio.run_coroutine_threadsafe(server.ws.close_clients(), server._loop).result(10)  # type: ignore[arg-type]
+        asyncio.run_coroutine_threadsafe(server.ws.close_clients(), server._loop).result(10)  # type: ignore[arg-type]  # noqa: SLF001 (white box: the server's clients)
         poll(
             lambda: page.evaluate("window.gcsDelta.applied") >= before + 20, "deltas after the reconnect", 30
         )

@@ -31,7 +31,7 @@ def flying(cfg: PilotConfig | None = None, *, home: bool = True) -> Pilot:
     """A pilot in the air 10 m above home, holding; ``home``: the autopilot told it."""
     p = Pilot(2, cfg or PilotConfig())
     p.set_own(pose(up=10.0), True, HOME if home else None)
-    p._hold("test")
+    p.hold("test")
     return p
 
 
@@ -143,9 +143,9 @@ def test_home_is_the_autopilots_else_where_the_vehicle_stood() -> None:
     assert p.home is not None and p.home[2] == pytest.approx(HOME[2] - 1.0)  # kept in the air
     p.set_own(pose(up=10.0), True, HOME)
     assert p.home == HOME
-    p._hold("test")
+    p.hold("test")
     sp_res = p.command(goto(20.0), MEMBER, 0.0)
-    assert sp_res[0] == AckResult.ACCEPTED and p._route_alt == pytest.approx(HOME[2] + 20.0)
+    assert sp_res[0] == AckResult.ACCEPTED and p.route_alt == pytest.approx(HOME[2] + 20.0)
     # flying with no home ever known: refused, nothing flown
     q = flying(home=False)
     res, why, _ = q.command(goto(20.0), MEMBER, 0.0)
@@ -185,7 +185,7 @@ def _node() -> Any:
     node = AgentNode(2, "agent2", profile_by_name("paper", 0.25), has_fc=True)
     node.start(0.0)
     node.handle(OwnPose(pose(up=10.0), True, HOME), 0.0)
-    node.pilot._hold("test")
+    node.pilot.hold("test")
     node.handle(GSAdvertize(255, "gcs"), 0.0)
     node.handle(GSConnect(255, 1), 0.0)
     return node

@@ -86,7 +86,7 @@ def run_lossy_swarm(until: float) -> tuple[Core, Core]:
     what it sends on its own timer arrives. Returns (leader, member)."""
     lead, m2 = Core(1, "a1", paper_profile()), member_of(1, 0.0)
     lead.start(0.0)
-    lead._become_leader(0.0, {2})
+    lead.become_leader(0.0, {2})
     now, beats = 0.0, 0
     while now < until and 2 in lead.members:
         for o in lead.tick(now):
@@ -162,7 +162,7 @@ def test_the_campaigns_heavy_loss_replays_settle(name: str) -> None:
 def test_a_leader_takes_back_an_agent_that_acks_it_after_an_expulsion() -> None:
     lead = Core(1, "a1", paper_profile())
     lead.start(0.0)
-    lead._become_leader(0.0, {2, 3})
+    lead.become_leader(0.0, {2, 3})
     lead.tick(lead.profile.ack_timeout + 0.1)  # both silent: expelled
     assert lead.members == {} and lead.counters.expelled == 2
     # 2 still takes 1 for its leader (a Heartbeat sent before the expulsion reached it)
@@ -175,7 +175,7 @@ def test_a_leader_takes_back_an_agent_that_acks_it_after_an_expulsion() -> None:
 def test_a_full_capped_leader_tells_a_stray_acker_to_leave_at_most_once_an_interval() -> None:
     lead = Core(1, "a1", paper_profile(), cap=2)
     lead.start(0.0)
-    lead._become_leader(0.0, {3})
+    lead.become_leader(0.0, {3})
     hbi = lead.profile.heartbeat_interval
     for now in (1.0, 1.0 + hbi / 2, 1.0 + hbi):  # forged or stray acks from 2, the swarm full
         lead.handle(HeartbeatAck(2, 5, POSE), now)

@@ -46,7 +46,7 @@ def test_a_held_port_is_not_bindable_and_a_narrow_low_range_draws_above_it(
     with socket.socket() as s:
         s.bind(("127.0.0.1", ports.free_port("tcp")))
         s.listen()
-        assert not ports._bindable(s.getsockname()[1], "tcp")
+        assert not ports.bindable(s.getsockname()[1], "tcp")
     monkeypatch.setattr(ports, "ephemeral_range", lambda: (12000, 40000))
     assert ports.candidates() == range(40001, 65000)
     assert 40001 <= ports.free_port("udp") < 65000

@@ -145,7 +145,7 @@ def test_the_station_file_is_kept_only_with_a_key_and_a_failed_save_is_one_warni
     obj = read_state(tmp_path / "s.json", 1 << 20)
     assert obj["commands"]["taken"][0][:3] == ["gcsA", "C", int(NOW * 1e6)]
     again = fed(tmp_path / "s.json", KEY)
-    again._load()
+    again.load()
     with pytest.raises(FederationRefused, match="replayed"):
         again.command_gate.open(cmd(NOW), NOW, KIND_COMMAND)
     # a hostile file: one warning, the gates start empty
@@ -153,7 +153,7 @@ def test_the_station_file_is_kept_only_with_a_key_and_a_failed_save_is_one_warni
     (tmp_path / "h.json").write_text(
         '{"format": "uav-swarm station replay guard", "version": 1, "states": 7}'
     )
-    fed(tmp_path / "h.json", KEY)._load()
+    fed(tmp_path / "h.json", KEY).load()
     gone = fed(tmp_path / "no" / "such" / "folder.json", KEY)
     assert not gone.save() and not gone.save()
     msgs = [r.getMessage() for r in caplog.records]
@@ -209,16 +209,16 @@ def test_state_dir_from_the_flag_or_the_config_file_names_a_file_per_node(tmp_pa
     conf = tmp_path / "a1.toml"
     conf.write_text('name = "a1"\nid = 3\nradio = "/dev/null"\nkey = "swarm.key"\nstate_dir = "st"\n')
     a = read_arguments(agent_cmd.build_parser(), ["--config", str(conf)])
-    agent_cmd._check_arguments(a)
+    agent_cmd.check_arguments(a)
     assert a.node.signing_state is None  # what swarm doctor runs too: it makes no folder
     assert not (tmp_path / "st").exists()
-    agent_cmd._state_files(a)
+    agent_cmd.check_state_files(a)
     assert a.node.signing_state == str(tmp_path / "st" / "agent-a1-3.signing.json")
     # without a key nothing is kept, and no folder made
     b = read_arguments(agent_cmd.build_parser(), ["--name", "a2", "--id", "4", "--radio", "/dev/null"])
     b.state_dir = str(tmp_path / "never")
-    agent_cmd._check_arguments(b)
-    agent_cmd._state_files(b)
+    agent_cmd.check_arguments(b)
+    agent_cmd.check_state_files(b)
     assert b.node.signing_state is None and not (tmp_path / "never").exists()
     # a station on two radios: one file per channel, and one for its replay guard
     g = read_arguments(
@@ -234,10 +234,10 @@ def test_state_dir_from_the_flag_or_the_config_file_names_a_file_per_node(tmp_pa
             str(tmp_path / "g"),
         ],
     )
-    gcs_cmd._check(g)
+    gcs_cmd.check_arguments(g)
     assert g.state_folder == tmp_path / "g"
     with pytest.raises(UsageError, match="--state-dir"):
-        gcs_cmd._check(
+        gcs_cmd.check_arguments(
             read_arguments(
                 gcs_cmd.build_parser(), ["--radio", "/dev/null", "--key", str(key), "--state-dir", str(key)]
             )

@@ -84,7 +84,7 @@ def test_a_named_tdm_agent_takes_no_stranger_into_its_pool() -> None:
 def test_a_capped_leader_adopts_from_a_members_syncpool_only_while_there_is_room() -> None:
     lead = Core(1, profile=TDM, cap=4)
     lead.start(0.0)
-    lead._become_leader(0.0, {2, 3})
+    lead.become_leader(0.0, {2, 3})
     big = frozenset({1, 2, 3, 4, 5})
     lead.handle(SyncPool(2, pool_digest(big), False, big), 0.5)
     assert set(lead.members) == {2, 3, 4}, "the lowest id while the cap leaves room"
@@ -172,7 +172,7 @@ def test_the_strict_check_flags_a_pool_over_the_cap() -> None:
     sim = FaultSim(Scenario(agents=4, cap=2, strict=True), 0)
     sim.started = [True] * 4
     sim.cores[0].pool = {1, 2, 3}
-    sim._continuous(1.0)
+    sim._continuous(1.0)  # noqa: SLF001 (white box: the strict checks now)
     assert any("more than the cap of 2" in v for v in sim.violations)
 
 

@@ -108,8 +108,8 @@ def read_trace(path: Path) -> Trace:
         while (m := conn.recv_match()) is not None:
             if m.get_type() == "BAD_DATA":
                 continue
-            t0 = m._timestamp if t0 is None else t0
-            t = m._timestamp - t0
+            t0 = m._timestamp if t0 is None else t0  # noqa: SLF001 (pymavlink's receive time has no public name)
+            t = m._timestamp - t0  # noqa: SLF001 (pymavlink's receive time has no public name)
             if not (math.isfinite(t) and 0.0 <= t <= MAX_TRACE_S):
                 raise BridgeError(f"trace {path}: timestamps out of order or beyond {MAX_TRACE_S:.0f} s")
             recs.append(Record(t, m))

@@ -332,24 +332,24 @@ class Vehicle:
 
     @property
     def state(self) -> VehicleState:
-        with self._sim._lock:
+        with self._sim._lock:  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
             return self.core.snapshot()
 
     def drop_link(self, seconds: float) -> None:
         """No message in either direction for ``seconds`` of simulated time from now."""
-        with self._sim._lock:
-            self.link_down_until = self._sim._now() + max(0.0, seconds)
+        with self._sim._lock:  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
+            self.link_down_until = self._sim._now() + max(0.0, seconds)  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
 
     def set_latency(self, seconds: float) -> None:
         """Delay every outgoing message by ``seconds`` of simulated time (0 = none)."""
-        with self._sim._lock:
+        with self._sim._lock:  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
             self.latency = max(0.0, seconds)
 
     def fail_gps(self, on: bool) -> None:
         """Fail (True) or restore (False) the GPS: no position, arming refused."""
-        with self._sim._lock:
+        with self._sim._lock:  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
             self.core.set_gps(not on)
-            self._sim._wake()
+            self._sim._wake()  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
 
     # ------------------------------------------------------------ loop side
     def _link_up(self, now: float) -> bool:
@@ -535,8 +535,8 @@ class VehicleSim:
                 if self._running:
                     now = self._now()
                     for v in self._vehicles:
-                        v._release(now)
-                        v._emit(v.core.tick(now), now)
+                        v._release(now)  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
+                        v._emit(v.core.tick(now), now)  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)
                         deadline = min(deadline, v.core.next_deadline())
                         if v.queue:
                             deadline = min(deadline, v.queue[0][0])
@@ -560,4 +560,4 @@ class VehicleSim:
                         continue
                     v = next(x for x in self._vehicles if x.transport is tr)
                     for data in chunks:
-                        v._received(data, now)
+                        v._received(data, now)  # noqa: SLF001 (the loop and its vehicles are one unit: one module, one lock)

@@ -30,7 +30,7 @@ import math
 import random
 import struct
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 from radios.air import serial, tdm
 from radios.air.packetiser import packet_get_next
@@ -49,6 +49,8 @@ from radios.air.radio import (
 from radios.loss import RangeLoss, dbm_to_rssi
 from radios.mavlink import MSG_RADIO_STATUS, pack_frame
 from radios.sik.timing import STATS_LEN, TICK_S, TRAILER_LEN, max_xmit
+
+_STATE_END, _TX_END, _WAKE, _SERIAL_IN, _AT_POLL, _RADIO_STATUS, _LINK_UPDATE = range(7)
 
 
 class AirModel:
@@ -133,7 +135,7 @@ class AirModel:
         while ev and ev[0][0] <= now:
             t, _, kind, node, data = heapq.heappop(ev)
             self.now = max(self.now, t)
-            _HANDLERS[kind](self, self.radios[node], t, data)
+            self._HANDLERS[kind](self, self.radios[node], t, data)
         self.now = max(self.now, now)
         # serial output flows whether or not the host reads it: serial.drain is in
         # closed form, so it runs when the output is read (or added to), not here
@@ -598,14 +600,13 @@ class AirModel:
         r.send_statistics = True
         self._push(t + 0.5, _LINK_UPDATE, r.index, None)
 
-
-_STATE_END, _TX_END, _WAKE, _SERIAL_IN, _AT_POLL, _RADIO_STATUS, _LINK_UPDATE = range(7)
-_HANDLERS: dict[int, Callable[[AirModel, RadioState, float, Any], None]] = {
-    _STATE_END: AirModel._on_state_end,
-    _TX_END: AirModel._on_tx_end,
-    _WAKE: AirModel._on_wake,
-    _SERIAL_IN: AirModel._on_serial_in,
-    _AT_POLL: AirModel._on_at_poll,
-    _RADIO_STATUS: AirModel._on_radio_status,
-    _LINK_UPDATE: AirModel._on_link_update,
-}
+    #: one handler per event kind
+    _HANDLERS: ClassVar[dict[int, Callable[[AirModel, RadioState, float, Any], None]]] = {
+        _STATE_END: _on_state_end,
+        _TX_END: _on_tx_end,
+        _WAKE: _on_wake,
+        _SERIAL_IN: _on_serial_in,
+        _AT_POLL: _on_at_poll,
+        _RADIO_STATUS: _on_radio_status,
+        _LINK_UPDATE: _on_link_update,
+    }

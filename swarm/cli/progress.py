@@ -111,6 +111,11 @@ class Progress:
             self._write("\r" + " " * self._width + "\r")
             self._width = 0
 
+    def overwrite(self, text: str) -> None:
+        """``text`` over the line as it stands (nothing cleared after it)."""
+        self._write("\r" + text)
+        self._width = len(text)
+
     def _write(self, text: str) -> None:
         try:
             self.stream.write(text)
@@ -145,8 +150,7 @@ class Ticker:
         while not self._stop.wait(1.0):
             seconds = round(time.monotonic() - started)
             text = f"{self.line.prog}: {self.what}, {seconds} s"
-            self.line._write("\r" + text)
-            self.line._width = len(text)
+            self.line.overwrite(text)
 
     def __enter__(self) -> Ticker:
         if self.line.enabled:

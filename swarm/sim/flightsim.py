@@ -230,7 +230,7 @@ class FlightSim(Sim):
             nd = self.nodes[i]
             nd.handle(OwnPose(self.pose_of(i, 0.0), True, HOME), 0.0)
             self._send(i, self._node_outs(i, nd.start(0.0), 0.0), 0.0)
-            nd.pilot._hold("hovering")
+            nd.pilot.hold("hovering")
 
     def _step_nodes(self, t: float, next_pose: list[float], next_vehicle: list[float]) -> None:
         """Each live node's timers, pose stream and forwarded vehicle frames at ``t``."""

@@ -174,7 +174,7 @@ def _add_capture_arguments(p: argparse.ArgumentParser) -> None:
         )
 
 
-def _flight_log(a: argparse.Namespace, out: _Lines) -> Any:
+def _flight_log(a: argparse.Namespace, out: Lines) -> Any:
     """The flight log ``--capture`` asks for (None without it). Raises UsageError for
     its flags and ConfigError for a folder that is a link, a file or not writable."""
     given = {f: getattr(a, f[2:].replace("-", "_")) for f in CAPTURE_FLAGS}
@@ -290,7 +290,7 @@ def _text(name: str, st: AgentState) -> str:
     return " ".join(parts)
 
 
-class _Lines:
+class Lines:
     """The agent's stdout, from any of its threads: text, or JSON lines with ``--json``.
     The ready line comes first: states before it wait for it, events before it are
     dropped. A closed stdout is ignored (the agent keeps running quietly)."""
@@ -359,7 +359,7 @@ class _Lines:
             self._pending.clear()
 
 
-def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) -> bool:
+def _check_radio(a: argparse.Namespace, out: Lines, *, why: str | None = None) -> bool:
     """The radio guard (before the bridge opens the port, or on a port it lent); True when
     it found the radio off the swarm's settings and put it back. Raises RadioError for a
     radio that differs (without --restore-radio) or does not answer, and ConfigError for
@@ -404,7 +404,7 @@ def _check_radio(a: argparse.Namespace, out: _Lines, *, why: str | None = None) 
     return True
 
 
-def _check_arguments(a: argparse.Namespace) -> None:
+def check_arguments(a: argparse.Namespace) -> None:
     """What argparse cannot check. Raises UsageError; sets ``a.round_s``."""
     if not 1 <= a.id <= 250:
         raise UsageError(f"--id {a.id}: agent ids are 1..250 (255 is the ground station)")
@@ -440,7 +440,7 @@ def _check_arguments(a: argparse.Namespace) -> None:
         raise UsageError("--radio-params checks a radio: give --radio")
 
 
-def _state_files(a: argparse.Namespace) -> None:
+def check_state_files(a: argparse.Namespace) -> None:
     """With --key on a radio: the signing clock's file in the state folder, in the node
     options (swarm.cli.state_dir; made if missing: not by swarm doctor, which only looks).
     Raises UsageError for a --state-dir that cannot be used."""
@@ -450,7 +450,7 @@ def _state_files(a: argparse.Namespace) -> None:
             a.node = replace(a.node, signing_state=node_file(folder, "agent", a.name, a.id, "signing"))
 
 
-def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
+def make_agent(a: argparse.Namespace, out: Lines) -> Agent:
     """The agent the arguments describe (not started), with its flight log open. Raises
     UsageError, or ConfigError for the flight log's folder."""
     flight_log = _flight_log(a, out)
@@ -490,12 +490,12 @@ def _agent(a: argparse.Namespace, out: _Lines) -> Agent:
 def main(argv: list[str] | None = None) -> int:
     a = read_arguments(build_parser(), argv)
     with file_errors(a):
-        _check_arguments(a)
-        _state_files(a)
-    out = _Lines(a)
+        check_arguments(a)
+        check_state_files(a)
+    out = Lines(a)
     if a.radio_params:
         _check_radio(a, out)
-    agent = _agent(a, out)
+    agent = make_agent(a, out)
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         return _run(a, agent, StopFlag().install(), out)
@@ -535,7 +535,7 @@ class _Isolation:
         return _isolated(self.agent) and n == before
 
 
-def _recheck_radio(a: argparse.Namespace, agent: Agent, out: _Lines, why: str) -> None:
+def _recheck_radio(a: argparse.Namespace, agent: Agent, out: Lines, why: str) -> None:
     """Check (and restore) the radio of a running agent: the bridge lends the port. A
     radio found off the swarm's settings and put back had cut the agent off: it is told
     (:meth:`Agent.radio_restored`)."""
@@ -567,7 +567,7 @@ def _start(agent: Agent) -> int | None:
     return None
 
 
-def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: _Lines) -> int:
+def _run(a: argparse.Namespace, agent: Agent, stop: StopFlag, out: Lines) -> int:
     failed = _start(agent)
     if failed is not None:
         return failed

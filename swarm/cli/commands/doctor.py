@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Pre-flight check of a field set-up: give it the agent's flags. One line per "
         "check (PASS, INFO, WARN, FAIL) with the fix; exit 0 when nothing fails."
     )
-    for action in p._actions:
+    for action in p._actions:  # noqa: SLF001 (argparse keeps its actions private)
         if action.dest in ("name", "id"):
             action.required = False
         elif action.dest == "json":
@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _parse(argv: list[str] | None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """The agent's flags, checked as the agent checks them (UsageError or ConfigError:
     exit 2). Sets ``a.node``, ``a.round_s``, ``a.expected`` (parsed --radio-params or
     None) and ``a.plan``."""
@@ -74,8 +74,8 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     for flag in agent.CAPTURE_FLAGS:
         setattr(probe, flag[2:].replace("-", "_"), None)
     with file_errors(a):
-        agent._check_arguments(probe)  # raises UsageError for what the agent refuses
-        agent._agent(probe, agent._Lines(probe))  # builds (opens nothing): refuses what the agent would
+        agent.check_arguments(probe)  # raises UsageError for what the agent refuses
+        agent.make_agent(probe, agent.Lines(probe))  # builds (opens nothing): refuses what the agent would
     a.node, a.round_s, a.zenoh_warnings = probe.node, probe.round_s, probe.zenoh_warnings
     a.expected = parse_expected(a.radio_params) if a.radio_params else None
     fast = a.profile != "paper" and not round_given  # the round comes from --slots and --air-speed
@@ -105,7 +105,7 @@ def _setup(a: argparse.Namespace) -> Setup:
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
-    a = _parse(argv)
+    a = parse_args(argv)
     checks = examine(_setup(a), now=time.time())
     if a.json:
         print_json(report_json(checks))

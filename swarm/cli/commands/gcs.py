@@ -325,7 +325,7 @@ def _check_fleet(a: argparse.Namespace) -> None:
         raise UsageError("--allow-unsigned-remote is for a station on radios joined over Zenoh")
 
 
-def _check(a: argparse.Namespace) -> None:
+def check_arguments(a: argparse.Namespace) -> None:
     ways = ", --replay CAPTURE"
     has_radio = bool(a.radio)
     _check_fleet(a)
@@ -357,10 +357,10 @@ def _check(a: argparse.Namespace) -> None:
     if a.speed is not None and not (math.isfinite(a.speed) and 0 < a.speed <= 100):
         raise UsageError(f"--speed {a.speed}: a factor in (0, 100]")
     a.fence = fence_from(a)
-    _state_files(a)
+    check_state_files(a)
 
 
-def _state_files(a: argparse.Namespace) -> None:
+def check_state_files(a: argparse.Namespace) -> None:
     """With --key on radios: the state folder (swarm.cli.state_dir) in ``a.state_folder``
     (None: none), and the single station's signing clock file in its node options."""
     a.state_folder = None
@@ -376,7 +376,7 @@ def _state_files(a: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     a = read_arguments(build_parser(), argv)
     with file_errors(a):
-        _check(a)
+        check_arguments(a)
         cfg = _server_config(a)
         a.station_config = _station_config(a)
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -274,7 +274,7 @@ class Core:
             ad = caps.advert(self, flags, self.name or f"agent{self.me}")
             out += [Out(ADVERTIZE, ad)] if ad is not None else []
         if ph == Phase.IDLE and _elapsed(now, self.idle_since, self.profile.alone_timeout) and self.can_lead:
-            self._become_leader(now, set())  # a swarm of one
+            self.become_leader(now, set())  # a swarm of one
             ph = self.phase
         if ph in (Phase.POOLING, Phase.LOCKED):
             self._pool_timers(now, out)
@@ -463,7 +463,7 @@ class Core:
         self.synced_digest.clear()
         self._next = {"advertize": now}
 
-    def _become_leader(self, now: float, members: set[int]) -> None:
+    def become_leader(self, now: float, members: set[int]) -> None:
         self.set_phase(Phase.LEADER)
         self.leader = self.me
         self.members = {m: now for m in members if m != self.me}
@@ -539,7 +539,7 @@ class Core:
         """The vote's candidate leads, the others follow it (the window ran out, or under
         the ``tdm`` profile every vote was heard)."""
         if self.vote[1] == self.me:
-            self._become_leader(now, self.pool - {self.me})
+            self.become_leader(now, self.pool - {self.me})
         else:
             self.become_member(self.vote[1], now)
             if self.cap:  # not listed if our pools differed: a StartPool gets us adopted

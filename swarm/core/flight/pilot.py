@@ -204,7 +204,7 @@ class Pilot:
     _route: Route | None = None
     _route_pts: list[tuple[float, float]] = field(default_factory=list)
     _route_origin: tuple[float, float] = (0.0, 0.0)
-    _route_alt: float = 0.0
+    route_alt: float = 0.0
     _route_s: float = 0.0
     _route_v: float = 0.0
     _swarm_h: float | None = None  # the leader's announced swarm heading (smoothed)
@@ -218,7 +218,7 @@ class Pilot:
     _applied_task: tuple[TaskKind, int] = (TaskKind.NONE, -1)
     _heading: tuple[float, float, float] | None = None  # (heading, at, rate deg/s)
     _rate_ref: tuple[float, float] | None = None  # (at, turn rate) the turn's acceleration is from
-    _turn_accel: float = 0.0  # deg/s^2, from the turn rates of successive Heartbeats
+    turn_accel: float = 0.0  # deg/s^2, from the turn rates of successive Heartbeats
     _waived: dict[int, float] = field(default_factory=dict)  # separation waived until
     _gen: int = 0
 
@@ -288,14 +288,14 @@ class Pilot:
         if task.kind == TaskKind.FOLLOW:
             ref = self._rate_ref
             if ref is None or not 0.0 <= now - ref[0] <= 2.0:  # nothing recent to tell it from
-                self._turn_accel, self._rate_ref = 0.0, (now, task.turn_rate)
+                self.turn_accel, self._rate_ref = 0.0, (now, task.turn_rate)
             elif now - ref[0] >= TURN_ACCEL_SPAN_S:  # (a Heartbeat closer than that: kept as it is)
                 acc = (task.turn_rate - ref[1]) / (now - ref[0])
-                self._turn_accel = max(-TURN_ACCEL_MAX, min(TURN_ACCEL_MAX, acc))
+                self.turn_accel = max(-TURN_ACCEL_MAX, min(TURN_ACCEL_MAX, acc))
                 self._rate_ref = (now, task.turn_rate)
             self._heading = (task.heading, now, task.turn_rate)
         else:
-            self._rate_ref, self._turn_accel = None, 0.0
+            self._rate_ref, self.turn_accel = None, 0.0
         self.task = task
 
     def call_done(self, call: Call, ok: bool, error: str = "") -> None:
@@ -309,7 +309,7 @@ class Pilot:
             return
         if call.kind == "takeoff" and self.mode == Mode.TAKEOFF:
             self.airborne = True
-            self._hold("took off")
+            self.hold("took off")
             want = None if self._ground_alt is None else self._ground_alt + call.alt
             # the height asked for, unless the ground we saw is far off it (a pose before the fix)
             if (
@@ -348,7 +348,7 @@ class Pilot:
             self._gen = (max(self._gen, self.task.gen) + 1) & 0xFF
             if k == CommandKind.STOP:
                 self.task = Task(TaskKind.HOLD, gen=self._gen)
-                self._hold("swarm stop")
+                self.hold("swarm stop")
                 return AckResult.ACCEPTED, "", []
             if not (math.isfinite(cmd.heading) and 0.0 <= cmd.heading < 360.0):
                 return AckResult.BAD_ARGUMENT, f"heading {cmd.heading!r} outside 0..360", []
@@ -385,7 +385,7 @@ class Pilot:
         if k == CommandKind.STOP:
             self._leave_formation()
             self._waive(now)
-            self._hold("stop command")
+            self.hold("stop command")
             return AckResult.ACCEPTED, "", []
         if k in (CommandKind.GOTO, CommandKind.WAYPOINT):
             return self._goto(cmd, now, append=k == CommandKind.WAYPOINT)
@@ -421,7 +421,7 @@ class Pilot:
         start = self.last_setpoint if self.mode in (Mode.HOLD, Mode.GOTO) and self.last_setpoint else None
         o = (start.lat, start.lon) if start is not None else (self.own.lat, self.own.lon)
         self._route_origin = o
-        self._route_alt = alt
+        self.route_alt = alt
         tn, te = ne_between(o[0], o[1], cmd.lat, cmd.lon)
         if math.hypot(tn, te) < 0.5:
             self.mode, self.hold_reason = Mode.HOLD, "at the target"
@@ -448,7 +448,8 @@ class Pilot:
     def _yaw(self) -> float:
         return self.own.heading if self.own is not None else 0.0
 
-    def _hold(self, why: str) -> None:
+    def hold(self, why: str) -> None:
+        """Hold where the vehicle is (where it was sent, when it has just arrived) for ``why``."""
         self.mode = Mode.HOLD
         self.hold_reason = why
         if self.own is not None:
@@ -495,17 +496,17 @@ class Pilot:
         t = self.task
         if role.phase == Phase.LEADER:
             if self.mode == Mode.FOLLOW:
-                self._hold("leading now")
+                self.hold("leading now")
             return
         if role.phase != Phase.MEMBER:
             if self.mode == Mode.FOLLOW:
-                self._hold("no leader")
+                self.hold("no leader")
             return
         key = (t.kind, t.gen)
         if t.kind == TaskKind.HOLD and key != self._applied_task:
             self._applied_task = key
             if self.mode in (Mode.GOTO, Mode.FOLLOW, Mode.HOLD):
-                self._hold("swarm stop")
+                self.hold("swarm stop")
         elif t.kind == TaskKind.FOLLOW:
             self._applied_task = key
             if (
@@ -518,7 +519,7 @@ class Pilot:
                     self.events.append(f"following (task {t.gen})")
                 self.mode = Mode.FOLLOW
             elif self.mode == Mode.FOLLOW and assignment_of(t, self.me) is None:
-                self._hold("not in the formation")
+                self.hold("not in the formation")
 
     def _carrot(self, dt: float) -> Setpoint | None:
         r = self._route
@@ -542,13 +543,13 @@ class Pilot:
         lat, lon = offset(o[0], o[1], p.n, p.e)
         h = math.radians(p.heading_deg)
         if self._route_s >= r.length:
-            end = Setpoint(lat, lon, self._route_alt, p.heading_deg)
+            end = Setpoint(lat, lon, self.route_alt, p.heading_deg)
             if math.hypot(p.n - here_n, p.e - here_e) < self.cfg.arrive_m:
                 self.last_setpoint = end
-                self._hold("arrived")
+                self.hold("arrived")
                 self.events.append("arrived: holding")
             return end
-        return Setpoint(lat, lon, self._route_alt, p.heading_deg, v * math.cos(h), v * math.sin(h))
+        return Setpoint(lat, lon, self.route_alt, p.heading_deg, v * math.cos(h), v * math.sin(h))
 
     def _steer_swarm(self, dt: float) -> tuple[float, float] | None:
         """A leader's swarm heading one step on (module docstring): toward the route's
@@ -584,11 +585,11 @@ class Pilot:
             return h, 0.0
         return (h + rate * max(0.0, dt)) % 360.0, rate
 
-    def _swarm_turn_accel(self, rate: float) -> float:
+    def swarm_turn_accel(self, rate: float) -> float:
         """How fast the swarm's turn rate changes (deg/s^2), for the feed-forward: 0 while
         the rate heard is 0 (a turn starting shows in the next Heartbeat's rate), and a
         slowing turn never fed forward past a rate of 0 (the leader's rate stops there)."""
-        acc = self._turn_accel
+        acc = self.turn_accel
         if rate == 0.0 or self._heading is None:
             return 0.0
         if rate * acc < 0.0:
@@ -612,7 +613,7 @@ class Pilot:
             self.events.append(f"pose of agent {a.follows} back: following")
             self.stale_hold = None
         heading, rate = self._swarm_heading(now)
-        turn_acc = self._swarm_turn_accel(rate)
+        turn_acc = self.swarm_turn_accel(rate)
         followed, acc = heard.pose, heard.acc
         head, k = chain_of(self.task, self.me)
         lead = self._heard.get(head)

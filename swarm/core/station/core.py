@@ -150,7 +150,7 @@ class StationCore:
             self.id, self.cfg, self.counters, self.agents, self._label, self._event, first_seq, self.swarms
         )
         self._leader_dirty = False  # a connection, phase or leader changed
-        # alerts and link health (swarm.core.station.alerts, station_watch)
+        # alerts and link health (swarm.core.station.alerts, swarm.core.station.watch)
         self.alerts = AlertBook(self.cfg.alerts.keep, wall_offset)
         self.watch = AlertWatch(self.cfg.alerts, self.alerts, self._label, self._event)
         self._now = 0.0  # the latest now seen (finished commands are handed out without one)

@@ -169,6 +169,11 @@ class Gate:
     not) and refuses one seen again.
     """
 
+    @property
+    def remembered(self) -> int:
+        """How many senders' newest stamps the gate keeps (at most ``MAX_SENDERS``)."""
+        return len(self._newest)
+
     def __init__(self, key: bytes | None, *, accept_unsigned_commands: bool = False) -> None:
         self.key = key
         self.accept_unsigned_commands = accept_unsigned_commands

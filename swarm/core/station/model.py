@@ -134,7 +134,7 @@ class AgentView:
     pool: frozenset[int] = frozenset()
     members: frozenset[int] = frozenset()
     locked: bool = False
-    #: Telemetry arrivals: measured loss, the silence that means lost (station_alerts)
+    #: Telemetry arrivals: measured loss, the silence that means lost (swarm.core.station.alerts)
     link: LinkHealth = field(default_factory=LinkHealth)
     #: (t, lat, lon, the point as JSON text): formatted once when stored, because
     #: formatting 50 agents' trails at every push cost more than the messages

@@ -17,7 +17,7 @@ class BridgeStats:
     unroutable: int = 0
     unknown_sender: int = 0
     not_for_us: int = 0
-    overheard: int = 0  # a station: leaders' Heartbeats to their members (bridge_rx)
+    overheard: int = 0  # a station: leaders' Heartbeats to their members (swarm.runtime.bridge.rx)
     decode_errors: int = 0
     version_mismatch: int = 0
     conflicts: int = 0

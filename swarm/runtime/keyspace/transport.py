@@ -240,7 +240,7 @@ class _Declared:
                     t.join(max(0.0, deadline - time.monotonic()))
 
     def undeclare(self) -> None:
-        self.owner._forget(self)
+        self.owner.forget(self)
         real, self.real = self.real, None
         if real is not None:
             real.undeclare()
@@ -332,7 +332,7 @@ class ClientSession:
     def declare_queryable(self, *args: Any, **kw: Any) -> _Declared:
         return self._declare("declare_queryable", args, kw)
 
-    def _forget(self, d: _Declared) -> None:
+    def forget(self, d: _Declared) -> None:
         with self._lock:
             if d in self._declared:
                 self._declared.remove(d)

@@ -169,7 +169,8 @@ class Federation:
     def _gates_by_name(self) -> dict[str, Gate]:
         return {"states": self.state_gate, "commands": self.command_gate, "results": self.result_gate}
 
-    def _load(self) -> None:
+    def load(self) -> None:
+        """The replay guard's gates from its file (none: they start empty; a bad file: one warning)."""
         if self.state_file is None:
             return
         try:
@@ -229,7 +230,7 @@ class Federation:
     def start(self) -> Federation:
         """Open the session and start publishing. Raises TransportError (endpoints) or
         CertError (the TLS or ACL files)."""
-        self._load()
+        self.load()
         self.session = open_session(
             self.listen, self.connect, tls=self.tls, acl=self.acl, signed=self.key is not None
         )

@@ -14,7 +14,7 @@ import pytest
 from radios.mavlink import FrameBuilder
 from radios.rotating import FlightLog
 from radios.tlog import TlogWriter
-from swarm.cli.bench.agent import ADVERTIZE, AirTail, _advertize_from, _loss, _sync_cost
+from swarm.cli.bench.agent import ADVERTIZE, AirTail, advertize_from, loss_of, sync_cost
 from swarm.cli.commands.bench import main as bench_main
 
 T0 = 1_795_000_000.0
@@ -40,10 +40,10 @@ def test_air_tail_reads_whole_records_as_the_file_grows(tmp_path: Path) -> None:
 def test_advertize_is_told_from_other_tunnels_and_senders() -> None:
     b = FrameBuilder(7, 191)
     adv = b.tunnel(b"\x01", target_system=0, payload_type=ADVERTIZE)
-    assert _advertize_from(adv, 7)
-    assert not _advertize_from(adv, 8)
-    assert not _advertize_from(b.tunnel(b"\x01", target_system=0, payload_type=ADVERTIZE + 2), 7)
-    assert not _advertize_from(b.heartbeat(), 7)
+    assert advertize_from(adv, 7)
+    assert not advertize_from(adv, 8)
+    assert not advertize_from(b.tunnel(b"\x01", target_system=0, payload_type=ADVERTIZE + 2), 7)
+    assert not advertize_from(b.heartbeat(), 7)
 
 
 def test_loss_counts_frames_on_air_missing_from_the_flight_log(tmp_path: Path) -> None:
@@ -56,14 +56,14 @@ def test_loss_counts_frames_on_air_missing_from_the_flight_log(tmp_path: Path) -
         for i, raw in enumerate(raws):
             w.write(raw, T0 + i + 0.01)
         w.write(FrameBuilder(2, 191).heartbeat(), T0 + 9.5)  # another sender's: not counted
-    got = _loss(str(tmp_path / "logs"), str(tmp_path / "air.tlog"), T0 + 9.2)
+    got = loss_of(str(tmp_path / "logs"), str(tmp_path / "air.tlog"), T0 + 9.2)
     assert got["capture_loss_s"] == pytest.approx(2.2)
     assert got["capture_records"] == 8 and got["capture_frames_on_air"] == 10
     assert got["capture_missing_frames"] == 2 and got["capture_torn_tails"] == 0
 
 
 def test_the_cost_figures_come_from_a_real_flight_log(tmp_path: Path) -> None:
-    got = _sync_cost(str(tmp_path), 1.2)
+    got = sync_cost(str(tmp_path), 1.2)
     assert got["syncs"] >= 1 and got["put_us"] > 0 and got["sync_ms_max"] >= got["sync_ms_mean"] > 0
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from radios.tlog import TlogWriter, read_tlog
-from swarm.cli.commands.demo import _Lines, _open_page
+from swarm.cli.commands.demo import Lines, open_page
 from swarm.cli.commands.replay import main as replay_main
 from swarm.cli.demo_report import summary_lines, targets
 from swarm.sim.trackplot import figure
@@ -168,7 +168,7 @@ def test_progress_is_one_updating_line_on_a_terminal() -> None:
     master, slave = os.openpty()
     stream = os.fdopen(slave, "w")
     try:
-        lines = _Lines(stream, quiet=False)
+        lines = Lines(stream, quiet=False)
         assert lines.tty
         lines.progress("   t=  1.0 s route 1/45 s: leader agent2")
         lines.progress("   t=  2.0 s route 2/45 s: leader agent2")
@@ -187,13 +187,13 @@ def test_progress_is_one_updating_line_on_a_terminal() -> None:
 
 def test_progress_is_plain_lines_in_a_file_and_silent_with_json() -> None:
     buf = io.StringIO()
-    lines = _Lines(buf, quiet=False)
+    lines = Lines(buf, quiet=False)
     for k in range(5):  # every second: a plain line every 5 s, the first at once
         lines.progress(f"   t={k} s")
     lines.step("== landing")
     assert buf.getvalue() == "   t=0 s\n== landing\n"
     quiet = io.StringIO()
-    q = _Lines(quiet, quiet=True)
+    q = Lines(quiet, quiet=True)
     q.progress("x")
     q.step("== y")
     assert quiet.getvalue() == ""
@@ -204,7 +204,7 @@ def test_without_a_display_the_page_not_opening_is_said(
 ) -> None:
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    _open_page("http://127.0.0.1:8080/", _Lines(io.StringIO(), quiet=False))
+    open_page("http://127.0.0.1:8080/", Lines(io.StringIO(), quiet=False))
     err = capsys.readouterr().err
     assert err == "   page not opened: no display here; open http://127.0.0.1:8080/ while the demo runs\n"
 

@@ -146,3 +146,25 @@ def test_no_import_circle_inside_swarm_but_the_noted_ones() -> None:
     for ring in noted:  # the note is in a module docstring of the ring
         docs = [(ROOT / (m.replace(".", "/") + ".py")).read_text().split('"""')[1] for m in ring]
         assert any("TYPE_CHECKING" in d for d in docs), ring
+
+
+def test_no_module_or_test_imports_another_modules_private_name() -> None:
+    """``from M import _name`` across modules (a name ``M`` keeps to itself) is refused
+    in the packages, the tests and the tools: what another module needs is public under
+    its own name. (The linter's private-member rule covers ``obj._name``.)"""
+    import ast
+
+    ours = ("radios", "firmware_bridge", "swarm")
+    found = []
+    for folder in (*ours, "tests", "tools"):
+        for f in sorted((ROOT / folder).rglob("*.py")):
+            if "vendor" in f.parts:
+                continue
+            for node in ast.walk(ast.parse(f.read_text(), str(f))):
+                if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in ours:
+                    found += [
+                        f"{f.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}"
+                        for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")
+                    ]
+    assert found == [], found

@@ -168,7 +168,7 @@ class DemoResult:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
-def _free_base_port(count: int) -> int:
+def free_base_port(count: int) -> int:
     """A base port with ``count`` consecutive free UDP ports after it (outside the
     kernel's ephemeral range: :mod:`radios.ports`)."""
     try:
@@ -432,7 +432,7 @@ class _Demo:
                 return self.fleet.start()
             except SwarmError as exc:
                 raise DemoError(str(exc)) from None
-        base = _free_base_port(n)
+        base = free_base_port(n)
         sim = Child(
             [
                 "sim",

@@ -48,7 +48,7 @@ from swarm.core.wire.messages import decode, encode
 from swarm.core.wire.tunnel import COMP_ID, Kind
 from swarm.errors import DecodeError
 from swarm.sim.scenario import RunResult, Scenario, parse_drift, parse_span
-from swarm.sim.simulate import POSE, Sim, _Watch
+from swarm.sim.simulate import POSE, Sim, Watch
 
 #: an election (pooling, locked, electing) lasting longer than this many TDM rounds
 #: plus the profile's windows and its alone timeout violates (N=50 paper: ~70 s)
@@ -119,7 +119,7 @@ class FaultSim(Sim):
         return core
 
     # -- faults ---------------------------------------------------------------------
-    def _start_and_crash(self, t: float, w: _Watch) -> None:
+    def _start_and_crash(self, t: float, w: Watch) -> None:
         for who, when in self.crash_at:  # a crash while down: it stays down for good
             if when <= t and who.isdigit() and int(who) - 1 in self._down:
                 self._down.discard(int(who) - 1)
@@ -221,12 +221,12 @@ class FaultSim(Sim):
             self._seen.add(what)
             self.violations.append(f"{what} (at t={t:.1f} s)")
 
-    def _judge(self, t: float, w: _Watch) -> bool:
+    def _judge(self, t: float, w: Watch) -> bool:
         done = super()._judge(t, w)
         self._ended_settled = done
         return done
 
-    def _run_result(self, t: float, w: _Watch) -> RunResult:
+    def _run_result(self, t: float, w: Watch) -> RunResult:
         long_enough = t >= self._last_event + self.sc.settle_tail_s()  # else: cut short on purpose
         if self.sc.strict and long_enough and not self._ended_settled and not self.violations:
             self.violations.append(

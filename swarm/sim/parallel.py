@@ -43,7 +43,7 @@ class WorkerDied(SwarmError):
     """A worker process ended without answering (killed, out of memory)."""
 
 
-def _run_one(job: tuple[Scenario, int]) -> RunResult:
+def run_one(job: tuple[Scenario, int]) -> RunResult:
     sc, seed = job
     if sc.command_at is not None:  # a station on the channel (swarm.sim.relay)
         return RelaySim(sc, seed).run()
@@ -63,7 +63,7 @@ def _serve(conn: Connection) -> None:
             if job is None:
                 return
             index, sc, seed = job
-            conn.send((index, _run_one((sc, seed))))
+            conn.send((index, run_one((sc, seed))))
     except (EOFError, OSError):  # the parent went away
         return
 
@@ -91,7 +91,7 @@ def run_jobs(
         WorkerDied: a worker ended without answering.
     """
     if jobs <= 1 or len(work) <= 1:
-        return [_done(_run_one(job), on_done) for job in work]
+        return [_done(run_one(job), on_done) for job in work]
     procs: list[BaseProcess] = []
     try:
         conns = _start(min(jobs, len(work)), procs)

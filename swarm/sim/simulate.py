@@ -88,7 +88,7 @@ SPLIT_ROUNDS = 6
 
 
 @dataclass
-class _Watch:
+class Watch:
     """What :meth:`Sim.run` has seen so far: agreement, election, crash and failover."""
 
     converged_since: float | None = None
@@ -298,7 +298,7 @@ class Sim:
 
     def run(self) -> RunResult:
         t = 0.0
-        w = _Watch()
+        w = Watch()
         self.hosts.start()
         while t <= self.duration:
             self._start_and_crash(t, w)
@@ -314,7 +314,7 @@ class Sim:
             t = self._next_time(t, self.hosts.next_due())
         return self._run_result(t, w)
 
-    def _start_and_crash(self, t: float, w: _Watch) -> None:
+    def _start_and_crash(self, t: float, w: Watch) -> None:
         """The starts and the crash due at ``t`` (one crash per step)."""
         n = self.sc.agents
         for i in range(n) if not all(self.started) else ():
@@ -349,7 +349,7 @@ class Sim:
                 d = core.next_deadline()
                 self._due[i] = d if d is not None else float("inf")
 
-    def _judge(self, t: float, w: _Watch) -> bool:
+    def _judge(self, t: float, w: Watch) -> bool:
         """Agreement at ``t``: the election and failover times once it has held for
         ``settle``; True when the run can end (nothing more is to happen)."""
         ok, lead = self._agreement()
@@ -371,7 +371,7 @@ class Sim:
             w.leader = lead
         return False
 
-    def _run_result(self, t: float, w: _Watch) -> RunResult:
+    def _run_result(self, t: float, w: Watch) -> RunResult:
         ok, lead = self._agreement()
         if w.elect_s is None and not (self.sc.crashes and w.failover_s is not None):
             self.violations.append("never converged (no agreed swarm held for the settle time)")

@@ -112,7 +112,7 @@ class AirTail:
         return new
 
 
-def _advertize_from(raw: bytes, sysid: int) -> bool:
+def advertize_from(raw: bytes, sysid: int) -> bool:
     if raw[0] != 0xFD or raw[5] != sysid or int.from_bytes(raw[7:10], "little") != MSG_TUNNEL:
         return False
     try:
@@ -137,7 +137,7 @@ def _startups(d: str, starts: int) -> list[float]:
                 deadline = time.monotonic() + 30.0
                 seen = None
                 while seen is None and time.monotonic() < deadline and child.proc.poll() is None:
-                    seen = next((t for t, raw in tail.poll() if _advertize_from(raw, agent_id)), None)
+                    seen = next((t for t, raw in tail.poll() if advertize_from(raw, agent_id)), None)
                     time.sleep(0.005)
                 if seen is not None:
                     out.append(seen - t0)
@@ -148,7 +148,7 @@ def _startups(d: str, starts: int) -> list[float]:
     return out
 
 
-def _agent(k: int, radio: str, port: int, extra: list[str]) -> tuple[Child, Child]:
+def start_agent(k: int, radio: str, port: int, extra: list[str]) -> tuple[Child, Child]:
     sim = Child(["sim", "--vehicles", "1", "--base-port", str(port), "--seed", str(k)], name=f"vehicle {k}")
     sim.wait_lines(2, 60)
     argv = [
@@ -187,9 +187,9 @@ def _steady(d: str, window: float) -> dict[str, Any]:
     base = free_port_range(2, "udp")
     children: list[Child] = [emu]
     try:
-        sim1, measured = _agent(1, links[0], base, ["--capture", logs])
+        sim1, measured = start_agent(1, links[0], base, ["--capture", logs])
         children += [sim1, measured]
-        sim2, peer = _agent(2, links[1], base + 1, [])
+        sim2, peer = start_agent(2, links[1], base + 1, [])
         children += [sim2, peer]
         deadline = time.monotonic() + 120
         while not (_settled(measured) and _settled(peer)) and time.monotonic() < deadline:
@@ -204,14 +204,14 @@ def _steady(d: str, window: float) -> dict[str, Any]:
         t_kill = time.time()
         measured.proc.wait(10)
         time.sleep(1.0)  # what was on the air by the kill reaches the emulator's capture
-        loss = _loss(logs, air, t_kill)
+        loss = loss_of(logs, air, t_kill)
     finally:
         for c in reversed(children):
             c.stop()
     return {"settled": settled, "cpu_percent": round(cpu, 2), "rss_mb": round(rss, 1), **loss}
 
 
-def _loss(logs: str, air: str, t_kill: float) -> dict[str, Any]:
+def loss_of(logs: str, air: str, t_kill: float) -> dict[str, Any]:
     reader = read_flight_log(logs, prefix="agent1")
     logged = {rec.raw: rec.t for rec in reader}
     last = max(logged.values()) if logged else float("nan")
@@ -228,7 +228,7 @@ def _loss(logs: str, air: str, t_kill: float) -> dict[str, Any]:
     }
 
 
-def _sync_cost(d: str, seconds: float) -> dict[str, Any]:
+def sync_cost(d: str, seconds: float) -> dict[str, Any]:
     b = FrameBuilder(1, 191)
     frames = [b.tunnel(bytes(40)) for _ in range(64)]
     with FlightLog(os.path.join(d, "cost"), "cost") as log:
@@ -259,7 +259,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         result["startup_s"] = round(statistics.median(starts), 3) if starts else None
         result["startup_s_all"] = [round(x, 3) for x in starts]
         result.update(_steady(d, window))
-        result.update(_sync_cost(d, 3.0 if quick else 10.0))
+        result.update(sync_cost(d, 3.0 if quick else 10.0))
     result["window_s"] = window
     result["targets"] = {
         "startup_under_1s": result["startup_s"] is not None and result["startup_s"] <= 1.0,

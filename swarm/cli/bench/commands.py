@@ -35,16 +35,16 @@ from typing import Any, Protocol
 from radios.ports import free_port
 from swarm.cli.procs import Child, json_events, start_emulator
 
-_AGENT_RE = re.compile(r"^command (\w+) seq (\d+) from (\d+): (\w+)")
+AGENT_RE = re.compile(r"^command (\w+) seq (\d+) from (\d+): (\w+)")
 _STATION_RE = re.compile(r"^(\w+)(?: \(swarm\))? -> .*\((\d+)\): (\w+).* \[seq (\d+)\]$")
 
 
-def _get(url: str) -> Any:
+def get_json(url: str) -> Any:
     with urllib.request.urlopen(url, timeout=10) as r:
         return json.loads(r.read())
 
 
-def _post(url: str, body: Any) -> tuple[int, Any]:
+def post_json(url: str, body: Any) -> tuple[int, Any]:
     req = urllib.request.Request(
         url, data=json.dumps(body).encode(), method="POST", headers={"Content-Type": "application/json"}
     )
@@ -110,7 +110,7 @@ def run(
             t0 = time.monotonic()
             while True:
                 _alive(children)
-                st = _get(url + "api/state")
+                st = get_json(url + "api/state")
                 if st["leader"] and sum(a["connected"] for a in st["agents"]) == agents:
                     break
                 if time.monotonic() - t0 > setup_timeout:
@@ -119,9 +119,9 @@ def run(
                     )
                 time.sleep(0.5)
             out["setup_s"] = round(time.monotonic() - t0, 1)
-            out.update(_campaign(url, n, children))
+            out.update(command_campaign(url, n, children))
             time.sleep(3.0)  # the agents' last log lines, the station's last events
-            out.update(_judge(gcs, ags, out.pop("_bodies")))
+            out.update(judge(gcs, ags, out.pop("_bodies")))
         finally:
             for c in children:
                 c.stop(grace=3)
@@ -129,7 +129,7 @@ def run(
     return out
 
 
-def _campaign(url: str, n: int, children: list[Child]) -> dict[str, Any]:
+def command_campaign(url: str, n: int, children: list[Child]) -> dict[str, Any]:
     bodies: list[tuple[int, Any]] = []
     took: list[float] = []
     refused_here = 0
@@ -142,7 +142,7 @@ def _campaign(url: str, n: int, children: list[Child]) -> dict[str, Any]:
             else {"target": "swarm", "kind": "stop"}
         )
         t = time.monotonic()
-        status, body = _post(url + "api/command", cmd)
+        status, body = post_json(url + "api/command", cmd)
         if status == 409:  # no leader at this instant (an election): nothing was sent
             refused_here += 1
             time.sleep(1.0)
@@ -160,12 +160,12 @@ def _campaign(url: str, n: int, children: list[Child]) -> dict[str, Any]:
     }
 
 
-def _judge(gcs: HasLines, agents: Sequence[HasLines], bodies: list[tuple[int, Any]]) -> dict[str, Any]:
+def judge(gcs: HasLines, agents: Sequence[HasLines], bodies: list[tuple[int, Any]]) -> dict[str, Any]:
     # what the agents did: (agent id, seq) -> result, from their own logs
     did: dict[tuple[int, int], str] = {}
     for a in agents:
         for e in _events(a, "pilot"):
-            m = _AGENT_RE.match(str(e.get("text", "")))
+            m = AGENT_RE.match(str(e.get("text", "")))
             if m and int(m.group(3)) >= 251:
                 did[(int(e["id"]), int(m.group(2)))] = m.group(4)
     carried = {seq for (_, seq), r in did.items() if r == "ACCEPTED"}

@@ -316,7 +316,7 @@ class FaultBench:
         self.close()
 
     def start(self) -> None:
-        from swarm.cli.demo import _free_base_port
+        from swarm.cli.demo import free_base_port
         from swarm.core.election.profiles import profile_by_name
 
         with open(self.key_file, "w", encoding="utf-8") as fh:
@@ -336,7 +336,7 @@ class FaultBench:
             "--stats-json",
             self.stats_json,
         )
-        self.base_port = _free_base_port(self.n + 2)
+        self.base_port = free_base_port(self.n + 2)
         for k in range(1, self.n + 1):
             a = self.agents[k] = AgentProc(self, k)
             a.start_sim()

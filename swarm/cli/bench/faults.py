@@ -133,7 +133,7 @@ def station_restart_in_command(
     twice; after the restart the station shows the task the leader really flies."""
     import threading
 
-    from swarm.cli.bench.commands import _AGENT_RE
+    from swarm.cli.bench.commands import AGENT_RE
 
     bench.settled("station restart during a command")
     assert bench.station is not None
@@ -169,7 +169,7 @@ def station_restart_in_command(
     done: dict[int, dict[int, int]] = {}  # agent -> seq -> times carried out
     for k, a in bench.agents.items():
         for e in json_events(a.agent.lines[marks.get(k, 0) :] if a.agent else [], "pilot"):
-            m = _AGENT_RE.match(str(e.get("text", "")))
+            m = AGENT_RE.match(str(e.get("text", "")))
             if m and m.group(1) == "FOLLOW" and m.group(4) == "ACCEPTED" and int(m.group(3)) >= 251:
                 seqs = done.setdefault(k, {})
                 seqs[int(m.group(2))] = seqs.get(int(m.group(2)), 0) + 1
@@ -342,7 +342,7 @@ def radio_swap(bench: FaultBench, down_s: float = 3.0) -> FaultResult:
 def commands(bench: FaultBench, count: int = 20, loss: float = 0.2) -> FaultResult:
     """``count`` swarm commands (FOLLOW with a new heading, STOP, in turn) through the
     station's API at ``loss``, each outcome checked against the agents' own logs."""
-    from swarm.cli.bench.commands import _campaign, _judge
+    from swarm.cli.bench.commands import command_campaign, judge
 
     bench.settled("commands")
     marks = {k: len(a.agent.lines) for k, a in bench.agents.items() if a.agent is not None}
@@ -351,7 +351,7 @@ def commands(bench: FaultBench, count: int = 20, loss: float = 0.2) -> FaultResu
     bench.control(f"loss {loss:g}")
     t = time.monotonic()
     try:
-        camp = _campaign(bench.station_url + "/", count, [bench.station])
+        camp = command_campaign(bench.station_url + "/", count, [bench.station])
     finally:
         bench.control(f"loss {bench.loss:g}")
     end = time.monotonic()
@@ -361,7 +361,7 @@ def commands(bench: FaultBench, count: int = 20, loss: float = 0.2) -> FaultResu
         for k, a in bench.agents.items()
         if a.agent is not None and k in marks
     ]
-    judged = _judge(_Lines(bench.station.lines[station_mark:]), agents, camp.pop("_bodies"))
+    judged = judge(_Lines(bench.station.lines[station_mark:]), agents, camp.pop("_bodies"))
     # the swarm commands leave the V stopped or following: FOLLOW again for the next fault
     bench.command({"target": "swarm", "kind": "follow", "heading": 0})
     res = bench.measure(

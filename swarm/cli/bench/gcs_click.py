@@ -24,9 +24,9 @@ import time
 from typing import Any
 
 from radios.ports import free_port, free_port_range
-from swarm.cli.bench.agent import _agent
-from swarm.cli.bench.commands import _get
-from swarm.cli.bench.commands import _post as post
+from swarm.cli.bench.agent import start_agent
+from swarm.cli.bench.commands import get_json
+from swarm.cli.bench.commands import post_json as post
 from swarm.cli.bench.gcs_page import launch_browser, percentile
 from swarm.cli.procs import Child, json_events, start_emulator
 
@@ -35,7 +35,7 @@ SETUP_S = 150.0
 STEP_S = 0.1  # the pilot's setpoint period: the first setpoint follows the command within one
 
 
-def _post(url: str, body: Any) -> Any:
+def post_json(url: str, body: Any) -> Any:
     return post(url, body)[1]
 
 
@@ -53,7 +53,7 @@ def _until(pred: Any, what: str, timeout: float, children: list[Child]) -> Any:
 
 
 def _agent1(url: str) -> dict[str, Any] | None:
-    return next((a for a in _get(url + "api/state")["agents"] if a["id"] == 1), None)
+    return next((a for a in get_json(url + "api/state")["agents"] if a["id"] == 1), None)
 
 
 def _fly(url: str, children: list[Child]) -> None:
@@ -64,9 +64,9 @@ def _fly(url: str, children: list[Child]) -> None:
             r.get("result") in ("ACCEPTED", "CARRIED_OUT") for r in body["results"]
         )
 
-    _until(lambda: ok(_post(url + "api/command", {"target": 1, "kind": "arm"})), "arm", 60, children)
+    _until(lambda: ok(post_json(url + "api/command", {"target": 1, "kind": "arm"})), "arm", 60, children)
     _until(
-        lambda: ok(_post(url + "api/command", {"target": 1, "kind": "takeoff", "alt": 10})),
+        lambda: ok(post_json(url + "api/command", {"target": 1, "kind": "takeoff", "alt": 10})),
         "takeoff",
         60,
         children,
@@ -76,7 +76,7 @@ def _fly(url: str, children: list[Child]) -> None:
     )
     # the climb done, the pilot takes a go-to (it refuses one while taking off)
     here = {"target": 1, "kind": "goto", "lat": a["lat"], "lon": a["lon"], "alt": _above_home(a)}
-    _until(lambda: ok(_post(url + "api/command", here)), "a go-to taken after the take-off", 90, children)
+    _until(lambda: ok(post_json(url + "api/command", here)), "a go-to taken after the take-off", 90, children)
 
 
 def _above_home(a: dict[str, Any]) -> float:
@@ -112,12 +112,12 @@ def measure(trials: int = 7, loss: float = 0.1) -> dict[str, Any]:
         try:
             base = free_port_range(2, "udp")
             for k in (1, 2):
-                children += _agent(k, links[k - 1], base + k - 1, [])
+                children += start_agent(k, links[k - 1], base + k - 1, [])
             http = f"127.0.0.1:{free_port('tcp')}"
             gcs = Child(["gcs", "--radio", links[2], "--http", http, "--tiles", "none", "--json"], name="gcs")
             children.append(gcs)
             url = json.loads(gcs.wait_lines(1, 30)[0])["url"]
-            st = lambda: sum(a["connected"] for a in _get(url + "api/state")["agents"]) == 2  # noqa: E731
+            st = lambda: sum(a["connected"] for a in get_json(url + "api/state")["agents"]) == 2  # noqa: E731
             _until(st, "both agents connected", SETUP_S, children)
             _fly(url, children)
             a = _agent1(url) or {}

@@ -137,7 +137,7 @@ def _config(a: argparse.Namespace) -> DemoConfig:
     return cfg
 
 
-class _Lines:
+class Lines:
     """Step lines and progress for people: on a terminal the progress is one line updated in
     place; otherwise a plain line every ``PLAIN_EVERY_S``; with ``quiet`` nothing."""
 
@@ -181,7 +181,7 @@ def _has_display() -> bool:
     return True
 
 
-def _open_page(url: str, lines: _Lines) -> None:
+def open_page(url: str, lines: Lines) -> None:
     """Open the station's page, or say once why it was not."""
     why = "" if _has_display() else "no display here"
     if not why:
@@ -197,7 +197,7 @@ def _open_page(url: str, lines: _Lines) -> None:
 def main(argv: list[str] | None = None) -> int:
     a = read_arguments(build_parser(), argv, config=False)
     cfg = _config(a)
-    lines = _Lines(sys.stdout, quiet=a.json)
+    lines = Lines(sys.stdout, quiet=a.json)
     opened = False
 
     def out(line: str) -> None:
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.step(line)
         if line.strip().startswith("ground station: http") and not a.headless and not opened:
             opened = True
-            _open_page(line.split(": ", 1)[1], lines)
+            open_page(line.split(": ", 1)[1], lines)
 
     stop = StopFlag().install()
     try:

@@ -2,7 +2,7 @@
 on together, the autopilot with the boot a real one was recorded to have (41.5 s:
 positions at 0, 0, 0 for seconds, home late, arming refused). The radio emulator
 captures the air; a ground station asks for a take-off every few seconds from the
-moment the agent is connected (the bench figure ``swarm bench conformance``'s
+moment the agent is connected (the bench figure ``python -m tools.bench conformance``'s
 ``cold_start`` is this run).
 
 The agent must send no pose before the autopilot's fix and none at Null Island, must
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import pytest
 
-from swarm.cli.bench import cold_start
+from tools.bench import cold_start
 
 pytestmark = pytest.mark.processes  # emulator, swarm sim, swarm agent, a station: real time
 

@@ -168,3 +168,21 @@ def test_no_module_or_test_imports_another_modules_private_name() -> None:
                         if a.name.startswith("_") and not a.name.startswith("__")
                     ]
     assert found == [], found
+
+
+def test_the_packages_never_import_the_projects_tools() -> None:
+    """``tools/`` (the project's own benches and scripts) is not in the wheel: nothing
+    the wheel carries may import it."""
+    import ast
+
+    found = []
+    for folder in ("radios", "firmware_bridge", "swarm"):
+        for f in sorted((ROOT / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(f.read_text(), str(f))):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+                if isinstance(node, ast.ImportFrom) and node.module:
+                    names = [node.module]
+                found += [
+                    f"{f.relative_to(ROOT)}:{node.lineno} {n}" for n in names if n.split(".")[0] == "tools"
+                ]
+    assert found == [], found

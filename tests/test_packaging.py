@@ -205,6 +205,12 @@ def test_installed_wheel_serves_the_page_and_leaflet_outside_the_checkout(tmp_pa
         assert f"swarm/runtime/station/{rel}" in in_sdist, f"the sdist lacks {rel}"
         assert f"swarm/runtime/station/{rel}" in in_wheel, f"the wheel lacks {rel}"
     assert not any("node_modules" in n for n in in_sdist | in_wheel)
+    # the wheel carries the product, not the project's harness: no tools/, and no module
+    # that reads the checkout's tests folder (recorded traces, the demo capture)
+    assert not any(n.startswith("tools/") for n in in_wheel)
+    with zipfile.ZipFile(wheel) as zf:
+        reads_tests = [n for n in zf.namelist() if n.endswith(".py") and b'/ "tests"' in zf.read(n)]
+    assert reads_tests == [], reads_tests
 
     bin_ = _fresh_venv(tmp_path / "venv", wheel)
     away = tmp_path / "elsewhere"

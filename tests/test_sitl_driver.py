@@ -124,10 +124,10 @@ def test_a_failsafe_is_noticed_at_once_and_control_taken_back(autopilot: sitl.Si
 
 @pytest.mark.timeout(900)  # four flights of about a minute each, on a busy machine longer
 def test_the_conformance_bench_flies_both_real_autopilots_beside_the_simulator() -> None:
-    """``swarm bench conformance --real --quick``: the figures are measured, never
+    """``python -m tools.bench conformance --real --quick``: the figures are measured, never
     judged here (the bench prints its misses); every milestone of the real flight is
     timed, and the simulator's beside it."""
-    from swarm.cli.bench.conformance_real import MILESTONES, run_real
+    from tools.bench.conformance_real import MILESTONES, run_real
 
     out = run_real(quick=True)
     assert isinstance(out["target_met"], bool)

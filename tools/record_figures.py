@@ -56,13 +56,20 @@ def machine(load_before: float | None = None) -> dict[str, object]:
     }
 
 
+#: the project's own benches (``python -m tools.bench``); every other area is ``swarm bench``'s
+OWN_BENCHES = ("conformance", "replay")
+
+
 def record(area: str, extra: list[str], out: Path = OUT) -> bool:
-    command = ["swarm", "bench", area, *extra, "--json"]
+    if area in OWN_BENCHES:
+        command = ["python", "-m", "tools.bench", area, *extra, "--json"]
+        argv = [sys.executable, *command[1:]]
+    else:
+        command = ["swarm", "bench", area, *extra, "--json"]
+        argv = [*_swarm(), *command[1:]]
     started = datetime.datetime.now(datetime.UTC)
     host = machine()
-    proc = subprocess.Popen(
-        [*_swarm(), *command[1:]], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
+    proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         stdout, stderr = proc.communicate()
     except KeyboardInterrupt:  # Ctrl-C (the bench has it too) or SIGTERM: the bench stops with us
@@ -104,7 +111,10 @@ def record(area: str, extra: list[str], out: Path = OUT) -> bool:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="tools/record_figures.py", description=__doc__.split("\n\n")[0])
     parser.add_argument(
-        "areas", nargs="+", metavar="AREA", help="swarm bench areas, recorded one after another"
+        "areas",
+        nargs="+",
+        metavar="AREA",
+        help="swarm bench areas (and the project's own: conformance, replay), recorded one after another",
     )
     parser.add_argument("--quick", action="store_true", help="pass --quick to each bench")
     parser.add_argument("--real", action="store_true", help="pass --real to each bench")

@@ -34,9 +34,6 @@ Targets (the issue): station under 20% of one core; ``ws_bytes_per_s`` at most
 connections press on a station limited to 1024 open files, with their latency
 against the same requests before; run last, on a station of its own.
 
-``replay_json_speed`` (and its companions): ``swarm replay --json`` on the checked-in
-demo capture, capture seconds per wall second (:mod:`swarm.cli.bench.replay_speed`,
-measured first, before the bench starts its processes); target 200.
 """
 
 from __future__ import annotations
@@ -54,7 +51,6 @@ import zlib
 from typing import Any
 
 from radios.ports import free_port
-from swarm.cli.bench import replay_speed
 from swarm.cli.procs import Child, cpu_seconds
 from swarm.core.agent.gslink import GsConfig, GsLink
 from swarm.core.wire.codes import FLAG_AIRBORNE, FLAG_ARMED, FLAG_FC_OK, mode_code
@@ -121,7 +117,6 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     seconds = 8.0 if quick else 20.0
     # full trails (60 s) make the biggest state messages: the steady state
     warm_up = 2.0 if quick else 62.0
-    replay = replay_speed.measure(runs=3 if quick else 5)  # first: before the bench's processes run
     ep = f"tcp/127.0.0.1:{free_port('tcp')}"
     station = Child(
         ["gcs", "--zenoh-listen", ep, "--http", f"127.0.0.1:{free_port('tcp')}", "--tiles", "none", "--json"],
@@ -129,7 +124,6 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
     )
     feeder: subprocess.Popen[bytes] | None = None
     out: dict[str, Any] = {"agents": agents, "rate_hz": hz, "warm_up_s": warm_up, "measure_s": seconds}
-    out.update(replay)
     try:
         url = json.loads(station.wait_lines(1, 30)[0])["url"]
         feeder = subprocess.Popen(

@@ -1,5 +1,9 @@
 """``swarm bench <area> [--json] [--quick]``: run a benchmark and print its figures.
 
+The product's benches: what a user runs to measure the radios, the election, the
+station and an agent. The project's own (the simulator against recorded and live
+autopilots) are run from a checkout with ``python -m tools.bench``.
+
 Text output is a table for people (:func:`text_table`: nested groups indented,
 yes/no for targets), ``--json`` one object for programs. While it runs, a person on
 a terminal sees the seconds counted on stderr (:class:`swarm.cli.progress.Ticker`).
@@ -14,7 +18,7 @@ import signal
 from typing import Any
 
 from swarm.cli.progress import Ticker
-from swarm.cli.util import UsageError, guarded, parser, print_json
+from swarm.cli.util import guarded, parser, print_json
 
 PROG = "swarm bench"
 AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
@@ -40,11 +44,6 @@ AREAS = {  # area -> (module in swarm.cli.bench, what it measures)
         "ip_edge",
         "stations on two machines, a router over mutual TLS with an ACL, an attacker on every listener",
     ),
-    "conformance": (
-        "conformance",
-        "simulated ArduCopter vs recorded SITL traces: milestones, acks, timings; "
-        "--real: the simulator vs real ArduCopter and PX4 SITL, live",
-    ),
 }
 
 
@@ -57,34 +56,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("area", choices=sorted(AREAS), help="; ".join(f"{k}: {v[1]}" for k, v in AREAS.items()))
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quick", action="store_true", help="shorter runs (CI): same fields, wider noise")
-    p.add_argument(
-        "--real",
-        action="store_true",
-        help="conformance: fly the real autopilots ($SITL_DIR) beside the simulator, live",
-    )
     return p
+
+
+def run_area(prog: str, module: str, *, as_json: bool, quick: bool, **kw: Any) -> int:
+    """Run ``module``'s ``run(quick=..., **kw)`` and print its figures (a table, or one
+    JSON object); SIGTERM stops it as Ctrl-C does (the benches stop the processes they
+    started on the way out). Also the project's own benches' runner (``tools.bench``)."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        with Ticker(prog, as_json=as_json):
+            result = importlib.import_module(module).run(quick=quick, **kw)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if as_json:
+        print_json(result)
+    else:
+        print(text_table(result), flush=True)
+    return 0
 
 
 @guarded(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.real and args.area != "conformance":
-        raise UsageError(f"--real is for the conformance bench, not {args.area}")
-    kw = {"real": True} if args.real else {}
-    # SIGTERM as Ctrl-C: the benches stop the processes they started on the way out
-    previous = signal.signal(signal.SIGTERM, _interrupt)
-    try:
-        with Ticker(f"{PROG} {args.area}", as_json=args.json):
-            result = importlib.import_module(f"swarm.cli.bench.{AREAS[args.area][0]}").run(
-                quick=args.quick, **kw
-            )
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    if args.json:
-        print_json(result)
-    else:
-        print(text_table(result), flush=True)
-    return 0
+    module = f"swarm.cli.bench.{AREAS[args.area][0]}"
+    return run_area(f"{PROG} {args.area}", module, as_json=args.json, quick=args.quick)
 
 
 def _value(v: Any) -> str:

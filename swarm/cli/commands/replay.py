@@ -18,7 +18,7 @@ modes (each its own function below; only one runs):
   null and ``error`` in JSON). A text line's unprintable characters (a newline or
   an escape sequence in a sender's text) are written as ``\\xNN`` escapes. TUNNEL
   frames are read by the swarm's own codec without pymavlink, which keeps
-  ``--json`` fast (``swarm bench gcs``: ``replay_json_speed``);
+  ``--json`` fast (``python -m tools.bench replay``: ``replay_json_speed``);
 * ``--stats``: totals, per-sysid frames, bytes and approximate share of air time,
   message counts (:class:`radios.replay.CaptureStats`), as a table or one JSON
   object (``unknown_ids``: the frames skipped per message id);

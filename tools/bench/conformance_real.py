@@ -1,4 +1,4 @@
-"""``swarm bench conformance --real``: the simulator against the real autopilots, live.
+"""``python -m tools.bench conformance --real``: the simulator against the real autopilots, live.
 
 The same mission is flown with the project's driver on a real autopilot (ArduCopter
 4.7 and PX4 v1.15 SITL, :mod:`firmware_bridge.sitl`) and on the simulator's profile of

@@ -10,7 +10,7 @@ and ACK matched, every timing ratio within 0.8..1.2. Without ``--quick`` each tr
 also replayed live, through ``VehicleSim`` on a real TCP socket at ``LIVE_SPEEDUP``
 (about 25 s of wall time per trace): the same figures under ``live``.
 
-``cold_start`` (:mod:`swarm.cli.bench.cold_start`): a real agent and ``swarm sim``
+``cold_start`` (:mod:`tools.bench.cold_start`): a real agent and ``swarm sim``
 with the recorded boot powered on together: poses sent before the fix and at Null
 Island (target 0), the take-off refusals met while the autopilot booted, and when a
 take-off was accepted (``--quick``: the boot scaled to 10 s).
@@ -26,7 +26,7 @@ from firmware_bridge.errors import BridgeError
 from firmware_bridge.sim.conformance import compare, conformance, read_trace, replay_live
 from swarm.errors import SwarmError
 
-TRACES = Path(__file__).resolve().parents[3] / "tests" / "data" / "traces"
+TRACES = Path(__file__).resolve().parents[2] / "tests" / "data" / "traces"
 RATIO_RANGE = (0.8, 1.2)
 LIVE_SPEEDUP = 5.0
 
@@ -50,7 +50,7 @@ def _met(r: dict[str, Any]) -> bool:
 
 def run(quick: bool = False, traces: Path = TRACES, real: bool = False) -> dict[str, Any]:
     if real:  # the simulator against the real autopilots, live (conformance_real)
-        from swarm.cli.bench.conformance_real import run_real
+        from tools.bench.conformance_real import run_real
 
         return run_real(quick)
     files = sorted(traces.glob("*.tlog")) if traces.is_dir() else []
@@ -74,7 +74,7 @@ def run(quick: bool = False, traces: Path = TRACES, real: bool = False) -> dict[
     if live:
         out["live"] = {"speedup": LIVE_SPEEDUP, **live, "target_met": live_met}
     out["cpu_s"] = round(time.process_time() - t0, 1)
-    from swarm.cli.bench import cold_start
+    from tools.bench import cold_start
 
     cs = cold_start.run(quick)
     out["cold_start"] = cs

@@ -15,8 +15,9 @@ and machines; another capture can be given.
   done), best of ``runs``: the decoding alone, which longer captures approach.
 
 Best-of because the machines are shared and noisy: the best run is the one least
-disturbed. Target (issue 13): ``replay_json_speed`` >= 200. Run from a source
-checkout; without the demo capture the figures are null with ``replay_error``.
+disturbed. Target (issue 13): ``replay_json_speed`` >= 200. The project's own bench
+(``python -m tools.bench replay``, from a checkout: the demo capture is the checkout's);
+without the capture the figures are null with ``replay_error``.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from typing import Any
 from radios.errors import CaptureError
 from radios.tlog import read_tlog
 
-DEMO_CAPTURE = Path(__file__).resolve().parents[3] / "tests" / "data" / "demo" / "demo.tlog"
+DEMO_CAPTURE = Path(__file__).resolve().parents[2] / "tests" / "data" / "demo" / "demo.tlog"
 TARGET_SPEED = 200.0
 
 
@@ -68,6 +69,11 @@ def _process(path: Path) -> float:
     return time.perf_counter() - t
 
 
+def run(quick: bool = False) -> dict[str, Any]:
+    """``python -m tools.bench replay``: :func:`measure` on the demo capture."""
+    return measure(runs=3 if quick else 5)
+
+
 def measure(path: Path = DEMO_CAPTURE, runs: int = 3) -> dict[str, Any]:
     """The replay figures (see the module's text) for the capture at ``path``."""
     out: dict[str, Any] = {"replay_capture": path.name, "replay_json_target": TARGET_SPEED}
@@ -87,4 +93,4 @@ def measure(path: Path = DEMO_CAPTURE, runs: int = 3) -> dict[str, Any]:
     return out
 
 
-__all__ = ["DEMO_CAPTURE", "TARGET_SPEED", "measure"]
+__all__ = ["DEMO_CAPTURE", "TARGET_SPEED", "measure", "run"]

@@ -1,0 +1,1 @@
+"""The project's own tools, run from a checkout (never in the wheel)."""

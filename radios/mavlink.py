@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-Every byte on the air is a MAVLink frame (DESIGN.md section 3). :class:`FrameParser`
+Every byte on the air is a MAVLink frame (docs/design/radio-link.md). :class:`FrameParser`
 turns an arbitrary byte stream into whole :class:`Frame` objects:
 
 * it looks for a start byte (0xFD for MAVLink 2, 0xFE for MAVLink 1, which old

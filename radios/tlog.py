@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-A ``.tlog`` is what MAVProxy and pymavlink write and read (DESIGN.md section 3):
+A ``.tlog`` is what MAVProxy and pymavlink write and read (docs/design/radio-link.md):
 a plain concatenation of records, each
 
 * 8 bytes: big-endian unsigned microseconds since the Unix epoch (UTC), then

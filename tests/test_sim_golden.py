@@ -9,7 +9,7 @@ time, where it used to accumulate per step), the loop no longer steps for air
 events that give no host output nor for frames no agent handles, and the invariants
 are sampled on their own 100 ms grid. Times moved in their last bits and the
 samples moved onto the grid; for the same seeds the converged counts, leaders and
-violations stayed the same (docs/DESIGN.md, section 8, gives the comparison).
+violations stayed the same (docs/design/simulation.md gives the comparison).
 Re-recorded once more for the member's own ack timer (swarm.core.election.liveness, issue 15):
 under loss a member that missed a Heartbeat now acknowledges on its own, so runs with
 loss put more acks on the air; the loss-free run and fast_n10_loss10_s3 kept their

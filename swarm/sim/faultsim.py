@@ -24,7 +24,7 @@ of those runs cannot move.
 ``strict`` checks, every virtual second (:meth:`FaultSim._continuous`), besides the
 plain run's checks: no agent listed by two leaders for longer than a leader keeps a
 silent member (not while a link is cut one way: a leader that cannot hear the other
-never lets go of the members they share, see docs/DESIGN.md); no live agent idle (in
+never lets go of the members they share, see docs/design/simulation.md); no live agent idle (in
 no swarm and not electing) for longer than its alone timeout without hearing a
 leader to join (the protocol's "Alone" rule); no election (pooling, locked,
 electing) longer than ELECT_BOUND_ROUNDS rounds plus its windows; with a size cap, no

@@ -49,8 +49,8 @@ in :mod:`swarm.core.election.rules` or :class:`swarm.core.election.protocol.Core
 * **Leaders know of each other**: :class:`LeaderTable` keeps every other leader
   heard (id, size, last heard) from Advertizes (FLAG_LEADER) and Heartbeats, kept
   with or without a cap; entries not heard for ``forget_s`` are dropped. A command
-  for every swarm is sent by a station to each leader it sees (docs/DESIGN.md
-  section 5), not through a leader of leaders.
+  for every swarm is sent by a station to each leader it sees (docs/design/election.md),
+  not through a leader of leaders.
 * **Leaders court the larger** (:func:`courted`): a leader's periodic Heartbeat also
   goes (one more addressee in the same frame) to every other leader it heard within
   one leader timeout that would absorb it (at most COURT_MAX, the largest known first:

@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-Keys (the paper's topics, DESIGN.md section 4):
+Keys (the paper's topics, docs/design/messages.md):
 
 ==========================  ==============================================
 ``swarm/advertize``         Advertize: an agent announces name and id

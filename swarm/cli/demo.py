@@ -492,7 +492,7 @@ class _Demo:
         station = self.station
         assert station is not None
         self.wait_for(
-            lambda: all((station.agent(k) or {}).get("connected") for k in range(1, n + 1)),
+            lambda: all((a := station.agent(k)) is not None and a["connected"] for k in range(1, n + 1)),
             "every agent to connect to the demo's station",
             60,
         )

@@ -41,7 +41,7 @@ import urllib.error
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from radios.ports import free_port
 from swarm.cli.procs import Child, start_emulator
@@ -242,6 +242,7 @@ def state_cost(agents: list[dict[str, Any]], n: int, key: bytes | None = b"k" * 
     import random
 
     from swarm.core.station.federation import KIND_STATE, TRAIL_SENT, fed_key, seal, thin
+    from swarm.core.station.rows import StationState
 
     rng = random.Random(16)
     made = []
@@ -260,7 +261,8 @@ def state_cost(agents: list[dict[str, Any]], n: int, key: bytes | None = b"k" * 
         {"leader": k + 1, "members": list(range(k + 1, min(n, k + 10) + 1)), "colour": k // 10, "net": "c0"}
         for k in range(0, n, 10)
     ]
-    body = {"agents": made, "events": [], "swarms": swarms, "alerts": []}
+    # a made-up state in the shape a station publishes
+    body = cast(StationState, {"agents": made, "events": [], "swarms": swarms, "alerts": []})
     fkey = fed_key(key) if key else None
     t0 = time.perf_counter()
     text = json.dumps(thin(body, TRAIL_SENT), separators=(",", ":")).encode()

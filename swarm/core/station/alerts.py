@@ -44,6 +44,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from swarm.core.station.rows import AlertRow
+
 LEVELS = ("warning", "critical")
 KINDS = ("battery", "link", "vehicle_link", "statustext", "command", "separation")
 
@@ -134,7 +136,7 @@ class Alert:
     acked: bool = False
     count: int = 1
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> AlertRow:
         return {
             "id": self.id,
             "kind": self.kind,
@@ -204,7 +206,7 @@ class AlertBook:
             a.acked = True
         return a
 
-    def as_list(self, acked: int = 10) -> list[dict[str, Any]]:
+    def as_list(self, acked: int = 10) -> list[AlertRow]:
         """Every unacknowledged alert and the last ``acked`` acknowledged ones, oldest
         first (what a page needs, without resending what is settled at every push)."""
         done = [i for i, a in self.alerts.items() if a.acked]

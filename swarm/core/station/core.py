@@ -76,6 +76,7 @@ from swarm.core.station.commands import (
 from swarm.core.station.delivery import CommandDelivery
 from swarm.core.station.model import AgentView, Event, StationConfig, StationCounters, StOut, has_position
 from swarm.core.station.plan import PlanBook
+from swarm.core.station.rows import AlertRow, RadioRow, Snapshot, StationInfo
 from swarm.core.station.swarms import SwarmBook
 from swarm.core.station.watch import AlertWatch
 from swarm.core.wire.codes import (
@@ -245,7 +246,7 @@ class StationCore:
         """The station radio's RADIO_STATUS (accepted at ``now``): its margins go in the state."""
         self._radio = (now, rssi, noise, remrssi, remnoise)
 
-    def radio_dict(self, now: float) -> dict[str, int] | None:
+    def radio_dict(self, now: float) -> RadioRow | None:
         """The station radio's RSSI, noise and margins (RSSI - noise, SiK units: about 1.9
         per dB), local and remote; None without a report in the last 5 s."""
         if self._radio is None or now - self._radio[0] > RADIO_STALE_S:
@@ -365,8 +366,8 @@ class StationCore:
                     self._plan_command(None)
         return done
 
-    def ack_alert(self, alert_id: Any) -> dict[str, Any]:
-        """Acknowledge alert ``alert_id``: its dict.
+    def ack_alert(self, alert_id: Any) -> AlertRow:
+        """Acknowledge alert ``alert_id``: its row.
 
         Raises:
             CommandRefused: 400 not an alert id (an integer), 404 no such alert.
@@ -379,7 +380,7 @@ class StationCore:
             raise CommandRefused(404, f"no alert {shown}")
         return a.as_dict()
 
-    def snapshot(self, now: float) -> dict[str, Any]:
+    def snapshot(self, now: float) -> Snapshot:
         """The API's state object (without the station's link description)."""
         return {
             "time": round(now + self.wall_offset, 3),
@@ -393,7 +394,7 @@ class StationCore:
             **self.swarms.state(self.plan),  # swarms, swarm_tasks, swarm_slots
         }
 
-    def snapshot_json(self, now: float, station: dict[str, Any]) -> str:
+    def snapshot_json(self, now: float, station: StationInfo) -> str:
         """``json.dumps`` of :meth:`snapshot` with ``station`` added, built faster."""
         head = json.dumps({"time": round(now + self.wall_offset, 3), "leader": self.leader})
         agents = ", ".join(self.agents[i].as_json(now) for i in sorted(self.agents))

@@ -43,6 +43,7 @@ Pure: no I/O, no clock. The WebSocket's sequence numbers and resyncs are
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 #: the state's list-valued top-level fields that travel as their own edits
@@ -115,7 +116,7 @@ def _count(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
-def build(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+def build(old: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, Any]:
     """The delta from ``old`` to ``new`` (two states as the station's snapshot gives them)."""
     d: dict[str, Any] = {}
     _fields(old, new, (AGENTS, EVENTS), d, "set")
@@ -141,7 +142,7 @@ def build(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
 
 
 def _fields(
-    old: dict[str, Any], new: dict[str, Any], skip: tuple[str, ...], d: dict[str, Any], key: str
+    old: Mapping[str, Any], new: Mapping[str, Any], skip: tuple[str, ...], d: dict[str, Any], key: str
 ) -> None:
     changed = {k: v for k, v in new.items() if k not in skip and (k not in old or not same(old[k], v))}
     if changed:
@@ -151,7 +152,7 @@ def _fields(
         d["unset"] = gone
 
 
-def agent_patch(old: dict[str, Any] | None, new: dict[str, Any]) -> dict[str, Any] | None:
+def agent_patch(old: Mapping[str, Any] | None, new: Mapping[str, Any]) -> dict[str, Any] | None:
     """One agent's patch (None: unchanged); ``old`` None: a new agent, every field."""
     p: dict[str, Any] = {}
     base = old if old is not None else {}

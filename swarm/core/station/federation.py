@@ -68,6 +68,7 @@ from swarm.core.flight.geofence import Geofence
 from swarm.core.station.alerts import KINDS as ALERT_KINDS
 from swarm.core.station.alerts import LEVELS as ALERT_LEVELS
 from swarm.core.station.commands import CommandRefused, CommandSpec
+from swarm.core.station.rows import AgentRow, AlertRow, EventRow, StationState, SwarmRow
 from swarm.core.wire.message_types import NAME_RE, CommandKind
 from swarm.errors import SwarmError
 
@@ -330,13 +331,6 @@ def load_body(body: bytes) -> Any:
 
 # -- what a state may carry -------------------------------------------------------------
 
-_NUM_FIELDS = (
-    "last_seen_s", "hb_s", "lat", "lon", "alt", "home_alt", "heading", "groundspeed",
-    "battery", "rssi", "remrssi", "loss_pct",
-)  # fmt: skip
-_BOOL_FIELDS = ("connected", "armed", "airborne", "holding", "vehicle_link", "locked")
-_TEXT_FIELDS = ("mode", "phase")
-
 
 def _num(v: Any) -> float | int | None:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -369,7 +363,11 @@ def _point(v: Any) -> list[float] | None:
     return None
 
 
-def clean_agent(d: Any) -> dict[str, Any]:
+def _bool(v: Any) -> bool | None:
+    return v if isinstance(v, bool) else None
+
+
+def clean_agent(d: Any) -> AgentRow:
     """A remote agent re-built from the fields a station sends, each of its type.
 
     Raises:
@@ -382,34 +380,51 @@ def clean_agent(d: Any) -> dict[str, Any]:
         raise FederationRefused("malformed: an agent id is 1..250")
     if not isinstance(name, str) or not NAME_RE.match(name):
         raise FederationRefused(f"malformed: agent {aid}'s name")
-    out: dict[str, Any] = {"id": aid, "name": name}
-    for k in _NUM_FIELDS:
-        out[k] = _num(d.get(k))
-    for k in _BOOL_FIELDS:
-        v = d.get(k)
-        out[k] = v if isinstance(v, bool) else None
-    for k in _TEXT_FIELDS:
-        out[k] = text(d.get(k), 32)
-    out["connected"] = out["connected"] is True
-    out["locked"] = out["locked"] is True
+    battery, rssi, remrssi = (_int(d.get(k), -(10**15), 10**15) for k in ("battery", "rssi", "remrssi"))
     leader = d.get("leader")
-    out["leader"] = (
-        leader if isinstance(leader, int) and not isinstance(leader, bool) and 0 <= leader <= 250 else 0
-    )
-    out["pool"], out["members"] = _ids(d.get("pool")), _ids(d.get("members"))
+    if isinstance(leader, bool) or not isinstance(leader, int) or not 0 <= leader <= 250:
+        leader = 0
     trail = d.get("trail")
     pts = [_point(p) for p in trail[-MAX_TRAIL:]] if isinstance(trail, list) else []
-    out["trail"] = [p for p in pts if p is not None]
+    net = d.get("net")
+    out: AgentRow = {
+        "id": aid,
+        "name": name,
+        "connected": d.get("connected") is True,
+        "last_seen_s": _num(d.get("last_seen_s")),
+        "hb_s": _num(d.get("hb_s")),
+        "lat": _num(d.get("lat")),
+        "lon": _num(d.get("lon")),
+        "alt": _num(d.get("alt")),
+        "home_alt": _num(d.get("home_alt")),
+        "heading": _num(d.get("heading")),
+        "groundspeed": _num(d.get("groundspeed")),
+        "mode": text(d.get("mode"), 32),
+        "armed": _bool(d.get("armed")),
+        "airborne": _bool(d.get("airborne")),
+        "holding": _bool(d.get("holding")),
+        "control_lost": _bool(d.get("control_lost")),
+        "vehicle_link": _bool(d.get("vehicle_link")),
+        "battery": battery,
+        "rssi": rssi,
+        "remrssi": remrssi,
+        "loss_pct": _num(d.get("loss_pct")),
+        "phase": text(d.get("phase"), 32),
+        "leader": leader,
+        "pool": _ids(d.get("pool")),
+        "members": _ids(d.get("members")),
+        "locked": d.get("locked") is True,
+        "trail": [p for p in pts if p is not None],
+        "net": net if isinstance(net, str) and NAME_RE.match(net) else None,
+    }
     home = _point(d.get("home"))
     if home is not None:
         out["home"] = home
-    net = d.get("net")
-    out["net"] = net if isinstance(net, str) and NAME_RE.match(net) else None
     return out
 
 
-def clean_events(v: Any) -> list[dict[str, Any]]:
-    out = []
+def clean_events(v: Any) -> list[EventRow]:
+    out: list[EventRow] = []
     for e in v[-MAX_EVENTS:] if isinstance(v, list) else []:
         if isinstance(e, dict) and _num(e.get("t")) is not None:
             out.append(
@@ -418,14 +433,14 @@ def clean_events(v: Any) -> list[dict[str, Any]]:
     return out
 
 
-def clean_swarms(v: Any) -> list[dict[str, Any]]:
+def clean_swarms(v: Any) -> list[SwarmRow]:
     """The ``swarms`` list (each ``{leader, members, ...}``) with its ids checked."""
-    out = []
+    out: list[SwarmRow] = []
     for s in v[:MAX_AGENTS] if isinstance(v, list) else []:
         if isinstance(s, dict) and _ids([s.get("leader")]):
             net = s.get("net")
             net = net if isinstance(net, str) and NAME_RE.match(net) else None
-            d = {"leader": s["leader"], "members": _ids(s.get("members")), "net": net}
+            d: SwarmRow = {"leader": s["leader"], "members": _ids(s.get("members")), "net": net}
             colour = s.get("colour")  # the page's palette index (issue 16's groups)
             if isinstance(colour, int) and not isinstance(colour, bool) and 0 <= colour < 10_000:
                 d["colour"] = colour
@@ -437,7 +452,7 @@ def _int(v: Any, lo: int, hi: int) -> int | None:
     return v if isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi else None
 
 
-def clean_alert(a: Any) -> dict[str, Any] | None:
+def clean_alert(a: Any) -> AlertRow | None:
     """One remote alert re-built from the fields a station's alerts have
     (:meth:`swarm.core.station.alerts.Alert.as_dict`, with ``net``), each of its type;
     None (dropped) without an ``id`` (0..2**53), a ``raised`` time or a ``text``."""
@@ -461,10 +476,10 @@ def clean_alert(a: Any) -> dict[str, Any] | None:
     }
 
 
-def clean_alerts(v: Any) -> list[dict[str, Any]]:
+def clean_alerts(v: Any) -> list[AlertRow]:
     """The ``alerts`` list: the last :data:`MAX_ALERTS` of those :func:`clean_alert`
     keeps, one per id (the last)."""
-    out: dict[int, dict[str, Any]] = {}
+    out: dict[int, AlertRow] = {}
     for a in v[-MAX_ALERTS:] if isinstance(v, list) else []:
         c = clean_alert(a)
         if c is not None:
@@ -473,7 +488,7 @@ def clean_alerts(v: Any) -> list[dict[str, Any]]:
     return list(out.values())
 
 
-def clean_state(body: Any) -> dict[str, Any]:
+def clean_state(body: Any) -> StationState:
     """A remote station's state: ``agents`` (each :func:`clean_agent`, ids unique),
     ``events``, ``swarms``, ``alerts``. Raises FederationRefused (the whole state is
     dropped)."""
@@ -481,7 +496,7 @@ def clean_state(body: Any) -> dict[str, Any]:
         raise FederationRefused("malformed: a state is an object with 'agents'")
     if len(body["agents"]) > MAX_AGENTS:
         raise FederationRefused(f"too large: more than {MAX_AGENTS} agents")
-    agents: dict[int, dict[str, Any]] = {}
+    agents: dict[int, AgentRow] = {}
     for d in body["agents"]:
         a = clean_agent(d)
         agents[a["id"]] = a
@@ -493,11 +508,11 @@ def clean_state(body: Any) -> dict[str, Any]:
     }
 
 
-def thin(body: dict[str, Any], points: int = 10) -> dict[str, Any]:
+def thin(body: StationState, points: int = 10) -> StationState:
     """``body`` (a state to publish) with each agent's trail cut to its last ``points``:
     every state is sent with :data:`TRAIL_SENT`, and one still too large for
     :data:`MAX_ENVELOPE` with 10 rather than refused."""
-    agents = [{**a, "trail": a.get("trail", [])[-points:]} for a in body.get("agents", [])]
+    agents: list[AgentRow] = [{**a, "trail": a.get("trail", [])[-points:]} for a in body.get("agents", [])]
     return {**body, "agents": agents}
 
 
@@ -519,7 +534,7 @@ def spec_body(spec: CommandSpec) -> dict[str, Any]:
     return body
 
 
-def check_remote(spec: CommandSpec, fence: Geofence, agent: dict[str, Any] | None) -> CommandSpec:
+def check_remote(spec: CommandSpec, fence: Geofence, agent: AgentRow | None) -> CommandSpec:
     """``spec`` for another station's ``agent`` (its cleaned dict; None: the swarm)
     inside this station's geofence, an ``alt_amsl`` made metres above the home that
     station reported.
@@ -536,11 +551,12 @@ def check_remote(spec: CommandSpec, fence: Geofence, agent: dict[str, Any] | Non
         why = fence.alt_refusal(spec.alt) or (None if spec.alt >= 1.0 else "a take-off climbs 1 m at least")
     elif spec.kind in (CommandKind.GOTO, CommandKind.WAYPOINT) and agent is not None:
         if spec.alt_amsl is not None:
-            if agent.get("home_alt") is None:
+            home_alt = agent.get("home_alt")
+            if home_alt is None:
                 raise CommandRefused(
                     409, f"{agent['name']}'s home is unknown here: give 'alt' (metres above home)"
                 )
-            spec = replace(spec, alt=round(spec.alt_amsl - agent["home_alt"], 1), alt_amsl=None)
+            spec = replace(spec, alt=round(spec.alt_amsl - home_alt, 1), alt_amsl=None)
         home = agent.get("home")
         why = fence.refusal(spec.lat, spec.lon, spec.alt, None if home is None else (home[0], home[1]))
     if why is not None:

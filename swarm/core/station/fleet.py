@@ -26,10 +26,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
-#: one row of a station's snapshot (an agent, a swarm, an event, an alert)
-Row = dict[str, Any]
+from swarm.core.station.rows import AgentRow, AlertRow, EventRow, Snapshot, StationState, SwarmRow
 
 
 @dataclass
@@ -37,39 +35,40 @@ class Merged:
     """Agents, events, swarms and alerts of several channels or stations, and the
     collisions found on the way (one line each)."""
 
-    agents: list[Row] = field(default_factory=list)
-    events: list[Row] = field(default_factory=list)
-    swarms: list[Row] = field(default_factory=list)
-    alerts: list[Row] = field(default_factory=list)
+    agents: list[AgentRow] = field(default_factory=list)
+    events: list[EventRow] = field(default_factory=list)
+    swarms: list[SwarmRow] = field(default_factory=list)
+    alerts: list[AlertRow] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
-    def as_state(self) -> dict[str, list[Row]]:
+    def as_state(self) -> StationState:
         """What a station publishes to the others (the notes stay here)."""
         return {"agents": self.agents, "events": self.events, "swarms": self.swarms, "alerts": self.alerts}
 
 
-def channel_swarms(snap: Row, net: str, station: str, index: tuple[int, int]) -> list[Row]:
+def channel_swarms(snap: Snapshot, net: str, station: str, index: tuple[int, int]) -> list[SwarmRow]:
     """A channel's swarms: its core's own list (a ``colour`` made unique across the
     ``index[1]`` channels, as alert ids are), or one per leader its agents name."""
     if isinstance(snap.get("swarms"), list):
         i, n = index
-        out = [{**s, "net": net, "station": station} for s in snap["swarms"]]
+        out: list[SwarmRow] = [{**s, "net": net, "station": station} for s in snap["swarms"]]
         for s in out:
-            if isinstance(s.get("colour"), int):
-                s["colour"] = s["colour"] * n + i
+            c = s.get("colour")
+            if isinstance(c, int):
+                s["colour"] = c * n + i
         return out
     lead = [a["leader"] for a in snap["agents"] if a.get("leader")]
-    swarms: list[Row] = []
+    swarms: list[SwarmRow] = []
     for leader in sorted(set(lead)):
         members = sorted(a["id"] for a in snap["agents"] if a.get("leader") == leader)
         swarms.append({"leader": leader, "members": members, "net": net, "station": station})
     return swarms
 
 
-def merge_channels(station: str, channels: Sequence[tuple[str, Row]]) -> Merged:
+def merge_channels(station: str, channels: Sequence[tuple[str, Snapshot]]) -> Merged:
     """This station's channels (``(net, snapshot)`` in order) as one state."""
     out = Merged()
-    held: dict[int, Row] = {}
+    held: dict[int, AgentRow] = {}
     n = len(channels)
     for i, (net, snap) in enumerate(channels):
         for a in snap["agents"]:
@@ -84,7 +83,7 @@ def merge_channels(station: str, channels: Sequence[tuple[str, Row]]) -> Merged:
     return out
 
 
-def merge_stations(held: set[int], remotes: Sequence[tuple[str, bool, Row]]) -> Merged:
+def merge_stations(held: set[int], remotes: Sequence[tuple[str, bool, StationState]]) -> Merged:
     """The other stations' states (``(name, alive, state)``) beside the agent ids
     ``held`` here, each row tagged with its ``station``. ``held`` is left alone."""
     out = Merged()
@@ -95,7 +94,7 @@ def merge_stations(held: set[int], remotes: Sequence[tuple[str, bool, Row]]) -> 
                 out.notes.append(f"agent id {a['id']} of station {name} is also held here: hidden")
                 continue
             seen.add(a["id"])
-            row = {**a, "station": name, "station_alive": alive}
+            row: AgentRow = {**a, "station": name, "station_alive": alive}
             if not alive:
                 row["connected"] = False
             out.agents.append(row)
@@ -106,4 +105,4 @@ def merge_stations(held: set[int], remotes: Sequence[tuple[str, bool, Row]]) -> 
     return out
 
 
-__all__ = ["Merged", "Row", "channel_swarms", "merge_channels", "merge_stations"]
+__all__ = ["Merged", "channel_swarms", "merge_channels", "merge_stations"]

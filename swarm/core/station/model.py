@@ -21,10 +21,10 @@ import json
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
 
 from swarm.core.flight.geofence import Geofence
 from swarm.core.station.alerts import AlertConfig, LinkHealth
+from swarm.core.station.rows import AgentRow, EventRow
 from swarm.core.wire.message_types import Message, Phase, Pose
 
 
@@ -98,7 +98,7 @@ class Event:
     kind: str  # connect | disconnect | leader | command | info
     text: str
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> EventRow:
         return {"t": round(self.t, 3), "kind": self.kind, "text": self.text}
 
 
@@ -146,7 +146,7 @@ class AgentView:
     #: home]...], its go-to target last; None without one
     route: list[list[float]] | None = None
 
-    def as_dict(self, now: float) -> dict[str, Any]:
+    def as_dict(self, now: float) -> AgentRow:
         d = self._fields(now)
         d["trail"] = [[p[1], p[2]] for p in self.trail]
         return d
@@ -157,7 +157,7 @@ class AgentView:
             json.dumps(self._fields(now))[:-1] + ', "trail": [' + ", ".join(p[3] for p in self.trail) + "]}"
         )
 
-    def _fields(self, now: float) -> dict[str, Any]:
+    def _fields(self, now: float) -> AgentRow:
         d = self._base_fields(now)
         # the plan's fields only when known: 50 agents' nulls would weigh on every full state
         if self.home:
@@ -166,7 +166,7 @@ class AgentView:
             d["route"] = self.route
         return d
 
-    def _base_fields(self, now: float) -> dict[str, Any]:
+    def _base_fields(self, now: float) -> AgentRow:
         p = self.pose
         return {
             "id": self.id,

@@ -30,8 +30,8 @@ Pure: no I/O, no clock.
 from __future__ import annotations
 
 import math
-from typing import Any
 
+from swarm.core.station.rows import TaskRow
 from swarm.core.wire.message_types import Command, CommandKind, Heartbeat, Task, TaskKind
 
 #: a route keeps at most this many points (the newest)
@@ -115,7 +115,7 @@ class PlanBook:
     def forget(self, agent: int) -> None:
         self.tasks.pop(agent, None)
 
-    def task_dict(self, leader: int) -> dict[str, Any] | None:
+    def task_dict(self, leader: int) -> TaskRow | None:
         """The leader's FOLLOW task (heading in 0.5 degree steps, distances in metres); None otherwise."""
         t = self.tasks.get(leader)
         if t is None or t.kind != TaskKind.FOLLOW:

@@ -51,9 +51,10 @@ import hashlib
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 from swarm.core.station.commands import CommandRefused, CommandSpec
+from swarm.core.station.rows import SwarmRow, SwarmsPart, TaskRow
 from swarm.core.wire.message_types import CommandKind, Heartbeat, Phase
 
 
@@ -69,7 +70,7 @@ class _Agent(Protocol):
 class _Plan(Protocol):
     """The plan's per-leader task (:class:`swarm.core.station.plan.PlanBook`)."""
 
-    def task_dict(self, leader: int) -> dict[str, Any] | None: ...
+    def task_dict(self, leader: int) -> TaskRow | None: ...
 
     def slots_list(self, leader: int) -> list[list[int]] | None: ...
 
@@ -160,22 +161,23 @@ class SwarmBook:
                 best = max(best, (n, lead == self.leader, lead))
         return best[2]
 
-    def as_list(self) -> list[dict[str, Any]]:
+    def as_list(self) -> list[SwarmRow]:
         """The state's ``swarms``: one entry per leader, by leader id."""
         return [
             {"leader": lead, "members": sorted(self.members[lead]), "colour": self.colours[lead]}
             for lead in sorted(self.members)
         ]
 
-    def state(self, plan: _Plan) -> dict[str, Any]:
+    def state(self, plan: _Plan) -> SwarmsPart:
         """The state's ``swarms``, ``swarm_tasks`` and ``swarm_slots``."""
         tasks, slots = self.plans(plan)
         return {"swarms": self.as_list(), "swarm_tasks": tasks, "swarm_slots": slots}
 
-    def plans(self, plan: _Plan) -> tuple[dict[str, Any], dict[str, Any]]:
+    def plans(self, plan: _Plan) -> tuple[dict[str, TaskRow], dict[str, list[list[int]] | None]]:
         """The state's ``swarm_tasks`` and ``swarm_slots``: the FOLLOW task and slots of
         each swarm but the leader's (those are ``task`` and ``slots``), by leader id as text."""
-        tasks, slots = {}, {}
+        tasks: dict[str, TaskRow] = {}
+        slots: dict[str, list[list[int]] | None] = {}
         for lead in sorted(self.members):
             t = plan.task_dict(lead) if lead != self.leader else None
             if t is not None:
@@ -210,17 +212,17 @@ def _station_hue(station: str) -> int:
     return hashlib.sha256(station.encode()).digest()[0] % PALETTE
 
 
-def fleet_colours(swarms: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def fleet_colours(swarms: list[SwarmRow]) -> list[SwarmRow]:
     """``swarms`` (each with ``station``, ``leader`` and the station's own ``colour``,
     or none) with ``colour`` made one per swarm on the merged view (module docstring);
     the station's own is kept as ``station_colour``. Pure: the same list, the same
     colours, on every page."""
 
-    def own(s: dict[str, Any]) -> int:
+    def own(s: SwarmRow) -> int:
         c = s.get("colour")
         return c if isinstance(c, int) and not isinstance(c, bool) and c >= 0 else int(s["leader"])
 
-    out = [{**s, "station_colour": s.get("colour")} for s in swarms]
+    out: list[SwarmRow] = [{**s, "station_colour": s.get("colour")} for s in swarms]
     taken: set[int] = set()
     for s in sorted(out, key=lambda s: (own(s), str(s.get("station", "")), s["leader"])):
         pref = (_station_hue(str(s.get("station", ""))) + own(s)) % PALETTE

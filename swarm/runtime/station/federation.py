@@ -79,6 +79,7 @@ from swarm.core.station.federation import (
     state_key,
     thin,
 )
+from swarm.core.station.rows import StationState
 from swarm.runtime.keyspace.transport import open_session
 
 if TYPE_CHECKING:
@@ -100,7 +101,7 @@ class Remote:
     """Another station as last heard: its cleaned state and when (``clock``)."""
 
     name: str
-    state: dict[str, Any]
+    state: StationState
     heard: float
     instance: int
 
@@ -124,7 +125,7 @@ class Federation:
         tls: TlsFiles | None = None,
         acl: str | None = None,
         accept_unsigned_commands: bool = False,
-        local: Callable[[], dict[str, Any]],
+        local: Callable[[], StationState],
         run_local: Callable[[Any], Future[Result]],
         on_event: Callable[[str, str], None] = lambda kind, text: None,
         period: float = 0.5,

@@ -42,7 +42,7 @@ import json
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import Future
 from typing import Any
 
@@ -51,10 +51,12 @@ from swarm.core.station.commands import CommandRefused, CommandSpec, parse_comma
 from swarm.core.station.federation import check_remote, spec_body, text
 from swarm.core.station.fleet import Merged, merge_channels, merge_stations
 from swarm.core.station.model import Event
+from swarm.core.station.rows import AgentRow, AlertAck, AlertRow, EventRow, Snapshot, StationRow, StationState
 from swarm.core.station.swarms import fleet_colours
 from swarm.core.wire.message_types import CommandKind
 from swarm.runtime.station.federation import Federation, Result
 from swarm.runtime.station.live import Station
+from swarm.runtime.station.served import Listener
 
 MAX_EVENTS = 200
 MAX_NOTES = 1000  # the fleet's own events (collisions) it says at most, each once
@@ -78,9 +80,9 @@ class Fleet:
         self.fence = fence
         self.federation: Federation | None = None
         self._lock = threading.Lock()
-        self._listeners: dict[Callable[[dict[str, Any]], None], list[Callable[[dict[str, Any]], None]]] = {}
+        self._listeners: dict[Listener, list[Listener]] = {}
         self._noted: set[str] = set()
-        self._own_events: deque[dict[str, Any]] = deque(maxlen=MAX_EVENTS)
+        self._own_events: deque[EventRow] = deque(maxlen=MAX_EVENTS)
 
     # -- life cycle ---------------------------------------------------------------------
     def start(self) -> Fleet:
@@ -140,7 +142,7 @@ class Fleet:
         for fn in listeners:
             fn(ev)
 
-    def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+    def add_listener(self, fn: Listener) -> None:
         wrappers = [fn]
         for net, st in self.channels:
             w = self._tagged(fn, net)
@@ -149,24 +151,24 @@ class Fleet:
         with self._lock:
             self._listeners[fn] = wrappers
 
-    def remove_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+    def remove_listener(self, fn: Listener) -> None:
         with self._lock:
             wrappers = self._listeners.pop(fn, [fn])
         for (_net, st), w in zip(self.channels, wrappers[1:], strict=False):
             st.remove_listener(w)
 
-    def _tagged(self, fn: Callable[[dict[str, Any]], None], net: str) -> Callable[[dict[str, Any]], None]:
+    def _tagged(self, fn: Listener, net: str) -> Listener:
         return lambda ev: fn({**ev, "net": net, "station": self.name})
 
     # -- the view -------------------------------------------------------------------------
-    def local_state(self, snaps: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    def local_state(self, snaps: list[Snapshot] | None = None) -> StationState:
         """This station's channels only (their ``snaps``, taken now if not given): what
         it publishes to the others."""
         if snaps is None:
             snaps = [st.snapshot() for _net, st in self.channels]
         return self._merged_channels(snaps).as_state()
 
-    def _merged_channels(self, snaps: list[dict[str, Any]]) -> Merged:
+    def _merged_channels(self, snaps: list[Snapshot]) -> Merged:
         merged = merge_channels(
             self.name, [(net, s) for (net, _st), s in zip(self.channels, snaps, strict=True)]
         )
@@ -183,7 +185,7 @@ class Fleet:
             self.note("federation", line)
         return merged
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self) -> Snapshot:
         snaps = [st.snapshot() for _net, st in self.channels]
         first = snaps[0]
         mine = self._merged_channels(snaps)
@@ -191,19 +193,20 @@ class Fleet:
         with self._lock:
             own = list(self._own_events)
         all_events = sorted(mine.events + other.events + own, key=lambda e: e["t"])[-MAX_EVENTS:]
-        first.update(
-            agents=sorted(mine.agents + other.agents, key=lambda a: a["id"]),
-            events=all_events,
-            alerts=[{**al, "station": self.name} for al in mine.alerts] + other.alerts,
-            swarms=fleet_colours(mine.swarms + other.swarms),
-            nets=[{"name": net, "station": self.name, "link": st.describe()} for net, st in self.channels],
-            stations=self._stations(),
-            station={"name": self.name, "id": self.id, "link": self.describe()},
-        )
+        first["agents"] = sorted(mine.agents + other.agents, key=lambda a: a["id"])
+        first["events"] = all_events
+        alerts: list[AlertRow] = [{**al, "station": self.name} for al in mine.alerts]
+        first["alerts"] = alerts + other.alerts
+        first["swarms"] = fleet_colours(mine.swarms + other.swarms)
+        first["nets"] = [
+            {"name": net, "station": self.name, "link": st.describe()} for net, st in self.channels
+        ]
+        first["stations"] = self._stations()
+        first["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
         return first
 
-    def _stations(self) -> list[dict[str, Any]]:
-        out = [{"name": self.name, "alive": True, "here": True}]
+    def _stations(self) -> list[StationRow]:
+        out: list[StationRow] = [{"name": self.name, "alive": True, "here": True}]
         if self.federation is not None:
             out += [{"name": r.name, "alive": alive, "here": False} for r, alive in self.federation.remotes()]
         return out
@@ -211,19 +214,20 @@ class Fleet:
     def snapshot_json(self) -> str:
         return json.dumps(self.snapshot())
 
-    def agent(self, agent_id: int) -> dict[str, Any] | None:
+    def agent(self, agent_id: int) -> AgentRow | None:
         for a in self.snapshot()["agents"]:
             if a["id"] == agent_id:
-                return dict(a)
+                return a.copy()
         return None
 
     def center(self) -> list[float] | None:
         for a in self.snapshot()["agents"]:
-            if a.get("lat") is not None:
-                return [a["lat"], a["lon"]]
+            lat, lon = a["lat"], a["lon"]
+            if lat is not None and lon is not None:
+                return [lat, lon]
         return None
 
-    def ack_alert(self, alert_id: Any) -> dict[str, Any]:
+    def ack_alert(self, alert_id: Any) -> AlertRow:
         if isinstance(alert_id, bool) or not isinstance(alert_id, int) or alert_id < 0:
             raise CommandRefused(400, "an alert id is an integer")
         n = len(self.channels)
@@ -231,7 +235,7 @@ class Fleet:
         out = st.ack_alert(alert_id // n)
         return {**out, "id": alert_id, "net": net}
 
-    def ack_remote_alert(self, alert_id: Any, station: str) -> dict[str, Any]:
+    def ack_remote_alert(self, alert_id: Any, station: str) -> AlertAck:
         """Acknowledge alert ``alert_id`` of another ``station`` there (not awaited).
 
         Raises:
@@ -251,7 +255,8 @@ class Fleet:
                 raise CommandRefused(409, f"station {station} is gone: acknowledge it there")
             assert fed is not None
             self._ack_there(fed, station, alert_id, 1)
-            return {**alert, "station": station, "acked": True, "forwarded": True}
+            ack: AlertAck = {**alert, "station": station, "acked": True, "forwarded": True}
+            return ack
         raise CommandRefused(404, f"no station {text(station, 32)!r} heard here")
 
     def _ack_there(self, fed: Federation, station: str, alert_id: int, attempt: int) -> None:

@@ -27,11 +27,13 @@ from typing import Any, cast
 from swarm.core.station.commands import CommandRefused, CommandSpec, outcome
 from swarm.core.station.core import StationCore
 from swarm.core.station.model import Event, StationConfig, StOut
+from swarm.core.station.rows import AgentRow, AlertRow, Snapshot, StationInfo
 from swarm.core.wire.message_types import GCS_ID, Command, GSAdvertize, Heartbeat, Message
 from swarm.runtime.keyspace.transport import command_key, inbox_key
 from swarm.runtime.loop import EventLoop
 from swarm.runtime.node_io import NodeIO, StartOnce, open_node_io
 from swarm.runtime.options import NodeOptions
+from swarm.runtime.station.served import Listener
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +58,7 @@ class CoreStation:
     def describe(self) -> str:
         raise NotImplementedError
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self) -> Snapshot:
         with self._lock:
             body = self.core.snapshot(self._now())
         body["station"] = {"name": self.name, "id": self.id, "link": self.describe()}
@@ -64,16 +66,16 @@ class CoreStation:
 
     def snapshot_json(self) -> str:
         """:meth:`snapshot` as JSON text (what the server sends)."""
-        station = {"name": self.name, "id": self.id, "link": self.describe()}
+        station: StationInfo = {"name": self.name, "id": self.id, "link": self.describe()}
         with self._lock:
             return self.core.snapshot_json(self._now(), station)
 
-    def agent(self, agent_id: int) -> dict[str, Any] | None:
+    def agent(self, agent_id: int) -> AgentRow | None:
         with self._lock:
             a = self.core.agents.get(agent_id)
             return a.as_dict(self._now()) if a is not None else None
 
-    def ack_alert(self, alert_id: Any) -> dict[str, Any]:
+    def ack_alert(self, alert_id: Any) -> AlertRow:
         """Acknowledge an alert (CommandRefused: 400 a bad id, 404 no such alert)."""
         with self._lock:
             return self.core.ack_alert(alert_id)
@@ -124,7 +126,7 @@ class Station(StartOnce, CoreStation):
         self.stats = {"send_errors": 0, "errors": 0}
         self._lock = threading.Lock()
         self._futures: dict[int, Future[tuple[int, dict[str, Any]]]] = {}
-        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        self._listeners: list[Listener] = []
         # ticks at the core's deadlines and at most every TICK_S otherwise: at hundreds
         # of messages a second, ticking after every batch cost more than the messages
         # (every timer is a second or more, so 50 ms is invisible)
@@ -250,12 +252,12 @@ class Station(StartOnce, CoreStation):
         self.loop.wake()  # its next deadline moved
         return fut
 
-    def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+    def add_listener(self, fn: Listener) -> None:
         """``fn(event_dict)`` for every new event (called on the station's thread)."""
         with self._lock:
             self._listeners.append(fn)
 
-    def remove_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+    def remove_listener(self, fn: Listener) -> None:
         with self._lock:
             if fn in self._listeners:
                 self._listeners.remove(fn)

@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from firmware_bridge.modes import autopilot_name, decode_mode
 from radios.errors import FrameError
@@ -47,12 +47,14 @@ from radios.tlog import read_tlog
 from swarm.core.station.commands import CommandRefused, CommandSpec
 from swarm.core.station.core import StationCore
 from swarm.core.station.model import StationConfig
+from swarm.core.station.rows import CapturedRadio, EventRow, ReplayStatus
 from swarm.core.wire.codes import is_station
 from swarm.core.wire.message_types import Advertize, GSAdvertize, Message, Pose, check_name
 from swarm.core.wire.messages import decode as decode_msg
 from swarm.core.wire.tunnel import COMP_ID, Kind, unpack_tunnel
 from swarm.errors import DecodeError
 from swarm.runtime.station.live import CoreStation
+from swarm.runtime.station.served import Listener
 
 log = logging.getLogger(__name__)
 
@@ -226,12 +228,12 @@ class ReplayStation(CoreStation):
         self.playing = playing
         self.position = 0.0
         self.seeks = 0
-        self.radio: dict[str, Any] | None = None  # the station radio's last RADIO_STATUS
+        self.radio: CapturedRadio | None = None  # the station radio's last RADIO_STATUS
         self.core = self._new_core()
         self._index = 0
         self._last = clock()
         self._lock = threading.RLock()
-        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+        self._listeners: list[Listener] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._advance(0.0, announce=False)
@@ -302,13 +304,13 @@ class ReplayStation(CoreStation):
         elif it.op == "pose":
             core.observe_pose(it.agent, it.arg, it.t)
         elif it.op == "radio":
-            self.radio = {**it.arg, "t": round(it.t, 3)}
+            self.radio = cast(CapturedRadio, {**it.arg, "t": round(it.t, 3)})  # radio_status_fields
         elif it.op == "vehicle":
             mode, armed = it.arg
             core.observe_vehicle(it.agent, it.t, mode=mode, armed=armed)
 
     # -- controls ----------------------------------------------------------------------
-    def status(self) -> dict[str, Any]:
+    def status(self) -> ReplayStatus:
         with self._lock:
             return {
                 "playing": self.playing,
@@ -321,7 +323,7 @@ class ReplayStation(CoreStation):
                 "radio": self.radio,
             }
 
-    def control(self, action: Any, value: Any = None) -> dict[str, Any]:
+    def control(self, action: Any, value: Any = None) -> ReplayStatus:
         """play | pause | seek (value: seconds from the start) | speed (value: factor).
 
         Raises:
@@ -373,16 +375,16 @@ class ReplayStation(CoreStation):
     def submit(self, spec: CommandSpec) -> Future[tuple[int, dict[str, Any]]]:
         raise CommandRefused(409, "replay: commands are disabled while a capture plays")
 
-    def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+    def add_listener(self, fn: Listener) -> None:
         with self._lock:
             self._listeners.append(fn)
 
-    def remove_listener(self, fn: Callable[[dict[str, Any]], None]) -> None:
+    def remove_listener(self, fn: Listener) -> None:
         with self._lock:
             if fn in self._listeners:
                 self._listeners.remove(fn)
 
-    def _notify(self, events: list[dict[str, Any]]) -> None:
+    def _notify(self, events: list[EventRow]) -> None:
         for e in events:
             for fn in list(self._listeners):
                 try:

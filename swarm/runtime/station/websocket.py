@@ -57,6 +57,7 @@ from aiohttp import WSMsgType, web
 from swarm.core.station.commands import CommandRefused
 from swarm.core.station.delta import build
 from swarm.core.station.federation import ack_any
+from swarm.core.station.rows import EventRow, Snapshot
 from swarm.runtime.station.security import MAX_BODY, MAX_WS_FRAME, WS_PROTOCOL, parse_json, replay_args, ws_id
 
 if TYPE_CHECKING:
@@ -106,7 +107,7 @@ class WsHub:
         self._clients: dict[web.WebSocketResponse, _Client] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._seq = 0
-        self._base: dict[str, Any] | None = None  # the newest push's state
+        self._base: Snapshot | None = None  # the newest push's state
         self._base_text: str | None = None  # ... as a whole-state message, once needed
         self._replay_text: str | None = None  # the replay status sent with it
 
@@ -331,7 +332,7 @@ class WsHub:
             except Exception:
                 log.exception("gcs server: snapshot failed")
 
-    def on_event(self, event: dict[str, Any]) -> None:
+    def on_event(self, event: EventRow) -> None:
         """Station thread: hand the event to the loop."""
         loop = self._loop
         if loop is None:

@@ -24,7 +24,7 @@ from swarm.core.wire.message_types import (
     SyncPool,
     pool_digest,
 )
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.simulate import Scenario, Sim
 
 POSE = Pose(47.4, 8.5, 500.0)
@@ -302,13 +302,13 @@ def test_profiles_stretch_with_the_radio_round() -> None:
 @pytest.mark.parametrize("n", [2, 3, 5, 10, 20])
 def test_swarm_converges_for_n_agents(n: int) -> None:
     seeds = 2 if n >= 10 else 3
-    r = campaign(Scenario(agents=n, loss=0.1 if n > 2 else 0.0), seeds, 100)
+    r = sweep(Scenario(agents=n, loss=0.1 if n > 2 else 0.0), seeds, 100)
     assert r["violations"] == 0, r["failing"]
     assert r["converged"] == seeds
 
 
 def test_heavy_loss_with_bursts_still_converges() -> None:
-    r = campaign(Scenario(agents=5, loss=0.3, burst_loss="0.02,0.5"), 3, 200)
+    r = sweep(Scenario(agents=5, loss=0.3, burst_loss="0.02,0.5"), 3, 200)
     assert r["violations"] == 0, r["failing"]
     assert r["converged"] == 3
 
@@ -358,13 +358,13 @@ def test_a_seed_replays_exactly() -> None:
 
 def test_campaign_paper_n10_loss10_bounded() -> None:
     """The bounded version CI runs (the target campaign is 500 seeds, below)."""
-    r = campaign(Scenario(agents=10, loss=0.1), 60)
+    r = sweep(Scenario(agents=10, loss=0.1), 60)
     assert r["converged"] == 60 and r["violations"] == 0, r["failing"]
 
 
 @pytest.mark.slow
 def test_campaign_paper_n10_loss10_500_seeds() -> None:
-    r = campaign(Scenario(agents=10, loss=0.1), 500)
+    r = sweep(Scenario(agents=10, loss=0.1), 500)
     assert r["converged"] == 500 and r["violations"] == 0, r["failing"]
 
 

@@ -12,7 +12,7 @@ from swarm.cli.commands.bench import main as bench_main
 from swarm.cli.commands.simulate import main as simulate_main
 from swarm.core.wire.message_types import Phase
 from swarm.sim.channels import ChannelScenario, id_ranges, parse_place, pct_none, round_robin, run_channels
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.relay import RelaySim
 from swarm.sim.simulate import Scenario, Sim
 
@@ -67,7 +67,7 @@ def test_a_two_channel_run_converges_on_each_channel() -> None:
 def test_channel_one_of_a_seed_is_the_one_channel_run_of_that_seed() -> None:
     sc = Scenario(agents=6, loss=0.1)
     one = run_channels(ChannelScenario.make(sc, 1), 3, 4)
-    assert one["per_channel"][0]["elect_s"] == campaign(sc, 3, 4)["elect_s"]
+    assert one["per_channel"][0]["elect_s"] == sweep(sc, 3, 4)["elect_s"]
 
 
 def test_a_run_that_never_gets_there_counts_as_slower_than_any() -> None:

@@ -14,7 +14,7 @@ import pytest
 from net_helpers import live_processes, wait_until
 
 from swarm.cli.commands.simulate import main
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.simulate import Scenario
 
 pytestmark = pytest.mark.processes  # worker processes
@@ -44,7 +44,7 @@ def alive(pid: int) -> bool:
 
 def test_jobs_give_the_serial_figures() -> None:
     sc = Scenario(agents=6, loss=0.1, crashes=["leader@15"], duration=40)
-    assert campaign(sc, 6, 3, jobs=2) == campaign(sc, 6, 3, jobs=1)
+    assert sweep(sc, 6, 3, jobs=2) == sweep(sc, 6, 3, jobs=1)
 
 
 def test_cli_json_is_the_same_for_any_jobs() -> None:

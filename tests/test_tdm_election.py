@@ -20,7 +20,7 @@ from swarm.core.election.profiles import (
 from swarm.core.election.protocol import Core
 from swarm.core.wire.message_types import Phase, Selection, StartPool, StartPoolAck, SyncPool, pool_digest
 from swarm.sim.campaign import draw, run_campaign
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.simulate import Scenario, Sim
 
 ROUND = 1.0
@@ -205,7 +205,7 @@ def test_a_bounded_tdm_campaign_keeps_the_invariants() -> None:
 
 
 def test_the_rounds_figure_is_the_election_time_over_the_round() -> None:
-    res = campaign(Scenario(agents=5, loss=0.1, profile="tdm"), 4)
+    res = sweep(Scenario(agents=5, loss=0.1, profile="tdm"), 4)
     e, r, rounds = res["elect_s"], res["round_s"], res["election_rounds"]
     assert rounds["p50"] == pytest.approx(e["p50"] / r, abs=0.01)
     assert rounds["p95"] == pytest.approx(e["p95"] / r, abs=0.01)

@@ -174,7 +174,7 @@ def _stop(procs: list[BaseProcess]) -> None:
             p.join()
 
 
-def campaign(
+def sweep(
     sc: Scenario, seeds: int, seed0: int = 0, jobs: int = 1, on_done: Callable[[], None] = lambda: None
 ) -> dict[str, Any]:
     """Seeds ``seed0 ..`` run (over ``jobs`` processes) and summarised; the summary is
@@ -210,4 +210,4 @@ def campaign(
     return out
 
 
-__all__ = ["WorkerDied", "campaign", "run_jobs", "run_seeds"]
+__all__ = ["WorkerDied", "run_jobs", "run_seeds", "sweep"]

@@ -27,7 +27,7 @@ import time
 from typing import Any
 
 from swarm.sim.campaign import run_campaign
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.simulate import Scenario
 
 FULL = 10_000
@@ -45,7 +45,7 @@ def _cpu_s() -> float:
 def reference_cpu_s() -> float:
     """CPU seconds of the fixed reference work (:data:`REFERENCE_RUNS`) here, now."""
     t0 = time.process_time()
-    campaign(Scenario(agents=10, loss=0.1), REFERENCE_RUNS, 0, jobs=1)
+    sweep(Scenario(agents=10, loss=0.1), REFERENCE_RUNS, 0, jobs=1)
     return time.process_time() - t0
 
 

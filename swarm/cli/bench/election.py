@@ -18,7 +18,7 @@ from typing import Any
 
 from swarm.cli.procs import Child, start_emulator
 from swarm.core.election.profiles import PROFILE_NAMES
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.simulate import Scenario
 
 CASES = [(5, 0.0), (5, 0.1), (10, 0.0), (10, 0.1)]
@@ -94,7 +94,7 @@ def run(quick: bool = False, only: tuple[str, ...] = ()) -> dict[str, Any]:
         for n, loss in cases:
             real = [real_election(n, loss, profile) for _ in range(repeats)]
             ok = [r for r in real if r is not None]
-            sim = campaign(Scenario(agents=n, loss=loss, profile=profile), seeds)
+            sim = sweep(Scenario(agents=n, loss=loss, profile=profile), seeds)
             sim_p50 = sim["elect_s"]["p50"]
             real_p50 = statistics.median(ok) if ok else None
             rows.append(

@@ -27,7 +27,7 @@ from typing import Any
 
 import swarm.sim.simulate as simulate
 from swarm.sim.faultsim import make_sim
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.scenario import RunResult
 from swarm.sim.simulate import Scenario
 
@@ -46,7 +46,7 @@ def cpu_s() -> float:
 
 def _timed(sc: Scenario, runs: int, jobs: int = 1) -> tuple[dict[str, Any], float]:
     t0 = cpu_s()
-    res = campaign(sc, runs, 0, jobs=jobs)
+    res = sweep(sc, runs, 0, jobs=jobs)
     return res, cpu_s() - t0
 
 
@@ -115,13 +115,13 @@ def run(quick: bool = False) -> dict[str, Any]:
     n_floor = 10 if quick else 100
     out["core_floor"] = {name: _floor(sc, n_floor, per_1000[name]) for name, sc in n10.items()}
     # the tdm profile (issue 16): election p95 within TARGET_TDM_P95_ROUNDS TDM rounds
-    out["tdm_n10_loss10"] = campaign(Scenario(agents=10, loss=0.1, profile="tdm"), k, jobs=jobs)
+    out["tdm_n10_loss10"] = sweep(Scenario(agents=10, loss=0.1, profile="tdm"), k, jobs=jobs)
     out["tdm_n10_loss10"]["target_p95_rounds"] = TARGET_TDM_P95_ROUNDS
-    out["paper_n20_64kbps"] = campaign(Scenario(agents=20, loss=0.1), 5 if quick else 30, jobs=jobs)
-    out["fast_n20_64kbps"] = campaign(
+    out["paper_n20_64kbps"] = sweep(Scenario(agents=20, loss=0.1), 5 if quick else 30, jobs=jobs)
+    out["fast_n20_64kbps"] = sweep(
         Scenario(agents=20, loss=0.1, profile="fast"), 5 if quick else 30, jobs=jobs
     )
-    out["paper_n5_leader_crash"] = campaign(
+    out["paper_n5_leader_crash"] = sweep(
         Scenario(agents=5, crashes=["leader@15"], duration=80), 10 if quick else 100, jobs=jobs
     )
     n50 = 1 if quick else 20

@@ -22,7 +22,7 @@ from swarm.core.election.caps import MAX_CAP, check_cap
 from swarm.core.election.profiles import PROFILE_NAMES
 from swarm.sim.campaign import run_campaign
 from swarm.sim.channels import DEFAULT_LATENCY_S, MAX_CHANNELS, ChannelScenario, run_channels
-from swarm.sim.parallel import campaign
+from swarm.sim.parallel import sweep
 from swarm.sim.scenario import Link, parse_drift, parse_span
 from swarm.sim.simulate import Partition, Scenario, parse_at
 
@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def seeded() -> dict[str, Any]:
         with Progress(PROG, a.seeds, "seeds", as_json=a.json) as bar:
-            return campaign(sc, a.seeds, a.seed, jobs=a.jobs, on_done=bar.advance)
+            return sweep(sc, a.seeds, a.seed, jobs=a.jobs, on_done=bar.advance)
 
     result = _interruptible(seeded)
     if result is None:
@@ -345,7 +345,7 @@ def _fig(v: float | None, unit: str = " s") -> str:
 
 
 def text_report(r: dict[str, Any]) -> str:
-    """The campaign's figures (:func:`swarm.sim.parallel.campaign`) for a person: one
+    """The campaign's figures (:func:`swarm.sim.parallel.sweep`) for a person: one
     line a figure saying what it counts, then each failing seed once with its replay."""
     n, e, air = r["runs"], r["elect_s"], r["air_utilisation"]
     rounds = r.get("election_rounds", {"p50": None, "p95": None})

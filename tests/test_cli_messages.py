@@ -166,3 +166,33 @@ def test_simulate_lists_each_replay_command_once(capsys: pytest.CaptureFixture[s
     replay = "swarm simulate --agents 3 --seeds 1 --seed 2"
     assert (out + err).count(replay) == 1 and "{" not in out
     assert err == ""  # not a terminal: no progress line either
+
+
+def test_demo_on_a_busy_http_port_exits_2_before_it_flies(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``swarm demo --http`` on a port another program holds: exit 2 with one line,
+    before anything starts (it once flew the whole demo without its station)."""
+    from swarm.cli.commands.demo import main as demo_main
+
+    held = socket.socket()
+    held.bind(("127.0.0.1", 0))
+    held.listen(1)
+    port = held.getsockname()[1]
+    work = tmp_path / "demo"
+    try:
+        code = demo_main(["--agents", "2", "--headless", "--http", f"127.0.0.1:{port}", "--dir", str(work)])
+    finally:
+        held.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, err
+    assert len(err) == 1 and f"port {port} in use" in err[0] and "--no-gcs" in err[0], err
+    assert not work.exists() or not any(work.iterdir())  # refused first: nothing was started
+
+
+def test_demo_on_an_address_not_of_this_machine_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    from swarm.cli.commands.demo import main as demo_main
+
+    assert demo_main(["--agents", "2", "--headless", "--http", "192.0.2.1:8080"]) == 2  # TEST-NET-1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "192.0.2.1" in err[0] and "not an address of this machine" in err[0], err

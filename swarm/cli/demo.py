@@ -710,9 +710,8 @@ def _start_gcs(radio: str, http: str, children: list[Child], out: Callable[[str]
         line = gcs.wait_lines(1, 30)[0]
         ready = json.loads(line)
         url = ready.get("open") or ready.get("url")  # with its token beyond loopback
-    except (ChildError, ValueError) as exc:
-        out(f"   ground station not started: {exc}")
-        return None
+    except (ChildError, ValueError) as exc:  # asked for and not there: the demo stops
+        raise DemoError(f"the ground station did not start: {exc}") from None
     out(f"   ground station: {url}")
     return str(url) if url else None
 

@@ -20,13 +20,16 @@ folder it made is removed at the end unless ``--keep``.
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import shutil
+import socket
 import sys
 import time
 import webbrowser
 from typing import TextIO
 
+from swarm.cli.commands.gcs import parse_http
 from swarm.cli.configfile import read_arguments
 from swarm.cli.demo import AUTOPILOTS, SITL_DURATION_S, DemoConfig, run_demo
 from swarm.cli.demo_report import summary_lines
@@ -134,7 +137,35 @@ def _config(a: argparse.Namespace) -> DemoConfig:
                 raise ValueError(f"{flag} {path}: no such directory {parent}")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if cfg.gcs:  # the arguments first, then what the machine has
+        _check_http(a.http)
     return cfg
+
+
+def _check_http(text: str) -> None:
+    """The station's ``--http`` address can be listened on now (checked before anything
+    starts: a demo without the station it was asked for is not the demo). Raises
+    UsageError."""
+    host, port = parse_http(text)
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError):
+        raise UsageError(f"--http {text}: no such host {host!r}") from None
+    family, kind, proto, _name, addr = infos[0]
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the station's server binds
+        try:
+            s.bind(addr)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                why = f"port {port} in use (another station or program?)"
+            elif exc.errno == errno.EADDRNOTAVAIL:
+                why = f"{host} is not an address of this machine"
+            else:
+                why = exc.strerror or str(exc)
+            raise UsageError(f"--http {text}: {why}: give another --http HOST:PORT, or --no-gcs") from None
 
 
 class Lines:

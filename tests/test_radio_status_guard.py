@@ -66,6 +66,29 @@ def test_one_report_per_heartbeat_from_the_radios_ids() -> None:
     assert (s.accepted, s.rejected, s.wrong_source, s.unsolicited, s.excess) == (1, 5, 2, 2, 1)
 
 
+def test_each_heartbeat_into_the_radio_is_answered_once_also_two_close_together() -> None:
+    """An agent puts two HEARTBEATs a second into its radio: the bridge's own and its
+    vehicle's, forwarded for the ground stations. The radio answers each: both reports
+    are its own (every healthy agent with a flight controller once logged a rejected
+    report at start, and counted one in two as a forgery). A third is still too many."""
+    g = busy_guard()
+    g.heartbeat_sent(1.0)  # the bridge's
+    g.heartbeat_sent(1.05)  # the vehicle's, forwarded before the radio answered the first
+    assert g.offer(*LOCAL, report(30), 1.2) is None
+    assert g.offer(*LOCAL, report(40), 1.3) is None
+    assert g.state.txbuf == 40 and g.stats.excess == 0
+    assert g.offer(*LOCAL, report(90), 1.4) == "excess"  # nobody asked for a third
+    g.heartbeat_sent(1.5)  # answered ones are no credit for the next
+    assert g.offer(*LOCAL, report(50), 1.6) is None
+    assert g.offer(*LOCAL, report(95), 1.7) == "excess"
+    # a report that never came (the radio had no room) leaves one to come, not more
+    g.heartbeat_sent(2.5)
+    g.heartbeat_sent(3.5)
+    g.heartbeat_sent(4.5)
+    assert g.offer(*LOCAL, report(50), 4.6) is None
+    assert [g.offer(*LOCAL, report(50), 4.7), g.offer(*LOCAL, report(50), 4.8)].count(None) <= 1
+
+
 def test_contested_window_takes_the_most_favourable_txbuf_and_keeps_rssi() -> None:
     g = busy_guard()
     g.heartbeat_sent(0.0)

@@ -14,7 +14,10 @@ plausibility and bounds the effect:
 * **Source**: only msgid 109 from sysid 51, compid 68 (what the firmware sends).
 * **Cadence**: each HEARTBEAT the bridge sent opens a window (until the next one,
   at most ``window_s``) that may hold one report: reports with no window are
-  rejected. A second report in a window proves a forgery: it is rejected, the
+  rejected. The bridge puts two HEARTBEATs a second into its radio on an agent with
+  a flight controller (its own, and the vehicle's forwarded for the ground
+  stations): one sent before the radio answered the last adds one report to the
+  window (at most two outstanding). A report beyond those proves a forgery: it is rejected, the
   window is *contested*, and the most favourable ``txbuf`` seen in it counts (our
   radio's true report is among them) while RSSI and noise keep the values from
   before the window.
@@ -68,8 +71,9 @@ class GuardStats:
 
 @dataclass
 class _Window:
-    t: float
-    answered: bool = False
+    t: float  # the last HEARTBEAT into it
+    asked: int = 1  # HEARTBEATs the radio may still answer in it (at most two)
+    answered: int = 0
     contested: bool = False
 
 
@@ -104,8 +108,16 @@ class RadioStatusGuard:
 
     # -- what the bridge did --------------------------------------------------------
     def heartbeat_sent(self, now: float) -> None:
-        """A HEARTBEAT went to the local radio: it will answer with one report."""
-        self._window = _Window(now)
+        """A HEARTBEAT went to the local radio (the bridge's own, or its vehicle's
+        forwarded): it will answer with one report. One sent before the radio answered
+        the last adds one answer to the window (at most two outstanding: a report the
+        radio never sent is no credit for more)."""
+        w = self._window
+        if w is not None and now <= w.t + self.window_s and w.answered < w.asked:
+            w.asked = min(w.asked + 1, w.answered + 2)
+            w.t = now
+        else:
+            self._window = _Window(now)
 
     def wrote(self, nbytes: int, now: float) -> None:
         """``nbytes`` went to the local radio."""
@@ -141,7 +153,7 @@ class RadioStatusGuard:
         w = self._window
         if w is None or not w.t <= now <= w.t + self.window_s:
             return "unsolicited"
-        if w.answered:
+        if w.answered >= w.asked:
             if not w.contested:
                 w.contested = True
                 b = self._before
@@ -153,8 +165,9 @@ class RadioStatusGuard:
             return "excess"
         if self._contradicts(r, now):
             return "contradiction"
-        w.answered = True
-        self._before = self.state
+        if not w.answered:
+            self._before = self.state  # what the window restores if it turns out contested
+        w.answered += 1
         self.state = RadioState(r.rssi, r.remrssi, r.txbuf, r.noise, r.remnoise, r.rxerrors, now)
         return None
 

@@ -85,6 +85,7 @@ from radios.link import Link
 from radios.mavlink import (
     FrameBuilder,
     SigningClock,
+    frame_msgid,
 )
 from radios.signing import Verifier
 from radios.signing_state import ClockKeeper, wall_ticks
@@ -347,6 +348,8 @@ class RadioBridge(AirToLocal):
                     wait = 0.0
                 else:
                     frame, wait = self._next_frame(now)
+                    if frame is not None and frame_msgid(frame) == 0:  # a vehicle's HEARTBEAT
+                        self.guard.heartbeat_sent(now)  # the radio answers it too
                 if frame is None:
                     self._cond.wait(max(0.001, min(wait, self._next_hb - now)))
                     continue

@@ -22,7 +22,7 @@ import re
 import signal
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import pytest
@@ -50,6 +50,7 @@ class Fields:
     battery: int  # 255: unknown
     rssi: int
     remrssi: int
+    fc_ok: bool = True  # the agent's link to its flight controller
 
 
 class FleetAgent(ScriptedAgent):
@@ -64,7 +65,7 @@ class FleetAgent(ScriptedAgent):
 
     def telemetry(self) -> Telemetry:
         f = self.fields
-        flags = FLAG_FC_OK | (FLAG_ARMED | FLAG_AIRBORNE if f.armed else 0)
+        flags = (FLAG_FC_OK if f.fc_ok else 0) | (FLAG_ARMED | FLAG_AIRBORNE if f.armed else 0)
         return Telemetry(
             self.id, self.pose(), mode_code(f.mode), flags, self.phase, self.leader, f.battery, f.rssi,
             f.remrssi, f.speed,
@@ -210,6 +211,46 @@ def sent_after(agent: FleetAgent, n: int) -> list[CommandKind]:
     return agent.kinds()[n:]
 
 
+def test_an_unknown_armed_state_is_unknown_in_the_table_and_the_panel(live: Live, page: Any) -> None:
+    """An airborne agent whose link to its flight controller dropped: armed is unknown,
+    in the fleet table and in the telemetry panel alike (the panel once said
+    "disarmed" over a flying vehicle)."""
+    open_page(page, live.url, len(FLEET))
+    agent = live.agents[4]
+    flying = agent.fields
+    agent.fields = replace(flying, fc_ok=False)
+    try:
+        poll(lambda: cell(page, 4, "armed") == "—", "agent4's armed state unknown in its row", UI_DEADLINE)
+        page.click('#agents [data-agent-id="4"]')
+        panel = '#telemetry [data-field="armed"]'
+        poll(lambda: page.inner_text(panel).strip() != "", "the telemetry panel filled", UI_DEADLINE)
+        assert page.inner_text(panel).strip() == "unknown (vehicle link lost)"
+    finally:
+        agent.fields = flying
+    poll(lambda: page.inner_text(panel).strip() == "armed", "armed again once the link is back", UI_DEADLINE)
+
+
+def test_an_agent_that_never_answers_is_no_answer_never_refused(live: Live, page: Any) -> None:
+    """A command an agent never answered (it may not have heard it) is shown as no
+    answer, in amber, on the status line and in the log: never as "refused" (it once was,
+    in red)."""
+    open_page(page, live.url, len(FLEET))
+    agent = live.agents[3]
+    answers = dict(agent.answers)
+    agent.answers.pop(CommandKind.ARM)  # agent3 stays silent to an arm
+    try:
+        page.click('#agents [data-agent-id="3"]')
+        page.click('#commands [data-kind="arm"]')
+        poll(lambda: "no answer" in page.inner_text("#cmd-status"), "the arm's outcome", 60.0)
+        line = page.inner_text("#cmd-status")
+        assert "refused" not in line and "agent3 (3)" in line, line
+        assert page.get_attribute("#cmd-status", "class") == "status pending"
+        logged = page.locator("#log li", has_text="no answer from agent3")
+        assert logged.count() == 1 and logged.get_attribute("class") == "pending"
+    finally:
+        agent.answers.update(answers)
+
+
 def test_commands_ask_first_cancel_sends_nothing_confirm_sends(live: Live, page: Any) -> None:
     open_page(page, live.url, len(FLEET))
     # nothing selected: the target is not the swarm, the buttons wait for an agent
@@ -307,6 +348,14 @@ def test_a_silent_agent_goes_stale_and_a_frozen_or_killed_station_greys_the_page
         )
         poll(lambda: cell(page, 2, "seen").endswith("(lost)"), "agent2 lost", UI_DEADLINE)
         assert cell(page, 2, "battery") == "35 %"  # the last value, kept and greyed
+        # a swarm command's dialog counts what the station will send to, and names the
+        # table's agents it will not reach (it once said "Arm 1 agent?" beside two rows)
+        poll(lambda: page.inner_text("#agent-count") == "1/2 agents connected", "1 of 2", UI_DEADLINE)
+        page.select_option("#cmd-target", "swarm")
+        page.click('#commands [data-kind="arm"]')
+        text = page.inner_text("#confirm-text")
+        assert text == "Arm 1 agent? Not connected, will not get it: agent2 (2).", text
+        page.click("#confirm-cancel")
         page.click('#agents [data-agent-id="2"]')
         poll(
             lambda: "stale" in (page.get_attribute("#telemetry", "class") or ""),
@@ -340,6 +389,12 @@ def test_a_silent_agent_goes_stale_and_a_frozen_or_killed_station_greys_the_page
         poll(lambda: "s old" in page.inner_text("#stale-banner"), "the data's age", UI_DEADLINE)
         screenshot(page, "gcs_station_lost.png")
         print(f"banner after SIGSTOP {frozen_s:.2f} s, after SIGKILL {killed_s:.2f} s")
+        # a command now reaches no station: "not sent", in words, never the browser's error
+        page.click('#agents [data-agent-id="1"]')
+        page.click('#commands [data-kind="arm"]')
+        poll(lambda: "not sent" in page.inner_text("#cmd-status"), "the arm's outcome", UI_DEADLINE)
+        line = page.inner_text("#cmd-status")
+        assert "the station did not answer" in line and "TypeError" not in line, line
         assert page.errors == []
     finally:
         for a in agents:

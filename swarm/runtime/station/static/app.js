@@ -630,7 +630,8 @@
     const a = rec.data;
     setText($("#telemetry-title"), a.name + " (" + a.id + ")" + (a.connected ? "" : " — disconnected"));
     f("mode", a.vehicle_link === false ? "unknown (vehicle link lost)" : a.mode || "—");
-    f("armed", a.armed ? "armed" : "disarmed");
+    // unknown is unknown (as in the fleet table): an airborne vehicle whose link dropped is not "disarmed"
+    f("armed", a.armed === true ? "armed" : a.armed === false ? "disarmed" : a.vehicle_link === false ? "unknown (vehicle link lost)" : "unknown");
     // altitudes are metres above home (as QGroundControl), AMSL beside; home: where the station saw it on the ground
     const rel = typeof a.alt === "number" && typeof a.home_alt === "number" ? a.alt - a.home_alt : null;
     f("alt", (rel === null ? "home unknown" : fmt(rel, 1, "m above home")) + " (" + fmt(a.alt, 1, "m AMSL") + ")" + (a.airborne ? " (airborne)" : ""));
@@ -809,7 +810,10 @@
         body = await r.json();
       } catch (err) { /* not JSON */ }
       return Object.assign({ status: r.status }, body);
-    }, (err) => ({ status: 0, error: "station unreachable: " + err }));
+    }, (err) => {
+      console.error(err);  // the browser's own words ("TypeError: Failed to fetch") are for the console
+      return { status: 0, error: "the station did not answer (is it running, and is this its address?)" };
+    });
   }
 
   function describe(cmd) {
@@ -824,17 +828,29 @@
 
   function report(cmd, r) {
     const what = describe(cmd);
-    const err = r.error || (r.status >= 400 ? r.reason || "refused (" + r.status + ")" : null);
+    const results = Array.isArray(r.results) ? r.results : [];
+    // an answer per addressee (a 504: some never answered) is read agent by agent below
+    const err = results.length ? null : r.error || (r.status >= 400 ? r.reason || "refused (" + r.status + ")" : null);
+    if (err && !r.status) {  // never reached the station: not sent, not refused
+      log("error", what + ": not sent: " + err, "error");
+      status(what + ": not sent: " + err, false);
+      return;
+    }
     if (err) {
       log("refused", what + ": " + err, "refused");
       status(what + ": refused: " + err, false);
       return;
     }
-    const results = Array.isArray(r.results) ? r.results : [];
     const bad = [];
     const busy = [];
+    const silent = [];
     for (const x of results) {
       const res = String(x.result || "");
+      // NO_ANSWER: the agent never answered (it may not have heard): not a refusal
+      if (/^no_answer$/i.test(res)) {
+        silent.push(agentName(x.agent));
+        continue;
+      }
       // CARRIED_OUT: no answer, but the agent's telemetry shows it done (the reason says how)
       const good = /^(ok|accepted|done|sent|success|carried_out)$/i.test(res);
       // IN_PROGRESS: the vehicle is still at it (a take-off climbing): not done, not refused
@@ -849,7 +865,10 @@
       }
     }
     if (!results.length && r.ok === false) log("refused", what + ": not done", "refused");
-    if (bad.length) status(what + ": refused: " + bad.join("; "), false);
+    const unanswered = silent.length ? "no answer from " + silent.join(", ") + " (it may not have heard)" : "";
+    if (silent.length) log("no answer", what + ": " + unanswered, "pending");
+    if (bad.length) status(what + ": refused: " + bad.join("; ") + (unanswered ? "; " + unanswered : ""), false);
+    else if (silent.length) status(what + ": " + unanswered, false, "pending");
     else if (busy.length) {
       S.awaiting = { kind: String(cmd.kind).toUpperCase(), what };
       status(what + ": in progress: " + busy.join("; ") + " (the result follows in the log)", false, "pending");
@@ -934,7 +953,13 @@
     let text = (VERBS[cmd.kind] || cmd.kind) + " " + addressees(cmd);
     if (cmd.kind === "takeoff") text += " to " + cmd.alt + " m above home";
     if (cmd.kind === "follow") text += ", heading " + cmd.heading + "°";
-    return text + "?";
+    text += "?";
+    // the table's agents the command will not reach (the station sends to connected ones)
+    const agents = S.drawn && Array.isArray(S.drawn.agents) ? S.drawn.agents : [];
+    const away = cmd.target === "swarm" && cmd.kind !== "follow" && !(window.gcsSwarms && window.gcsSwarms.addressees(cmd))
+      ? agents.filter((a) => !a.connected).map((a) => agentName(a.id)) : [];
+    if (away.length) text += " Not connected, will not get it: " + away.join(", ") + ".";
+    return text;
   }
   // every command to the whole swarm and land, return, disarm, take-off to anyone: ask first
   function confirmed(cmd) {

@@ -372,9 +372,12 @@ def test_a_silent_agent_goes_stale_and_a_frozen_or_killed_station_greys_the_page
             frozen_s = time.monotonic() - t0
             assert "station silent" in page.inner_text("#stale-banner")
             assert page.evaluate("document.body.classList.contains('stale')")
+            # the link pill agrees with the banner (it once stayed a green "live" for ever)
+            assert page.inner_text("#link-status") == "silent"
         finally:
             os.kill(station.pid, signal.SIGCONT)
         poll(lambda: page.locator("#stale-banner").is_hidden(), "fresh data again", UI_DEADLINE)
+        assert page.inner_text("#link-status") == "live"
 
         # the station is killed: grey, a banner with the data's age, the count history
         os.kill(station.pid, signal.SIGKILL)

@@ -572,6 +572,7 @@
       S.stale = stale;
       document.body.classList.toggle("stale", stale);
       $("#stale-banner").hidden = !stale;
+      drawLink();
       if (S.drawn) drawHeader(S.drawn, S.drawn.agents || [], S.drawn.leader || 0);
     }
     drawTelemetry();  // its "last seen" ages too
@@ -669,7 +670,13 @@
   // ---------------------------------------------------------------- live link
   function setLink(status) {
     S.wsStatus = status;
+    drawLink();
+  }
+  // the pill says what the data says: an open socket that brings no state (a frozen
+  // station) is "silent" in red, never a green "live" beside the "station silent" banner
+  function drawLink() {
     const el = $("#link-status");
+    const status = S.wsStatus === "live" && S.stale ? "silent" : S.wsStatus;
     el.dataset.status = status;
     el.textContent = status;
     if (S.replay) drawReplay(S.replay);  // a replay shows "REPLAY" and the capture's time, not "live"

@@ -251,6 +251,42 @@ def test_an_agent_that_never_answers_is_no_answer_never_refused(live: Live, page
         agent.answers.update(answers)
 
 
+def test_the_page_knows_the_fence_draws_it_and_refuses_outside_it_before_asking(
+    live: Live, page: Any
+) -> None:
+    """The station hands the page its geofence: a take-off above the ceiling, or a go-to
+    beyond the radius from the agent's home, is refused on the page at once, with the
+    station's words, before any confirmation (it once asked "Take off to 150 m?" and
+    the station refused); the fence is drawn around each home the station knows."""
+    open_page(page, live.url, len(FLEET))
+    before = {k: len(a.kinds()) for k, a in live.agents.items()}
+    assert page.evaluate("window.gcsFence") == {"floor_m": 2.0, "ceiling_m": 120.0, "radius_m": 1000.0}
+    # agent3 stands on the ground: the station knows its home, the page draws its fence
+    poll(lambda: page.locator("path.plan-fence").count() >= 1, "a fence ring around a home", UI_DEADLINE)
+
+    page.click('#agents [data-agent-id="3"]')
+    page.fill("#takeoff-alt", "150")
+    page.click('#commands [data-kind="takeoff"]')
+    assert page.locator("#confirm").is_hidden()
+    line = page.inner_text("#cmd-status")
+    assert line == (
+        "takeoff refused by the station's geofence: altitude 150 m above home is above the ceiling (120 m)"
+    ), line
+    home = live.station.agent(3)
+    assert home is not None and "home" in home
+    page.fill("#goto-lat", str(home["home"][0] + 0.02))  # about 2.2 km north
+    page.fill("#goto-lon", str(home["home"][1]))
+    page.fill("#goto-alt", "20")
+    page.click("#goto-go")
+    line = page.inner_text("#cmd-status")
+    assert (
+        line.startswith("goto refused by the station's geofence: target 22") and "radius (1000 m)" in line
+    ), line
+    page.fill("#takeoff-alt", "10")
+    assert [len(a.kinds()) for a in live.agents.values()] == list(before.values())  # nothing was sent
+    assert page.errors == []
+
+
 def test_commands_ask_first_cancel_sends_nothing_confirm_sends(live: Live, page: Any) -> None:
     open_page(page, live.url, len(FLEET))
     # nothing selected: the target is not the swarm, the buttons wait for an agent

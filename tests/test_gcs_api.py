@@ -200,6 +200,7 @@ def test_config_state_and_agent(live: dict[str, Any]) -> None:
     assert st == 200 and cfg["tiles"] == "/tiles/{z}/{x}/{y}.png" and cfg["replay"] is False
     assert cfg["station"] == {"name": "gcs", "id": 255} and "OpenStreetMap" in cfg["attribution"]
     assert cfg["center"] == pytest.approx([HOME[0] + 1e-4, HOME[1]], abs=2e-4)
+    assert cfg["fence"] == {"floor_m": 2.0, "ceiling_m": 120.0, "radius_m": 1000.0}  # the station's own
     st, state, _ = http(base, "GET", "/api/state")
     assert st == 200 and state["leader"] == 1 and state["station"]["id"] == 255
     assert abs(state["time"] - time.time()) < 60

@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from typing import Any, cast
 
+from swarm.core.flight.geofence import Geofence
 from swarm.core.station.commands import CommandRefused, CommandSpec, outcome
 from swarm.core.station.core import StationCore
 from swarm.core.station.model import Event, StationConfig, StOut
@@ -57,6 +58,11 @@ class CoreStation:
 
     def describe(self) -> str:
         raise NotImplementedError
+
+    @property
+    def fence(self) -> Geofence:
+        """The station's geofence (the page checks it before asking, the core before sending)."""
+        return self.core.cfg.fence
 
     def snapshot(self) -> Snapshot:
         with self._lock:

@@ -6,6 +6,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, Protocol
 
+from swarm.core.flight.geofence import Geofence
 from swarm.core.station.commands import CommandSpec
 from swarm.core.station.rows import AgentRow, AlertRow, EventRow, ReplayStatus, Snapshot
 
@@ -27,6 +28,9 @@ class ServedStation(Protocol):
 
     @property
     def replay(self) -> ReplayControl | None: ...
+
+    @property
+    def fence(self) -> Geofence: ...
 
     def describe(self) -> str: ...
 

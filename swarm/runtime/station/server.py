@@ -452,6 +452,7 @@ class GcsServer:
     # -- API -----------------------------------------------------------------------
     async def _config(self, request: web.Request) -> web.Response:
         center = list(self.cfg.center) if self.cfg.center is not None else self.station.center()
+        fence = self.station.fence
         return web.json_response(
             {
                 "tiles": self.cfg.tile_template,
@@ -461,6 +462,8 @@ class GcsServer:
                 "replay": self.station.replay is not None,
                 "center": center,
                 "ws_hz": self.cfg.ws_hz,
+                # the page checks a target against it before it asks to confirm, and draws it
+                "fence": {"floor_m": fence.floor_m, "ceiling_m": fence.ceiling_m, "radius_m": fence.radius_m},
             }
         )
 

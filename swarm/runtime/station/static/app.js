@@ -908,8 +908,10 @@
       if (![lat, lon, alt].every(Number.isFinite) || Math.abs(lat) > 90 || Math.abs(lon) > 180) {
         return localRefusal(kind + ": latitude, longitude and altitude must be numbers");
       }
+      const cmd = { target: S.selected, kind, lat, lon, alt };
+      if (fenceRefused(cmd)) return null;
       placeTarget(lat, lon);
-      command({ target: S.selected, kind, lat, lon, alt });
+      command(cmd);
     });
     $("#fit-swarm").addEventListener("click", fitToAgents);
     $("#goto-alt").addEventListener("input", () => { S.altTyped = true; drawTelemetry(); });
@@ -934,6 +936,7 @@
         if (kind === "takeoff") {
           cmd.alt = parseFloat($("#takeoff-alt").value);
           if (!Number.isFinite(cmd.alt)) return localRefusal("take off: altitude must be a number");
+          if (fenceRefused(cmd)) return null;
         }
         if (kind === "follow") {
           cmd.heading = parseFloat($("#follow-heading").value);
@@ -945,6 +948,30 @@
       });
     }
     initCommandSafety();
+  }
+
+  // ---------------------------------------------------------------- the geofence
+  // the station's (GET /api/config): a take-off or a target outside it is refused here,
+  // before any confirmation, with the station's own words (the station checks it again
+  // before sending, and the agent before flying). The radius only where the page knows
+  // the agent's home (where the station saw it on the ground), as the station does.
+  function fenceRefusal(cmd) {
+    const f = S.config && S.config.fence;
+    if (!f || !["takeoff", "goto", "waypoint"].includes(cmd.kind)) return null;
+    const alt = cmd.alt;
+    if (alt < f.floor_m) return "altitude " + alt + " m above home is below the floor (" + f.floor_m + " m above home)";
+    if (alt > f.ceiling_m) return "altitude " + alt + " m above home is above the ceiling (" + f.ceiling_m + " m)";
+    if (cmd.kind === "takeoff" || cmd.target === "swarm" || !window.gcsPlan) return null;
+    const rec = S.agents.get(cmd.target);
+    const home = rec && Array.isArray(rec.data.home) ? rec.data.home : null;
+    if (!home) return null;
+    const d = window.gcsPlan.inverse(home[0], home[1], cmd.lat, cmd.lon)[0];
+    return d > f.radius_m ? "target " + Math.round(d) + " m from home, beyond the radius (" + f.radius_m + " m)" : null;
+  }
+  function fenceRefused(cmd) {
+    const why = fenceRefusal(cmd);
+    if (why) localRefusal(cmd.kind + " refused by the station's geofence: " + why);
+    return Boolean(why);
   }
 
   // ---------------------------------------------------------------- safe commands
@@ -1150,6 +1177,7 @@
       log("error", "GET /api/config failed: " + err, "error");
     }
     S.config = cfg;
+    window.gcsFence = cfg.fence || null;  // plan.js draws it around each home
     if (cfg.station) setText($("#station"), (cfg.station.name || "station") + " #" + (cfg.station.id ?? "?"));
     initMap(cfg);
     initSort();

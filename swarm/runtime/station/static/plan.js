@@ -45,7 +45,7 @@
   const WGS_F = 1 / 298.257223563;
   const P = {
     map: null, layers: null, control: null, last: null, follow: false, sent: new Set(),
-    routes: new Map(), targets: new Map(), slots: new Map(), homes: new Map(),
+    routes: new Map(), targets: new Map(), slots: new Map(), homes: new Map(), fences: new Map(),
     measuring: false, points: [], line: null, out: null, down: null, labelAt: 0, labelQueued: false,
   };
 
@@ -245,6 +245,16 @@
       m.setLatLng(v.p);
       m.text = v.name + " home";
       redecorate(m);
+    });
+    // the station's geofence around each home: where a target may be (its radius)
+    const fence = window.gcsFence;
+    const rings = new Map(fence && fence.radius_m > 0 ? want : []);
+    sync(P.fences, P.layers.homes, rings, () => L.circle([0, 0], {
+      radius: 1, color: "#e0b040", weight: 1.5, dashArray: "6 6", fill: false, interactive: false,
+      className: "plan-fence",
+    }), (c, v) => {
+      c.setLatLng(v.p);
+      c.setRadius(fence.radius_m);
     });
   }
 

@@ -287,6 +287,32 @@ def test_the_page_knows_the_fence_draws_it_and_refuses_outside_it_before_asking(
     assert page.errors == []
 
 
+def test_the_top_bar_shows_all_it_holds_at_1400_px(live: Live, page: Any) -> None:
+    """At 1400 x 900 with a long swarm summary (several swarms) nothing in the top bar
+    is cut off or pushed out of the window: Hold all and Fit swarm stay on screen (the
+    bar once overflowed at 1400 px, its end hidden)."""
+    page.set_viewport_size({"width": 1400, "height": 900})
+    open_page(page, live.url, len(FLEET))
+    # set and measured in one task: no state push redraws the summary in between
+    out = page.evaluate(
+        """() => {
+          const s = document.querySelector('#swarm-summary');
+          s.hidden = false;
+          const names = Array.from({length: 8}, (_, i) => 'agent' + (i * 10 + 1) + ' · 10');
+          s.textContent = 'swarms: ' + names.join(', ');
+          const cut = (e) => {
+            const r = e.getBoundingClientRect();
+            return r.right > window.innerWidth + 0.5 || r.width === 0;
+          };
+          return Array.from(document.querySelectorAll('#topbar > *')).filter((e) => !e.hidden)
+            .filter(cut).map((e) => e.id || e.className);
+        }"""
+    )
+    assert out == [], out
+    for sel in ("#hold-all", "#fit-swarm"):
+        assert page.locator(sel).is_visible()
+
+
 def test_commands_ask_first_cancel_sends_nothing_confirm_sends(live: Live, page: Any) -> None:
     open_page(page, live.url, len(FLEET))
     # nothing selected: the target is not the swarm, the buttons wait for an agent

@@ -147,9 +147,14 @@ def test_a_killed_vehicle_simulator_is_loud_on_the_agent_and_the_station() -> No
         wait_until(lambda: len(_json_lines(agent, "vehicle")) >= 2, "the vehicle back on the agent", 60)
         assert _json_lines(agent, "vehicle")[1]["link"] is True
         wait_until(lambda: view()["vehicle_link"] is True and view()["mode"], "the station sees it back", 30)
-        assert any(
-            e.get("kind") == "vehicle" and e["text"] == "agent1 (1): vehicle link back"
-            for e in _json_lines(gcs, "log")
+        # the station's log line follows its state (a busy machine printed it after): wait
+        wait_until(
+            lambda: any(
+                e.get("kind") == "vehicle" and e["text"] == "agent1 (1): vehicle link back"
+                for e in _json_lines(gcs, "log")
+            ),
+            "the station's 'vehicle link back' line",
+            30,
         )
         assert not [e for c in children for e in c.errors if "Traceback" in e]
     finally:

@@ -8,13 +8,15 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
+from typing import Any
 
 import pytest
 from net_helpers import live_processes, wait_until
 
 from swarm.cli.commands.simulate import main
-from swarm.sim.parallel import sweep
+from swarm.sim.parallel import run_seeds, sweep
 from swarm.sim.simulate import Scenario
 
 pytestmark = pytest.mark.processes  # worker processes
@@ -92,6 +94,30 @@ def test_signal_stops_the_workers(sig: signal.Signals) -> None:
     wait_until(lambda: not any(alive(w) for w in workers), "no worker outlives the command", 30)
 
 
+def test_a_ctrl_c_as_the_start_blocks_signals_leaves_them_unblocked(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Ctrl-C that arrives while the workers' start blocks SIGINT and SIGTERM is raised
+    by CPython right as that call returns; the caller's signals must come back
+    unblocked. Once the block stood before its ``try``: the caller (a command run from
+    Python) kept both blocked for good, and a later Ctrl-C was never seen (the
+    in-process Ctrl-C test of ``swarm simulate`` ran to its timeout in CI). The moment
+    cannot be hit with a real signal on demand: the Ctrl-C is raised there, as CPython
+    raises it."""
+    real = signal.pthread_sigmask
+
+    def ctrl_c_during_the_block(how: int, mask: Any) -> Any:
+        old = real(how, mask)
+        if how == signal.SIG_BLOCK and signal.SIGINT in set(mask):
+            raise KeyboardInterrupt
+        return old
+
+    monkeypatch.setattr(signal, "pthread_sigmask", ctrl_c_during_the_block)
+    with pytest.raises(KeyboardInterrupt):
+        run_seeds(Scenario(agents=5, duration=60), 4, 0, 2)
+    monkeypatch.undo()
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    assert signal.SIGINT not in blocked and signal.SIGTERM not in blocked, blocked
+
+
 def test_a_ctrl_c_while_the_workers_start_stops_the_run() -> None:
     """Spawning the workers takes a while (seconds on a busy machine): a Ctrl-C that
     comes then stops the run at once. The parent once ignored SIGINT while it spawned
@@ -134,7 +160,6 @@ def test_a_worker_that_dies_ends_the_run_with_one_error_and_no_orphan() -> None:
     """A worker killed from outside (the OOM killer, an operator): the run ends with
     WorkerDied instead of waiting for ever, and the other worker is stopped too."""
     import multiprocessing
-    import threading
 
     from swarm.sim.parallel import WorkerDied, run_seeds
 

@@ -113,9 +113,12 @@ def _start(jobs: int, procs: list[BaseProcess]) -> list[Connection]:
     seconds on a busy machine, and a Ctrl-C then must not be lost (it once was: the
     parent ignored SIGINT while it spawned, and the run went on to its end)."""
     ctx = multiprocessing.get_context("spawn")
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     conns: list[Connection] = []
+    # the mask as it was, read before anything changes it: a Ctrl-C raised right after
+    # the block below, before the ``try``, must not leave the signals blocked for good
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])
     try:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
         for _ in range(jobs):
             ours, theirs = ctx.Pipe()
             p = ctx.Process(target=_serve, args=(theirs,), daemon=True)

@@ -306,7 +306,14 @@ def _run(d: Path, ns: str | None, a_addr: str, b_addr: str) -> dict[str, Any]:
                     raise RuntimeError(f"{ch.name} exited {ch.proc.returncode}: {ch.errors[-3:]}")
             return dict(http(urls[0] + "api/state")[1])
 
-        poll(lambda: len(led_swarms(state())) == 2, "st0 to list both channels' swarms, led", DEADLINE)
+        # both swarms led, and every agent of the other machine listed: a swarm is led
+        # before its station has heard each member (a busy machine showed one missing)
+        poll(
+            lambda: len(led_swarms(s := state())) == 2
+            and len([a for a in s["agents"] if a.get("station") == "st1"]) == AGENTS,
+            "st0 to list both channels' swarms, led, and the other machine's agents",
+            DEADLINE,
+        )
         listing_s = round(time.monotonic() - t_ready, 2)
         s = state()
         remote = sorted(a["id"] for a in s["agents"] if a.get("station") == "st1")

@@ -309,8 +309,10 @@ def _run(d: Path, ns: str | None, a_addr: str, b_addr: str) -> dict[str, Any]:
         # both swarms led, and every agent of the other machine listed: a swarm is led
         # before its station has heard each member (a busy machine showed one missing)
         poll(
-            lambda: len(led_swarms(s := state())) == 2
-            and len([a for a in s["agents"] if a.get("station") == "st1"]) == AGENTS,
+            lambda: (
+                len(led_swarms(s := state())) == 2
+                and len([a for a in s["agents"] if a.get("station") == "st1"]) == AGENTS
+            ),
             "st0 to list both channels' swarms, led, and the other machine's agents",
             DEADLINE,
         )

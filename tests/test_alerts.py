@@ -20,6 +20,7 @@ from swarm.core.station.alerts import AlertConfig, LinkHealth
 from swarm.core.station.commands import CommandRefused, parse_command
 from swarm.core.station.core import StationCore
 from swarm.core.station.model import StationConfig
+from swarm.core.station.rows import AlertRow
 from swarm.core.wire.codes import FLAG_FC_OK, SEPARATION_HOLD, one_line
 from swarm.core.wire.message_types import (
     NOTICE_MAX,
@@ -272,8 +273,10 @@ def test_battery_warning_and_critical_thresholds() -> None:
     core.ack_alert(a.id)
     core.handle(tm(3, battery=90), 2.0)  # recharged (swapped): cleared, stays acknowledged
     assert a.cleared is not None and a.acked
-    core.handle(tm(3, battery=25), 3.0)  # a new warning: a new alert
-    assert [x.acked for x in core.alerts.alerts.values() if x.kind == "battery"] == [True, False]
+    core.handle(tm(3, battery=25), 3.0)  # low again: the same alarm, back and unacknowledged
+    assert [(x.id, x.acked, x.count) for x in core.alerts.alerts.values() if x.kind == "battery"] == [
+        (a.id, False, 2)
+    ]
 
 
 def test_a_warning_acknowledged_and_turned_critical_is_shown_again() -> None:
@@ -332,10 +335,13 @@ def test_notices_become_log_lines_and_alerts() -> None:
         ("agent", "agent3 (3): took off: holding"),
     ]
     alerts = {a.kind + ":" + a.level: a for a in core.alerts.alerts.values()}
-    assert set(alerts) == {"statustext:warning", "statustext:critical", "separation:warning"}
+    # the separation hold is no alarm before its on-delay
+    assert set(alerts) == {"statustext:warning", "statustext:critical"}
     assert alerts["statustext:warning"].count == 4
     assert alerts["statustext:warning"].raised == pytest.approx(1001.0)
-    core.handle(AgentNotice(3, AGENT, 5, "separation restored: resuming"), 2.0)
+    core.tick(1.3 + AlertConfig().on_delay_s)
+    assert core.alerts.is_open("separation", 3)
+    core.handle(AgentNotice(3, AGENT, 5, "separation restored: resuming"), 9.0)
     assert not core.alerts.is_open("separation", 3)
 
 
@@ -362,7 +368,8 @@ def test_a_refused_command_is_an_alert() -> None:
     core.handle(CommandAck(3, seq, AckResult.REJECTED, "Arm: Battery low"), 1.2)
     assert [r.id for r in core.take_finished()] == [req.id]
     (a,) = [a for a in core.alerts.alerts.values() if a.kind == "command"]
-    assert a.text == "ARM -> agent3 (3): REJECTED (Arm: Battery low)" and a.level == "warning"
+    assert a.text == "ARM -> agent3 (3): REJECTED (Arm: Battery low)" and a.level == "advisory"
+    assert a.announced is None  # its sender sees the result: never in the banner
 
 
 @pytest.mark.parametrize(
@@ -402,7 +409,8 @@ def test_the_state_carries_the_alerts() -> None:
     assert json.loads(core.snapshot_json(0.2, {"name": "gcs"}))["alerts"] == snap["alerts"]
     (a,) = snap["alerts"]
     assert a["kind"] == "battery" and a["level"] == "critical" and a["acked"] is False
-    assert set(a) == {"id", "kind", "agent", "level", "text", "raised", "cleared", "acked", "count"}
+    assert set(a) == set(AlertRow.__annotations__) - {"net", "station", "station_alive"}
+    assert snap["alarm_rate"] == {"announced": 1, "window_s": 600.0, "flood": False, "held": 0}
     assert snap["agents"][0]["loss_pct"] is None  # not enough record yet
     assert POSE is not None
 

@@ -89,6 +89,46 @@ def test_a_bad_acknowledgement_over_http_is_one_line_never_a_500(
     assert all(not a["acked"] for a in live["alerts"]())
 
 
+SHELVE_BAD = [
+    (b"[]", 400),
+    (b'{"id": 1}', 400),
+    (b'{"id": 1, "seconds": -5}', 400),
+    (b'{"id": 1, "seconds": 3601}', 400),
+    (b'{"id": 1, "seconds": 1e400}', 400),
+    (b'{"id": 1, "seconds": NaN}', 400),
+    (b'{"id": 1, "seconds": "600"}', 400),
+    (b'{"id": 1, "seconds": true}', 400),
+    (b'{"id": "1", "seconds": 600}', 400),
+    (b'{"id": 99999, "seconds": 600}', 404),
+    (b'{"id": 1, "seconds": 600, "station": "gcsB"}', 409),
+    (b'{"id": 1, "seconds": 600, "station": {"x": 1}}', 409),
+]
+
+
+@pytest.mark.parametrize(("body", "status"), SHELVE_BAD)
+def test_a_bad_shelving_over_http_is_one_line_and_shelves_nothing(
+    live: dict[str, Any], body: bytes, status: int
+) -> None:
+    r = request(live["server"].port, "POST", "/api/alerts/shelve", body, {**JSON, **AUTH})
+    assert r.status == status, (r.status, r.body[:200])
+    assert "\n" not in r.error()
+    assert all(a["quiet"] is None for a in live["alerts"]())
+
+
+def test_shelving_over_http_quiets_the_alarm_for_its_time_and_needs_the_token(live: dict[str, Any]) -> None:
+    port = live["server"].port
+    first = live["alerts"]()[0]
+    body = json.dumps({"id": first["id"], "seconds": 900}).encode()
+    assert request(port, "POST", "/api/alerts/shelve", body, JSON).status == 401
+    assert live["alerts"]()[0]["quiet"] is None
+    r = request(port, "POST", "/api/alerts/shelve", body, {**JSON, **AUTH})
+    assert r.status == 200 and r.json["alert"]["quiet"] == "shelved"
+    row = next(a for a in live["alerts"]() if a["id"] == first["id"])
+    assert row["quiet"] == "shelved" and row["shelved_until"] - row["raised"] > 890
+    back = json.dumps({"id": first["id"], "seconds": 0}).encode()
+    assert request(port, "POST", "/api/alerts/shelve", back, {**JSON, **AUTH}).json["alert"]["quiet"] is None
+
+
 def test_acknowledging_needs_the_token(live: dict[str, Any]) -> None:
     (first, _) = live["alerts"]()
     r = ack(live["server"].port, json.dumps({"id": first["id"]}).encode(), JSON)
@@ -134,7 +174,7 @@ def test_acknowledging_over_the_websocket_with_hostile_messages_first(live: dict
     assert [a["acked"] for a in live["alerts"]()] == [True, True]
     state = request(server.port, "GET", "/api/state", None, AUTH).json
     assert {a["kind"] for a in state["alerts"]} == {"statustext"}
-    assert {a["level"] for a in state["alerts"]} == {"warning", "critical"}
+    assert {a["level"] for a in state["alerts"]} == {"advisory", "critical"}  # PreArm: an advisory
 
 
 @pytest.mark.processes

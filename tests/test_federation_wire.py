@@ -232,10 +232,12 @@ def test_a_hostile_stations_alerts_are_rebuilt_bounded_and_plain() -> None:
 
     evil = "<img src=x onerror=alert(1)>\x1b[2J\u202e" + "x" * 5000
     good = {"id": 7, "kind": "battery", "agent": 41, "level": "critical", "text": "a41 battery 9 %",
-            "raised": 1.8e9, "cleared": None, "acked": False, "count": 1, "net": "c1"}  # fmt: skip
+            "raised": 1.8e9, "last": 1.8e9, "cleared": None, "acked": False, "count": 1,
+            "announced": 1.8e9, "quiet": None, "shelved_until": None, "net": "c1"}  # fmt: skip
     hostile = [
         {**good, "id": 8, "text": evil, "kind": evil, "level": "<b>", "agent": 999, "count": 10**30,
-         "acked": "yes", "cleared": "never", "net": "../x", "script": evil, "raised": 1.8e9 + 1},
+         "acked": "yes", "cleared": "never", "net": "../x", "script": evil, "raised": 1.8e9 + 1,
+         "quiet": evil, "shelved_until": "x", "announced": [1]},
         {**good, "id": True}, {**good, "id": -1}, {**good, "id": 2**60}, {**good, "id": 9, "raised": "now"},
         {**good, "id": 10, "text": ["x"]}, "junk", None, [good], 5,
     ]  # fmt: skip
@@ -245,6 +247,7 @@ def test_a_hostile_stations_alerts_are_rebuilt_bounded_and_plain() -> None:
     assert set(bad) == set(good) and bad["id"] == 8
     assert (bad["kind"], bad["level"], bad["agent"], bad["count"]) == ("other", "warning", 0, 1)
     assert (bad["acked"], bad["cleared"], bad["net"]) == (False, None, None)
+    assert (bad["quiet"], bad["shelved_until"], bad["announced"]) == (None, None, None)
     assert len(bad["text"]) <= 200 and "\x1b" not in bad["text"] and "\u202e" not in bad["text"]
     assert len(s["alerts"]) == 2  # the rest dropped, the state kept
     # a flood: the newest MAX_ALERTS kept, one per id

@@ -48,6 +48,27 @@ def agent(draw: Any, aid: int) -> dict[str, Any]:
     return a
 
 
+ALERT_FIELDS = ("count", "cleared", "acked", "quiet", "level", "text")
+
+
+@st.composite
+def alarm(draw: Any) -> dict[str, Any]:
+    a: dict[str, Any] = {"id": draw(st.integers(1, 30))}
+    station = draw(st.sampled_from([None, "gcs", "east"]))
+    if station is not None:
+        a["station"] = station
+    for k in draw(st.lists(st.sampled_from(ALERT_FIELDS), unique=True)):
+        a[k] = draw(scalar)
+    return a
+
+
+def unique_alarms(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    seen: dict[tuple[Any, Any], dict[str, Any]] = {}
+    for a in rows:
+        seen.setdefault((a.get("station"), a["id"]), a)
+    return list(seen.values())
+
+
 @st.composite
 def state(draw: Any) -> dict[str, Any]:
     ids = sorted(draw(st.sets(st.integers(1, 250), max_size=6)))
@@ -59,6 +80,8 @@ def state(draw: Any) -> dict[str, Any]:
     }
     if draw(st.booleans()):
         s["station"] = {"name": "gcs", "id": 255, "link": draw(st.text(max_size=5))}
+    if draw(st.integers(0, 4)):
+        s["alerts"] = unique_alarms(draw(st.lists(alarm(), max_size=6)))
     return s
 
 
@@ -87,6 +110,21 @@ def moved_on(draw: Any, s: dict[str, Any]) -> dict[str, Any]:
     n["events"] = (n["events"] + extra)[-draw(st.integers(1, 8)) :]
     if draw(st.integers(0, 5)) == 0:
         n.pop("station", None)
+    if "alerts" in n:
+        rows = n["alerts"]
+        for a in rows:
+            if draw(st.booleans()):
+                a[draw(st.sampled_from(ALERT_FIELDS))] = draw(scalar)
+        if rows and draw(st.booleans()):
+            rows.pop(draw(st.integers(0, len(rows) - 1)))
+        rows = unique_alarms(rows + draw(st.lists(alarm(), max_size=2)))
+        if draw(st.integers(0, 4)) == 0:
+            rows = draw(st.permutations(rows))
+        n["alerts"] = list(rows)
+        if draw(st.integers(0, 9)) == 0:
+            n.pop("alerts")
+    elif draw(st.integers(0, 3)) == 0:
+        n["alerts"] = unique_alarms(draw(st.lists(alarm(), max_size=3)))
     return n
 
 
@@ -130,6 +168,18 @@ def test_types_count_true_is_not_one() -> None:
     assert apply(old, build(old, new))["agents"][0]["armed"] is True
 
 
+def test_an_alarm_counted_again_costs_its_count_not_the_list() -> None:
+    rows = [
+        {"id": i, "kind": "link", "agent": i, "level": "critical", "text": f"agent{i}: link lost", "count": 1}
+        for i in range(1, 60)
+    ]
+    old = {"agents": [], "alerts": rows}
+    new = {"agents": [], "alerts": [*rows[:30], {**rows[30], "count": 2}, *rows[31:]]}
+    d = build(old, new)
+    assert d == {"alerts": {"set": {":31": {"count": 2}}}}
+    assert apply(old, d) == new
+
+
 @pytest.mark.parametrize(
     "delta",
     [
@@ -143,10 +193,17 @@ def test_types_count_true_is_not_one() -> None:
         {"agents": {"2": {"name": "no id"}}},
         {"agents": {"1": {"trail": [0, 7]}}},
         {"agents": {"1": {"trail": [True, 0]}}},
+        {"alerts": [1]},
+        {"alerts": {"drop": [":9"]}},
+        {"alerts": {"set": {":2": {"count": 2}}}},
+        {"alerts": {"set": {":2": 5}}},
+        {"alerts": {"set": []}},
+        {"alerts": {"order": [":1", ":1"]}},
+        {"alerts": {"order": []}},
     ],
 )
 def test_a_delta_that_does_not_fit_is_refused(delta: dict[str, Any]) -> None:
-    old = {"agents": [{"id": 1, "trail": [[1.0, 2.0]]}], "events": [{"t": 1}]}
+    old = {"agents": [{"id": 1, "trail": [[1.0, 2.0]]}], "events": [{"t": 1}], "alerts": [{"id": 1}]}
     with pytest.raises(DeltaError):
         apply(old, delta)
 

@@ -65,7 +65,7 @@ import math
 from collections import deque
 from typing import Any
 
-from swarm.core.station.alerts import AlertBook
+from swarm.core.station.alerts import SHELVE_MAX_S, AlertBook
 from swarm.core.station.commands import (
     DONE_RESULTS,
     NO_ANSWER,
@@ -152,7 +152,7 @@ class StationCore:
         )
         self._leader_dirty = False  # a connection, phase or leader changed
         # alerts and link health (swarm.core.station.alerts, swarm.core.station.watch)
-        self.alerts = AlertBook(self.cfg.alerts.keep, wall_offset)
+        self.alerts = AlertBook(self.cfg.alerts.keep, wall_offset, self.cfg.alerts)
         self.watch = AlertWatch(self.cfg.alerts, self.alerts, self._label, self._event)
         self._now = 0.0  # the latest now seen (finished commands are handed out without one)
         self._radio: tuple[float, int, int, int, int] | None = None  # when, rssi, noise, remrssi, remnoise
@@ -338,6 +338,7 @@ class StationCore:
                     out.append(StOut(a.id, a.name, GSHeartbeat(self.id, self._hb_seq)))
                 self.counters.heartbeats_sent += len(round_)
         out += self.commands.tick(now, self.leader)
+        self.watch.tick(now)
         self._update_leader(now)
         return out
 
@@ -349,7 +350,8 @@ class StationCore:
             if a.connect_seq is not None and not self.passive:
                 times.append(a.next_connect)
         times.extend(self.commands.deadlines())
-        return min(times) if times else math.inf
+        times.append(self.alerts.next_deadline())
+        return min(times)
 
     # -- outputs for the runtime ---------------------------------------------------------
     def take_events(self) -> list[Event]:
@@ -380,6 +382,30 @@ class StationCore:
             raise CommandRefused(404, f"no alert {shown}")
         return a.as_dict()
 
+    def shelve_alert(self, alert_id: Any, seconds: Any, now: float) -> AlertRow:
+        """Shelve alarm ``alert_id`` for ``seconds`` (0: unshelve): its row.
+
+        Raises:
+            CommandRefused: 400 not an alert id or not 0..SHELVE_MAX_S seconds, 404 no
+                such alert.
+        """
+        if isinstance(alert_id, bool) or not isinstance(alert_id, int):
+            raise CommandRefused(400, "an alert id is an integer")
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not math.isfinite(seconds)
+            or not 0 <= seconds <= SHELVE_MAX_S
+        ):
+            raise CommandRefused(400, f"shelve for 0..{SHELVE_MAX_S:.0f} seconds")
+        a = self.alerts.shelve(alert_id, float(seconds), now)
+        if a is None:
+            shown = alert_id if -(10**9) < alert_id < 10**9 else "out of range"
+            raise CommandRefused(404, f"no alert {shown}")
+        what = f"shelved for {seconds / 60:.0f} min" if seconds > 0 else "unshelved"
+        self._event(now, "alert", f"alarm {a.id} {what}: {a.text}")
+        return a.as_dict()
+
     def snapshot(self, now: float) -> Snapshot:
         """The API's state object (without the station's link description)."""
         return {
@@ -388,6 +414,7 @@ class StationCore:
             "agents": [self.agents[i].as_dict(now) for i in sorted(self.agents)],
             "events": [e.as_dict() for e in self.events],
             "alerts": self.alerts.as_list(),
+            "alarm_rate": self.alerts.rate(now),
             "radio": self.radio_dict(now),
             "task": self.plan.task_dict(self.leader),
             "slots": self.plan.slots_list(self.leader),
@@ -407,6 +434,8 @@ class StationCore:
             + events
             + ', "alerts": '
             + json.dumps(self.alerts.as_list())
+            + ', "alarm_rate": '
+            + json.dumps(self.alerts.rate(now))
             + ', "radio": '
             + json.dumps(self.radio_dict(now))
             + ', "task": '

@@ -26,7 +26,13 @@ A delta is a JSON object with only the parts that changed:
 * ``drop``: ids of agents gone; ``order``: the agents' ids in order, only when that
   is not ascending ids (the station always sends them sorted);
 * ``events``: ``[cut, keep, event...]`` as for a trail (the station keeps the
-  newest N events: a new one pushes the oldest out).
+  newest N events: a new one pushes the oldest out);
+* ``alerts``: the alarms that changed, by key (``"<station>:<id>"``, the station
+  empty for this station's own: :func:`alert_key`), as ``{"set": {key: patch...},
+  "drop": [key...], "order": [key...]}``, each part only when needed: a patch as an
+  agent's (the fields that changed, ``unset``; a new alarm's every field), ``order``
+  only when the alarms are not those kept in their order followed by the new ones in
+  theirs. A flapping link's alarm costs its count and time, not the whole list.
 
 A list edit ``[cut, keep, added...]`` is exact for any two lists (``new ==
 old[cut:cut + keep] + added``); :func:`list_delta` looks for the alignment that keeps the
@@ -49,6 +55,7 @@ from typing import Any
 #: the state's list-valued top-level fields that travel as their own edits
 AGENTS = "agents"
 EVENTS = "events"
+ALERTS = "alerts"
 TRAIL = "trail"
 
 
@@ -119,10 +126,16 @@ def _count(v: Any) -> bool:
 def build(old: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, Any]:
     """The delta from ``old`` to ``new`` (two states as the station's snapshot gives them)."""
     d: dict[str, Any] = {}
-    _fields(old, new, (AGENTS, EVENTS), d, "set")
+    _fields(old, new, (AGENTS, EVENTS, ALERTS), d, "set")
     ev = list_delta(old.get(EVENTS, []), new.get(EVENTS, []))
     if ev is not None:
         d[EVENTS] = ev
+    if ALERTS in new:
+        al = alerts_delta(old.get(ALERTS, []), new[ALERTS]) if ALERTS in old else {"set": _keyed(new[ALERTS])}
+        if al is not None:
+            d[ALERTS] = al
+    elif ALERTS in old:
+        d.setdefault("unset", []).append(ALERTS)
     before = {a["id"]: a for a in old.get(AGENTS, [])}
     ids = [a["id"] for a in new.get(AGENTS, [])]
     patches = {}
@@ -150,6 +163,62 @@ def _fields(
     gone = [k for k in old if k not in new and k not in skip]
     if gone:
         d["unset"] = gone
+
+
+def alert_key(a: Mapping[str, Any]) -> str:
+    """An alarm's key in a delta: ``"<station>:<id>"`` (ids are per station)."""
+    return f"{a.get('station') or ''}:{a.get('id')}"
+
+
+def _keyed(rows: list[Any]) -> dict[str, Any]:
+    return {alert_key(a): dict(a) for a in rows}
+
+
+def alerts_delta(old: list[Any], new: list[Any]) -> dict[str, Any] | None:
+    """The alarms' part of a delta (module docstring); None: unchanged."""
+    before = {alert_key(a): a for a in old}
+    keys = [alert_key(a) for a in new]
+    d: dict[str, Any] = {}
+    patches = {}
+    for k, a in zip(keys, new, strict=True):
+        p = agent_patch(before.get(k), a)
+        if p is not None:
+            patches[k] = p
+    if patches:
+        d["set"] = patches
+    now = set(keys)
+    drop = [k for k in before if k not in now]
+    if drop:
+        d["drop"] = drop
+    natural = [k for k in before if k in now] + [k for k in keys if k not in before]
+    if keys != natural:
+        d["order"] = keys
+    return d or None
+
+
+def apply_alerts(old: list[Any], edit: Any) -> list[Any]:
+    """The alarms ``old`` with their part of a delta applied (new dicts where patched)."""
+    if not isinstance(edit, dict):
+        raise DeltaError("alerts: an object of set, drop, order")
+    items = {alert_key(a): a for a in old}
+    for k in edit.get("drop", []):
+        if items.pop(k, None) is None:
+            raise DeltaError(f"alerts: drop {str(k)[:20]!r}: no such alarm")
+    patches = edit.get("set", {})
+    if not isinstance(patches, dict):
+        raise DeltaError("alerts: set is an object of patches by key")
+    for k, p in patches.items():
+        base = items.get(k)
+        if not isinstance(p, dict) or (base is None and alert_key(p) != k):
+            raise DeltaError(f"alerts: {str(k)[:20]!r}: a patch is an object (a new alarm's whole)")
+        a = {f: v for f, v in (base or {}).items() if f not in p.get("unset", [])}
+        a.update({f: v for f, v in p.items() if f != "unset"})
+        items[k] = a
+    order = edit.get("order")
+    keys = order if order is not None else list(items)
+    if not isinstance(keys, list) or len(keys) != len(items) or any(k not in items for k in keys):
+        raise DeltaError("alerts: the order does not name every alarm")
+    return [items[k] for k in keys]
 
 
 def agent_patch(old: Mapping[str, Any] | None, new: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -181,6 +250,8 @@ def apply(old: dict[str, Any], delta: dict[str, Any]) -> dict[str, Any]:
     st.update(delta.get("set", {}))
     if EVENTS in delta:
         st[EVENTS] = apply_list(old.get(EVENTS, []), delta[EVENTS], EVENTS)
+    if ALERTS in delta:
+        st[ALERTS] = apply_alerts(old.get(ALERTS, []), delta[ALERTS])
     agents = {a["id"]: a for a in old.get(AGENTS, [])}
     for i in delta.get("drop", []):
         if agents.pop(i, None) is None:

@@ -67,6 +67,7 @@ from typing import Any
 from swarm.core.flight.geofence import Geofence
 from swarm.core.station.alerts import KINDS as ALERT_KINDS
 from swarm.core.station.alerts import LEVELS as ALERT_LEVELS
+from swarm.core.station.alerts import QUIET as ALERT_QUIET
 from swarm.core.station.commands import CommandRefused, CommandSpec
 from swarm.core.station.rows import AgentRow, AlertRow, EventRow, StationState, SwarmRow
 from swarm.core.wire.message_types import NAME_RE, CommandKind
@@ -461,7 +462,7 @@ def clean_alert(a: Any) -> AlertRow | None:
     aid, raised, words = _int(a.get("id"), 0, 2**53), _num(a.get("raised")), text(a.get("text"))
     if aid is None or raised is None or words is None:
         return None
-    kind, level, net = a.get("kind"), a.get("level"), a.get("net")
+    kind, level, net, quiet = a.get("kind"), a.get("level"), a.get("net"), a.get("quiet")
     return {
         "id": aid,
         "kind": kind if kind in ALERT_KINDS else "other",
@@ -469,9 +470,14 @@ def clean_alert(a: Any) -> AlertRow | None:
         "level": level if level in ALERT_LEVELS else "warning",
         "text": words,
         "raised": raised,
+        "last": _num(a.get("last")) or raised,
         "cleared": _num(a.get("cleared")),
         "acked": a.get("acked") is True,
         "count": _int(a.get("count"), 1, 1_000_000) or 1,
+        # a station before alarm management announced every alert
+        "announced": _num(a.get("announced")) if "announced" in a else raised,
+        "quiet": quiet if quiet in ALERT_QUIET else None,
+        "shelved_until": _num(a.get("shelved_until")),
         "net": net if isinstance(net, str) and NAME_RE.match(net) else None,
     }
 
@@ -581,6 +587,19 @@ def ack_any(view: Any, alert_id: Any, station: Any) -> dict[str, Any]:
     return dict(remote(alert_id, station))
 
 
+def shelve_any(view: Any, alert_id: Any, seconds: Any, station: Any) -> dict[str, Any]:
+    """A shelving from the page or the API: alarm ``alert_id`` of this station (another
+    station's alarms are shelved there, by its own operator).
+
+    Raises:
+        CommandRefused: what the station refuses; 409 another station's alarm.
+    """
+    if station is None or station == getattr(view, "name", None):
+        return dict(view.shelve_alert(alert_id, seconds))
+    shown = text(station, 32) if isinstance(station, str) else type(station).__name__
+    raise CommandRefused(409, f"alarms of station {shown!r} are shelved there, by its operator")
+
+
 def clean_result(body: Any, request_sender: str, request_t: int) -> tuple[int, dict[str, Any]]:
     """(status, body) of a command result, if it answers the request (``sender``,
     ``t``) this station made. Raises FederationRefused."""
@@ -634,6 +653,7 @@ __all__ = [
     "inflate",
     "load_body",
     "seal",
+    "shelve_any",
     "spec_body",
     "state_key",
     "tame",

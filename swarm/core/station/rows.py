@@ -34,7 +34,7 @@ class EventRow(TypedDict):
 
 
 class AlertRow(TypedDict):
-    """One alert (:class:`~swarm.core.station.alerts.Alert`): raised, cleared, acknowledged."""
+    """One alarm (:class:`~swarm.core.station.alerts.Alert`): one condition's record."""
 
     id: int
     kind: str
@@ -42,9 +42,13 @@ class AlertRow(TypedDict):
     level: str
     text: str
     raised: float
+    last: float
     cleared: float | None
     acked: bool
     count: int
+    announced: float | None
+    quiet: str | None
+    shelved_until: float | None
     net: NotRequired[str | None]
     station: NotRequired[str]
     station_alive: NotRequired[bool]
@@ -193,6 +197,16 @@ class AlertAck(AlertRow):
     forwarded: bool
 
 
+class AlarmRate(TypedDict):
+    """The station's alarm announcements in the last ``window_s`` (``flood``: at or over
+    its limit: warnings are listed, not announced), and how many a flood held back."""
+
+    announced: int
+    window_s: float
+    flood: bool
+    held: int
+
+
 class Snapshot(TypedDict):
     """The API's and the page's state object."""
 
@@ -201,6 +215,7 @@ class Snapshot(TypedDict):
     agents: list[AgentRow]
     events: list[EventRow]
     alerts: list[AlertRow]
+    alarm_rate: NotRequired[AlarmRate]
     radio: RadioRow | None
     task: TaskRow | None
     slots: list[list[int]] | None
@@ -215,6 +230,7 @@ class Snapshot(TypedDict):
 
 __all__ = [
     "AgentRow",
+    "AlarmRate",
     "AlertAck",
     "AlertRow",
     "CapturedRadio",

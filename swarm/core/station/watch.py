@@ -12,20 +12,24 @@ eye on its agents. The core calls it where it learns something, with ``now``:
   ``loss_clear`` %);
 * the vehicle link lost or back (FLAG_FC_OK), an agent disconnected or connected
   (its silence beyond what its link's record allows: a ``link`` alert, critical);
-* an :class:`~swarm.core.wire.message_types.AgentNotice`: an autopilot STATUSTEXT (an alert,
-  ``critical`` at severity CRITICAL or worse) or one of the agent's own events (a
-  line in the log; a separation hold is also an alert), every one in the log with
-  its repeats;
-* each finished command whose result is a refusal or no answer (an alert).
+* an :class:`~swarm.core.wire.message_types.AgentNotice`: an autopilot STATUSTEXT (an
+  alarm: ``critical`` at severity CRITICAL or worse, else ``warning``; ``advisory`` for
+  the reasons not to arm, "PreArm: ..." and the like, which ArduPilot repeats at
+  CRITICAL while on the ground) or one of the agent's own events
+  (a line in the log; a separation hold that lasts the on-delay is also an alarm),
+  every one in the log with its repeats;
+* each finished command whose result is a refusal or no answer (an advisory: its
+  sender sees the result);
+* time (:meth:`AlertWatch.tick`): on-delays and shelves that ran out.
 
 Notices are bounded here too, whatever the agent's gate did: a bucket of
 ``NOTICE_BURST`` per agent refilled one per ``NOTICE_EVERY_S``; what is over is
 counted (``notices_dropped``), not logged, so a hostile agent cannot wash the log out.
 
-Every alert raised (or made worse) is also a line in the station's event log (kind
-``alert``; a disconnect, a vehicle link lost or a command's result already is one:
-it is not logged twice), so the log holds the whole story and the banner what needs
-a look.
+Every alarm occurrence (new, back, or worse) is also a line in the station's event log
+(kind ``alert``, saying when it was not announced and why; a disconnect, a vehicle link
+lost or a command's result already is one: it is not logged twice), so the log holds
+the whole story and the banner what needs a look.
 Pure: no I/O, no clock.
 """
 
@@ -34,7 +38,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from swarm.core.station.alerts import AlertBook, AlertConfig, battery_level
+from swarm.core.station.alerts import Alert, AlertBook, AlertConfig, battery_level
 from swarm.core.wire.codes import CRITICAL, SEPARATION_HOLD, SEVERITY_NAMES, one_line
 from swarm.core.wire.message_types import AgentNotice, NoticeSource
 
@@ -46,6 +50,20 @@ NOTICE_BURST = 5
 NOTICE_EVERY_S = 2.0
 #: command results that are not a refusal (or are not over yet)
 _NOT_REFUSED = ("ACCEPTED", "CARRIED_OUT", "IN_PROGRESS", None)
+
+
+#: autopilot texts that tell why it will not arm: advisories (the vehicle is on the
+#: ground; ArduPilot repeats them at CRITICAL severity every 30 s while disarmed)
+ARMING_TEXTS = ("PreArm:", "Arm:", "Preflight Fail:", "Arming denied")
+
+
+def _text_level(severity: int, text: str) -> str:
+    """An autopilot text's priority: CRITICAL or worse critical, else a warning (the
+    agent forwards WARNING and worse: "Radio Failsafe", "GPS Glitch" are WARNINGs); a
+    reason not to arm always an advisory."""
+    if text.startswith(ARMING_TEXTS):
+        return "advisory"
+    return "critical" if severity <= CRITICAL else "warning"
 
 
 class AlertWatch:
@@ -66,9 +84,21 @@ class AlertWatch:
         self._buckets: dict[int, tuple[float, float]] = {}  # agent -> (tokens, when)
         self.notices_dropped = 0
 
-    def _raise(self, kind: str, agent: int, level: str, text: str, now: float) -> None:
-        if self.book.raise_(kind, agent, level, text, now)[1]:  # new, or worse: a line in the log
-            self._event(now, "alert", f"{level.upper()}: {text}")
+    def _raise(
+        self, kind: str, agent: int, level: str, text: str, now: float, *, delay: bool = False
+    ) -> None:
+        r = self.book.raise_(kind, agent, level, text, now, delay=delay)
+        if r.occurred and r.alert is not None:  # new, back or worse: a line in the log
+            self._log(r.alert, r.announced, now)
+
+    def _log(self, a: Alert, announced: bool, now: float) -> None:
+        why = "" if announced else f" (not announced: {a.quiet or 'still unacknowledged'}, {a.count} times)"
+        self._event(now, "alert", f"{a.level.upper()}: {a.text}{why}")
+
+    def tick(self, now: float) -> None:
+        """On-delays and shelves that ran out (:meth:`AlertBook.tick`): their lines."""
+        for a in self.book.tick(now):
+            self._log(a, a.announced is not None and a.quiet is None, now)
 
     def _clear(self, kind: str, agent: int, text: str, now: float) -> None:
         if self.book.clear(kind, agent, now) is not None:
@@ -84,7 +114,7 @@ class AlertWatch:
         if level is not None:
             limit = cfg.battery_critical if level == "critical" else cfg.battery_warning
             self._raise("battery", a.id, level, f"{who}: battery {a.battery} % (at or below {limit} %)", now)
-        elif a.battery is not None and a.battery > cfg.battery_warning:
+        elif a.battery is not None and a.battery > cfg.battery_warning + cfg.battery_deadband:
             self._clear("battery", a.id, f"{who}: battery {a.battery} %, above the warning", now)
         loss = a.link.loss
         if loss is None:
@@ -129,13 +159,13 @@ class AlertWatch:
         more = f" (+{msg.repeats} more)" if msg.repeats else ""
         sev = SEVERITY_NAMES[msg.severity]
         if msg.source == NoticeSource.AUTOPILOT:
-            level = "critical" if msg.severity <= CRITICAL else "warning"
+            level = _text_level(msg.severity, text)
             self._event(now, "autopilot", f"{who}: {sev.upper()} {text}{more}")
             self.book.once("statustext", msg.sender, level, f"{who}: {text}", now, 1 + msg.repeats)
             return
         self._event(now, "agent", f"{who}: {text}{more}")
         if text.startswith(SEPARATION_HOLD):
-            self._raise("separation", msg.sender, "warning", f"{who}: {text}", now)
+            self._raise("separation", msg.sender, "warning", f"{who}: {text}", now, delay=True)
         elif text.startswith("separation restored"):
             self.book.clear("separation", msg.sender, now)
 
@@ -146,7 +176,7 @@ class AlertWatch:
                 continue
             why = f" ({p.reason})" if p.reason else ""
             text = f"{p.msg.kind.name} -> {self._label(p.agent)}: {p.result}{why}"
-            self.book.once("command", p.agent, "warning", text, now)
+            self.book.once("command", p.agent, "advisory", text, now)  # its sender sees the result
 
 
 __all__ = ["AlertWatch"]

@@ -197,6 +197,14 @@ class Fleet:
         first["events"] = all_events
         alerts: list[AlertRow] = [{**al, "station": self.name} for al in mine.alerts]
         first["alerts"] = alerts + other.alerts
+        rates = [r for s in snaps if (r := s.get("alarm_rate")) is not None]
+        if rates:  # this station's operator: its own channels' announcements
+            first["alarm_rate"] = {
+                "announced": sum(r["announced"] for r in rates),
+                "window_s": rates[0]["window_s"],
+                "flood": any(r["flood"] for r in rates),
+                "held": sum(r["held"] for r in rates),
+            }
         first["swarms"] = fleet_colours(mine.swarms + other.swarms)
         first["nets"] = [
             {"name": net, "station": self.name, "link": st.describe()} for net, st in self.channels
@@ -233,6 +241,14 @@ class Fleet:
         n = len(self.channels)
         net, st = self.channels[alert_id % n]
         out = st.ack_alert(alert_id // n)
+        return {**out, "id": alert_id, "net": net}
+
+    def shelve_alert(self, alert_id: Any, seconds: Any) -> AlertRow:
+        if isinstance(alert_id, bool) or not isinstance(alert_id, int) or alert_id < 0:
+            raise CommandRefused(400, "an alert id is an integer")
+        n = len(self.channels)
+        net, st = self.channels[alert_id % n]
+        out = st.shelve_alert(alert_id // n, seconds)
         return {**out, "id": alert_id, "net": net}
 
     def ack_remote_alert(self, alert_id: Any, station: str) -> AlertAck:

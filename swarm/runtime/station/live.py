@@ -86,6 +86,11 @@ class CoreStation:
         with self._lock:
             return self.core.ack_alert(alert_id)
 
+    def shelve_alert(self, alert_id: Any, seconds: Any) -> AlertRow:
+        """Shelve an alarm for ``seconds`` (0: unshelve; CommandRefused: 400, 404)."""
+        with self._lock:
+            return self.core.shelve_alert(alert_id, seconds, self._now())
+
 
 class Station(StartOnce, CoreStation):
     """One :class:`StationCore` on its own thread, over Zenoh (endpoints) or a radio.

@@ -20,6 +20,8 @@ Routes (docs/station.md documents the bodies):
 * ``GET /api/config``, ``/api/state``, ``/api/agents/<id>``; ``POST /api/command``;
   ``POST /api/alerts/ack`` (``{"id": N}``: an alert acknowledged; ``"station"``: one of
   another station's, acknowledged there, :func:`swarm.core.station.federation.ack_any`);
+  ``POST /api/alerts/shelve`` (``{"id": N, "seconds": S}``: an alarm shelved, 0..3600 s;
+  0 unshelves; this station's alarms only);
   ``GET|POST /api/replay`` (replay mode);
 * ``GET /ws``: the whole state once, then what changed (deltas with sequence
   numbers, :mod:`swarm.runtime.station.websocket`) at ``ws_hz``, events as they happen,
@@ -64,7 +66,7 @@ from typing import Any
 from aiohttp import web
 
 from swarm.core.station.commands import CommandRefused, parse_command
-from swarm.core.station.federation import ack_any
+from swarm.core.station.federation import ack_any, shelve_any
 from swarm.errors import SwarmError
 from swarm.runtime.station.connections import ConnectionLimiter, HttpLog, default_limit
 from swarm.runtime.station.security import (
@@ -298,6 +300,7 @@ class GcsServer:
         r.add_get(r"/api/agents/{id:\d{1,9}}", self._agent)
         r.add_post("/api/command", self._command_http)
         r.add_post("/api/alerts/ack", self._ack_alert_http)
+        r.add_post("/api/alerts/shelve", self._shelve_alert_http)
         r.add_get("/api/replay", self._replay_get)
         r.add_post("/api/replay", self._replay_post)
         r.add_get("/ws", self.ws.handle)
@@ -517,6 +520,18 @@ class GcsServer:
             if not isinstance(body, dict):
                 raise CommandRefused(400, 'an acknowledgement is a JSON object {"id": N}')
             alert = ack_any(self.station, body.get("id"), body.get("station"))
+            return web.json_response({"ok": True, "alert": alert})
+        except CommandRefused as exc:
+            return error_response(exc.status, exc.reason)
+
+    async def _shelve_alert_http(self, request: web.Request) -> web.Response:
+        """``{"id": N, "seconds": S}``: shelve alarm N for S seconds (0..3600; 0:
+        unshelve); the alarm back; 400/404/409 one line."""
+        try:
+            body = await self._body(request)
+            if not isinstance(body, dict):
+                raise CommandRefused(400, 'a shelving is a JSON object {"id": N, "seconds": S}')
+            alert = shelve_any(self.station, body.get("id"), body.get("seconds"), body.get("station"))
             return web.json_response({"ok": True, "alert": alert})
         except CommandRefused as exc:
             return error_response(exc.status, exc.reason)

@@ -45,11 +45,39 @@
     return a;
   }
 
+  // an alarm's key: "<station>:<id>" (the station empty for this station's own)
+  function alertKey(a) {
+    return (a && a.station ? a.station : "") + ":" + (a ? a.id : undefined);
+  }
+
+  // the alarms' part: {set: {key: patch}, drop: [key], order: [key]}
+  function applyAlerts(old, e) {
+    if (!e || typeof e !== "object" || Array.isArray(e)) misfit("alerts");
+    const items = new Map();
+    for (const a of Array.isArray(old) ? old : []) items.set(alertKey(a), a);
+    for (const k of Array.isArray(e.drop) ? e.drop : []) if (!items.delete(k)) misfit("alert " + k);
+    if (e.set !== undefined) {
+      if (!e.set || typeof e.set !== "object" || Array.isArray(e.set)) misfit("alerts set");
+      for (const k of Object.keys(e.set)) {
+        const p = e.set[k], base = items.get(k);
+        if (!p || typeof p !== "object" || (!base && alertKey(p) !== k)) misfit("alert " + k);
+        const a = Object.assign({}, base || {});
+        if (Array.isArray(p.unset)) for (const f of p.unset) delete a[f];
+        for (const f of Object.keys(p)) if (f !== "unset") a[f] = p[f];
+        items.set(k, a);
+      }
+    }
+    const keys = Array.isArray(e.order) ? e.order : Array.from(items.keys());
+    if (keys.length !== items.size || keys.some((k) => !items.has(k))) misfit("alerts order");
+    return keys.map((k) => items.get(k));
+  }
+
   function apply(old, d) {
     const st = Object.assign({}, old);
     if (Array.isArray(d.unset)) for (const k of d.unset) delete st[k];
     if (d.set && typeof d.set === "object") Object.assign(st, d.set);
     if (d.events !== undefined) st.events = editList(old.events, d.events, null, "events");
+    if (d.alerts !== undefined) st.alerts = applyAlerts(old.alerts, d.alerts);
     const agents = new Map();
     for (const a of Array.isArray(old.agents) ? old.agents : []) agents.set(a.id, a);
     for (const id of Array.isArray(d.drop) ? d.drop : []) if (!agents.delete(id)) misfit("drop " + id);

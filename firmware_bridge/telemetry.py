@@ -141,6 +141,8 @@ class VehicleState:
     home: tuple[float, float, float] | None = None
     gps_ok: bool = False
     gps_known: bool = False  # a GPS_RAW_INT or SYS_STATUS with a GPS has been heard
+    gps_fix: int | None = None  # GPS_RAW_INT fix_type (GPS_FIX_TYPE: 3 3D, 4 DGPS, 5/6 RTK); None: not heard
+    satellites: int | None = None  # GPS_RAW_INT satellites_visible; None: not heard or unknown (255)
     prearm_ok: bool | None = None  # SYS_STATUS pre-arm bit; None: the autopilot does not report it
     ekf_flags: int | None = None  # EKF_STATUS_REPORT.flags; None: not heard
     position_valid: bool = False  # the autopilot vouches for lat/lon/alt (position_problem)
@@ -376,7 +378,13 @@ class TelemetryFolder:
 
     def _gps_raw(self, msg: Any, now: float) -> _Updates:
         self._gps_fix = msg.fix_type  # from now on GPS_RAW_INT, not SYS_STATUS, says whether GPS is ok
-        return {"gps_ok": msg.fix_type >= GPS_FIX_3D, "gps_known": True}
+        sats = msg.satellites_visible
+        return {
+            "gps_ok": msg.fix_type >= GPS_FIX_3D,
+            "gps_known": True,
+            "gps_fix": msg.fix_type if 0 <= msg.fix_type <= 8 else None,
+            "satellites": sats if 0 <= sats < 255 else None,
+        }
 
     def _ekf_status(self, msg: Any, now: float) -> _Updates:
         return {"ekf_flags": msg.flags}

@@ -7,6 +7,9 @@ sends Gos below a floor: at 0.2 m above home (and 20 m AMSL through the API) the
 refuses it and sends nothing; at 1 m the station sends it and the agent refuses it. Each
 reason is shown on the page and the vehicle does not come down. A Go at 20 m above home
 flies it to 20 m above home, the page showing that height with its AMSL beside it.
+Then the station is stopped and a new one started while the vehicle flies: it never
+saw the vehicle on the ground, and its page shows the same 20 m above home (the agent's
+autopilot says it), never AMSL in the same column, with the GPS fix and satellites.
 Screenshots in ``test-artifacts/``.
 """
 
@@ -37,6 +40,7 @@ DEADLINE = 90.0
 class Bench:
     url: str
     children: list[Child]
+    ep: str
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +80,7 @@ def bench() -> Iterator[Bench]:
             ]
         )
         children.append(station)
-        yield Bench(url, children)
+        yield Bench(url, children, ep)
     finally:
         for c in reversed(children):
             c.stop(grace=3)
@@ -188,3 +192,47 @@ def test_a_go_below_the_floor_is_refused_and_a_go_at_20_m_flies_20_m_above_home(
         )
         screenshot(page, "altitude_go_20m_above_home.png")
         assert errors == []
+
+
+def test_a_station_restarted_in_flight_shows_the_same_height_above_home(bench: Bench) -> None:
+    """Runs after the 20 m go-to (the module's bench, in order)."""
+    kids = bench.children
+    assert abs((above_home(bench.url) or 0.0) - 20.0) < 1.5
+    old = kids.pop()  # the station: stopped, a new one on the same Zenoh endpoint
+    old.stop(grace=3)
+    station, url = start_station(
+        ["--zenoh-listen", bench.ep, "--http", f"127.0.0.1:{free_port()}", "--tiles", "none"]
+    )
+    kids.append(station)
+
+    def heard() -> bool:
+        try:
+            return api_agent(url)["rel_alt"] is not None
+        except urllib.error.HTTPError:  # 404 until it hears agent1
+            return False
+
+    poll(heard, "the new station hears agent1's height", DEADLINE, kids)
+    a = api_agent(url)
+    assert abs(a["rel_alt"] - 20.0) < 1.5 and a["home_alt"] == pytest.approx(HOME[2], abs=1.0)
+    assert (a["gps_fix"], a["satellites"]) == (3, 12)  # the simulated PX4's 3D fix
+    with browser() as ctx:
+        page = ctx.new_page()
+        page.goto(url)
+        page.wait_for_function("() => window.gcs && window.gcs.ready", timeout=15000)
+        cell = '#agents [data-agent-id="1"] td[data-field="alt"]'
+        poll(lambda: page.locator(cell).count() == 1, "agent1's row", DEADLINE, kids)
+        poll(
+            lambda: re.match(r"(19|20|21)\.\d ✈", page.inner_text(cell)),
+            "20 m above home in the table",
+            15,
+            kids,
+        )
+        assert "AMSL" not in page.inner_text(cell)
+        gps = page.inner_text('#agents [data-agent-id="1"] td[data-field="gps"]')
+        assert gps == "3D · 12 sat", gps
+        page.click('#agents [data-agent-id="1"]')
+        shown = r"(19|20|21)\.\d m above home \(60[3-5]\.\d m AMSL\)"
+        poll(
+            lambda: re.search(shown, page.inner_text('#telemetry [data-field="alt"]')), "the panel", 15, kids
+        )
+        screenshot(page, "altitude_after_station_restart.png")

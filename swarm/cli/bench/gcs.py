@@ -29,6 +29,11 @@ null with a ``click_to_setpoint_error`` when that bench cannot run.
 Targets (the issue): station under 20% of one core; ``ws_bytes_per_s`` at most
 20,000; page frame p95 at most 17 ms (one frame at 60 Hz).
 
+``alarms_announced_per_10_min``, ``alarms_critical_at_start``, ``alarm_ws_bytes_per_s``
+(and the alarm bench's other figures, :mod:`swarm.cli.bench.gcs_alarms`): 50 agents
+of which 5 links flap and 5 batteries sit on the warning threshold, an operator who
+acknowledges at once; on a station of its own (10 minutes; 90 s with ``--quick``).
+
 ``flood_operator_answered`` of ``flood_operator_requests`` (and the flood's other figures,
 :mod:`swarm.cli.bench.gcs_flood`): the operator's requests answered while 2,000 idle
 connections press on a station limited to 1024 open files, with their latency
@@ -63,6 +68,8 @@ CENTER = (47.397742, 8.545594)
 TARGET_CPU = 20.0
 TARGET_FRAME_MS = 17.0
 TARGET_WS_BYTES = 20_000
+FLAP_PERIOD_S = 60.0
+FLAP_OFF_S = 15.0
 
 
 def _get(url: str) -> Any:
@@ -164,6 +171,7 @@ def run(quick: bool = False, agents: int = AGENTS, hz: float = HZ) -> dict[str, 
                 feeder.wait(5)
         station.stop()
     out.update(_click(5 if quick else 11))  # its own bench, once this one is stopped
+    out.update(_alarms(quick))  # the alarms while links flap: its own station
     out.update(_flood(quick))  # and the connection flood's
     return out
 
@@ -236,6 +244,15 @@ def _click(trials: int) -> dict[str, Any]:
         return {"click_to_setpoint_ms_p50": None, "click_to_setpoint_error": f"{type(exc).__name__}: {exc}"}
 
 
+def _alarms(quick: bool) -> dict[str, Any]:
+    try:
+        from swarm.cli.bench.gcs_alarms import measure
+
+        return measure(quick)
+    except Exception as exc:  # a bench that did not come up: report, keep the other figures
+        return {"alarms_announced": None, "alarms_error": f"{type(exc).__name__}: {exc}"}
+
+
 def _flood(quick: bool) -> dict[str, Any]:
     try:
         from swarm.cli.bench.gcs_flood import measure
@@ -251,7 +268,9 @@ def _flood(quick: bool) -> dict[str, Any]:
 class _Feeder:
     """``agents`` agents at ``hz`` over one Zenoh session (see the module docstring)."""
 
-    def __init__(self, ep: str, agents: int, hz: float) -> None:
+    def __init__(
+        self, ep: str, agents: int, hz: float, flap: int = 0, wobble: int = 0, flap_after: float = 0.0
+    ) -> None:
         from swarm.runtime.keyspace import transport  # Zenoh: in the feeder process only
 
         self.keys = transport
@@ -265,6 +284,13 @@ class _Feeder:
         self.inbox: queue.Queue[tuple[int, Any]] = queue.Queue()
         self.members = frozenset(self.ids[1:])
         self.pool = frozenset(self.ids)
+        # the alarm bench's troubles: links that flap (the last ``flap`` agents: silent
+        # FLAP_OFF_S of every FLAP_PERIOD_S, each at its own phase, from ``flap_after``
+        # s on) and batteries on the warning threshold (the ``wobble`` before them)
+        self.flap = frozenset(self.ids[agents - flap :]) if flap else frozenset()
+        self.wobble = frozenset(self.ids[agents - flap - wobble : agents - flap]) if wobble else frozenset()
+        self.start = time.monotonic()
+        self.flap_after = flap_after
         self.subs = [self.session.declare_subscriber("swarm/*", self._on_sample)]
 
     def _on_sample(self, sample: Any) -> None:
@@ -295,6 +321,9 @@ class _Feeder:
         )
 
     def telemetry(self, i: int, now: float) -> Telemetry:
+        battery = 90 - i % 30
+        if i in self.wobble:  # 29, 30 or 31 %: on the warning threshold (30 %)
+            battery = 30 + round(math.sin(now * 0.7 + i))
         return Telemetry(
             i,
             self.pose(i, now),
@@ -302,11 +331,23 @@ class _Feeder:
             FLAG_ARMED | FLAG_AIRBORNE | FLAG_FC_OK,
             Phase.LEADER if i == 1 else Phase.MEMBER,
             1,
-            90 - i % 30,
+            battery,
             200,
             190,
             5.0,
+            rel_alt=20.0,
+            climb=0.0,
+            gps_fix=3,
+            satellites=14,
+            home_dist=float(i),
         )
+
+    def silent(self, i: int, now: float) -> bool:
+        """A flapping agent in its silence (its radio out of reach: it sends nothing)."""
+        t = now - self.start - self.flap_after
+        if i not in self.flap or t < 0:
+            return False
+        return (t + FLAP_PERIOD_S * (i % 7) / 7) % FLAP_PERIOD_S < FLAP_OFF_S
 
     def put(self, key: str, msg: Any) -> None:
         self.session.put(key, encode(msg))
@@ -318,6 +359,8 @@ class _Feeder:
                 i, msg = self.inbox.get_nowait()
             except queue.Empty:
                 return
+            if self.silent(i, now):
+                continue  # out of reach: it never heard it
             for o in self.links[i].handle(msg, now):
                 st = self.links[i].station_name(o.to)
                 if st:
@@ -327,6 +370,8 @@ class _Feeder:
         """Agent ``i``'s link timers (Telemetry, GSAdvertize) and, when due, its pose and state."""
         keys = self.keys
         g = self.links[i]
+        if self.silent(i, now):
+            return
         for o in g.tick(now, lambda i=i: self.telemetry(i, time.monotonic())):  # type: ignore[misc]
             if o.to == 0:
                 self.put(keys.KEY_GS_ADVERTIZE, o.msg)
@@ -357,13 +402,14 @@ class _Feeder:
         self.session.close()
 
 
-def feed(ep: str, agents: int, hz: float) -> None:
-    """Play ``agents`` agents at ``hz`` over one Zenoh session until SIGTERM."""
+def feed(ep: str, agents: int, hz: float, flap: int = 0, wobble: int = 0, flap_after: float = 0.0) -> None:
+    """Play ``agents`` agents at ``hz`` over one Zenoh session until SIGTERM (``flap``,
+    ``wobble``, ``flap_after``: the alarm bench's troubles, :class:`_Feeder`)."""
     import signal
 
     stop = [False]
     signal.signal(signal.SIGTERM, lambda *_: stop.__setitem__(0, True))
-    f = _Feeder(ep, agents, hz)
+    f = _Feeder(ep, agents, hz, flap, wobble, flap_after)
     start = time.monotonic()
     due = {i: start + f.period * k / agents for k, i in enumerate(f.ids)}
     while not stop[0]:
@@ -380,8 +426,11 @@ def _main(argv: list[str] | None = None) -> int:
     p.add_argument("--feed", metavar="EP", required=True, help="Zenoh endpoint of the station")
     p.add_argument("--agents", type=int, default=AGENTS)
     p.add_argument("--hz", type=float, default=HZ)
+    p.add_argument("--flap", type=int, default=0, help="agents whose links flap")
+    p.add_argument("--wobble", type=int, default=0, help="agents whose battery sits on the warning")
+    p.add_argument("--flap-after", type=float, default=0.0, help="seconds before the links start to flap")
     a = p.parse_args(argv)
-    feed(a.feed, a.agents, a.hz)
+    feed(a.feed, a.agents, a.hz, a.flap, a.wobble, a.flap_after)
     return 0
 
 

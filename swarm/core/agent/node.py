@@ -72,6 +72,7 @@ from __future__ import annotations
 import math
 import random
 from dataclasses import dataclass, replace
+from typing import Any
 
 from swarm.core.agent.gslink import CommandLog, GsLink, GsOut, answer_command
 from swarm.core.agent.notices import NoticeGate, agent_severity
@@ -85,6 +86,8 @@ from swarm.core.wire.codes import (
     FLAG_CONTROL_LOST,
     FLAG_FC_OK,
     FLAG_HOLDING,
+    FLAG_READY,
+    FLAG_READY_KNOWN,
     mode_code,
     short_reason,
 )
@@ -146,6 +149,13 @@ class VehicleInfo:
     groundspeed: float = 0.0
     link_ok: bool = True
     controlled: bool | None = None  # under the companion's setpoints (OFFBOARD, GUIDED); None: unknown
+    # what an operator's table shows beside (None: unknown; Telemetry's detail block)
+    rel_alt: float | None = None  # metres above the autopilot's home
+    climb: float | None = None  # m/s, up
+    gps_fix: int | None = None  # GPS_FIX_TYPE
+    satellites: int | None = None
+    home_dist: float | None = None  # metres from the autopilot's home
+    ready: bool | None = None  # the autopilot's pre-arm checks pass
 
 
 @dataclass(frozen=True)
@@ -532,7 +542,18 @@ class AgentNode:
         pose = core.pose or NO_POSE
         mode = flags = 0
         battery, groundspeed = 255, 0.0
+        detail: dict[str, Any] = {}
         v = self.vehicle
+        if v is not None and v.link_ok:  # the last values heard are not what it is now
+            detail = {
+                "rel_alt": v.rel_alt,
+                "climb": v.climb,
+                "gps_fix": v.gps_fix,
+                "satellites": v.satellites,
+                "home_dist": v.home_dist,
+            }
+            if v.ready is not None:
+                flags |= FLAG_READY_KNOWN | (FLAG_READY if v.ready else 0)
         if v is not None:
             mode = mode_code(v.mode) if v.link_ok else 0  # not the last mode heard: unknown
             flags |= (FLAG_ARMED if v.armed else 0) | (FLAG_AIRBORNE if v.airborne else 0)
@@ -555,6 +576,7 @@ class AgentNode:
             self.radio.rssi & 0xFF,
             self.radio.remrssi & 0xFF,
             groundspeed,
+            **detail,
         )
 
 

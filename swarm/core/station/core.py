@@ -85,6 +85,8 @@ from swarm.core.wire.codes import (
     FLAG_CONTROL_LOST,
     FLAG_FC_OK,
     FLAG_HOLDING,
+    FLAG_READY,
+    FLAG_READY_KNOWN,
     is_station,
     mode_name,
     short_reason,
@@ -530,6 +532,12 @@ class StationCore:
         a.battery = None if msg.battery > 100 else msg.battery
         a.rssi, a.remrssi = msg.rssi, msg.remrssi
         a.groundspeed = msg.groundspeed if fc else a.groundspeed
+        if fc:  # without its flight controller the agent knows none of these now
+            a.rel_alt, a.climb, a.home_dist = msg.rel_alt, msg.climb, msg.home_dist
+            a.gps_fix, a.satellites = msg.gps_fix, msg.satellites
+            a.ready = bool(msg.flags & FLAG_READY) if msg.flags & FLAG_READY_KNOWN else None
+        else:
+            a.rel_alt = a.climb = a.home_dist = a.gps_fix = a.satellites = a.ready = None
         if a.connected:  # a replay shows the battery alerts as they were, not its own link's
             self.watch.telemetry(a, now, self.cfg.timeout_heartbeats, link=not self.passive)
         self._set_election(a, msg.phase, msg.leader)

@@ -129,6 +129,13 @@ class AgentView:
     rssi: int | None = None
     remrssi: int | None = None
     groundspeed: float | None = None
+    # the Telemetry's detail block (an agent that sends none: None, unknown)
+    rel_alt: float | None = None  # above the autopilot's home
+    climb: float | None = None
+    gps_fix: int | None = None
+    satellites: int | None = None
+    home_dist: float | None = None
+    ready: bool | None = None  # the autopilot's pre-arm checks pass
     phase: Phase | None = None
     leader: int = 0
     pool: frozenset[int] = frozenset()
@@ -177,7 +184,13 @@ class AgentView:
             "lat": round(p.lat, 7) if p else None,
             "lon": round(p.lon, 7) if p else None,
             "alt": round(p.alt, 1) if p else None,
-            "home_alt": round(self.home[2], 1) if self.home else None,
+            "home_alt": self._home_alt(),
+            "rel_alt": None if self.rel_alt is None else round(self.rel_alt, 1),
+            "climb": None if self.climb is None else round(self.climb, 2),
+            "gps_fix": self.gps_fix,
+            "satellites": self.satellites,
+            "home_dist": None if self.home_dist is None else round(self.home_dist),
+            "ready": self.ready,
             "heading": round(p.heading, 1) if p else None,
             "groundspeed": None if self.groundspeed is None else round(self.groundspeed, 2),
             "mode": self.mode or None,
@@ -196,6 +209,14 @@ class AgentView:
             "members": sorted(self.members),
             "locked": self.locked,
         }
+
+    def _home_alt(self) -> float | None:
+        """Home's height AMSL: the autopilot's (AMSL less its height above home) when the
+        agent says, else where the station saw it on the ground; None: unknown. One
+        reference, whenever the station started."""
+        if self.rel_alt is not None and self.pose is not None:
+            return round(self.pose.alt - self.rel_alt, 1)
+        return round(self.home[2], 1) if self.home else None
 
     def add_trail(self, pose: Pose, now: float, trail_s: float, trail_points: int) -> None:
         """Keep ``pose`` in the trail: one point per ``trail_s / trail_points``, the

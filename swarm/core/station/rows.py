@@ -67,6 +67,12 @@ class AgentRow(TypedDict):
     lon: float | None
     alt: float | None
     home_alt: float | None
+    rel_alt: float | None
+    climb: float | None
+    gps_fix: int | None
+    satellites: int | None
+    home_dist: float | None
+    ready: bool | None
     heading: float | None
     groundspeed: float | None
     mode: str | None

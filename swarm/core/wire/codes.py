@@ -91,6 +91,12 @@ FLAG_HOLDING = 0x08  # holding position: stale pose, separation, or a stop comma
 FLAG_CONTROL_LOST = 0x10  # the autopilot left setpoint control by itself (a failsafe, RC)
 
 
+FLAG_READY_KNOWN = 0x20  # the autopilot reports its pre-arm checks (FLAG_READY says how)
+
+
+FLAG_READY = 0x40  # its pre-arm checks pass: ready to arm
+
+
 def mode_code(name: str) -> int:
     return _MODE_CODES.get(name, 0)
 

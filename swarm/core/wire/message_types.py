@@ -370,6 +370,17 @@ class Telemetry(Message):
     rssi: int = 0
     remrssi: int = 0
     groundspeed: float = 0.0  # m/s
+    # the detail block (an agent before it sends none; None: unknown)
+    rel_alt: float | None = None  # metres above the autopilot's home, -3276.7..3276.7
+    climb: float | None = None  # m/s up, -31.75..31.75
+    gps_fix: int | None = None  # GPS_FIX_TYPE 0..8
+    satellites: int | None = None  # 0..254
+    home_dist: float | None = None  # metres from the autopilot's home, 0..65534
+
+    @property
+    def has_detail(self) -> bool:
+        detail = (self.rel_alt, self.climb, self.gps_fix, self.satellites, self.home_dist)
+        return any(v is not None for v in detail)
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,11 @@ kilobytes per second, so the encoding is tight:
 * optional fields are announced by a flag and absent otherwise, so that what an
   agent without the feature sends keeps its bytes: an Advertize's size byte (only
   an agent with a size cap sends it) follows when its flag ADV_SIZE is set, then its
-  swarm name's 16-bit tag (only a named agent sends it) when ADV_SWARM is set.
+  swarm name's 16-bit tag (only a named agent sends it) when ADV_SWARM is set;
+  a Telemetry's detail block (7 bytes: height above the autopilot's home int16
+  decimetres, climb int8 in 0.25 m/s, GPS fix type, satellites, distance from home
+  uint16 metres; each field's own "unknown" value) follows its ground speed when the
+  agent knows any of them, and an earlier agent's Telemetry without it still decodes.
 
 The field layout of each type is declared once (``_LAYOUT``), and encoder and
 decoder are driven by it, so they cannot disagree.
@@ -411,7 +415,47 @@ def encode(msg: mt.Message) -> bytes:
         w.u8(msg.size)  # a capped agent's size (flag ADV_SIZE, checked by Advertize)
     if isinstance(msg, mt.Advertize) and msg.swarm:
         w.pack("H", msg.swarm)  # a named agent's swarm tag (flag ADV_SWARM)
+    if isinstance(msg, mt.Telemetry) and msg.has_detail:
+        block = _detail(msg)
+        if block != _UNKNOWN:  # a block that knows nothing is left out
+            w.pack("hbBBH", *block)
     return bytes(w.b)
+
+
+# a Telemetry's detail block: the values that mean "unknown"
+_NO_ALT, _NO_CLIMB, _NO_FIX, _NO_SATS, _NO_DIST = -32768, -128, 0xFF, 0xFF, 0xFFFF
+
+
+_UNKNOWN = (_NO_ALT, _NO_CLIMB, _NO_FIX, _NO_SATS, _NO_DIST)
+
+
+def _detail(m: mt.Telemetry) -> tuple[int, int, int, int, int]:
+    def fin(v: float | None) -> float | None:
+        return v if v is not None and math.isfinite(v) else None
+
+    alt, climb, dist = fin(m.rel_alt), fin(m.climb), fin(m.home_dist)
+    return (
+        _NO_ALT if alt is None else max(-32767, min(32767, round(alt * 10))),
+        _NO_CLIMB if climb is None else max(-127, min(127, round(climb * 4))),
+        _NO_FIX if m.gps_fix is None or not 0 <= m.gps_fix <= 8 else m.gps_fix,
+        _NO_SATS if m.satellites is None or not 0 <= m.satellites < 255 else m.satellites,
+        _NO_DIST if dist is None else max(0, min(65534, round(dist))),
+    )
+
+
+def _r_detail(r: _R) -> dict[str, Any]:
+    alt, climb, fix, sats, dist = r.unpack("hbBBH")
+    if fix != _NO_FIX and fix > 8:
+        raise DecodeError(f"GPS fix type {fix} out of range")
+    if (alt, climb, fix, sats, dist) == _UNKNOWN:
+        raise DecodeError("a Telemetry detail block that knows nothing (it is left out)")  # one encoding
+    return {
+        "rel_alt": None if alt == _NO_ALT else alt / 10.0,
+        "climb": None if climb == _NO_CLIMB else climb / 4.0,
+        "gps_fix": None if fix == _NO_FIX else fix,
+        "satellites": None if sats == _NO_SATS else sats,
+        "home_dist": None if dist == _NO_DIST else float(dist),
+    }
 
 
 def decode(data: bytes) -> mt.Message:
@@ -440,6 +484,8 @@ def decode(data: bytes) -> mt.Message:
             values["size"] = r.u8()
         if cls is mt.Advertize and values["flags"] & mt.ADV_SWARM:
             values["swarm"] = r.unpack("H")[0]
+        if cls is mt.Telemetry and r.i < len(r.d):  # the detail block (a newer agent)
+            values.update(_r_detail(r))
         if r.i != len(r.d):
             raise DecodeError(f"{len(r.d) - r.i} trailing bytes after {cls.__name__}")
         return cls(**values)

@@ -28,6 +28,9 @@ def vehicle_info(s: Any, link_ok: bool) -> VehicleInfo:
     speed = 0.0
     if s.velocity is not None and all(map(math.isfinite, s.velocity[:2])):
         speed = math.hypot(s.velocity[0], s.velocity[1])
+    climb = None
+    if s.velocity is not None and math.isfinite(s.velocity[2]):
+        climb = -float(s.velocity[2])  # NED: down is positive
     return VehicleInfo(
         mode=s.mode,
         armed=bool(s.armed),
@@ -36,7 +39,29 @@ def vehicle_info(s: Any, link_ok: bool) -> VehicleInfo:
         groundspeed=speed,
         link_ok=link_ok,
         controlled=(s.mode in SETPOINT_MODES) if s.mode else None,
+        rel_alt=_finite(s.rel_alt),
+        climb=climb,
+        gps_fix=getattr(s, "gps_fix", None),
+        satellites=getattr(s, "satellites", None),
+        home_dist=_home_dist(s),
+        ready=s.prearm_ok,
     )
+
+
+def _finite(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
+
+
+def _home_dist(s: Any) -> float | None:
+    """Metres from the autopilot's home (HOME_POSITION) to the vehicle; None unknown."""
+    home = s.home
+    if home is None or s.lat is None or s.lon is None or not s.position_valid:
+        return None
+    k = math.pi / 180.0
+    x = (s.lon - home[1]) * k * math.cos((s.lat + home[0]) * k / 2)
+    y = (s.lat - home[0]) * k
+    d = 6_371_000.0 * math.hypot(x, y)
+    return d if math.isfinite(d) else None
 
 
 def pose_from_state(s: Any, t: float) -> Pose | None:

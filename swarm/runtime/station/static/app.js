@@ -252,7 +252,19 @@
   function agentColour(id) {
     return PALETTE[(Math.abs(Math.trunc(Number(id) || 0)) + PALETTE.length - 1) % PALETTE.length];
   }
-  const FLEET_FIELDS = ["name", "role", "mode", "armed", "alt", "groundspeed", "battery", "link", "seen"];
+  const FLEET_FIELDS = [
+    "name", "role", "mode", "armed", "alt", "climb", "groundspeed", "home_dist", "battery", "gps", "ready", "link", "seen",
+  ];
+  // GPS_FIX_TYPE as an operator reads it
+  const FIX_NAMES = ["no GPS", "no fix", "2D", "3D", "DGPS", "RTK float", "RTK fixed", "static", "PPP"];
+  function gpsText(a) {
+    if (!Number.isInteger(a.gps_fix) && !Number.isInteger(a.satellites)) return "—";
+    const fix = Number.isInteger(a.gps_fix) ? FIX_NAMES[a.gps_fix] || "fix " + a.gps_fix : "?";
+    return fix + (Number.isInteger(a.satellites) ? " · " + a.satellites + " sat" : "");
+  }
+  function readyText(a) {
+    return a.ready === true ? "ready" : a.ready === false ? "not ready" : "—";
+  }
   function makeAgent(a) {
     const rec = { data: a, marker: null, el: null, arrow: null, tag: null, trail: null, row: null, view: {} };
     rec.colour = agentColour(a.id);
@@ -483,7 +495,12 @@
     setText(c.mode, a.vehicle_link === false ? "vehicle link lost" : a.mode || "—");
     setText(c.armed, a.armed === true ? "armed" : a.armed === false ? "disarmed" : "—");
     setText(c.alt, altText(a) + (a.airborne ? " ✈" : ""));
+    setText(c.climb, fmt(a.climb, 1));
     setText(c.groundspeed, fmt(a.groundspeed, 1));
+    setText(c.home_dist, fmt(a.home_dist, 0));
+    setText(c.gps, gpsText(a));
+    setText(c.ready, readyText(a));
+    c.ready.classList.toggle("bad", a.ready === false);
     setText(c.battery, typeof a.battery === "number" ? fmt(a.battery, 0, "%") : "unknown");
     setText(c.link, linkText(a));
   }
@@ -496,6 +513,8 @@
     if (key === "role") return a.id === (S.drawn && S.drawn.leader) ? "" : String(a.phase || "~");
     if (key === "armed") return a.armed === true ? 1 : a.armed === false ? 0 : null;
     if (key === "alt") return altAboveHome(a) !== null ? altAboveHome(a) : a.alt;
+    if (key === "gps") return Number.isInteger(a.gps_fix) ? a.gps_fix * 1000 + (a.satellites || 0) : null;
+    if (key === "ready") return a.ready === true ? 1 : a.ready === false ? 0 : null;
     if (key === "link") return a.rssi;
     if (key === "seen") return a.last_seen_s;
     const v = a[key];
@@ -633,12 +652,17 @@
     f("mode", a.vehicle_link === false ? "unknown (vehicle link lost)" : a.mode || "—");
     // unknown is unknown (as in the fleet table): an airborne vehicle whose link dropped is not "disarmed"
     f("armed", a.armed === true ? "armed" : a.armed === false ? "disarmed" : a.vehicle_link === false ? "unknown (vehicle link lost)" : "unknown");
-    // altitudes are metres above home (as QGroundControl), AMSL beside; home: where the station saw it on the ground
+    // altitudes are metres above home (as QGroundControl), AMSL beside; home: the autopilot's
+    // (the agent's height above it), else where the station saw it on the ground
     const rel = typeof a.alt === "number" && typeof a.home_alt === "number" ? a.alt - a.home_alt : null;
     f("alt", (rel === null ? "home unknown" : fmt(rel, 1, "m above home")) + " (" + fmt(a.alt, 1, "m AMSL") + ")" + (a.airborne ? " (airborne)" : ""));
     const typed = parseFloat($("#goto-alt").value);
     setText($("#goto-amsl"), !Number.isFinite(typed) ? "" : "alt " + typed + " m above home" + (typeof a.home_alt === "number" ? " = " + (a.home_alt + typed).toFixed(1) + " m AMSL" : " (home unknown here: AMSL not shown)"));
     f("groundspeed", fmt(a.groundspeed, 1, "m/s"));
+    f("climb", fmt(a.climb, 1, "m/s"));
+    f("home_dist", fmt(a.home_dist, 0, "m"));
+    f("gps", gpsText(a));
+    f("ready", readyText(a) + (a.ready === false ? " (the autopilot's reason: the alarm list)" : ""));
     f("heading", fmt(a.heading, 0, "°"));
     f("battery", a.battery === null || a.battery === undefined ? "unknown" : fmt(a.battery, 0, "%"));
     f("rssi", (a.rssi ?? "—") + " / " + (a.remrssi ?? "—"));

@@ -326,7 +326,8 @@ def test_twenty_rows_fit_at_1400_by_900_and_the_map_keeps_its_room(live: Live, p
           const rows = Array.from(body.querySelectorAll('tr[data-agent-id]'));
           for (let i = rows.length; i < 20; i++) body.append(rows[i % rows.length].cloneNode(true));
           const box = document.querySelector('#fleet');
-          const heights = Array.from(body.querySelectorAll('tr')).map((r) => r.getBoundingClientRect().height);
+          const heights = Array.from(body.querySelectorAll('tr'))
+            .map((r) => r.getBoundingClientRect().height);
           return {rows: heights.length, hidden: box.scrollHeight - box.clientHeight,
                   tallest: Math.max(...heights), map: document.querySelector('#map').clientHeight,
                   banner: document.querySelector('#alerts-banner').getBoundingClientRect().height};

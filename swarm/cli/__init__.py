@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("simulate", "seeded leader-election runs in virtual time, with invariants"),
     "gcs": ("gcs", "ground control station: web map, JSON API, commands, replay"),
     "router": ("router", "a Zenoh router, so ground stations on different machines meet"),
+    "tiles": ("tiles", "fetch a map area into an MBTiles file while online, for the station offline"),
     "demo": ("demo", "the whole bench on one machine: election, take-off, V formation, route"),
     "bench": ("bench", "run a benchmark and print its figures"),
     "config": ("config", "print a commented example config file: swarm config example agent|gcs"),

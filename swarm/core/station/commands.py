@@ -324,7 +324,8 @@ class Request:
 
     def body(self) -> dict[str, Any]:
         ok = bool(self.pending) and all(p.result in DONE_RESULTS for p in self.pending)
-        out: dict[str, Any] = {"ok": ok, "results": [p.as_dict() for p in self.pending]}
+        # ``request``: its id, which the agents' ``doing`` names while the station follows it
+        out: dict[str, Any] = {"ok": ok, "request": self.id, "results": [p.as_dict() for p in self.pending]}
         if any(p.of_swarm is not None for p in self.pending):  # several swarms: one line per swarm
             by: dict[int, list[Pending]] = {}
             for p in self.pending:

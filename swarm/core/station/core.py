@@ -71,9 +71,11 @@ from swarm.core.station.commands import (
     NO_ANSWER,
     CommandRefused,
     CommandSpec,
+    Pending,
     Request,
 )
 from swarm.core.station.delivery import CommandDelivery
+from swarm.core.station.followup import DID_NOT_HAPPEN, FOLLOWED, IN_PROGRESS, Followup, Followups
 from swarm.core.station.model import AgentView, Event, StationConfig, StationCounters, StOut, has_position
 from swarm.core.station.plan import PlanBook
 from swarm.core.station.rows import AlertRow, RadioRow, Snapshot, StationInfo
@@ -111,6 +113,9 @@ from swarm.core.wire.message_types import (
     check_name,
 )
 from swarm.errors import SwarmError
+
+#: how long a finished follow-up stays in its agent's row (then the log has it)
+SHOW_ENDED_S = 60.0
 
 #: a RADIO_STATUS older than this is not shown (ArduPilot's reports go stale after 5 s too)
 RADIO_STALE_S = 5.0
@@ -158,6 +163,7 @@ class StationCore:
         self.watch = AlertWatch(self.cfg.alerts, self.alerts, self._label, self._event)
         self._now = 0.0  # the latest now seen (finished commands are handed out without one)
         self._radio: tuple[float, int, int, int, int] | None = None  # when, rssi, noise, remrssi, remnoise
+        self.followups = Followups()  # what each agent's last command did (swarm.core.station.followup)
         self.plan = PlanBook()  # routes, go-to targets, the leader's task (swarm.core.station.plan)
 
     # -- inputs -----------------------------------------------------------------
@@ -340,6 +346,12 @@ class StationCore:
                     out.append(StOut(a.id, a.name, GSHeartbeat(self.id, self._hb_seq)))
                 self.counters.heartbeats_sent += len(round_)
         out += self.commands.tick(now, self.leader)
+        for f in self.followups.tick(self.agents, now):
+            self._followed(f)
+        for aid, f in list(self.followups.by_agent.items()):
+            if f.state != IN_PROGRESS and now - f.changed > SHOW_ENDED_S:
+                del self.followups.by_agent[aid]  # shown long enough: the log keeps it
+            self._doing(aid)
         self.watch.tick(now)
         self._update_leader(now)
         return out
@@ -368,7 +380,36 @@ class StationCore:
                 if p.result not in (*DONE_RESULTS, NO_ANSWER, "IN_PROGRESS"):
                     self.plan.refused(p.agent, p.msg)
                     self._plan_command(None)
+                elif p.result != NO_ANSWER and p.msg.kind in FOLLOWED:
+                    self._follow(r, p)
         return done
+
+    def _follow(self, r: Request, p: Pending) -> None:
+        """Follow what the agent took on its vehicle (swarm.core.station.followup)."""
+        m = p.msg
+        targets = [p.agent] if not p.swarm else sorted(p.group or self.agents)
+        for aid in targets:
+            label = f"{m.kind.name} -> {self._label(aid)}"
+            f = Followup(aid, m.kind, label, r.id, self._now, m.lat, m.lon, m.alt)
+            old = self.followups.start(f, self.agents.get(aid), self._now)
+            if old is not None:
+                self._event(self._now, "command", old.line)
+            if f.state != IN_PROGRESS:
+                self._followed(f)
+            self._doing(aid)
+
+    def _doing(self, agent_id: int) -> None:
+        a = self.agents.get(agent_id)
+        if a is not None:
+            f = self.followups.by_agent.get(agent_id)
+            a.doing = None if f is None else f.as_dict(self.wall_offset)
+
+    def _followed(self, f: Followup) -> None:
+        """A follow-up ended: its line; one that did not happen is also an alarm."""
+        self._event(self._now, "command", f.line)
+        if f.state == DID_NOT_HAPPEN:
+            text = f"{self._label(f.agent)}: {f.kind.name.lower()} did not happen: {f.text}"
+            self.alerts.once("command", f.agent, "warning", text, self._now)
 
     def ack_alert(self, alert_id: Any) -> AlertRow:
         """Acknowledge alert ``alert_id``: its row.
@@ -543,6 +584,10 @@ class StationCore:
         self._set_election(a, msg.phase, msg.leader)
         if self.commands.in_flight:
             self.commands.look_for_evidence(a)
+        ended = self.followups.observe(a, now)
+        if ended is not None:
+            self._followed(ended)
+        self._doing(a.id)
         return out
 
     def _vehicle_link(self, a: AgentView, up: bool, now: float) -> None:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from swarm.core.flight.geofence import Geofence
 from swarm.core.station.alerts import AlertConfig, LinkHealth
-from swarm.core.station.rows import AgentRow, EventRow
+from swarm.core.station.rows import AgentRow, DoingRow, EventRow
 from swarm.core.wire.message_types import Message, Phase, Pose
 
 
@@ -152,6 +152,9 @@ class AgentView:
     #: the route the station knows it flies (swarm.core.station.plan): [[lat, lon, alt above
     #: home]...], its go-to target last; None without one
     route: list[list[float]] | None = None
+    #: what its last command is doing on the vehicle (swarm.core.station.followup):
+    #: {"kind", "request", "state", "text", "since"}; None: nothing followed
+    doing: DoingRow | None = None
 
     def as_dict(self, now: float) -> AgentRow:
         d = self._fields(now)
@@ -171,6 +174,8 @@ class AgentView:
             d["home"] = [round(self.home[0], 7), round(self.home[1], 7)]
         if self.route:
             d["route"] = self.route
+        if self.doing is not None:
+            d["doing"] = self.doing
         return d
 
     def _base_fields(self, now: float) -> AgentRow:

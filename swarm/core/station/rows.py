@@ -54,6 +54,17 @@ class AlertRow(TypedDict):
     station_alive: NotRequired[bool]
 
 
+class DoingRow(TypedDict):
+    """What an agent's last command is doing on its vehicle
+    (:class:`~swarm.core.station.followup.Followup`)."""
+
+    kind: str
+    request: int
+    state: str  # IN_PROGRESS, DONE, DID_NOT_HAPPEN, REPLACED
+    text: str
+    since: float
+
+
 class AgentRow(TypedDict):
     """One agent as the station knows it (:class:`~swarm.core.station.model.AgentView`):
     unknown is None, never a default that reads as a fact."""
@@ -92,6 +103,7 @@ class AgentRow(TypedDict):
     locked: bool
     home: NotRequired[list[float]]
     route: NotRequired[list[list[float]]]
+    doing: NotRequired[DoingRow]
     trail: NotRequired[list[list[float]]]
     net: NotRequired[str | None]
     station: NotRequired[str]
@@ -240,6 +252,7 @@ __all__ = [
     "AlertAck",
     "AlertRow",
     "CapturedRadio",
+    "DoingRow",
     "EventRow",
     "NetRow",
     "RadioRow",

@@ -41,7 +41,7 @@
  *
  * Stable hooks for tests: #agents [data-agent-id] (rows, .lead, .stale,
  * [data-field]), .agent-marker[data-agent-id][data-colour], #telemetry [data-field],
- * #election [data-field], #log, #cmd-status, #stale-banner, #confirm, #hold-all,
+ * #election [data-field], #log, #cmd-status, #stale-banner, #confirm, #hold-all, #take-back [data-take],
  * window.gcs.
  */
 (function () {
@@ -86,6 +86,7 @@
     seq: 0,
     pending: new Map(),   // command id -> {cmd, resolve, timer}
     awaiting: null,       // {kind, what}: a command shown in progress, its result still to come
+    follow: null,         // {request, what}: a command the agents took, followed on their vehicles
     seenEvents: new Set(),
     target: null,         // the go-to target marker
     altTyped: false,      // the operator typed a go-to altitude
@@ -339,6 +340,7 @@
     if (Array.isArray(msg.events) && msg.events !== S.eventsSeen) msg.events.forEach(stationEvent);
     S.eventsSeen = msg.events;
     (window.gcsStateHooks || []).forEach((f) => { try { f(msg); } catch (err) { console.error(err); } });
+    followStatus(msg);
     if (!S.renderQueued) {
       S.renderQueued = true;
       requestAnimationFrame(render);
@@ -669,6 +671,63 @@
     f("last_seen", fmt(agentAge(a), 1, "s ago"));
     f("position", hasPosition(a) ? a.lat.toFixed(6) + ", " + a.lon.toFixed(6) : "—");
     f("state", String(a.phase || "—") + (a.leader ? ", leader " + a.leader : "") + (a.holding ? ", holding" : ""));
+    const d = a.doing;
+    f("doing", d && typeof d === "object"
+      ? d.kind + ": " + String(d.state).toLowerCase().replace(/_/g, " ") + (d.text ? ": " + d.text : "") : "—");
+    drawTakeBack(a);
+  }
+
+  // after an autopilot failsafe (the agent's control_lost): what happened, and the way back
+  function swarmTask(a) {
+    const st = S.drawn || {};
+    const tasks = st.swarm_tasks && typeof st.swarm_tasks === "object" ? st.swarm_tasks : {};
+    const t = tasks[String(a.leader)] || (st.task && st.task.leader === a.leader ? st.task : null);
+    return t && typeof t.heading === "number" ? t : null;
+  }
+  function drawTakeBack(a) {
+    const box = $("#take-back");
+    const lost = a && a.control_lost === true && a.connected && !(S.config && S.config.replay);
+    box.hidden = !lost;
+    if (!lost) return;
+    setText($("#take-back-text"), agentName(a.id) + ": its autopilot has taken over (mode " + (a.mode || "unknown") +
+      "): it is not following the swarm and holds no command of ours.");
+    box.querySelector('[data-take="follow"]').hidden = !swarmTask(a);
+  }
+  async function takeBack(kind) {
+    const rec = S.selected !== null ? S.agents.get(S.selected) : null;
+    if (!rec) return;
+    const a = rec.data, who = agentName(a.id);
+    const task = swarmTask(a);
+    const text = kind === "stop" ? "Take control of " + who + " back? It holds where it is."
+      : kind === "land" ? "Land " + who + " where it is?"
+      : "Take control of " + who + " back and have its swarm fly its formation again (heading " + task.heading + "°)?";
+    const dlg = $("#confirm");
+    if (S.confirming) return;
+    setText($("#confirm-text"), text);
+    setText($("#confirm-ok"), kind === "stop" ? "Take control" : kind === "land" ? "Land" : "Resume");
+    dlg.dataset.kind = "take-back-" + kind;
+    dlg.dataset.target = String(a.id);
+    dlg.returnValue = "";
+    S.confirming = true;
+    const ok = await new Promise((resolve) => {
+      dlg.addEventListener("close", () => { S.confirming = false; resolve(dlg.returnValue === "ok"); }, { once: true });
+      dlg.showModal();
+      $("#confirm-cancel").focus();
+    });
+    if (!ok) {
+      log("cancelled", text.replace(/\?$/, "") + ": not sent");
+      return;
+    }
+    if (kind === "land") {
+      await command({ target: a.id, kind: "land" });
+      return;
+    }
+    const r = await command({ target: a.id, kind: "stop" });
+    const took = r && Array.isArray(r.results) && r.results.some((x) => /^(accepted|carried_out)$/i.test(String(x.result)));
+    if (kind === "follow" && took) {
+      const several = S.drawn && Array.isArray(S.drawn.swarms) && S.drawn.swarms.length > 1;
+      await command(Object.assign({ target: "swarm", kind: "follow", heading: task.heading }, several ? { swarm: a.leader } : {}));
+    }
   }
 
   function select(id, pan) {
@@ -906,6 +965,32 @@
     } else if (r.ok === false) status(what + ": not done", false);
     else if (results.some((x) => x.result === "CARRIED_OUT")) status(what + ": carried out (no answer; the telemetry shows it)", true);
     else status(what + ": accepted", true);
+    // the station follows what the vehicle does with it: the status goes on from "accepted"
+    if (!bad.length && Number.isInteger(r.request) && FOLLOWED.includes(String(cmd.kind))) {
+      S.follow = { request: r.request, what, agents: results.map((x) => x.agent) };
+    }
+  }
+  const FOLLOWED = ["arm", "disarm", "stop", "takeoff", "goto", "land", "return"];
+  // a followed command's state on its agents' rows (the station's "doing")
+  function followStatus(st) {
+    const f = S.follow;
+    if (!f || !st || !Array.isArray(st.agents)) return;
+    const rows = st.agents.filter((a) => a.doing && a.doing.request === f.request);
+    if (!rows.length) return;
+    const by = (s) => rows.filter((a) => a.doing.state === s);
+    const name = (a) => (rows.length > 1 ? a.name + ": " : "");
+    const bad = by("DID_NOT_HAPPEN"), going = by("IN_PROGRESS"), done = by("DONE"), gone = by("REPLACED");
+    let text;
+    if (bad.length) text = [f.what + ": did not happen: " + bad.map((a) => name(a) + a.doing.text).join("; "), false];
+    else if (going.length) {
+      text = [f.what + ": in progress" + going.map((a) => (a.doing.text ? ": " + name(a) + a.doing.text : "")).join(";"),
+        false, "pending"];
+    } else if (done.length) text = [f.what + ": done" + done.map((a) => (a.doing.text ? ": " + name(a) + a.doing.text : "")).join(";"), true];
+    else if (gone.length) text = [f.what + ": replaced " + gone[0].doing.text, false, "pending"];
+    if (!text || f.shown === text[0]) return;
+    f.shown = text[0];
+    status(text[0], text[1], text[2]);
+    if (!going.length) S.follow = null;
   }
 
   async function command(cmd) {
@@ -1062,6 +1147,9 @@
   }
   function initCommandSafety() {
     $("#cmd-target").addEventListener("change", drawTarget);
+    for (const b of document.querySelectorAll("#take-back button[data-take]")) {
+      b.addEventListener("click", () => takeBack(b.dataset.take));
+    }
     // one click: holding where they are is the safe answer to a surprise
     $("#hold-all").addEventListener("click", () => command({ target: "swarm", kind: "stop" }));
     drawTarget();

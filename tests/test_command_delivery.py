@@ -106,6 +106,7 @@ def test_an_answer_on_the_fifth_try_is_accepted() -> None:
     core.handle(CommandAck(3, out[0].msg.seq, AckResult.ACCEPTED), 6.7)
     assert req.done and req.body() == {
         "ok": True,
+        "request": req.id,
         "results": [{"agent": 3, "result": "ACCEPTED", "reason": ""}],
     }
 
@@ -170,6 +171,7 @@ def test_a_swarm_follow_sent_before_an_election_reaches_the_new_leader() -> None
     core.handle(CommandAck(3, seq, AckResult.ACCEPTED), 0.7)
     assert req.done and req.body() == {
         "ok": True,
+        "request": req.id,
         "results": [{"agent": 3, "result": "ACCEPTED", "reason": "", "swarm": True}],
     }
 

@@ -128,6 +128,7 @@ def test_an_arm_the_autopilot_refuses_is_reported_refused_with_its_reason() -> N
     assert b.finished == [req]
     assert req.body() == {
         "ok": False,
+        "request": req.id,
         "results": [{"agent": AGENT, "result": "REJECTED", "reason": "Arm: Mode not armable"}],
     }
     # the agent never said ACCEPTED for it, not even before the flight controller answered
@@ -179,6 +180,7 @@ def test_a_call_longer_than_the_retry_window_is_handed_out_in_progress_then_logg
     assert b.finished == [req]  # the API answers at the end of the window: not done yet
     assert req.body() == {
         "ok": False,
+        "request": req.id,
         "results": [{"agent": AGENT, "result": "IN_PROGRESS", "reason": "taking off to 10 m"}],
     }
     assert any("still at it after 12 s" in e for e in b.events), b.events

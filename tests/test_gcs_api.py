@@ -229,7 +229,12 @@ def test_commands_acked_rejected_and_unanswered(live: dict[str, Any]) -> None:
     base, agents = live["base"], live["agents"]
     st, body, _ = http(base, "POST", "/api/command", {"target": 3, "kind": "takeoff", "alt": 12.5})
     assert st == 200
-    assert body == {"ok": True, "results": [{"agent": 3, "result": "ACCEPTED", "reason": "scripted"}]}
+    assert body == {
+        "ok": True,
+        "request": body["request"],
+        "results": [{"agent": 3, "result": "ACCEPTED", "reason": "scripted"}],
+    }
+    assert isinstance(body["request"], int)
     cmd = agents[3].commands[-1]
     assert (cmd.sender, cmd.target, cmd.kind, cmd.alt) == (255, 3, CommandKind.TAKEOFF, 12.5)
     st, body, _ = http(

@@ -235,7 +235,11 @@ def test_command_is_acked_and_a_duplicate_ack_is_dropped() -> None:
     assert not req.done
     core.handle(CommandAck(3, o.msg.seq, AckResult.ACCEPTED), 1.2)
     assert req.done and req.status == 200
-    assert req.body() == {"ok": True, "results": [{"agent": 3, "result": "ACCEPTED", "reason": ""}]}
+    assert req.body() == {
+        "ok": True,
+        "request": req.id,
+        "results": [{"agent": 3, "result": "ACCEPTED", "reason": ""}],
+    }
     assert core.take_finished() == [req]
     core.handle(CommandAck(3, o.msg.seq, AckResult.ACCEPTED), 1.3)  # answer to a retry
     assert core.counters.duplicate_acks == 1
@@ -273,7 +277,11 @@ def test_a_retried_command_answered_on_the_second_try_and_rejections() -> None:
     assert msgs(core.tick(1.0), Command)[0].msg.seq == seq
     core.handle(CommandAck(3, seq, AckResult.REJECTED, "not armed"), 1.1)
     assert req.done and req.status == 200
-    assert req.body() == {"ok": False, "results": [{"agent": 3, "result": "REJECTED", "reason": "not armed"}]}
+    assert req.body() == {
+        "ok": False,
+        "request": req.id,
+        "results": [{"agent": 3, "result": "REJECTED", "reason": "not armed"}],
+    }
 
 
 def test_refusals_send_nothing() -> None:

@@ -967,7 +967,8 @@
     else status(what + ": accepted", true);
     // the station follows what the vehicle does with it: the status goes on from "accepted"
     if (!bad.length && Number.isInteger(r.request) && FOLLOWED.includes(String(cmd.kind))) {
-      S.follow = { request: r.request, what, agents: results.map((x) => x.agent) };
+      // request ids are per station (and per radio channel): the agents it went to, too
+      S.follow = { request: r.request, what, agents: cmd.target === "swarm" ? null : results.map((x) => x.agent) };
     }
   }
   const FOLLOWED = ["arm", "disarm", "stop", "takeoff", "goto", "land", "return"];
@@ -975,7 +976,7 @@
   function followStatus(st) {
     const f = S.follow;
     if (!f || !st || !Array.isArray(st.agents)) return;
-    const rows = st.agents.filter((a) => a.doing && a.doing.request === f.request);
+    const rows = st.agents.filter((a) => a.doing && a.doing.request === f.request && (!f.agents || f.agents.includes(a.id)));
     if (!rows.length) return;
     const by = (s) => rows.filter((a) => a.doing.state === s);
     const name = (a) => (rows.length > 1 ? a.name + ": " : "");

@@ -93,7 +93,7 @@ def test_a_go_after_a_failsafe_is_not_left_accepted_and_the_page_takes_control_b
         page.click(row)
         box = page.locator("#take-back")
         poll(lambda: box.is_visible(), "the way back offered", DEADLINE)
-        assert "its autopilot has taken over (mode AUTO.LOITER)" in box.inner_text()
+        assert "its autopilot flies it (mode AUTO.LOITER)" in box.inner_text()
         assert page.locator('#take-back [data-take="follow"]').is_hidden()  # no formation to resume
 
         page.fill("#goto-lat", f"{HOME[0] + 0.0005:.7f}")  # 55 m north

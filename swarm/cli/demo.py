@@ -349,7 +349,15 @@ class _Demo:
         said = False
         while True:
             try:
-                fut = self.station.submit(CommandSpec(target, kind, **args))
+                spec = CommandSpec(
+                    target,
+                    kind,
+                    lat=args.get("lat", 0.0),
+                    lon=args.get("lon", 0.0),
+                    alt=args.get("alt", 0.0),
+                    heading=args.get("heading", 0.0),
+                )
+                fut = self.station.submit(spec)
                 break
             except CommandRefused as exc:
                 if exc.status != 409 or time.monotonic() > end:

@@ -92,6 +92,7 @@ from swarm.core.flight.formation import (
     turn_window_m,
 )
 from swarm.core.flight.geofence import Geofence
+from swarm.core.wire.codes import SELECTABLE_MODES, mode_name
 from swarm.core.wire.message_types import (
     LEGACY_KINDS,
     AckResult,
@@ -123,6 +124,11 @@ class Mode(StrEnum):
     FOLLOW = "FOLLOW"
     LAND = "LAND"
     RETURN = "RETURN"
+    AUTOPILOT = "AUTOPILOT"  # the autopilot flies it in a mode the operator chose (SET_MODE)
+
+
+#: the pilot's modes in which the autopilot, not our setpoints, flies the vehicle (as asked)
+AUTOPILOT_FLIES = (Mode.IDLE, Mode.TAKEOFF, Mode.LAND, Mode.RETURN, Mode.AUTOPILOT)
 
 
 @dataclass(frozen=True)
@@ -134,6 +140,7 @@ class Call:
     kind: str
     alt: float = 0.0
     ticket: int = 0
+    mode: str = ""  # "mode": the autopilot mode to switch to
 
 
 @dataclass(frozen=True)
@@ -252,7 +259,7 @@ class Pilot:
                 self.events.append(f"back under setpoint control ({mode})")
                 self.control_lost = ""
             return
-        if not self.airborne or self.mode in (Mode.IDLE, Mode.TAKEOFF, Mode.LAND, Mode.RETURN):
+        if not self.airborne or self.mode in AUTOPILOT_FLIES:
             self._uncontrolled = 0
             if self.control_lost and not self.airborne:  # it landed by itself: nothing left to take back
                 self.events.append(f"landed under the autopilot's control ({mode or 'unknown'})")
@@ -302,6 +309,19 @@ class Pilot:
         if call.kind == "control":
             self.events.append("took control back: holding" if ok else f"taking control back failed: {error}")
             return
+        if call.kind == "mode":
+            if ok and self.mode == Mode.AUTOPILOT:
+                self.control_lost = (
+                    call.mode
+                )  # not following: a go-to, stop, take-off or follow takes it back
+                self.events.append(
+                    f"in {call.mode} at the operator's request: not following the swarm; a go-to, stop, "
+                    "take-off or follow takes control back"
+                )
+            elif not ok and self.mode == Mode.AUTOPILOT:
+                self.hold(f"mode {call.mode} refused")
+                self.events.append(f"mode {call.mode} failed: {error}")
+            return
         if not ok:
             self.events.append(f"{call.kind} failed: {error}")
             if call.kind == "takeoff" and self.mode == Mode.TAKEOFF:
@@ -325,6 +345,8 @@ class Pilot:
         """Answer a command: (result, reason, vehicle calls to make now). A go-to,
         waypoint, stop, follow or take-off in the air takes control back first when the
         autopilot let go of the vehicle (:meth:`set_control`)."""
+        if cmd.kind == CommandKind.SET_MODE:
+            return self._set_mode(cmd, role, now)
         result, why, calls = self._decide(cmd, role, now)
         if cmd.kind in (CommandKind.LAND, CommandKind.RETURN):
             self.control_lost, self._uncontrolled = "", 0  # the autopilot flies it now, as asked
@@ -334,6 +356,33 @@ class Pilot:
         if cmd.kind == CommandKind.STOP and self.control_lost and result == AckResult.ACCEPTED:
             return self._take_back(result, why, calls)  # the swarm stop: the leader holds too
         return result, why, calls
+
+    def _set_mode(self, cmd: Command, role: Role, now: float) -> tuple[AckResult, str, list[Call]]:
+        """The operator's mode selector: a landing or return mode is LAND or RETURN, the
+        setpoint mode (OFFBOARD, GUIDED) this agent's STOP (take control back, hold);
+        a hold mode (AUTO.LOITER, BRAKE) hands the vehicle to its autopilot, in the air
+        only: the agent leaves the formation and stops its setpoints, and says it is not
+        following (``control_lost``) until a go-to, stop, take-off or follow."""
+        name = mode_name(cmd.mode)
+        what = SELECTABLE_MODES.get(name)
+        if cmd.target == 0:
+            return AckResult.BAD_ARGUMENT, "SET_MODE is sent to each agent, not to the swarm", []
+        if what is None:
+            shown = name or repr(cmd.mode)
+            return (
+                AckResult.BAD_ARGUMENT,
+                f"mode {shown} is not one to select: {', '.join(SELECTABLE_MODES)}",
+                [],
+            )
+        if what in ("land", "return", "swarm"):
+            kind = {"land": CommandKind.LAND, "return": CommandKind.RETURN, "swarm": CommandKind.STOP}[what]
+            return self.command(replace(cmd, kind=kind), role, now)
+        if not self.airborne:
+            return AckResult.REJECTED, f"on the ground: {name} is for a vehicle in the air", []
+        self._leave_formation()
+        self._waive(now)
+        self.mode = Mode.AUTOPILOT
+        return AckResult.ACCEPTED, f"switching to {name}", [Call("mode", mode=name)]
 
     def _decide(self, cmd: Command, role: Role, now: float) -> tuple[AckResult, str, list[Call]]:
         k = cmd.kind

@@ -39,6 +39,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from swarm.core.wire.codes import SELECTABLE_MODES
 from swarm.core.wire.message_types import LEGACY_KINDS, AckResult, Command, CommandKind
 from swarm.errors import SwarmError
 
@@ -69,6 +70,7 @@ AGENT_KINDS = {
     CommandKind.GOTO,
     CommandKind.WAYPOINT,
     CommandKind.STOP,
+    CommandKind.SET_MODE,
 }
 ALT_RANGE = (-1000.0, 5553.0)  # what a Command can carry (decimetres, offset 1000 m)
 ALT_AMSL = (-1000.0, 10000.0)  # an ``alt_amsl`` the API takes (converted with the agent's home)
@@ -101,6 +103,8 @@ class CommandSpec:
     #: swarm. Set with :meth:`for_swarm` (not an argument: callers that pass ``**floats``
     #: for the position and heading keep their types; ``dataclasses.replace`` drops it)
     swarm: int | None = field(default=None, init=False)
+    #: SET_MODE: the mode's name (one of SELECTABLE_MODES)
+    mode: str = ""
 
     def for_swarm(self, leader: int | None) -> CommandSpec:
         """This command for the swarm led by ``leader`` (None: every swarm)."""
@@ -190,7 +194,18 @@ def _args(body: dict[str, Any], target: int | None, kind: CommandKind) -> Comman
         return _position(body, target, kind)
     if kind == CommandKind.FOLLOW:
         return CommandSpec(target, kind, heading=_number(body, "heading", 0.0, 360.0, what) % 360.0)
+    if kind == CommandKind.SET_MODE:
+        return CommandSpec(target, kind, mode=_mode(body))
     return CommandSpec(target, kind)
+
+
+def _mode(body: dict[str, Any]) -> str:
+    """A SET_MODE's ``mode``: one of :data:`SELECTABLE_MODES`. Raises CommandRefused (400)."""
+    v = body.get("mode")
+    if isinstance(v, str) and v.upper() in SELECTABLE_MODES:
+        return v.upper()
+    shown = repr(v[:24]) if isinstance(v, str) else f"of type {type(v).__name__}" if v is not None else "none"
+    raise CommandRefused(400, f"set_mode 'mode' {shown}: one of {', '.join(SELECTABLE_MODES)}")
 
 
 def _swarm(body: dict[str, Any], target: int | None) -> int | None:

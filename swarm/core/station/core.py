@@ -390,7 +390,7 @@ class StationCore:
         targets = [p.agent] if not p.swarm else sorted(p.group or self.agents)
         for aid in targets:
             label = f"{m.kind.name} -> {self._label(aid)}"
-            f = Followup(aid, m.kind, label, r.id, self._now, m.lat, m.lon, m.alt)
+            f = Followup(aid, m.kind, label, r.id, self._now, m.lat, m.lon, m.alt, mode=mode_name(m.mode))
             old = self.followups.start(f, self.agents.get(aid), self._now)
             if old is not None:
                 self._event(self._now, "command", old.line)

@@ -59,7 +59,7 @@ from swarm.core.station.commands import (
 )
 from swarm.core.station.model import AgentView, StationConfig, StationCounters, StOut
 from swarm.core.station.swarms import Addressee, SwarmBook, swarm_plan
-from swarm.core.wire.codes import short_reason
+from swarm.core.wire.codes import mode_code, short_reason
 from swarm.core.wire.message_types import AckResult, Command, CommandAck, CommandKind
 
 
@@ -117,12 +117,21 @@ class CommandDelivery:
         else:
             plan = swarm_plan(spec, leader, self.agents, self.swarms)
             spec = self._fenced(spec, None)
-        args = {"lat": spec.lat, "lon": spec.lon, "alt": spec.alt, "heading": spec.heading}
         req = Request(next(self._request_ids), spec)
         out: list[StOut] = []
         for ad in plan:
             seq = self._next_seq()
-            msg = Command(self.id, seq, ad.target, kind, **args)
+            msg = Command(
+                self.id,
+                seq,
+                ad.target,
+                kind,
+                spec.lat,
+                spec.lon,
+                spec.alt,
+                spec.heading,
+                mode_code(spec.mode),
+            )
             p = Pending(
                 req, ad.agent, ad.target == 0, msg, first_sent=now, group=ad.group, of_swarm=ad.of_swarm
             )

@@ -15,7 +15,7 @@ One :class:`Followup` per agent (the newest command it took). The rules, per kin
 (:func:`judge`; heights are above home: the agent's own report, else the station's):
 
 * ARM, DISARM: done when the vehicle is armed (disarmed); did not happen when it is
-  not within :data:`SWITCH_S`;
+  not within :data:`SWITCH_S`; SET_MODE likewise with the mode asked;
 * STOP: done when the agent holds; did not happen when it does not within SWITCH_S;
 * TAKEOFF: done when airborne within :data:`ALT_TOL_M` of the height asked (or above:
   an already flying vehicle asked to take off to lower is left where it is by the
@@ -60,6 +60,7 @@ FOLLOWED = (
     CommandKind.GOTO,
     CommandKind.LAND,
     CommandKind.RETURN,
+    CommandKind.SET_MODE,
 )
 IN_PROGRESS, DONE, DID_NOT_HAPPEN, REPLACED = "IN_PROGRESS", "DONE", "DID_NOT_HAPPEN", "REPLACED"
 _LAND_MODES = ("AUTO.LAND", "LAND")
@@ -84,6 +85,7 @@ class Followup:
     state: str = IN_PROGRESS
     text: str = ""
     changed: float = 0.0
+    mode: str = ""  # SET_MODE: the mode asked
 
     def as_dict(self, wall_offset: float) -> DoingRow:
         return {
@@ -145,6 +147,12 @@ def judge(f: Followup, a: AgentView, now: float) -> tuple[str, str]:
             return DONE, "disarmed"
         if now - f.started >= SWITCH_S:
             return DID_NOT_HAPPEN, "the vehicle is still armed"
+        return IN_PROGRESS, ""
+    if k == CommandKind.SET_MODE:
+        if a.mode == f.mode:
+            return DONE, f"in {f.mode}"
+        if now - f.started >= SWITCH_S:
+            return DID_NOT_HAPPEN, f"the vehicle is in {mode}, not {f.mode}"
         return IN_PROGRESS, ""
     if k == CommandKind.STOP:
         if a.holding is True:

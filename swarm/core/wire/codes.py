@@ -97,6 +97,23 @@ FLAG_READY_KNOWN = 0x20  # the autopilot reports its pre-arm checks (FLAG_READY 
 FLAG_READY = 0x40  # its pre-arm checks pass: ready to arm
 
 
+#: the modes an operator may select for one vehicle, and what each means for the swarm:
+#: "hold" (the autopilot holds it where it is: it leaves the swarm's control), "land",
+#: "return", "swarm" (back under the swarm's setpoints, holding). Manual modes and those
+#: that need RC sticks (POSCTL, ALTCTL; ArduPilot LOITER, POSHOLD, ALT_HOLD) are not
+#: offered: a companion-only vehicle has no pilot on the sticks.
+SELECTABLE_MODES: dict[str, str] = {
+    "AUTO.LOITER": "hold",
+    "AUTO.RTL": "return",
+    "AUTO.LAND": "land",
+    "OFFBOARD": "swarm",
+    "BRAKE": "hold",
+    "RTL": "return",
+    "LAND": "land",
+    "GUIDED": "swarm",
+}
+
+
 def mode_code(name: str) -> int:
     return _MODE_CODES.get(name, 0)
 

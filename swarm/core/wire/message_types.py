@@ -161,6 +161,9 @@ class CommandKind(IntEnum):
     #: 20 m above home as 20 m above the sea.
     GOTO_AMSL = 6
     WAYPOINT_AMSL = 9
+    #: mode: an autopilot mode's code (swarm.core.wire.codes.mode_code), one of
+    #: SELECTABLE_MODES: the operator's mode selector
+    SET_MODE = 12
 
 
 #: the kinds only an earlier version sends (see :class:`CommandKind`)
@@ -403,6 +406,7 @@ class Command(Message):
     lon: float = 0.0
     alt: float = 0.0
     heading: float = 0.0
+    mode: int = 0  # SET_MODE: the mode's code
 
 
 @dataclass(frozen=True)

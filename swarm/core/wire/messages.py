@@ -375,6 +375,7 @@ _CMD_ARGS: dict[mt.CommandKind, list[tuple[str, tuple[Callable[[_W, Any], None],
         ("alt", _scaled("H", 10, 1000.0)),
     ],
     mt.CommandKind.FOLLOW: [("heading", _heading())],
+    mt.CommandKind.SET_MODE: [("mode", U8)],
     mt.CommandKind.WAYPOINT: [
         ("lat", _scaled("i", 1e7)),
         ("lon", _scaled("i", 1e7)),

@@ -541,6 +541,9 @@ class Agent(StartOnce):
             v.land()
         elif c.kind == "return":
             v.return_to_launch()
+        elif c.kind == "mode":  # the operator's choice: the autopilot flies it (AUTO.LOITER, BRAKE)
+            v.stop_setpoints()
+            v.set_mode(c.mode)
         else:
             raise ValueError(f"unknown vehicle call {c.kind!r}")
 

@@ -647,6 +647,8 @@
     if (!rec) {
       setText($("#telemetry-title"), "(select an agent)");
       for (const dd of el.querySelectorAll("dd")) setText(dd, "—");
+      drawTakeBack(null);
+      drawModes(null);
       return;
     }
     const a = rec.data;
@@ -675,6 +677,61 @@
     f("doing", d && typeof d === "object"
       ? d.kind + ": " + String(d.state).toLowerCase().replace(/_/g, " ") + (d.text ? ": " + d.text : "") : "—");
     drawTakeBack(a);
+    drawModes(a);
+  }
+
+  // the mode selector: the modes an operator may choose for one vehicle, by its autopilot
+  // (the station's SELECTABLE_MODES; manual and stick modes are not offered)
+  const PX4_NAMES = /^(AUTO\.|OFFBOARD$|POSCTL|ALTCTL$|MANUAL$|STABILIZED$)/;
+  const SELECTABLE = {
+    px4: [["AUTO.LOITER", "hold"], ["AUTO.RTL", "return"], ["AUTO.LAND", "land"], ["OFFBOARD", "swarm"]],
+    ardupilot: [["BRAKE", "hold"], ["RTL", "return"], ["LAND", "land"], ["GUIDED", "swarm"]],
+  };
+  const MODE_WORDS = {
+    hold: "its autopilot holds it where it is; it stops following the swarm until you take control back",
+    return: "it flies to its home and lands",
+    land: "it lands where it is",
+    swarm: "the swarm takes control back: it holds where it is",
+  };
+  function drawModes(a) {
+    const row = $("#mode-row");
+    const ok = a && a.connected && a.vehicle_link !== false && typeof a.mode === "string" && a.mode
+      && !(S.config && S.config.replay);
+    row.hidden = !ok;
+    if (!ok) return;
+    const family = PX4_NAMES.test(a.mode) ? "px4" : "ardupilot";
+    const sel = $("#mode-select");
+    if (sel.dataset.family !== family) {
+      sel.dataset.family = family;
+      sel.replaceChildren(...SELECTABLE[family].map(([m, what]) => new Option(m + " (" + what + ")", m)));
+    }
+  }
+  async function setMode() {
+    const rec = S.selected !== null ? S.agents.get(S.selected) : null;
+    if (!rec || S.confirming) return;
+    const a = rec.data, mode = $("#mode-select").value;
+    const family = $("#mode-select").dataset.family;
+    const what = (SELECTABLE[family] || []).find((x) => x[0] === mode);
+    if (!what) return;
+    const text = "Switch " + agentName(a.id) + " from " + (a.mode || "an unknown mode") + " to " + mode + "? " +
+      MODE_WORDS[what[1]].charAt(0).toUpperCase() + MODE_WORDS[what[1]].slice(1) + ".";
+    const dlg = $("#confirm");
+    setText($("#confirm-text"), text);
+    setText($("#confirm-ok"), "Switch to " + mode);
+    dlg.dataset.kind = "set_mode";
+    dlg.dataset.target = String(a.id);
+    dlg.returnValue = "";
+    S.confirming = true;
+    const ok = await new Promise((resolve) => {
+      dlg.addEventListener("close", () => { S.confirming = false; resolve(dlg.returnValue === "ok"); }, { once: true });
+      dlg.showModal();
+      $("#confirm-cancel").focus();
+    });
+    if (!ok) {
+      log("cancelled", "set mode " + mode + " → " + agentName(a.id) + ": not sent");
+      return;
+    }
+    await command({ target: a.id, kind: "set_mode", mode });
   }
 
   // after an autopilot failsafe (the agent's control_lost): what happened, and the way back
@@ -689,8 +746,8 @@
     const lost = a && a.control_lost === true && a.connected && !(S.config && S.config.replay);
     box.hidden = !lost;
     if (!lost) return;
-    setText($("#take-back-text"), agentName(a.id) + ": its autopilot has taken over (mode " + (a.mode || "unknown") +
-      "): it is not following the swarm and holds no command of ours.");
+    setText($("#take-back-text"), agentName(a.id) + ": its autopilot flies it (mode " + (a.mode || "unknown") +
+      "), after a failsafe or a mode chosen here: it is not following the swarm and holds no command of ours.");
     box.querySelector('[data-take="follow"]').hidden = !swarmTask(a);
   }
   async function takeBack(kind) {
@@ -913,6 +970,7 @@
     if (cmd.kind === "goto" || cmd.kind === "waypoint") what += " " + cmd.lat.toFixed(6) + ", " + cmd.lon.toFixed(6) + " alt " + cmd.alt + " m above home";
     if (cmd.kind === "takeoff") what += " to " + cmd.alt + " m above home";
     if (cmd.kind === "follow") what += " heading " + cmd.heading + "°";
+    if (cmd.kind === "set_mode") what = "set mode " + cmd.mode;
     return what + " → " + who;
   }
 
@@ -971,7 +1029,7 @@
       S.follow = { request: r.request, what, agents: cmd.target === "swarm" ? null : results.map((x) => x.agent) };
     }
   }
-  const FOLLOWED = ["arm", "disarm", "stop", "takeoff", "goto", "land", "return"];
+  const FOLLOWED = ["arm", "disarm", "stop", "takeoff", "goto", "land", "return", "set_mode"];
   // a followed command's state on its agents' rows (the station's "doing")
   function followStatus(st) {
     const f = S.follow;
@@ -1148,6 +1206,7 @@
   }
   function initCommandSafety() {
     $("#cmd-target").addEventListener("change", drawTarget);
+    $("#mode-set").addEventListener("click", setMode);
     for (const b of document.querySelectorAll("#take-back button[data-take]")) {
       b.addEventListener("click", () => takeBack(b.dataset.take));
     }

@@ -13,7 +13,7 @@ CHROMIUM_BIN ?= chromium
 # upgrade at boot) instead of failing at once
 APT_WAIT := -o DPkg::Lock::Timeout=300
 
-.PHONY: setup browser systemd-analyze demo docs test test-quick lint check clean leaflet
+.PHONY: setup browser systemd-analyze demo docs test test-quick lint check clean leaflet screenshots
 
 # Debian's own python3 makes a venv only with its python3-venv package.
 $(STAMP): pyproject.toml
@@ -101,6 +101,10 @@ test: check docs
 # browser (the `processes` marker): about a minute, for the edit-test loop.
 test-quick: check
 	$(BIN)/pytest -m 'not slow and not hardware and not processes'
+
+# The operator guide's pictures, from the page tests that take them (docs/images/).
+screenshots: setup
+	$(BIN)/python tools/docs_screenshots.py
 
 clean:
 	rm -rf $(VENV) node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache docs/_build

@@ -16,8 +16,8 @@ from gcs_browser import browser, new_page, poll, screenshot
 from net_helpers import free_port, wait_until
 from test_gcs_api import ScriptedAgent
 
-from swarm.core.wire.codes import FLAG_ARMED, FLAG_FC_OK
-from swarm.core.wire.message_types import Telemetry
+from swarm.core.wire.codes import FLAG_ARMED, FLAG_FC_OK, FLAG_READY, FLAG_READY_KNOWN
+from swarm.core.wire.message_types import AgentNotice, NoticeSource, Telemetry
 from swarm.runtime.station.live import Station
 from swarm.runtime.station.server import GcsServer, ServerConfig
 
@@ -31,10 +31,13 @@ class Agent(ScriptedAgent):
 
     battery = 80
     fc = True
+    ready: bool | None = None
 
     def telemetry(self) -> Telemetry:
         t = super().telemetry()
         flags = FLAG_ARMED | (FLAG_FC_OK if self.fc else 0)
+        if self.ready is not None:
+            flags |= FLAG_READY_KNOWN | (FLAG_READY if self.ready else 0)
         return Telemetry(t.sender, t.pose, t.mode, flags, t.phase, t.leader, self.battery, 150, 140, 1.5)
 
 
@@ -77,6 +80,27 @@ def test_alarms_sound_once_keep_the_banner_small_and_shelve_from_the_list(
         assert page.locator("#alerts-banner").is_hidden()
         map_h = page.locator("#map").bounding_box()["height"]
 
+        # not ready to arm: the autopilot's reason is an advisory (listed, not in the banner)
+        # and the ready cell's hover text
+        one.ready = False
+        cell = '#agents [data-agent-id="1"] td[data-field="ready"]'
+        poll(lambda: page.inner_text(cell) == "not ready", "agent1 not ready", DEADLINE)
+
+        def said() -> bool:
+            if not any("PreArm" in a["text"] for a in station.snapshot()["alerts"]):
+                one.tr.send("gcs", AgentNotice(1, NoticeSource.AUTOPILOT, 2, "PreArm: GPS not healthy"))
+                return False
+            return True
+
+        poll(said, "the autopilot's reason at the station", DEADLINE)
+        poll(
+            lambda: "PreArm: GPS not healthy" in (page.get_attribute(cell, "title") or ""),
+            "the reason",
+            DEADLINE,
+        )
+        assert page.locator("#alerts-banner").is_hidden()  # an advisory: no banner, no sound
+        one.ready = True
+
         two.battery = 10  # a new critical: in the banner, sounded once, its text spoken
         poll(lambda: len(banner_ids(page)) == 1, "the battery alarm in the banner", DEADLINE)
         poll(lambda: page.evaluate("() => window.gcsAlerts.sounded") == 1, "one sound", DEADLINE)
@@ -97,8 +121,8 @@ def test_alarms_sound_once_keep_the_banner_small_and_shelve_from_the_list(
 
         page.click("#alarms-button")  # the list: all four, each with its actions
         rows = page.locator("#alarms-panel .alarm")
-        poll(lambda: rows.count() == 4, "the list's four alarms", DEADLINE)
-        bat = station.snapshot()["alerts"][0]
+        poll(lambda: rows.count() == 5, "the list's four alarms and the advisory", DEADLINE)
+        bat = next(a for a in station.snapshot()["alerts"] if a["kind"] == "battery")
         row = page.locator(f"#alarms-panel .alarm[data-alert-id='{bat['id']}']")
         row.locator("button.alarm-shelve").first.click()  # 10 min, confirmed
         poll(

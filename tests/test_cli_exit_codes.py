@@ -42,6 +42,18 @@ BAD_INPUT: dict[str, list[str]] = {
     "certs": ["node", "{dir}", "agent1", "--role", "agent"],  # no CA in that folder
     "service": ["print", "no-such-kind"],
     "doctor": ["--id", "0"],
+    "tiles": [
+        "fetch",
+        "--url",
+        "https://tile.openstreetmap.org/{{z}}/{{x}}/{{y}}.png",
+        "--bounds",
+        "1,1,2,2",
+        "--zoom",
+        "1",
+        "--out",
+        "{dir}/x.mbtiles",
+        "--yes",
+    ],
 }
 
 

@@ -316,7 +316,7 @@ def test_the_top_bar_shows_all_it_holds_at_1400_px(live: Live, page: Any) -> Non
 def test_twenty_rows_fit_at_1400_by_900_and_the_map_keeps_its_room(live: Live, page: Any) -> None:
     """The table's rows (every column: climb, home, GPS, ready...) are compact: with 20
     agents (the real rows, cloned in one task) all 20 show without scrolling at
-    1400 x 900, on one line each, and the map keeps a third of the window (less the alarm
+    1400 x 900, on one line each, every column in view, and the map keeps a third of the window (less the alarm
     banner's fixed height when earlier tests left alarms)."""
     page.set_viewport_size({"width": 1400, "height": 900})
     open_page(page, live.url, len(FLEET))
@@ -329,11 +329,13 @@ def test_twenty_rows_fit_at_1400_by_900_and_the_map_keeps_its_room(live: Live, p
           const heights = Array.from(body.querySelectorAll('tr'))
             .map((r) => r.getBoundingClientRect().height);
           return {rows: heights.length, hidden: box.scrollHeight - box.clientHeight,
+                  cut: box.scrollWidth - box.clientWidth,
                   tallest: Math.max(...heights), map: document.querySelector('#map').clientHeight,
                   banner: document.querySelector('#alerts-banner').getBoundingClientRect().height};
         }"""
     )
     assert out["rows"] == 20 and out["hidden"] <= 1, out
+    assert out["cut"] <= 1, out  # every column, the last seen too, without scrolling sideways
     assert out["tallest"] <= 22, out  # one line each
     assert out["map"] + out["banner"] >= 300, out  # the alarm banner (fixed, 3 rows) takes its share
     screenshot(page, "gcs_fleet_20_rows.png")

@@ -352,8 +352,10 @@ def test_a_goto_above_home_is_a_kind_an_earlier_agent_cannot_decode() -> None:
     for kind in (CommandKind.GOTO, CommandKind.WAYPOINT):
         raw = encode(goto(20.0, kind=kind))
         assert raw[5] == kind.value and kind.value not in EARLIER_KINDS  # after header, sender, seq, target
+    # the mode selector's kind is new too: an earlier agent drops it (no answer), nothing flies
+    assert CommandKind.SET_MODE.value not in EARLIER_KINDS
     for kind in CommandKind:  # every other kind means what it meant
-        if kind not in (CommandKind.GOTO, CommandKind.WAYPOINT):
+        if kind not in (CommandKind.GOTO, CommandKind.WAYPOINT, CommandKind.SET_MODE):
             assert kind.value in EARLIER_KINDS, kind
 
 

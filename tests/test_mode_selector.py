@@ -157,6 +157,7 @@ def test_the_page_switches_a_flying_vehicle_to_its_autopilots_hold_and_takes_it_
         row = '#agents [data-agent-id="1"]'
         poll(lambda: page.locator(row).count() == 1, "agent1 listed", DEADLINE, kids)
         poll(lambda: api_agent(url)["home_alt"] is not None, "agent1's home", DEADLINE, kids)
+        assert page.locator("#mode-row").is_hidden()  # no agent selected: no mode to set
         page.click(row)
         page.click('#commands [data-kind="arm"]')
         poll(lambda: "arm" in page.inner_text("#cmd-status") and "done" in page.inner_text("#cmd-status"),

@@ -19,7 +19,11 @@ A ``swarm gcs`` process is the station; the feeder of :mod:`swarm.cli.bench.gcs`
   (target 20,000, as without it), ``alarm_ws_alert_bytes_per_s``: the part of them that
   is the alarms' (the deltas' ``alerts`` parts).
 
-The full bench flaps for 10 minutes (the issue's demo); ``--quick`` for 90 s.
+The full bench flaps for 10 minutes; ``--quick`` for 90 s. Beside it, the issue's
+own scenario (a 10-minute demo of ten agents, three links flapping) through the station
+core alone in virtual time (:func:`demo_in_virtual_time`, a second of work):
+``alarms_demo_virtual_no_ack_per_10_min`` and ``..._ack_5s_per_10_min`` with the
+criticals announced in the first 30 s.
 """
 
 from __future__ import annotations
@@ -110,6 +114,60 @@ async def _watch(url: str, seconds: float) -> dict[str, Any]:
     return out
 
 
+# -- the issue's demo, in virtual time ----------------------------------------------------
+
+DEMO_AGENTS = 10
+DEMO_FLAPPING = (2, 5, 8)  # silent 15 s of every 60 s
+
+
+def demo_in_virtual_time(
+    ack_after: float | None, seconds: float = 600.0
+) -> tuple[list[tuple[float, str, str]], Any]:
+    """The station core alone (:class:`swarm.core.station.core.StationCore`), fed in
+    virtual time: ten agents at 2 Hz Telemetry, three of them flapping (silent 15 s of
+    every 60 s), batteries running down (agent 10's from 45 %: it crosses 30 % and 15 %);
+    an operator acknowledges each announced alarm ``ack_after`` s later (None: never).
+    Returns the announcements (time, level, text) and the core."""
+    from swarm.core.station.core import StationCore
+    from swarm.core.wire.codes import FLAG_FC_OK, mode_code
+    from swarm.core.wire.message_types import GSAdvertize, GSConnect, GSConnectAck, Phase, Pose, Telemetry
+
+    core = StationCore()
+    pose = Pose(47.397, 8.545, 488.0, 90.0)
+
+    def hear(i: int, msg: Any, t: float) -> None:
+        for o in core.handle(msg, t):
+            if isinstance(o.msg, GSConnect):
+                core.handle(GSConnectAck(i, o.msg.seq, 500), t)
+
+    for i in range(1, DEMO_AGENTS + 1):
+        hear(i, GSAdvertize(i, f"agent{i}"), 0.0)
+    said: list[tuple[float, str, str]] = []
+    seen: dict[int, float] = {}
+    t = 0.0
+    while t < seconds:
+        for i in range(1, DEMO_AGENTS + 1):
+            if i in DEMO_FLAPPING and 30.0 <= t % 60.0 < 45.0:
+                continue
+            battery = (45 if i == DEMO_AGENTS else 100) - int(t / 600.0 * 40)
+            tm = Telemetry(i, pose, mode_code("POSCTL"), FLAG_FC_OK, Phase.IDLE, 0, battery, 180, 170, 2.5)
+            hear(i, tm, t)
+        core.tick(t)
+        for a in core.alerts.alerts.values():
+            if a.announced is not None and seen.get(a.id) != a.announced:
+                seen[a.id] = a.announced
+                said.append((t, a.level, a.text))
+            if (
+                ack_after is not None
+                and not a.acked
+                and a.announced is not None
+                and t - a.announced >= ack_after
+            ):
+                core.ack_alert(a.id)
+        t = round(t + 0.5, 3)
+    return said, core
+
+
 def measure(quick: bool = False) -> dict[str, Any]:
     seconds = 90.0 if quick else 600.0
     ep = f"tcp/127.0.0.1:{free_port('tcp')}"
@@ -119,6 +177,12 @@ def measure(quick: bool = False) -> dict[str, Any]:
     )
     feeder: subprocess.Popen[bytes] | None = None
     out: dict[str, Any] = {"alarm_agents": AGENTS, "alarm_flapping": FLAP, "alarm_wobbling": WOBBLE}
+    for key, ack in (("no_ack", None), ("ack_5s", ACK_AFTER_S)):  # the issue's demo, in virtual time
+        said, _ = demo_in_virtual_time(ack)
+        out[f"alarms_demo_virtual_{key}_per_10_min"] = len(said)
+        out[f"alarms_demo_virtual_{key}_critical_first_30_s"] = sum(
+            1 for t, lvl, _ in said if t < 30 and lvl == "critical"
+        )
     try:
         url = json.loads(station.wait_lines(1, 30)[0])["url"]
         t0 = time.monotonic()

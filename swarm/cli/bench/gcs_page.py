@@ -97,6 +97,24 @@ def percentile(values: list[float], q: float) -> float:
     return xs[lo] + (xs[hi] - xs[lo]) * (k - lo)
 
 
+#: collects the browser's long animation frames (its own timeline: frames whose work took
+#: over 50 ms, script and rendering) into ``window.__loaf`` (their durations, ms)
+LOAF_OBSERVER = """() => {
+  window.__loaf = [];
+  try {
+    new PerformanceObserver((list) => { for (const e of list.getEntries()) window.__loaf.push(e.duration); })
+      .observe({ type: "long-animation-frame" });
+  } catch (err) { /* a browser without it: none counted */ }
+}"""
+
+
+def _metrics(cdp: Any) -> dict[str, float]:
+    """Chromium's own counters (CDP Performance.getMetrics): seconds of task, script,
+    layout and style work on the page's main thread since it opened."""
+    got = cdp.send("Performance.getMetrics")["metrics"]
+    return {m["name"]: float(m["value"]) for m in got}
+
+
 def measure_frames(url: str, seconds: float, *, ready_timeout: float = 30.0) -> dict[str, Any]:
     """Open the page at ``url`` headless and measure its frame time for ``seconds``.
 
@@ -107,8 +125,11 @@ def measure_frames(url: str, seconds: float, *, ready_timeout: float = 30.0) -> 
         ``page_frame_ms_p50``, ``page_frame_ms_p95``, ``page_frame_ms_p99``,
         ``page_frame_ms_max``, ``frames``, ``long_frames`` (deltas over 50 ms),
         ``render_ms_p50`` and ``render_ms_p95`` (time the page spent drawing one snapshot),
-        ``states`` (snapshots received while measuring), ``markers`` and
-        ``seconds``.
+        ``states`` (snapshots received while measuring), from the browser's own timeline
+        ``page_main_thread_busy_percent`` (its main thread's task time over the window),
+        ``page_script_ms_per_s`` and ``page_layout_style_ms_per_s``, and
+        ``page_long_animation_frames`` (frames whose work took over 50 ms, as Chromium
+        reports them) with the longest; ``markers`` and ``seconds``.
 
     Raises:
         BrowserError: no browser, or the page drew no state within ``ready_timeout``.
@@ -127,9 +148,18 @@ def measure_frames(url: str, seconds: float, *, ready_timeout: float = 30.0) -> 
                 f"the page at {url} drew no agent in {ready_timeout:.0f} s: {exc}; page errors: {errors[-3:]}"
             ) from exc
         states0 = page.evaluate("window.gcs.stateCount")
+        # the browser's own timeline: its main thread's task time (CDP Performance) and the
+        # long animation frames it reports (work over 50 ms in one frame: PerformanceObserver)
+        cdp = ctx.new_cdp_session(page)
+        cdp.send("Performance.enable")
+        page.evaluate(LOAF_OBSERVER)
+        m0, w0 = _metrics(cdp), time.monotonic()
         page.evaluate("window.gcs.frameProbe.start()")
         time.sleep(seconds)
         deltas: list[float] = page.evaluate("window.gcs.frameProbe.stop()")
+        m1, w1 = _metrics(cdp), time.monotonic()
+        loafs: list[float] = page.evaluate("window.__loaf.splice(0)")
+        wall = max(1e-6, w1 - w0)
         renders: list[float] = page.evaluate("window.gcs.renderTimes()")
         states1 = page.evaluate("window.gcs.stateCount")
         markers = page.evaluate("window.gcs.markers")
@@ -144,6 +174,13 @@ def measure_frames(url: str, seconds: float, *, ready_timeout: float = 30.0) -> 
         "render_ms_p50": round(percentile(renders, 0.50), 2),
         "render_ms_p95": round(percentile(renders, 0.95), 2),
         "states": states1 - states0,
+        "page_main_thread_busy_percent": round(100.0 * (m1["TaskDuration"] - m0["TaskDuration"]) / wall, 1),
+        "page_script_ms_per_s": round(1000.0 * (m1["ScriptDuration"] - m0["ScriptDuration"]) / wall, 1),
+        "page_layout_style_ms_per_s": round(
+            1000.0 * sum(m1[k] - m0[k] for k in ("LayoutDuration", "RecalcStyleDuration")) / wall, 1
+        ),
+        "page_long_animation_frames": len(loafs),
+        "page_long_animation_frame_ms_max": round(max(loafs), 1) if loafs else 0.0,
         "markers": markers,
         "seconds": seconds,
         "page_errors": errors,

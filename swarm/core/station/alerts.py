@@ -351,22 +351,22 @@ class AlertBook:
         a.announced = now + self.wall_offset
         return True
 
-    def tick(self, now: float) -> list[Alert]:
+    def tick(self, now: float) -> list[Raised]:
         """Time passes: on-delays that ran out become alarms, shelves that ran out end
-        (an active alarm is announced again); the alarms that occurred or were announced."""
-        out: list[Alert] = []
+        (an active alarm is announced again); what occurred or was announced."""
+        out: list[Raised] = []
         for key, (since, level, text) in list(self._pending.items()):
             if now - since >= self.cfg.on_delay_s:
                 del self._pending[key]
                 r = self._occur(key, key[0], key[1], level, text, now)
                 if r.alert is not None and r.occurred:
-                    out.append(r.alert)
+                    out.append(r)
         t = now + self.wall_offset
         for a in self.alerts.values():
             if a.quiet == "shelved" and a.shelved_until is not None and t >= a.shelved_until:
                 a.quiet, a.shelved_until = None, None
                 if a.cleared is None and not a.acked and self._announce(a, now):
-                    out.append(a)
+                    out.append(Raised(a, False, True))
         return out
 
     def next_deadline(self) -> float:

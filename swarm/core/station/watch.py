@@ -97,8 +97,9 @@ class AlertWatch:
 
     def tick(self, now: float) -> None:
         """On-delays and shelves that ran out (:meth:`AlertBook.tick`): their lines."""
-        for a in self.book.tick(now):
-            self._log(a, a.announced is not None and a.quiet is None, now)
+        for r in self.book.tick(now):
+            if r.alert is not None:
+                self._log(r.alert, r.announced, now)
 
     def _clear(self, kind: str, agent: int, text: str, now: float) -> None:
         if self.book.clear(kind, agent, now) is not None:

@@ -263,6 +263,14 @@
     const fix = Number.isInteger(a.gps_fix) ? FIX_NAMES[a.gps_fix] || "fix " + a.gps_fix : "?";
     return fix + (Number.isInteger(a.satellites) ? " · " + a.satellites + " sat" : "");
   }
+  // why an autopilot will not arm: its latest reasons ("PreArm: ..."), the station's advisories
+  function notReadyWhy(a) {
+    const rows = S.state && Array.isArray(S.state.alerts) ? S.state.alerts : [];
+    const why = rows.filter((x) => x && x.agent === a.id && x.kind === "statustext" && x.level === "advisory"
+      && typeof x.text === "string").sort((x, y) => (y.last || 0) - (x.last || 0)).slice(0, 4)
+      .map((x) => x.text.replace(/^[^:]*\(\d+\): /, ""));
+    return why.length ? "the autopilot says: " + why.join("; ") : "the autopilot gives no reason yet";
+  }
   function readyText(a) {
     return a.ready === true ? "ready" : a.ready === false ? "not ready" : "—";
   }
@@ -503,6 +511,7 @@
     setText(c.gps, gpsText(a));
     setText(c.ready, readyText(a));
     c.ready.classList.toggle("bad", a.ready === false);
+    c.ready.title = a.ready === false ? notReadyWhy(a) : "";
     setText(c.battery, typeof a.battery === "number" ? fmt(a.battery, 0, "%") : "unknown");
     setText(c.link, linkText(a));
   }
@@ -666,7 +675,7 @@
     f("climb", fmt(a.climb, 1, "m/s"));
     f("home_dist", fmt(a.home_dist, 0, "m"));
     f("gps", gpsText(a));
-    f("ready", readyText(a) + (a.ready === false ? " (the autopilot's reason: the alarm list)" : ""));
+    f("ready", readyText(a) + (a.ready === false ? " (" + notReadyWhy(a) + ")" : ""));
     f("heading", fmt(a.heading, 0, "°"));
     f("battery", a.battery === null || a.battery === undefined ? "unknown" : fmt(a.battery, 0, "%"));
     f("rssi", (a.rssi ?? "—") + " / " + (a.remrssi ?? "—"));

@@ -316,8 +316,8 @@ def test_the_top_bar_shows_all_it_holds_at_1400_px(live: Live, page: Any) -> Non
 def test_twenty_rows_fit_at_1400_by_900_and_the_map_keeps_its_room(live: Live, page: Any) -> None:
     """The table's rows (every column: climb, home, GPS, ready...) are compact: with 20
     agents (the real rows, cloned in one task) all 20 show without scrolling at
-    1400 x 900, on one line each, every column in view, and the map keeps a third of the window (less the alarm
-    banner's fixed height when earlier tests left alarms)."""
+    1400 x 900, on one line each, every column in view, and the map keeps a third of
+    the window (less the alarm banner's fixed height when earlier tests left alarms)."""
     page.set_viewport_size({"width": 1400, "height": 900})
     open_page(page, live.url, len(FLEET))
     out = page.evaluate(

@@ -86,7 +86,8 @@
     seq: 0,
     pending: new Map(),   // command id -> {cmd, resolve, timer}
     awaiting: null,       // {kind, what}: a command shown in progress, its result still to come
-    follow: null,         // {request, what}: a command the agents took, followed on their vehicles
+    follow: null,         // {request, what, note, agents}: a command the agents took, followed on their vehicles
+    followEnded: null,    // the "what" of the last follow-up that ended (its outcome is the last word)
     seenEvents: new Set(),
     target: null,         // the go-to target marker
     altTyped: false,      // the operator typed a go-to altitude
@@ -163,11 +164,19 @@
     if (S.seenEvents.size > 2000) S.seenEvents = new Set(Array.from(S.seenEvents).slice(-1000));
     const kind = String(e.kind || "event");
     const text = String(e.text || "");
-    const bad = /refus|reject|fail|denied|timeout|error|lost|disconnect|no_answer/i.test(kind + " " + text);
+    const bad = /refus|reject|fail|denied|timeout|error|lost|disconnect|no_answer|did_not_happen/i.test(kind + " " + text);
     log(from ? from + " · " + kind : kind, text, bad ? "refused" : "", e.t);
     // the result of a command the page showed as in progress (its vehicle was still at it)
     const m = kind === "command" && !from && S.awaiting ? /^([A-Z_]+) -> [^:]*: ([A-Z_]+)/.exec(text) : null;
-    if (m && m[1] === S.awaiting.kind && m[2] !== "IN_PROGRESS") {
+    // the station's follow-up lines (DONE, DID_NOT_HAPPEN, REPLACED) are followStatus's
+    const followLine = m && ["IN_PROGRESS", "DONE", "DID_NOT_HAPPEN", "REPLACED"].includes(m[2]);
+    const yes = m && (m[2] === "ACCEPTED" || m[2] === "CARRIED_OUT");
+    if (m && m[1] === S.awaiting.kind && !followLine && yes && S.followEnded === S.awaiting.what) {
+      S.awaiting = null;  // the vehicle's outcome already stands on the status line
+    } else if (m && m[1] === S.awaiting.kind && !followLine && yes && S.follow && S.follow.what === S.awaiting.what) {
+      S.follow.note = "";  // the agent's part is done; the station goes on following the vehicle
+      S.awaiting = null;
+    } else if (m && m[1] === S.awaiting.kind && !followLine) {
       const result = text.slice(text.indexOf(": ") + 2).replace(/ \[seq \d+\]$/, "");
       if (m[2] === "ACCEPTED") status(S.awaiting.what + ": accepted", true);
       else if (m[2] === "CARRIED_OUT") status(S.awaiting.what + ": carried out: " + result, true);
@@ -1035,7 +1044,12 @@
     // the station follows what the vehicle does with it: the status goes on from "accepted"
     if (!bad.length && Number.isInteger(r.request) && FOLLOWED.includes(String(cmd.kind))) {
       // request ids are per station (and per radio channel): the agents it went to, too
-      S.follow = { request: r.request, what, agents: cmd.target === "swarm" ? null : results.map((x) => x.agent) };
+      // the answer's own words stay in front while it goes on: the agent's "in progress: taking
+      // off to 10 m", the station's "carried out"; a plain "accepted" is what following means
+      const note = busy.length ? "in progress: " + busy.join("; ")
+        : results.some((x) => x.result === "CARRIED_OUT") ? "carried out (no answer; the telemetry shows it)" : "";
+      S.follow = { request: r.request, what, note, agents: cmd.target === "swarm" ? null : results.map((x) => x.agent) };
+      S.followEnded = null;
     }
   }
   const FOLLOWED = ["arm", "disarm", "stop", "takeoff", "goto", "land", "return", "set_mode"];
@@ -1049,19 +1063,23 @@
     const name = (a) => (rows.length > 1 ? a.name + ": " : "");
     const bad = by("DID_NOT_HAPPEN"), going = by("IN_PROGRESS"), done = by("DONE"), gone = by("REPLACED");
     let text;
+    const details = (list) => list.map((a) => (a.doing.text ? ": " + name(a) + a.doing.text : "")).join(";");
+    const front = f.note ? f.note + "; " : "";
     if (bad.length) text = [f.what + ": did not happen: " + bad.map((a) => name(a) + a.doing.text).join("; "), false];
-    else if (going.length) {
-      text = [f.what + ": in progress" + going.map((a) => (a.doing.text ? ": " + name(a) + a.doing.text : "")).join(";"),
-        false, "pending"];
-    } else if (done.length) text = [f.what + ": done" + done.map((a) => (a.doing.text ? ": " + name(a) + a.doing.text : "")).join(";"), true];
+    else if (going.length) text = [f.what + ": " + front + "in progress" + details(going), false, "pending"];
+    else if (done.length) text = [f.what + ": " + (f.note.startsWith("carried") ? front : "") + "done" + details(done), true];
     else if (gone.length) text = [f.what + ": replaced " + gone[0].doing.text, false, "pending"];
     if (!text || f.shown === text[0]) return;
     f.shown = text[0];
     status(text[0], text[1], text[2]);
-    if (!going.length) S.follow = null;
+    if (!going.length) {
+      S.followEnded = f.what;  // the vehicle's outcome is the last word (a late "accepted" does not undo it)
+      S.follow = null;
+    }
   }
 
   async function command(cmd) {
+    S.follow = null;  // the status line is this command's now (the last one's goes on in the panel)
     status(describe(cmd) + ": sending…", true);
     const r = await sendCommand(cmd);
     report(cmd, r);
@@ -1069,6 +1087,7 @@
   }
 
   function localRefusal(text) {
+    S.follow = null;
     log("refused", text, "refused");
     status(text, false);
   }

@@ -172,6 +172,13 @@ def test_the_page_switches_a_flying_vehicle_to_its_autopilots_hold_and_takes_it_
             DEADLINE,
             kids,
         )
+        # the page's own view, not only the API's: the confirmation names the mode the page shows
+        poll(
+            lambda: page.inner_text('#telemetry [data-field="mode"]') == "OFFBOARD",
+            "the page",
+            DEADLINE,
+            kids,
+        )
         assert page.locator("#mode-row").is_visible()
         options = page.eval_on_selector_all("#mode-select option", "os => os.map((o) => o.value)")
         assert options == ["AUTO.LOITER", "AUTO.RTL", "AUTO.LAND", "OFFBOARD"]  # PX4's, no manual mode

@@ -132,14 +132,17 @@ def test_the_page_shows_them_marked_injects_nothing_and_acknowledges_at_their_st
         row = "#alerts-banner .alert[data-station='gcsB'][data-kind='battery']"
         poll(lambda: page.locator(row).count() == 1, "B's alert in A's banner", DEADLINE)
         assert page.locator(row + " .alert-station").text_content() == "station gcsB"
-        evil = "#alerts-banner .alert[data-station='evil']"
-        poll(lambda: page.locator(evil).count() > 0, "evil's alerts in A's banner", DEADLINE)
+        # the banner keeps three rows (the criticals first): evil's warnings are in the list
+        page.click("#alarms-button")
+        evil = "#alarms-panel .alarm[data-station='evil']"
+        poll(lambda: page.locator(evil).count() > 0, "evil's alerts in A's alarm list", DEADLINE)
         shown = page.locator(evil + " .alert-text").first.text_content()
         assert shown is not None and shown.startswith(INJECT)  # shown as text
-        tags = "document.querySelectorAll('#alerts-banner img, #alerts-banner script').length"
-        assert page.evaluate(tags) == 0
+        places = "#alerts-banner img, #alerts-banner script, #alarms-panel img, #alarms-panel script"
+        assert page.evaluate(f"document.querySelectorAll('{places}').length") == 0
         assert page.evaluate("window.__pwned") is None
         screenshot(page, "gcs_stations.png")
+        page.click("#alarms-panel .alarms-close")
         # acknowledged on A's page: carried to B, B's own state says so
         page.locator(row + " button.alert-ack").click()
 

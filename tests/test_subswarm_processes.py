@@ -42,7 +42,12 @@ def test_six_agents_capped_at_three_form_two_swarms(tmp_path: Path, profile: str
         dep.start()
         swarms = poll(lambda: two_swarms(dep.state()), "two swarms of three at the station", DEADLINE)
         groups = sorted(sorted(s["members"]) for s in swarms)
-        assert groups == [[1, 2, 3], [4, 5, 6]], swarms
+        # two disjoint swarms of three covering all six (the cap's promise); which three go
+        # together is the block preference's (ids 1-3 and 4-6 when nothing is late, checked
+        # in virtual time by tests/test_caps.py): a loaded machine may pair them otherwise
+        assert [len(g) for g in groups] == [3, 3] and sorted(groups[0] + groups[1]) == [1, 2, 3, 4, 5, 6], (
+            swarms
+        )
         leaders = {s["leader"] for s in swarms}
         assert all(s["leader"] in s["members"] for s in swarms)
         url = dep.urls[0] + "api/command"
